@@ -1,0 +1,36 @@
+# Two set-up-to-result targets: `make demo` and `make test`. Both build .venv from scratch when needed.
+SHELL := /bin/bash
+PY ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+
+.PHONY: demo test setup sysdeps clean
+
+setup: $(STAMP)
+
+sysdeps:
+	@if ! dpkg -s libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null 2>&1; then \
+	  echo "Installing Mesa EGL (software rendering)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml constraints.txt | sysdeps
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -c constraints.txt -e '.[test]'
+	$(BIN)/pip install -q -c constraints.txt --no-deps pyrender==0.1.45
+	@touch $(STAMP)
+
+demo: setup sysdeps
+	$(BIN)/posegrasp scene --seed 0 --blocks 5 --out demo_out
+	@echo "Preview written to demo_out/ (overview.png, rgb.png, depth.png, mask.png, scene.json)"
+
+test: setup sysdeps
+	$(BIN)/python -m pytest -q
+
+clean:
+	rm -rf $(VENV) demo_out

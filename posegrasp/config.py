@@ -1,0 +1,72 @@
+"""Typed dataclass configuration loaded from TOML; unknown keys and wrong types are user errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+from posegrasp.errors import UserError
+
+C = TypeVar("C")
+
+
+def from_dict(cls: type[C], data: dict[str, Any], where: str = "config") -> C:
+    """Build dataclass ``cls`` from a (nested) dict, checking key names and value types."""
+    if not isinstance(data, dict):
+        raise UserError(f"{where}: expected a table, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise UserError(f"{where}: unknown key(s) {unknown}; valid keys are {sorted(names)}")
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        kwargs[key] = _coerce(hints[key], value, f"{where}.{key}")
+    return cls(**kwargs)
+
+
+def _coerce(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return from_dict(tp, value, where)
+    if origin is typing.Union or str(origin) == "<class 'types.UnionType'>":
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(args[0], value, where)
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            raise UserError(f"{where}: expected a list, got {value!r}")
+        args = typing.get_args(tp)
+        inner = args[0] if args else Any
+        out = [_coerce(inner, v, where) for v in value]
+        return tuple(out) if origin is tuple else out
+    if tp is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if tp in (int, str, bool) and not isinstance(value, tp) or (tp is int and isinstance(value, bool)):
+        raise UserError(f"{where}: expected {tp.__name__}, got {value!r}")
+    return value
+
+
+def load_toml(cls: type[C], path: str | Path | None, section: str | None = None) -> C:
+    """Load ``cls`` from a TOML file (optionally one ``[section]`` of it); defaults when ``path`` is None."""
+    if path is None:
+        return cls()
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"config file {path} does not exist") from None
+    except tomllib.TOMLDecodeError as e:
+        raise UserError(f"config file {path} is not valid TOML: {e}") from None
+    if section is not None:
+        data = data.get(section, {})
+    return from_dict(cls, data, where=str(path))
+
+
+def override(cfg: C, **changes: Any) -> C:
+    """Copy of ``cfg`` with the non-None ``changes`` applied (CLI flags override the file)."""
+    return dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
