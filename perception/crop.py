@@ -1,0 +1,92 @@
+"""DenseFusion's crop rule and point sampling (REFERENCE §2).
+
+Boxes are (rmin, rmax, cmin, cmax) in pixels, max exclusive. ``choose`` holds flat indices into a
+crop (row-major) of the pixels that are in the mask and have valid depth.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Box side lengths are rounded up to the next of these (DenseFusion's ``border_list``).
+BORDERS: tuple[int, ...] = (-1,) + tuple(range(40, 681, 40))
+
+
+def _round_side(side: int) -> int:
+    for lo, hi in zip(BORDERS[:-1], BORDERS[1:]):
+        if lo < side < hi:
+            return hi
+    return side
+
+
+def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """Tight (rmin, rmax, cmin, cmax) of a non-empty boolean mask, max exclusive."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        raise ValueError("empty mask has no bounding box")
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def crop_box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """DenseFusion crop of a mask in an (H, W) image: sides rounded up to 40, 80, ..., 680 px,
+    re-centred on the tight box, shifted to stay inside the image.
+
+    Returns (rmin, rmax, cmin, cmax), max exclusive. Unlike DenseFusion (fixed 480x640), the image
+    size comes from the mask, and a rounded side longer than the image is clipped to the image.
+    """
+    h, w = mask.shape
+    rmin, rmax, cmin, cmax = mask_bbox(mask)
+    r_b, c_b = _round_side(rmax - rmin), _round_side(cmax - cmin)
+    rc, cc = (rmin + rmax) // 2, (cmin + cmax) // 2
+    rmin, rmax = rc - r_b // 2, rc + r_b // 2
+    cmin, cmax = cc - c_b // 2, cc + c_b // 2
+    if rmin < 0:
+        rmax, rmin = rmax - rmin, 0
+    if cmin < 0:
+        cmax, cmin = cmax - cmin, 0
+    if rmax > h:
+        rmin, rmax = rmin - (rmax - h), h
+    if cmax > w:
+        cmin, cmax = cmin - (cmax - w), w
+    return max(rmin, 0), rmax, max(cmin, 0), cmax
+
+
+def sample_choose(valid: np.ndarray, num_points: int, rng: np.random.Generator) -> np.ndarray:
+    """Flat indices (num_points,) of True pixels of a crop-sized boolean array ``valid``.
+
+    More than ``num_points`` candidates: a random subset (without replacement, from ``rng``),
+    kept in raster order; fewer: all of them, padded by wrapping around (DenseFusion's rule).
+    Raises ValueError when there is no candidate at all.
+    """
+    idx = np.flatnonzero(valid.ravel())
+    if idx.size == 0:
+        raise ValueError("no valid pixel to sample points from")
+    if idx.size > num_points:
+        idx = np.sort(rng.choice(idx, size=num_points, replace=False))
+    elif idx.size < num_points:
+        idx = np.pad(idx, (0, num_points - idx.size), mode="wrap")
+    return idx.astype(np.int64)
+
+
+def remap_choose(choose: np.ndarray, crop_hw: tuple[int, int], out_size: int) -> np.ndarray:
+    """Map flat indices in an (h, w) crop to flat indices in the same crop resized to out_size^2."""
+    h, w = crop_hw
+    r, c = np.divmod(choose, w)
+    rr = np.minimum(((r + 0.5) * out_size / h).astype(np.int64), out_size - 1)
+    cc = np.minimum(((c + 0.5) * out_size / w).astype(np.int64), out_size - 1)
+    return rr * out_size + cc
+
+
+def backproject(depth: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int],
+                choose: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N, 3) in metres of the chosen crop pixels; depth (H, W) in metres."""
+    rmin, rmax, cmin, cmax = box
+    wc = cmax - cmin
+    r, c = np.divmod(choose, wc)
+    v = (r + rmin).astype(np.float64)
+    u = (c + cmin).astype(np.float64)
+    z = depth[r + rmin, c + cmin].astype(np.float64)
+    x = (u - K[0, 2]) * z / K[0, 0]
+    y = (v - K[1, 2]) * z / K[1, 1]
+    return np.stack([x, y, z], axis=1)

@@ -1,0 +1,141 @@
+"""Pose and segmentation metrics, exactly as the field computes them (REFERENCE §3).
+
+Poses are given as a rotation R (3, 3) and a translation t (3,) in metres, mapping model points
+(object frame, metres) into the camera frame. Distances are in metres, angles in degrees.
+Nearest neighbours are brute force in torch (``torch.cdist`` in chunks): no compiled extension.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import torch
+
+ADDSDirection = Literal["gt_to_est", "est_to_gt"]
+
+
+def _apply(R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Points (N, 3) in the object frame -> camera frame under (R, t)."""
+    return np.asarray(pts, dtype=np.float64) @ np.asarray(R, dtype=np.float64).T + np.asarray(t, dtype=np.float64)
+
+
+def nearest_distances(query: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor,
+                      chunk: int = 4096) -> np.ndarray:
+    """For each query point (Q, 3), the Euclidean distance to its nearest point in ref (M, 3)."""
+    q = torch.as_tensor(np.asarray(query, dtype=np.float64))
+    r = torch.as_tensor(np.asarray(ref, dtype=np.float64))
+    out = torch.empty(q.shape[0], dtype=torch.float64)
+    for s in range(0, q.shape[0], chunk):
+        # exact differences (not the matmul expansion), so results match a naive loop to 1e-15
+        d = torch.cdist(q[s:s + chunk], r, compute_mode="donot_use_mm_for_euclid_dist")  # (q, M)
+        out[s:s + chunk] = d.min(dim=1).values
+    return out.numpy()
+
+
+def add(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, pts: np.ndarray) -> float:
+    """ADD: mean distance between model points under the estimate and under the ground truth (m)."""
+    d = _apply(R_e, t_e, pts) - _apply(R_g, t_g, pts)
+    return float(np.linalg.norm(d, axis=1).mean())
+
+
+def adds(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, pts: np.ndarray,
+         direction: ADDSDirection = "gt_to_est") -> float:
+    """ADD-S (m): mean over points of the distance to the nearest point of the other model copy.
+
+    ``gt_to_est`` (default, BOP and YCB toolbox): each ground-truth-transformed point queries the
+    estimate-transformed points. ``est_to_gt``: the other way (DenseFusion's LineMOD evaluation).
+    """
+    pe, pg = _apply(R_e, t_e, pts), _apply(R_g, t_g, pts)
+    if direction == "gt_to_est":
+        return float(nearest_distances(pg, pe).mean())
+    if direction == "est_to_gt":
+        return float(nearest_distances(pe, pg).mean())
+    raise ValueError(f"unknown ADD-S direction {direction!r}")
+
+
+def rotation_error_deg(R_e: np.ndarray, R_g: np.ndarray) -> float:
+    """re = arccos(clip((trace(R_e R_g^T) - 1) / 2, -1, 1)) in degrees."""
+    c = (np.trace(np.asarray(R_e) @ np.asarray(R_g).T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def translation_error(t_e: np.ndarray, t_g: np.ndarray) -> float:
+    """te = ||t_e - t_g|| (m)."""
+    return float(np.linalg.norm(np.asarray(t_e, dtype=np.float64) - np.asarray(t_g, dtype=np.float64)))
+
+
+def ycb_auc(distances: np.ndarray | list[float], max_threshold: float = 0.1) -> float:
+    """Area under the accuracy-threshold curve up to ``max_threshold`` (m), as a percentage.
+
+    The YCB-Video toolbox rule (VOCap): distances above the threshold count as failures (inf),
+    accuracy at the k-th sorted finite distance is k / n over all n, the curve is closed at
+    ``max_threshold`` with the last accuracy (right endpoint), made monotone, and integrated.
+    """
+    d = np.asarray(distances, dtype=np.float64).copy()
+    n = d.size
+    if n == 0:
+        return float("nan")
+    d[d > max_threshold] = np.inf
+    d = np.sort(d)
+    acc = np.arange(1, n + 1, dtype=np.float64) / n
+    finite = np.isfinite(d)
+    d, acc = d[finite], acc[finite]
+    if d.size == 0:
+        return 0.0
+    mrec = np.concatenate([[0.0], d, [max_threshold]])
+    mpre = np.concatenate([[0.0], acc, [acc[-1]]])
+    mpre = np.maximum.accumulate(mpre)
+    i = np.nonzero(mrec[1:] != mrec[:-1])[0] + 1
+    return float(np.sum((mrec[i] - mrec[i - 1]) * mpre[i]) / max_threshold * 100.0)
+
+
+def accuracy_below(distances: np.ndarray | list[float], threshold: float = 0.02) -> float:
+    """Fraction of distances strictly below ``threshold`` (m): the "< 2 cm" accuracy, in [0, 1]."""
+    d = np.asarray(distances, dtype=np.float64)
+    return float(np.mean(d < threshold)) if d.size else float("nan")
+
+
+def accuracy_at_diameter(distances: np.ndarray | list[float], diameter: float, fraction: float = 0.1) -> float:
+    """LineMOD accuracy: fraction of distances strictly below ``fraction * diameter`` (m), in [0, 1]."""
+    return accuracy_below(distances, fraction * diameter)
+
+
+def threshold_curve(errors: np.ndarray | list[float], thresholds: np.ndarray) -> np.ndarray:
+    """Accuracy (fraction of errors <= each threshold) for an accuracy-vs-threshold plot."""
+    e = np.asarray(errors, dtype=np.float64)
+    if e.size == 0:
+        return np.full(len(thresholds), np.nan)
+    return (e[None, :] <= np.asarray(thresholds, dtype=np.float64)[:, None]).mean(axis=1)
+
+
+def confusion_matrix(pred: np.ndarray, label: np.ndarray, num_classes: int) -> np.ndarray:
+    """(num_classes, num_classes) int64 counts, rows = label class, columns = predicted class."""
+    p = np.asarray(pred, dtype=np.int64).ravel()
+    g = np.asarray(label, dtype=np.int64).ravel()
+    keep = (g >= 0) & (g < num_classes) & (p >= 0) & (p < num_classes)
+    return np.bincount(g[keep] * num_classes + p[keep], minlength=num_classes ** 2).reshape(num_classes, num_classes)
+
+
+def segmentation_scores(conf: np.ndarray) -> dict[str, object]:
+    """Per-class pixel accuracy and IoU from a confusion matrix, and their means (percentages).
+
+    PA_c = correct_c / label pixels of c; IoU_c = |pred AND label| / |pred OR label|. Classes
+    absent from the labels have no PA (nan) and are left out of mPA; a class in neither prediction
+    nor label has no IoU and is left out of mIoU (a class only predicted counts with IoU 0).
+    """
+    conf = np.asarray(conf, dtype=np.float64)
+    tp = np.diag(conf)
+    label_tot = conf.sum(axis=1)
+    pred_tot = conf.sum(axis=0)
+    union = label_tot + pred_tot - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pa = np.where(label_tot > 0, tp / label_tot, np.nan)
+        iou = np.where(union > 0, tp / union, np.nan)
+    present = label_tot > 0
+    return {
+        "pa": pa * 100.0,
+        "iou": iou * 100.0,
+        "mPA": float(np.nanmean(pa[present]) * 100.0) if present.any() else float("nan"),
+        "mIoU": float(np.nanmean(iou) * 100.0) if (union > 0).any() else float("nan"),
+    }

@@ -1,0 +1,270 @@
+"""Pose network: DenseFusion's dense per-point fusion of colour and geometry, extended by the
+paper's three parallel modules (PAM, CAM, GFEM), with per-point rotation, translation and
+confidence heads chosen per object.
+
+Inputs: an RGB crop (B, 3, S, S) normalised, ``choose`` (B, N) flat indices into the S x S crop of
+the pixels the N points come from, the points (B, N, 3) in the camera frame (m) and the object
+index (B,) (position of the object's BOP id in ``PoseNetConfig.obj_ids``). Output per point i: a
+unit quaternion (w, x, y, z), a translation offset t_i (the pose proposed by point i has
+t = points_i + t_i, m) and a confidence in (0, 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from perception.attention import CAM, GFEM, PAM
+
+
+@dataclass
+class PoseNetConfig:
+    """Pose net hyper-parameters (DenseFusion's values in comments).
+
+    obj_ids: BOP ids of the objects, one head each (their order = the object index). symmetric:
+    per object, whether its loss is ADD-S. num_points: N points per object (500 LineMOD / 1000 YCB).
+    crop_size: side (px) the RGB crop is resized to. backbone_width: ResNet18 base channels (64).
+    emb_dim: colour embedding per pixel (32). point_widths: per-point convs of geometry and colour
+    (64, 128). global_widths: convs before the average pool (512, 1024). head_widths: 1D-conv head
+    widths (640, 256, 128). use_pam / use_cam / use_gfem: the paper's modules (all False =
+    DenseFusion). gfem_channels: GFEM output width.
+    """
+
+    obj_ids: list[int] = field(default_factory=lambda: [1, 2, 3])
+    symmetric: list[bool] = field(default_factory=lambda: [False, False, False])
+    num_points: int = 500
+    crop_size: int = 80
+    backbone_width: int = 16
+    emb_dim: int = 32
+    point_widths: tuple[int, int] = (32, 64)
+    global_widths: tuple[int, int] = (128, 256)
+    head_widths: tuple[int, int, int] = (128, 64, 32)
+    use_pam: bool = True
+    use_cam: bool = True
+    use_gfem: bool = True
+    pam_reduction: int = 8
+    gfem_channels: int = 128
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.obj_ids)
+
+    @property
+    def fused_channels(self) -> int:
+        """Per-point fused width: 2 * p1 + 2 * p2 + g2 (1408 in DenseFusion)."""
+        return 2 * self.point_widths[0] + 2 * self.point_widths[1] + self.global_widths[1]
+
+    def validate(self) -> None:
+        """Raise ValueError on an unusable configuration."""
+        if len(self.obj_ids) == 0 or len(set(self.obj_ids)) != len(self.obj_ids):
+            raise ValueError("obj_ids must be a non-empty list of distinct BOP object ids")
+        if len(self.symmetric) != len(self.obj_ids):
+            raise ValueError("symmetric needs one flag per object id")
+        if self.num_points < 1 or self.crop_size < 8 or self.crop_size % 8:
+            raise ValueError("num_points must be >= 1 and crop_size a multiple of 8 (>= 8)")
+
+    def index_of(self, obj_id: int) -> int:
+        """Head index of a BOP object id."""
+        return self.obj_ids.index(obj_id)
+
+
+# ---------------------------------------------------------------------------- colour CNN (PSPNet)
+
+class BasicBlock(nn.Module):
+    """ResNet basic block (two 3x3 convs) with optional stride and dilation."""
+
+    def __init__(self, cin: int, cout: int, stride: int = 1, dilation: int = 1):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride, padding=dilation, dilation=dilation, bias=False)
+        self.bn1 = nn.BatchNorm2d(cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, 1, padding=dilation, dilation=dilation, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout)
+        self.down = None
+        if stride != 1 or cin != cout:
+            self.down = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = F.relu(self.bn1(self.conv1(x)), inplace=True)
+        y = self.bn2(self.conv2(y))
+        return F.relu(y + (x if self.down is None else self.down(x)), inplace=True)
+
+
+class DilatedResNet18(nn.Module):
+    """ResNet18 with output stride 8 (layers 3 and 4 dilated instead of strided): (B, 3, S, S) ->
+    (B, 8 * width, S / 8, S / 8)."""
+
+    def __init__(self, width: int):
+        super().__init__()
+        w = width
+        self.stem = nn.Sequential(nn.Conv2d(3, w, 7, 2, 3, bias=False), nn.BatchNorm2d(w), nn.ReLU(inplace=True),
+                                  nn.MaxPool2d(3, 2, 1))
+        self.layer1 = nn.Sequential(BasicBlock(w, w), BasicBlock(w, w))
+        self.layer2 = nn.Sequential(BasicBlock(w, 2 * w, stride=2), BasicBlock(2 * w, 2 * w))
+        self.layer3 = nn.Sequential(BasicBlock(2 * w, 4 * w, dilation=2), BasicBlock(4 * w, 4 * w, dilation=2))
+        self.layer4 = nn.Sequential(BasicBlock(4 * w, 8 * w, dilation=4), BasicBlock(8 * w, 8 * w, dilation=4))
+        self.out_channels = 8 * w
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.stem(x)  # (B, w, S/4, S/4)
+        x = self.layer2(self.layer1(x))  # (B, 2w, S/8, S/8)
+        return self.layer4(self.layer3(x))  # (B, 8w, S/8, S/8)
+
+
+class PSPModule(nn.Module):
+    """Pyramid pooling (bins 1, 2, 3, 6), each bin level through a 1x1 conv, upsampled and
+    concatenated with the input, then a 1x1 bottleneck conv."""
+
+    def __init__(self, cin: int, cout: int, sizes: tuple[int, ...] = (1, 2, 3, 6)):
+        super().__init__()
+        self.sizes = sizes
+        self.convs = nn.ModuleList(nn.Conv2d(cin, cin, 1, bias=False) for _ in sizes)
+        self.bottleneck = nn.Conv2d(cin * (len(sizes) + 1), cout, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        parts = [F.interpolate(conv(F.adaptive_avg_pool2d(x, s)), size=(h, w), mode="bilinear", align_corners=False)
+                 for s, conv in zip(self.sizes, self.convs)]
+        return F.relu(self.bottleneck(torch.cat(parts + [x], dim=1)))
+
+
+class PSPUp(nn.Module):
+    """x2 bilinear upsampling + 3x3 conv + PReLU."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, 3, padding=1)
+        self.act = nn.PReLU()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(self.conv(F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)))
+
+
+class ColorCNN(nn.Module):
+    """PSPNet on a dilated ResNet18, upsampled back to crop size: (B, 3, S, S) -> (B, emb_dim, S, S).
+
+    With width 64 the channels are DenseFusion's (512 -> PSP 1024 -> 256 -> 64 -> 64 -> 32). Unlike
+    DenseFusion there is no dropout and no log-softmax on the embedding.
+    """
+
+    def __init__(self, width: int, emb_dim: int):
+        super().__init__()
+        self.backbone = DilatedResNet18(width)
+        self.psp = PSPModule(8 * width, 16 * width)
+        self.up1 = PSPUp(16 * width, 4 * width)
+        self.up2 = PSPUp(4 * width, width)
+        self.up3 = PSPUp(width, width)
+        self.final = nn.Conv2d(width, emb_dim, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = self.psp(self.backbone(x))  # (B, 16w, S/8, S/8)
+        f = self.up3(self.up2(self.up1(f)))  # (B, w, S, S)
+        return self.final(f)
+
+
+# ---------------------------------------------------------------------------- fusion and heads
+
+class DenseFusionFeat(nn.Module):
+    """Per-point geometry (3 -> p1 -> p2) and colour (emb -> p1 -> p2) 1x1 convs, concatenated at both
+    levels, then p2*2 -> g1 -> g2 and average-pooled to a global feature repeated per point.
+
+    (B, 3, N), (B, emb, N) -> (B, 2 p1 + 2 p2 + g2, N) (1408 with DenseFusion's widths).
+    """
+
+    def __init__(self, emb_dim: int, point_widths: tuple[int, int], global_widths: tuple[int, int]):
+        super().__init__()
+        p1, p2 = point_widths
+        g1, g2 = global_widths
+        self.conv1 = nn.Conv1d(3, p1, 1)
+        self.conv2 = nn.Conv1d(p1, p2, 1)
+        self.e_conv1 = nn.Conv1d(emb_dim, p1, 1)
+        self.e_conv2 = nn.Conv1d(p1, p2, 1)
+        self.conv5 = nn.Conv1d(2 * p2, g1, 1)
+        self.conv6 = nn.Conv1d(g1, g2, 1)
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        x = F.relu(self.conv1(x))
+        emb = F.relu(self.e_conv1(emb))
+        feat1 = torch.cat([x, emb], dim=1)  # (B, 2 p1, N)
+        x = F.relu(self.conv2(x))
+        emb = F.relu(self.e_conv2(emb))
+        feat2 = torch.cat([x, emb], dim=1)  # (B, 2 p2, N)
+        g = F.relu(self.conv6(F.relu(self.conv5(feat2))))  # (B, g2, N)
+        g = g.mean(dim=2, keepdim=True).expand(-1, -1, x.shape[2])
+        return torch.cat([feat1, feat2, g], dim=1)
+
+
+class PointHead(nn.Sequential):
+    """1D-conv head cin -> widths... -> num_objects * out_dim (ReLU between, none at the end)."""
+
+    def __init__(self, cin: int, widths: tuple[int, ...], out: int):
+        layers: list[nn.Module] = []
+        for w in widths:
+            layers += [nn.Conv1d(cin, w, 1), nn.ReLU(inplace=True)]
+            cin = w
+        layers.append(nn.Conv1d(cin, out, 1))
+        super().__init__(*layers)
+
+
+def select_object(x: torch.Tensor, obj: torch.Tensor, dim: int) -> torch.Tensor:
+    """(B, num_obj * dim, N) -> (B, N, dim) taking each sample's object's slice."""
+    B, _, N = x.shape
+    x = x.view(B, -1, dim, N)
+    return x[torch.arange(B, device=x.device), obj].transpose(1, 2)
+
+
+def gather_embedding(emb: torch.Tensor, choose: torch.Tensor) -> torch.Tensor:
+    """Per-pixel embedding (B, E, S, S) at flat indices ``choose`` (B, N) -> (B, E, N)."""
+    B, E = emb.shape[:2]
+    return emb.reshape(B, E, -1).gather(2, choose[:, None, :].expand(-1, E, -1))
+
+
+class PoseNet(nn.Module):
+    """Colour CNN + DenseFusion fusion + [PAM, CAM, GFEM] in parallel + per-object point heads."""
+
+    def __init__(self, cfg: PoseNetConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.cnn = ColorCNN(cfg.backbone_width, cfg.emb_dim)
+        self.feat = DenseFusionFeat(cfg.emb_dim, cfg.point_widths, cfg.global_widths)
+        c = cfg.fused_channels
+        self.pam = PAM(c, cfg.pam_reduction) if cfg.use_pam else None
+        self.cam = CAM() if cfg.use_cam else None
+        self.gfem = GFEM(c, cfg.gfem_channels) if cfg.use_gfem else None
+        cin = c + c * cfg.use_pam + c * cfg.use_cam + cfg.gfem_channels * cfg.use_gfem
+        k = cfg.num_objects
+        self.head_r = PointHead(cin, cfg.head_widths, 4 * k)
+        self.head_t = PointHead(cin, cfg.head_widths, 3 * k)
+        self.head_c = PointHead(cin, cfg.head_widths, 1 * k)
+
+    def embed(self, img: torch.Tensor, choose: torch.Tensor) -> torch.Tensor:
+        """Colour embedding of the chosen pixels: (B, 3, S, S), (B, N) -> (B, emb_dim, N)."""
+        return gather_embedding(self.cnn(img), choose)
+
+    def forward(self, img: torch.Tensor, points: torch.Tensor, choose: torch.Tensor, obj: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Returns q (B, N, 4) unit, t offsets (B, N, 3) m, confidence (B, N), embedding (B, E, N)
+        (detached, for the refiner)."""
+        emb = self.embed(img, choose)  # (B, E, N)
+        fused = self.feat(points.transpose(1, 2), emb)  # (B, C, N)
+        parts = [fused]
+        if self.pam is not None:
+            parts.append(self.pam(fused))
+        if self.cam is not None:
+            parts.append(self.cam(fused))
+        if self.gfem is not None:
+            parts.append(self.gfem(fused))
+        x = torch.cat(parts, dim=1)  # (B, C_in, N)
+        q = select_object(self.head_r(x), obj, 4)
+        q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        t = select_object(self.head_t(x), obj, 3)
+        c = torch.sigmoid(select_object(self.head_c(x), obj, 1))[..., 0]
+        return q, t, c, emb.detach()
+
+
+def build_pose_net(cfg: PoseNetConfig) -> PoseNet:
+    """The pose net for ``cfg`` (random init; no pretrained weights)."""
+    return PoseNet(cfg)

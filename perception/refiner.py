@@ -1,0 +1,117 @@
+"""DenseFusion's iterative pose refiner.
+
+Each iteration maps the points into the frame of the current estimate T (R^T (p - t)), computes a
+global feature from them and the pose net's per-point colour embedding, and regresses a delta pose
+dT (quaternion (w, x, y, z) and translation, m) per object; the estimate becomes T x dT.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from perception.torch_geometry import make_transform, quat_to_rotmat
+
+
+@dataclass
+class RefinerConfig:
+    """Refiner hyper-parameters (DenseFusion's values in comments).
+
+    obj_ids / symmetric: as the pose net's. emb_dim: the pose net's embedding width (32).
+    point_widths (64, 128), global_widths (512, 1024), fc_widths (512, 128): layer widths.
+    iterations: refinement steps at inference (2 for YCB, 4 for LineMOD).
+    """
+
+    obj_ids: list[int] = field(default_factory=lambda: [1, 2, 3])
+    symmetric: list[bool] = field(default_factory=lambda: [False, False, False])
+    emb_dim: int = 32
+    point_widths: tuple[int, int] = (32, 64)
+    global_widths: tuple[int, int] = (128, 256)
+    fc_widths: tuple[int, int] = (128, 64)
+    iterations: int = 2
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.obj_ids)
+
+
+class RefinerFeat(nn.Module):
+    """Per-point geometry/colour convs, both levels concatenated (2 p1 + 2 p2), then g1 -> g2 and
+    average pooling: (B, 3, N), (B, E, N) -> (B, g2)."""
+
+    def __init__(self, emb_dim: int, point_widths: tuple[int, int], global_widths: tuple[int, int]):
+        super().__init__()
+        p1, p2 = point_widths
+        g1, g2 = global_widths
+        self.conv1 = nn.Conv1d(3, p1, 1)
+        self.conv2 = nn.Conv1d(p1, p2, 1)
+        self.e_conv1 = nn.Conv1d(emb_dim, p1, 1)
+        self.e_conv2 = nn.Conv1d(p1, p2, 1)
+        self.conv5 = nn.Conv1d(2 * p1 + 2 * p2, g1, 1)
+        self.conv6 = nn.Conv1d(g1, g2, 1)
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        x = F.relu(self.conv1(x))
+        emb = F.relu(self.e_conv1(emb))
+        feat1 = torch.cat([x, emb], dim=1)  # (B, 2 p1, N)
+        x = F.relu(self.conv2(x))
+        emb = F.relu(self.e_conv2(emb))
+        feat2 = torch.cat([x, emb], dim=1)  # (B, 2 p2, N)
+        x = torch.cat([feat1, feat2], dim=1)  # (B, 2 p1 + 2 p2, N)
+        x = F.relu(self.conv6(F.relu(self.conv5(x))))  # (B, g2, N)
+        return x.mean(dim=2)  # (B, g2)
+
+
+def _mlp(cin: int, widths: tuple[int, ...], out: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for w in widths:
+        layers += [nn.Linear(cin, w), nn.ReLU(inplace=True)]
+        cin = w
+    layers.append(nn.Linear(cin, out))
+    return nn.Sequential(*layers)
+
+
+class PoseRefiner(nn.Module):
+    """Global feature + two fully connected heads (delta quaternion, delta translation) per object."""
+
+    def __init__(self, cfg: RefinerConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.feat = RefinerFeat(cfg.emb_dim, cfg.point_widths, cfg.global_widths)
+        k = cfg.num_objects
+        self.fc_r = _mlp(cfg.global_widths[1], cfg.fc_widths, 4 * k)
+        self.fc_t = _mlp(cfg.global_widths[1], cfg.fc_widths, 3 * k)
+
+    def forward(self, points: torch.Tensor, emb: torch.Tensor, obj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """points (B, N, 3) in the current estimate's frame (m), emb (B, E, N), obj (B,) ->
+        dq (B, 4) unit quaternion, dt (B, 3) m."""
+        g = self.feat(points.transpose(1, 2), emb)  # (B, g2)
+        B = g.shape[0]
+        ar = torch.arange(B, device=g.device)
+        dq = self.fc_r(g).view(B, -1, 4)[ar, obj]
+        dq = dq / dq.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        dt = self.fc_t(g).view(B, -1, 3)[ar, obj]
+        return dq, dt
+
+
+def to_estimate_frame(points: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """Camera-frame points (B, N, 3) -> frame of the estimates T (B, 4, 4): R^T (p - t)."""
+    return torch.bmm(points - T[:, None, :3, 3], T[:, :3, :3])
+
+
+@torch.no_grad()
+def refine(refiner: PoseRefiner, T: torch.Tensor, points: torch.Tensor, emb: torch.Tensor, obj: torch.Tensor,
+           iterations: int) -> torch.Tensor:
+    """Apply ``iterations`` refinement steps to the poses T (B, 4, 4) (T_cam_obj, m): T <- T x dT."""
+    for _ in range(iterations):
+        dq, dt = refiner(to_estimate_frame(points, T), emb, obj)
+        T = torch.bmm(T, make_transform(quat_to_rotmat(dq), dt))
+    return T
+
+
+def build_refiner(cfg: RefinerConfig) -> PoseRefiner:
+    """The refiner for ``cfg`` (random init)."""
+    return PoseRefiner(cfg)

@@ -1,0 +1,75 @@
+"""Output shapes of the segmentation net, the pose net (with and without attention) and the refiner."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from perception.pose_net import PoseNetConfig, build_pose_net
+from perception.refiner import RefinerConfig, build_refiner, refine
+from perception.seg_net import SegNetConfig, build_seg_net, seg_loss
+
+torch.set_num_threads(2)
+
+
+def test_seg_net_structure_and_shapes():
+    cfg = SegNetConfig(num_classes=4, width=0.125, input_size=(96, 128))
+    net = build_seg_net(cfg)
+    convs = [m for m in net.encoder.modules() if isinstance(m, torch.nn.Conv2d)]
+    pools = [m for m in net.encoder.modules() if isinstance(m, torch.nn.MaxPool2d)]
+    assert len(convs) == 16 and len(net.encoder.stages) == 5 and len(pools) == 1  # one pool used 5 times
+    assert [c.out_channels for c in convs[:13]] == [8, 8, 16, 16, 32, 32, 32, 64, 64, 64, 64, 64, 64]
+    assert [len(m.enc_convs) for m in (net.mffm1, net.mffm2, net.mffm3)] == [1, 2, 3]
+    assert all(c[0].out_channels == 8 for m in (net.mffm1, net.mffm2, net.mffm3) for c in m.enc_convs)
+    assert net.mffm2.prev_conv[0].out_channels == net.mffm2.prev_conv[0].in_channels
+    x = torch.randn(2, 3, 96, 128)
+    logits = net(x)
+    assert logits.shape == (2, 4, 96, 128)
+    loss = seg_loss(logits, torch.zeros(2, 96, 128, dtype=torch.long))
+    loss.backward()
+    full = SegNetConfig(width=1.0)
+    assert full.scaled(64) == 64 and full.scaled(512) == 512
+
+
+@pytest.mark.parametrize("attention", [True, False])
+def test_pose_net_and_refiner_shapes(attention):
+    cfg = PoseNetConfig(obj_ids=[1, 2, 5], symmetric=[False, True, False], num_points=64, crop_size=32,
+                        backbone_width=8, use_pam=attention, use_cam=attention, use_gfem=attention)
+    net = build_pose_net(cfg)
+    B, N = 3, cfg.num_points
+    img = torch.randn(B, 3, 32, 32)
+    pts = torch.randn(B, N, 3) * 0.02 + torch.tensor([0.0, 0.0, 0.5])
+    choose = torch.randint(0, 32 * 32, (B, N))
+    obj = torch.tensor([0, 2, 1])
+    q, t, c, emb = net(img, pts, choose, obj)
+    assert q.shape == (B, N, 4) and t.shape == (B, N, 3) and c.shape == (B, N) and emb.shape == (B, 32, N)
+    torch.testing.assert_close(q.norm(dim=-1), torch.ones(B, N))
+    assert float(c.detach().min()) > 0 and float(c.detach().max()) < 1
+    assert (net.pam is None) != attention and (net.cam is None) != attention and (net.gfem is None) != attention
+    rcfg = RefinerConfig(obj_ids=cfg.obj_ids, symmetric=cfg.symmetric)
+    ref = build_refiner(rcfg)
+    dq, dt = ref(pts, emb, obj)
+    assert dq.shape == (B, 4) and dt.shape == (B, 3)
+    T = torch.eye(4).repeat(B, 1, 1)
+    T2 = refine(ref, T, pts, emb, obj, iterations=2)
+    assert T2.shape == (B, 4, 4)
+    torch.testing.assert_close(T2[:, :3, :3] @ T2[:, :3, :3].transpose(1, 2), torch.eye(3).repeat(B, 1, 1),
+                               atol=1e-5, rtol=0)
+
+
+def test_head_is_chosen_per_object():
+    cfg = PoseNetConfig(obj_ids=[1, 2], symmetric=[False, False], num_points=16, crop_size=16, backbone_width=4)
+    net = build_pose_net(cfg).eval()
+    img, pts = torch.randn(1, 3, 16, 16), torch.randn(1, 16, 3)
+    choose = torch.arange(16)[None]
+    with torch.no_grad():
+        a = net(img, pts, choose, torch.tensor([0]))
+        b = net(img, pts, choose, torch.tensor([1]))
+    assert not torch.allclose(a[1], b[1]) and torch.equal(a[3], b[3])
+
+
+def test_config_validation():
+    with pytest.raises(ValueError):
+        build_seg_net(SegNetConfig(input_size=(16, 320)))
+    with pytest.raises(ValueError):
+        build_pose_net(dataclasses.replace(PoseNetConfig(), symmetric=[True]))
