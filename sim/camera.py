@@ -1,0 +1,105 @@
+"""Rendering RGB, metric depth and instance masks from a workcell camera, in the OpenCV convention.
+
+This is the one place that converts MuJoCo's camera frame (x right, y up, looking along -z) to OpenCV's
+(x right, y down, z forward): ``T_world_cv = T_world_mj @ T_CV_MJ``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from posegrasp.geometry import axis_angle_R, invert
+
+#: Pose of the OpenCV camera frame in the MuJoCo camera frame (flip y and z); it is its own inverse.
+T_CV_MJ = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def rpy_deg_to_R(rpy_deg) -> np.ndarray:
+    """Rotation from extrinsic x-y-z angles in degrees: Rz @ Ry @ Rx."""
+    r, p, y = np.deg2rad(rpy_deg)
+    return axis_angle_R([0, 0, 1], y) @ axis_angle_R([0, 1, 0], p) @ axis_angle_R([1, 0, 0], r)
+
+
+def intrinsics(width: int, height: int, fovy_deg: float) -> np.ndarray:
+    """K (3x3, pixels) of a MuJoCo camera: fx = fy = 0.5 H / tan(fovy / 2), principal point at the centre."""
+    f = 0.5 * height / np.tan(np.deg2rad(fovy_deg) / 2)
+    return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class Frame:
+    """One RGB-D capture with its labels.
+
+    rgb (H, W, 3) uint8; depth (H, W) float32 metres along the optical axis, 0 where invalid;
+    mask (H, W) uint16 with 0 background and k for scene block k; K (3, 3); T_world_cam (4, 4, OpenCV);
+    T_cam_obj (K, 4, 4) for every block of the scene, visible or not; obj_ids (K,) catalogue ids.
+    """
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    mask: np.ndarray
+    K: np.ndarray
+    T_world_cam: np.ndarray
+    T_cam_obj: np.ndarray
+    obj_ids: np.ndarray
+    extra: dict = field(default_factory=dict)
+
+
+class CameraRenderer:
+    """Offscreen renderer for one camera of a workcell (one GL context; reuse it for many frames)."""
+
+    def __init__(self, workcell, camera: str, width: int, height: int, fovy_deg: float,
+                 near: float = 0.15, far: float = 2.0, shadows: bool = False, reflections: bool = False):
+        self.wc = workcell
+        self.camera = camera
+        self.cam_id = workcell.camera_ids[camera]
+        self.near, self.far = near, far
+        self.K = intrinsics(width, height, fovy_deg)
+        self.renderer = mujoco.Renderer(workcell.model, height=height, width=width)
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = reflections
+        self.option = mujoco.MjvOption()  # groups 0-2 visible: collision primitives (group 3) are hidden
+
+    def close(self) -> None:
+        self.renderer.close()
+
+    def _update(self) -> None:
+        self.renderer.update_scene(self.wc.data, camera=self.cam_id, scene_option=self.option)
+
+    def rgb(self) -> np.ndarray:
+        """Colour image (H, W, 3) uint8."""
+        self.renderer.disable_depth_rendering()
+        self.renderer.disable_segmentation_rendering()
+        self._update()
+        return self.renderer.render().copy()
+
+    def depth(self) -> np.ndarray:
+        """Metric depth along the optical axis (H, W) float32; 0 outside [near, far] and on background."""
+        self.renderer.disable_segmentation_rendering()
+        self.renderer.enable_depth_rendering()
+        self._update()
+        d = self.renderer.render().astype(np.float32)
+        self.renderer.disable_depth_rendering()
+        d[(d < self.near) | (d > self.far)] = 0.0
+        return d
+
+    def mask(self) -> np.ndarray:
+        """Instance mask (H, W) uint16: 0 background and robot, k where block k is visible."""
+        self.renderer.disable_depth_rendering()
+        self.renderer.enable_segmentation_rendering()
+        self._update()
+        seg = self.renderer.render()
+        self.renderer.disable_segmentation_rendering()
+        ids = np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)
+        return self.wc.geom_instance[ids].astype(np.uint16)
+
+    def capture(self) -> Frame:
+        """RGB, depth and mask of the current state, with K, the camera pose and every block's ``T_cam_obj``."""
+        T_world_cam = self.wc.camera_pose(self.camera)
+        T_cam_world = invert(T_world_cam)
+        T_cam_obj = np.einsum("ij,kjl->kil", T_cam_world, self.wc.block_poses())
+        obj_ids = np.array([b.block.obj_id for b in self.wc.blocks], dtype=int)
+        return Frame(self.rgb(), self.depth(), self.mask(), self.K.copy(), T_world_cam, T_cam_obj, obj_ids)

@@ -1,0 +1,72 @@
+"""Typed settings of the workcell: table, areas, hand camera, rendering, scene randomisation.
+
+Lengths in metres, angles in degrees where the name says ``_deg``. ``assets/workcell.toml`` ships
+these defaults; any field can be overridden from a TOML file of the same layout.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from posegrasp import ASSETS
+from posegrasp.config import load_toml
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """A pinhole RGB-D camera. ``mount_*`` give ``T_gripper_cam`` (OpenCV camera frame in the gripper frame).
+
+    The gripper frame is the hand's pinch site: z along the approach direction, x across the fingers.
+    ``mount_rpy_deg`` are extrinsic x-y-z rotations. Depth outside [near, far] reads 0 (invalid).
+    """
+
+    width: int = 640
+    height: int = 480
+    fovy_deg: float = 55.0
+    near: float = 0.15
+    far: float = 2.0
+    mount_pos: tuple[float, float, float] = (0.0, 0.065, -0.11)
+    mount_rpy_deg: tuple[float, float, float] = (12.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Renderer settings; shadows and reflections cost ~6x frame rate on the CPU, so they are off."""
+
+    shadows: bool = False
+    reflections: bool = False
+
+
+@dataclass(frozen=True)
+class AreaConfig:
+    """An axis-aligned rectangle on the table top: centre (x, y) and half sizes (m), world frame."""
+
+    center: tuple[float, float] = (0.45, 0.0)
+    half_size: tuple[float, float] = (0.12, 0.15)
+
+
+@dataclass(frozen=True)
+class WorkcellConfig:
+    """Everything that defines the workcell; the world frame is the arm base on the table top, z up."""
+
+    table_half_size: tuple[float, float, float] = (0.55, 0.75, 0.02)
+    table_center: tuple[float, float] = (0.3, 0.0)
+    pick_area: AreaConfig = field(default_factory=AreaConfig)
+    place_area: AreaConfig = field(default_factory=lambda: AreaConfig(center=(0.1, 0.45), half_size=(0.07, 0.07)))
+    hand_camera: CameraConfig = field(default_factory=CameraConfig)
+    overview_camera: CameraConfig = field(default_factory=lambda: CameraConfig(fovy_deg=45.0))
+    overview_pos: tuple[float, float, float] = (1.45, -0.7, 1.05)
+    overview_target: tuple[float, float, float] = (0.25, 0.1, 0.2)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    look_height: float = 0.38
+    home_qpos: tuple[float, ...] = (-0.37, 3.34, 5.10, 2.65, 1.64, 2.28)
+    timestep: float = 0.002
+
+
+DEFAULT_TOML = ASSETS / "workcell.toml"
+
+
+def load_workcell_config(path: str | Path | None = None) -> WorkcellConfig:
+    """Workcell settings from ``path``, or the shipped ``assets/workcell.toml``."""
+    return load_toml(WorkcellConfig, path if path is not None else DEFAULT_TOML)

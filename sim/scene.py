@@ -1,0 +1,169 @@
+"""Randomised scenes by seed: blocks dropped into the pick area and settled by simulation.
+
+``make_scene(seed, n_blocks)`` always gives the same scene for the same seed, settings and MuJoCo version.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from posegrasp.catalog import BlockType, load_catalog
+from posegrasp.errors import UserError
+from posegrasp.geometry import make_T, quat_to_R
+from sim.config import WorkcellConfig
+from sim.workcell import BlockInstance, Workcell
+
+#: Block colours (RGB): saturated toy colours and dull, nearly textureless greys and browns.
+PALETTE: tuple[tuple[float, float, float], ...] = (
+    (0.80, 0.10, 0.10), (0.10, 0.35, 0.80), (0.95, 0.75, 0.10), (0.10, 0.60, 0.25),
+    (0.95, 0.45, 0.05), (0.55, 0.20, 0.65), (0.92, 0.92, 0.90), (0.15, 0.15, 0.17),
+    (0.55, 0.55, 0.55), (0.45, 0.33, 0.22), (0.70, 0.62, 0.50), (0.30, 0.70, 0.80),
+)
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """How scenes are randomised. ``block_types`` empty means every catalogue type."""
+
+    block_types: tuple[str, ...] = ()
+    palette: tuple[tuple[float, float, float], ...] = PALETTE
+    min_spacing: float = 0.055  # minimum distance (m) between drop positions in the plane
+    drop_height: float = 0.03  # lowest point of a block above the table when dropped (m)
+    settle_timeout: float = 4.0  # simulated seconds
+    rest_speed: tuple[float, float] = (0.003, 0.1)  # linear m/s, angular rad/s
+    light_intensity: tuple[float, float] = (0.35, 0.8)
+    workcell: WorkcellConfig = field(default_factory=WorkcellConfig)
+
+
+def area_capacity(cfg: SceneConfig) -> int:
+    """How many blocks fit in the pick area at ``min_spacing`` (a hexagonal packing bound)."""
+    hx, hy = cfg.workcell.pick_area.half_size
+    s = cfg.min_spacing
+    return int((2 * hx // s + 1) * (2 * hy // (s * np.sqrt(3) / 2) + 1) * 0.5)
+
+
+def _choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[BlockType]:
+    cat = load_catalog()
+    names = list(cfg.block_types) or list(cat)
+    unknown = [t for t in names if t not in cat]
+    if unknown:
+        raise UserError(f"unknown block type(s) {unknown}; known types: {', '.join(cat)}")
+    return [cat[names[i]] for i in rng.integers(0, len(names), size=n)]
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    return quat_to_R(q / np.linalg.norm(q))
+
+
+class Scene:
+    """A settled scene: the workcell with its blocks at rest in the pick area."""
+
+    def __init__(self, workcell: Workcell, seed: int, cfg: SceneConfig):
+        self.workcell = workcell
+        self.seed = seed
+        self.cfg = cfg
+
+    @property
+    def blocks(self) -> list[BlockInstance]:
+        return self.workcell.blocks
+
+    def in_pick_area(self, margin: float = 0.0) -> np.ndarray:
+        """Per block: is its centre inside the pick area (grown by ``margin`` m)?"""
+        a = self.cfg.workcell.pick_area
+        xy = self.workcell.block_poses()[:, :2, 3]
+        return np.all(np.abs(xy - a.center) <= np.add(a.half_size, margin), axis=1)
+
+    def max_penetration(self) -> float:
+        """Deepest contact penetration (m, >= 0) involving any block."""
+        m, d = self.workcell.model, self.workcell.data
+        blocks = set(self.workcell.block_body.tolist())
+        worst = 0.0
+        for c in d.contact[: d.ncon]:
+            if m.geom_bodyid[c.geom1] in blocks or m.geom_bodyid[c.geom2] in blocks:
+                worst = max(worst, -float(c.dist))
+        return worst
+
+
+def _drop_positions(cfg: SceneConfig, blocks: list[BlockType], rng: np.random.Generator) -> list[np.ndarray]:
+    """Poses above the pick area, random orientation, at least ``min_spacing`` apart in the plane."""
+    a = cfg.workcell.pick_area
+    placed: list[np.ndarray] = []
+    poses = []
+    for b in blocks:
+        r = 0.5 * b.diameter
+        lo = np.subtract(a.center, a.half_size) + 0.5 * r
+        hi = np.add(a.center, a.half_size) - 0.5 * r
+        for _ in range(1000):
+            xy = rng.uniform(lo, hi)
+            if all(np.linalg.norm(xy - p) >= cfg.min_spacing for p in placed):
+                break
+        else:
+            raise UserError(f"could not place {len(blocks)} blocks in the pick area; use fewer blocks "
+                            f"(at most about {area_capacity(cfg)}) or a smaller min_spacing")
+        placed.append(xy)
+        R = _random_rotation(rng)
+        poses.append(make_T(R, (xy[0], xy[1], cfg.drop_height + r)))
+    return poses
+
+
+def settle(workcell: Workcell, cfg: SceneConfig) -> bool:
+    """Step physics with the arm held in place until every block is at rest; False on timeout."""
+    m = workcell.model
+    hold = workcell.arm_q
+    steps = max(1, round(0.02 / m.opt.timestep))
+    rest_for = 0
+    for _ in range(int(cfg.settle_timeout / 0.02)):
+        workcell.command_arm(4.0 * (hold - workcell.arm_q) + workcell.gravity_feedforward())
+        workcell.step(steps)
+        v = workcell.block_speeds()
+        rest_for = rest_for + 1 if np.all(v[:, 0] < cfg.rest_speed[0]) and np.all(v[:, 1] < cfg.rest_speed[1]) else 0
+        if rest_for >= 10:
+            return True
+    return False
+
+
+def randomise_lights(workcell: Workcell, cfg: SceneConfig, rng: np.random.Generator) -> None:
+    """Light positions, directions (toward the pick area) and intensities from ``rng``."""
+    m = workcell.model
+    c = np.array([*cfg.workcell.pick_area.center, 0.0])
+    for i in range(m.nlight):
+        pos = c + np.array([rng.uniform(-0.8, 0.8), rng.uniform(-0.8, 0.8), rng.uniform(0.8, 1.6)])
+        m.light_pos[i] = pos
+        m.light_dir[i] = (c - pos) / np.linalg.norm(c - pos)
+        m.light_diffuse[i] = rng.uniform(*cfg.light_intensity) * np.ones(3) * rng.uniform(0.9, 1.0, 3)
+    m.vis.headlight.ambient[:] = rng.uniform(0.15, 0.35)
+    m.vis.headlight.diffuse[:] = rng.uniform(0.2, 0.45)
+
+
+def make_scene(seed: int, n_blocks: int, cfg: SceneConfig | None = None, max_attempts: int = 5) -> Scene:
+    """Build and settle a random scene of ``n_blocks`` blocks; the arm starts at home.
+
+    If a block ends outside the pick area, all blocks are dropped again (same rng stream), up to ``max_attempts``.
+    """
+    cfg = cfg or SceneConfig()
+    if not isinstance(n_blocks, (int, np.integer)) or n_blocks < 1:
+        raise UserError(f"number of blocks must be a positive integer, got {n_blocks!r}")
+    cap = area_capacity(cfg)
+    if n_blocks > cap:
+        raise UserError(f"{n_blocks} blocks do not fit in the pick area (at most {cap}); use --blocks {cap} or fewer")
+    rng = np.random.default_rng(seed)
+    types = _choose_types(cfg, n_blocks, rng)
+    colours = [cfg.palette[i] for i in rng.integers(0, len(cfg.palette), size=n_blocks)]
+    wc = Workcell(cfg.workcell, [BlockInstance(b, (*c, 1.0)) for b, c in zip(types, colours)])
+    randomise_lights(wc, cfg, rng)
+    scene = Scene(wc, seed, cfg)
+    for _ in range(max_attempts):
+        wc.reset()
+        for k, T in enumerate(_drop_positions(cfg, types, rng), start=1):
+            wc.set_block_pose(k, T)
+        mujoco.mj_forward(wc.model, wc.data)
+        if settle(wc, cfg) and scene.in_pick_area().all():
+            wc.data.qvel[:] = 0.0
+            wc.data.time = 0.0
+            return scene
+    raise RuntimeError(f"scene seed {seed}: blocks did not come to rest inside the pick area after "
+                       f"{max_attempts} drops")

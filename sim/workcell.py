@@ -1,0 +1,295 @@
+"""The MuJoCo workcell: table, Jaco2 arm with the 3-finger hand, a hand camera, pick and place areas, blocks.
+
+The model is composed with ``dm_control.mjcf`` from dm-control's ``JacoArm`` and ``JacoHand`` entities
+(which add the arm's velocity actuators) and compiled with ``mujoco.MjModel`` directly: dm-control's own
+``mjcf.Physics`` bindings do not load under MuJoCo 4. World frame: the arm base on the table top, z up.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Sequence
+
+import mujoco
+import numpy as np
+from dm_control import mjcf
+from dm_control.entities.manipulators.kinova import JacoArm, JacoHand
+
+from posegrasp.catalog import BlockType
+from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
+from sim.camera import T_CV_MJ, rpy_deg_to_R
+from sim.config import WorkcellConfig
+from sim.ik import ArmIK
+
+ARM_JOINTS = tuple(f"joint_{i}" for i in range(1, 7))
+FINGER_JOINTS = ("finger_1", "finger_2", "finger_3")
+HAND_CAMERA = "hand_camera"
+OVERVIEW_CAMERA = "overview"
+GRIPPER_SITE = "pinchsite"
+
+#: Contact groups: blocks, table and pad collide with everything; visual meshes with nothing.
+_COLLIDE = dict(contype=1, conaffinity=1)
+_VISUAL = dict(contype=0, conaffinity=0, group=1)
+_COLLISION_GROUP = 3
+
+
+@dataclass(frozen=True)
+class BlockInstance:
+    """One block in a scene: its type, colour (RGBA in [0, 1]) and body name (``block_<k>``, k from 1)."""
+
+    block: BlockType
+    rgba: tuple[float, float, float, float]
+
+
+def _element_T(elem) -> np.ndarray:
+    """Pose of an MJCF element in its parent body from its ``pos`` and ``quat`` (identity when unset)."""
+    pos = np.zeros(3) if elem.pos is None else np.asarray(elem.pos, dtype=float)
+    quat = np.array([1.0, 0, 0, 0]) if elem.quat is None else np.asarray(elem.quat, dtype=float)
+    return make_T(quat_to_R(quat), pos)
+
+
+def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance) -> None:
+    """A free body ``block_k``: the visual mesh (exactly the PLY model) and the collision primitives."""
+    b = inst.block
+    mesh = root.asset.add("mesh", name=f"block_{k}_mesh", vertex=b.vertices.ravel(), face=b.faces.ravel())
+    body = root.worldbody.add("body", name=f"block_{k}")
+    body.add("freejoint", name=f"block_{k}_joint")
+    body.add("geom", name=f"block_{k}_visual", type="mesh", mesh=mesh, rgba=inst.rgba, mass=b.mass, **_VISUAL)
+    for j, prim in enumerate(b.collision):
+        kw = dict(name=f"block_{k}_col{j}", group=_COLLISION_GROUP, rgba=(0.5, 0.5, 0.5, 0.0), mass=0,
+                  friction=(0.9, 0.01, 0.002), condim=6, pos=prim.get("pos", (0, 0, 0)),
+                  quat=prim.get("quat", (1, 0, 0, 0)), **_COLLIDE)
+        if prim["type"] == "mesh":
+            hull = root.asset.add("mesh", name=f"block_{k}_hull{j}", vertex=np.ravel(prim["vertices"]))
+            body.add("geom", type="mesh", mesh=hull, **kw)
+        else:
+            body.add("geom", type=prim["type"], size=prim["size"], **kw)
+
+
+def _add_camera(parent, name: str, T_parent_cv: np.ndarray, cam) -> None:
+    """A MuJoCo camera (and a site at it, for IK) whose OpenCV frame sits at ``T_parent_cv``."""
+    T_parent_mj = T_parent_cv @ T_CV_MJ
+    quat = R_to_quat(T_parent_mj[:3, :3])
+    parent.add("camera", name=name, pos=T_parent_mj[:3, 3], quat=quat, fovy=cam.fovy_deg,
+               resolution=(cam.width, cam.height))
+    parent.add("site", name=name, pos=T_parent_mj[:3, 3], quat=quat, size=(0.005,), group=4)
+
+
+def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjcf.RootElement:
+    """Compose the workcell model: table, pad, lights, overview camera, the arm with hand and camera, blocks."""
+    root = mjcf.RootElement(model="posegrasp_workcell")
+    root.option.timestep = cfg.timestep
+    root.compiler.angle = "radian"
+    cams = (cfg.hand_camera, cfg.overview_camera)
+    root.visual.__getattr__("global").offwidth = max(c.width for c in cams)
+    root.visual.__getattr__("global").offheight = max(c.height for c in cams)
+    root.visual.map.znear = 0.01
+    root.visual.map.zfar = 20.0
+    root.visual.quality.shadowsize = 2048
+    root.statistic.extent = 1.0
+    root.statistic.center = (0.3, 0.0, 0.2)
+
+    wb = root.worldbody
+    tx, ty, tz = cfg.table_half_size
+    wb.add("geom", name="floor", type="plane", size=(3, 3, 0.1), pos=(0, 0, -0.75), rgba=(0.35, 0.35, 0.38, 1))
+    wb.add("geom", name="table", type="box", size=(tx, ty, tz), pos=(*cfg.table_center, -tz),
+           rgba=(0.62, 0.55, 0.45, 1), friction=(0.9, 0.01, 0.001), **_COLLIDE)
+    pad = cfg.place_area
+    wb.add("geom", name="place_pad", type="box", size=(*pad.half_size, 0.0015), pos=(*pad.center, 0.0015),
+           rgba=(0.15, 0.45, 0.2, 1), friction=(0.9, 0.01, 0.001), **_COLLIDE)
+    wb.add("light", name="key", pos=(0.6, -0.4, 1.4), dir=(-0.2, 0.3, -1), diffuse=(0.6, 0.6, 0.6),
+           castshadow=cfg.render.shadows)
+    wb.add("light", name="fill", pos=(-0.2, 0.6, 1.2), dir=(0.4, -0.4, -1), diffuse=(0.3, 0.3, 0.3),
+           castshadow=False)
+    T_world_over = make_T(look_at_R(np.subtract(cfg.overview_target, cfg.overview_pos)), cfg.overview_pos)
+    _add_camera(wb, OVERVIEW_CAMERA, T_world_over, cfg.overview_camera)
+
+    arm, hand = JacoArm(), JacoHand()
+    hand_body = hand.mjcf_model.find("body", "hand")
+    T_hand_gripper = _element_T(hand.mjcf_model.find("site", GRIPPER_SITE))
+    c = cfg.hand_camera
+    T_gripper_cam = make_T(rpy_deg_to_R(c.mount_rpy_deg), c.mount_pos)
+    _add_camera(hand_body, HAND_CAMERA, T_hand_gripper @ T_gripper_cam, c)
+    T_hand_cam = T_hand_gripper @ T_gripper_cam
+    hand_body.add("geom", name="camera_housing", type="box", size=(0.02, 0.011, 0.012),
+                  pos=T_hand_cam[:3, 3] - 0.014 * T_hand_cam[:3, 2], quat=R_to_quat(T_hand_cam[:3, :3]),
+                  rgba=(0.12, 0.12, 0.14, 1), mass=0.05, contype=2, conaffinity=0, group=1)
+    arm.attach(hand)
+    root.attach(arm.mjcf_model)
+    for k, inst in enumerate(blocks, start=1):
+        _add_block(root, k, inst)
+    return root
+
+
+def compile_mjcf(root: mjcf.RootElement) -> mujoco.MjModel:
+    """Compile a composed MJCF root to an ``MjModel`` (assets passed in memory)."""
+    return mujoco.MjModel.from_xml_string(root.to_xml_string(), assets=root.get_assets())
+
+
+class Workcell:
+    """A compiled workcell with named handles: arm and finger joints/actuators, cameras, blocks.
+
+    ``T_world_*`` poses are in the world frame (the arm base on the table top, z up), metres.
+    """
+
+    def __init__(self, cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()):
+        self.cfg = cfg
+        self.blocks = list(blocks)
+        self.mjcf_root = build_mjcf(cfg, self.blocks)
+        self.model = compile_mjcf(self.mjcf_root)
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self.arm_joint_names = [f"jaco_arm/{j}" for j in ARM_JOINTS]
+        self.finger_joint_names = [f"jaco_arm/jaco_hand/{j}" for j in FINGER_JOINTS]
+        self.arm_qadr = np.array([m.joint(n).qposadr[0] for n in self.arm_joint_names])
+        self.arm_dadr = np.array([m.joint(n).dofadr[0] for n in self.arm_joint_names])
+        self.finger_qadr = np.array([m.joint(n).qposadr[0] for n in self.finger_joint_names])
+        self.arm_act = np.array([m.actuator(n).id for n in self.arm_joint_names])
+        self.finger_act = np.array([m.actuator(n).id for n in self.finger_joint_names])
+        self.gripper_site = m.site(f"jaco_arm/jaco_hand/{GRIPPER_SITE}").id
+        self.camera_ids = {HAND_CAMERA: m.camera(f"jaco_arm/jaco_hand/{HAND_CAMERA}").id,
+                           OVERVIEW_CAMERA: m.camera(OVERVIEW_CAMERA).id}
+        self.block_body = np.array([m.body(f"block_{k}").id for k in range(1, len(self.blocks) + 1)], dtype=int)
+        self.block_qadr = np.array([m.joint(f"block_{k}_joint").qposadr[0] for k in range(1, len(self.blocks) + 1)],
+                                   dtype=int)
+        # geom id -> instance index (0 background / robot / table, k for block_k); used for masks.
+        self.geom_instance = np.zeros(m.ngeom + 1, dtype=np.int32)  # last slot: background (-1)
+        for k, b in enumerate(self.block_body, start=1):
+            self.geom_instance[:-1][m.geom_bodyid == b] = k
+        self.reset()
+
+    # -- state ---------------------------------------------------------------------------------------
+    def reset(self, arm_q: np.ndarray | None = None) -> None:
+        """Reset the simulation with the arm at ``arm_q`` (default: home) and fingers open, at rest."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[self.arm_qadr] = self.cfg.home_qpos if arm_q is None else arm_q
+        self.data.qpos[self.finger_qadr] = self.model.jnt_range[self._finger_jnt(), 0]
+        mujoco.mj_forward(self.model, self.data)
+
+    def _finger_jnt(self) -> np.ndarray:
+        return np.array([self.model.joint(n).id for n in self.finger_joint_names])
+
+    @property
+    def arm_q(self) -> np.ndarray:
+        """Measured arm joint angles (rad)."""
+        return self.data.qpos[self.arm_qadr].copy()
+
+    def set_block_pose(self, k: int, T_world_obj: np.ndarray) -> None:
+        """Place block ``k`` (1-based) at a world pose, at rest."""
+        a = self.block_qadr[k - 1]
+        self.data.qpos[a:a + 3] = T_world_obj[:3, 3]
+        self.data.qpos[a + 3:a + 7] = R_to_quat(T_world_obj[:3, :3])
+        d = self.model.jnt_dofadr[self.model.body_jntadr[self.block_body[k - 1]]]
+        self.data.qvel[d:d + 6] = 0.0
+
+    def block_poses(self) -> np.ndarray:
+        """``T_world_obj`` of every block, (K, 4, 4)."""
+        out = np.tile(np.eye(4), (len(self.blocks), 1, 1))
+        for i, b in enumerate(self.block_body):
+            out[i, :3, :3] = self.data.xmat[b].reshape(3, 3)
+            out[i, :3, 3] = self.data.xpos[b]
+        return out
+
+    def block_speeds(self) -> np.ndarray:
+        """Per block (linear m/s, angular rad/s) speed magnitudes, (K, 2)."""
+        out = np.zeros((len(self.blocks), 2))
+        for i, b in enumerate(self.block_body):
+            d = self.model.jnt_dofadr[self.model.body_jntadr[b]]
+            v = self.data.qvel[d:d + 6]
+            out[i] = np.linalg.norm(v[:3]), np.linalg.norm(v[3:])
+        return out
+
+    def camera_pose(self, name: str = HAND_CAMERA) -> np.ndarray:
+        """``T_world_cam`` of a camera in the OpenCV convention (x right, y down, z forward)."""
+        i = self.camera_ids[name]
+        T_world_mj = make_T(self.data.cam_xmat[i].reshape(3, 3), self.data.cam_xpos[i])
+        return T_world_mj @ T_CV_MJ
+
+    def gripper_pose(self) -> np.ndarray:
+        """``T_world_gripper``: the pinch site (z along the approach direction)."""
+        s = self.gripper_site
+        return make_T(self.data.site_xmat[s].reshape(3, 3), self.data.site_xpos[s])
+
+    def T_gripper_cam(self) -> np.ndarray:
+        """The true camera mount ``T_gripper_cam`` (OpenCV camera frame), from the model's kinematics."""
+        return invert(self.gripper_pose()) @ self.camera_pose(HAND_CAMERA)
+
+    # -- kinematics ----------------------------------------------------------------------------------
+    @functools.cached_property
+    def ik(self) -> ArmIK:
+        """IK on a robot-only copy of this workcell (same arm, hand and camera; no blocks)."""
+        robot = Workcell(self.cfg) if self.blocks else self
+        return ArmIK(robot.model, robot.arm_qadr)
+
+    def solve_camera_ik(self, T_world_cam: np.ndarray, q0: np.ndarray | None = None):
+        """Joint angles placing the hand camera (OpenCV frame) at ``T_world_cam``; with residuals (m, rad)."""
+        return self.ik.solve(f"jaco_arm/jaco_hand/{HAND_CAMERA}", T_world_cam @ T_CV_MJ,
+                             self.arm_q if q0 is None else q0)
+
+    def solve_gripper_ik(self, T_world_gripper: np.ndarray, q0: np.ndarray | None = None):
+        """Joint angles placing the gripper (pinch site) at ``T_world_gripper``; with residuals (m, rad)."""
+        return self.ik.solve(f"jaco_arm/jaco_hand/{GRIPPER_SITE}", T_world_gripper, self.arm_q if q0 is None else q0)
+
+    def look_camera_pose(self) -> np.ndarray:
+        """``T_world_cam`` of the look pose: above the pick area centre at ``look_height``, looking straight down.
+
+        Image up points away from the arm base (+x), so the pick area fills the frame the long way.
+        """
+        c = self.cfg.pick_area.center
+        R = look_at_R(np.array([0.0, 0.0, -1.0]), up_hint=np.array([1.0, 0.0, 0.0]))
+        return make_T(R, (c[0], c[1], self.cfg.look_height))
+
+    @functools.cached_property
+    def look_q(self) -> np.ndarray:
+        """Arm joint angles of the named look pose (solved once from home)."""
+        q, dp, dr = self.solve_camera_ik(self.look_camera_pose(), np.asarray(self.cfg.home_qpos))
+        if dp > 1e-3 or dr > 1e-2:
+            raise ValueError(f"look pose unreachable: residual {dp:.4f} m, {np.rad2deg(dr):.2f} deg; "
+                             "lower look_height or move the pick area closer to the arm")
+        return q
+
+    # -- control -------------------------------------------------------------------------------------
+    def step(self, n: int = 1) -> None:
+        """Advance physics ``n`` steps with the current controls."""
+        mujoco.mj_step(self.model, self.data, nstep=n)
+
+    def arm_velocity_limits(self) -> np.ndarray:
+        """Joint velocity limits (rad/s) of the arm's velocity actuators."""
+        return self.model.actuator_ctrlrange[self.arm_act, 1].copy()
+
+    def command_arm(self, qdot: np.ndarray) -> None:
+        """Set the arm's velocity actuators (rad/s), clipped to their limits."""
+        lim = self.arm_velocity_limits()
+        self.data.ctrl[self.arm_act] = np.clip(qdot, -lim, lim)
+
+    def command_fingers(self, speed: float) -> None:
+        """Finger velocity command (rad/s): positive closes, negative opens."""
+        self.data.ctrl[self.finger_act] = speed
+
+    def gravity_feedforward(self) -> np.ndarray:
+        """Velocity command offset that makes the velocity actuators cancel gravity and Coriolis terms.
+
+        A velocity actuator applies ``kv (u - qdot)``; adding ``qfrc_bias / kv`` to ``u`` holds the arm still.
+        """
+        return self.data.qfrc_bias[self.arm_dadr] / self.model.actuator_gainprm[self.arm_act, 0]
+
+    def drive_arm(self, q_target: np.ndarray, tol: float = 2e-3, timeout: float = 10.0, gain: float = 4.0,
+                  control_dt: float = 0.02) -> bool:
+        """Drive the arm to joint angles ``q_target`` through its actuators (P control on the joint error).
+
+        Returns True once every joint is within ``tol`` rad and the arm has stopped, False on timeout.
+        """
+        steps = max(1, round(control_dt / self.model.opt.timestep))
+        for _ in range(int(timeout / control_dt)):
+            err = wrap_angle(np.asarray(q_target) - self.arm_q)
+            if np.max(np.abs(err)) < tol and np.max(np.abs(self.data.qvel[self.arm_dadr])) < 0.02:
+                return True
+            self.command_arm(gain * err + self.gravity_feedforward())
+            self.step(steps)
+        return False
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles wrapped to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi

@@ -1,0 +1,62 @@
+"""``posegrasp scene`` end to end, and its one-line errors on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from posegrasp.io import read_image
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "posegrasp.cli", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_scene_writes_labelled_capture(tmp_path):
+    out = tmp_path / "scene"
+    r = run_cli("scene", "--seed", "2", "--blocks", "3", "--resolution", "320x240", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    rgb, depth, mask = (read_image(out / f) for f in ("rgb.png", "depth.png", "mask.png"))
+    assert rgb.shape == (240, 320, 3) and rgb.dtype == np.uint8
+    assert depth.dtype == np.uint16 and 150 < np.median(depth[depth > 0]) < 2000  # millimetres
+    assert read_image(out / "overview.png").ndim == 3
+    meta = json.loads((out / "scene.json").read_text())
+    assert len(meta["blocks"]) == 3 and np.asarray(meta["K"]).shape == (3, 3)
+    for b in meta["blocks"]:
+        assert np.asarray(b["T_cam_obj"]).shape == (4, 4)
+        assert b["visible_px"] == int((mask == b["instance"]).sum())
+    assert set(np.unique(mask)) <= {0, 1, 2, 3}
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--types", "cube,dodecahedron"], "unknown block type"),
+    (["--blocks", "500"], "do not fit"),
+    (["--blocks", "0"], "positive"),
+    (["--resolution", "0x0"], "out of range"),
+    (["--resolution", "wide"], "WIDTHxHEIGHT"),
+    (["--config", "/nonexistent.toml"], "does not exist"),
+])
+def test_bad_input_is_one_line(tmp_path, args, words):
+    r = run_cli("scene", "--out", str(tmp_path / "o"), *args)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0] and "Traceback" not in r.stderr
+
+
+def test_unwritable_output_folder(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    r = run_cli("scene", "--out", str(blocker / "sub"))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert "output folder" in r.stderr
+
+
+def test_unknown_toml_key(tmp_path):
+    cfg = tmp_path / "w.toml"
+    cfg.write_text("look_hieght = 0.4\n")
+    r = run_cli("scene", "--out", str(tmp_path / "o"), "--config", str(cfg))
+    assert r.returncode == 2 and "look_hieght" in r.stderr
