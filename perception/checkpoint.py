@@ -1,0 +1,207 @@
+"""Checkpoints of the perception nets: safetensors + JSON, never pickles, written all-or-nothing.
+
+A checkpoint is a directory (``RUN/seg``, ``RUN/pose``, ``RUN/refine``) holding
+
+- ``model.safetensors``: the model's state dict,
+- ``config.json``: ``{"format", "version", "stage", "model": {...}, "train": {...}}``,
+- ``state.json``: training progress (step, learning rate, loss weight, flags, timings),
+- ``optimizer.safetensors``: optimizer tensors and the torch RNG state, with the optimizer's
+  hyper-parameters as JSON metadata (present only while training).
+
+Saving writes every file (atomically) into a sibling temporary directory, then swaps it in with two
+renames; a kill at any moment leaves either the old or the new checkpoint, which ``resolve`` finds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
+from torch import nn
+
+from posegrasp import io as pio
+from posegrasp.config import from_dict
+from posegrasp.errors import UserError
+from perception.pose_net import PoseNetConfig, build_pose_net
+from perception.refiner import RefinerConfig, build_refiner
+from perception.seg_net import SegNetConfig, build_seg_net
+
+FORMAT = "posegrasp-perception"
+VERSION = 1
+STAGES: dict[str, tuple[type, Callable[[Any], nn.Module]]] = {
+    "seg": (SegNetConfig, build_seg_net),
+    "pose": (PoseNetConfig, build_pose_net),
+    "refine": (RefinerConfig, build_refiner),
+}
+
+
+def _one_line(msg: str, limit: int = 300) -> str:
+    msg = " ".join(str(msg).split())
+    return msg if len(msg) <= limit else msg[: limit - 3] + "..."
+
+
+def resolve(ckpt: Path) -> Path:
+    """The checkpoint directory, recovering the previous one if a save was killed mid-swap."""
+    old = ckpt.with_name(f".{ckpt.name}.old")
+    if not ckpt.exists() and old.exists():
+        os.replace(old, ckpt)
+    return ckpt
+
+
+def exists(ckpt: Path) -> bool:
+    """Whether a complete checkpoint is at ``ckpt``."""
+    ckpt = resolve(Path(ckpt))
+    return (ckpt / "state.json").exists() and (ckpt / "model.safetensors").exists()
+
+
+def save(ckpt: Path, stage: str, model: nn.Module, model_cfg: Any, train_cfg: Any, state: dict[str, Any],
+         optimizer: torch.optim.Optimizer | None = None) -> Path:
+    """Write a checkpoint all-or-nothing (see module docstring)."""
+    ckpt = Path(ckpt)
+    tmp = ckpt.with_name(f".{ckpt.name}.tmp")
+    old = ckpt.with_name(f".{ckpt.name}.old")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    step = str(int(state.get("step", 0)))
+    sd = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    pio.write_bytes(tmp / "model.safetensors", st_save(sd, metadata={"format": FORMAT, "stage": stage, "step": step}))
+    if optimizer is not None:
+        pio.write_bytes(tmp / "optimizer.safetensors", _optimizer_bytes(optimizer, step))
+    pio.write_json(tmp / "config.json", {"format": FORMAT, "version": VERSION, "stage": stage,
+                                         "model": dataclasses.asdict(model_cfg),
+                                         "train": dataclasses.asdict(train_cfg) if train_cfg is not None else None})
+    pio.write_json(tmp / "state.json", state)
+    resolve(ckpt)
+    shutil.rmtree(old, ignore_errors=True)
+    if ckpt.exists():
+        os.replace(ckpt, old)
+    os.replace(tmp, ckpt)
+    shutil.rmtree(old, ignore_errors=True)
+    return ckpt
+
+
+def _optimizer_bytes(opt: torch.optim.Optimizer, step: str) -> bytes:
+    sd = opt.state_dict()
+    tensors: dict[str, torch.Tensor] = {"rng.torch": torch.get_rng_state()}
+    scalars: dict[str, dict[str, Any]] = {}
+    for pid, st in sd["state"].items():
+        for k, v in st.items():
+            if torch.is_tensor(v):
+                tensors[f"state.{pid}.{k}"] = v.detach().contiguous().cpu()
+            elif v is not None:
+                scalars.setdefault(str(pid), {})[k] = v
+    meta = {"format": FORMAT, "step": step, "param_groups": json.dumps(sd["param_groups"]),
+            "scalars": json.dumps(scalars)}
+    return st_save(tensors, metadata=meta)
+
+
+def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise UserError(f"weights file {path} does not exist") from None
+    try:
+        tensors = st_load(data)
+        n = int.from_bytes(data[:8], "little")
+        meta = json.loads(data[8:8 + n]).get("__metadata__", {}) or {}
+    except (SafetensorError, ValueError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise UserError(_one_line(f"weights file {path} is corrupt or not safetensors: {e}")) from None
+    return tensors, meta
+
+
+def read_config(ckpt: Path) -> dict[str, Any]:
+    """``config.json`` of a checkpoint, checked for format and stage."""
+    p = resolve(Path(ckpt)) / "config.json"
+    try:
+        cfg = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{p} does not exist: {ckpt} is not a trained checkpoint") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise UserError(_one_line(f"{p} is corrupt: {e}")) from None
+    if not isinstance(cfg, dict) or cfg.get("format") != FORMAT or cfg.get("stage") not in STAGES:
+        raise UserError(f"{p} is not a {FORMAT} config")
+    return cfg
+
+
+def read_state(ckpt: Path) -> dict[str, Any]:
+    """``state.json`` of a checkpoint."""
+    p = resolve(Path(ckpt)) / "state.json"
+    try:
+        return json.loads(p.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{p} does not exist") from None
+    except json.JSONDecodeError as e:
+        raise UserError(_one_line(f"{p} is corrupt: {e}")) from None
+
+
+def load_model(ckpt: Path, stage: str | None = None) -> tuple[nn.Module, Any, dict[str, Any]]:
+    """Build the model described by ``config.json`` and load ``model.safetensors`` into it.
+
+    Returns (model in eval mode, model config dataclass, the whole config dict). Missing, corrupt
+    or mismatched files raise UserError with a one-line message.
+    """
+    ckpt = resolve(Path(ckpt))
+    cfg = read_config(ckpt)
+    if stage is not None and cfg["stage"] != stage:
+        raise UserError(f"{ckpt} holds a {cfg['stage']} model, expected {stage}")
+    cls, builder = STAGES[cfg["stage"]]
+    try:
+        model_cfg = from_dict(cls, cfg["model"], where=str(ckpt / "config.json"))
+        model = builder(model_cfg)
+    except (ValueError, TypeError, KeyError) as e:
+        raise UserError(_one_line(f"{ckpt / 'config.json'} describes an invalid model: {e}")) from None
+    tensors, _ = _read_safetensors(ckpt / "model.safetensors")
+    load_state(model, tensors, ckpt / "model.safetensors")
+    return model.eval(), model_cfg, cfg
+
+
+def load_state(model: nn.Module, tensors: dict[str, torch.Tensor], where: Path) -> None:
+    """``load_state_dict`` with a one-line UserError on any mismatch of names or shapes."""
+    own = model.state_dict()
+    missing = sorted(set(own) - set(tensors))
+    unexpected = sorted(set(tensors) - set(own))
+    shapes = [k for k in own if k in tensors and tuple(own[k].shape) != tuple(tensors[k].shape)]
+    if missing or unexpected or shapes:
+        parts = []
+        if missing:
+            parts.append(f"{len(missing)} missing (e.g. {missing[0]})")
+        if unexpected:
+            parts.append(f"{len(unexpected)} unexpected (e.g. {unexpected[0]})")
+        if shapes:
+            k = shapes[0]
+            parts.append(f"{len(shapes)} with wrong shape (e.g. {k}: {tuple(tensors[k].shape)} vs "
+                         f"{tuple(own[k].shape)})")
+        raise UserError(_one_line(f"weights {where} do not match the model in config.json: " + ", ".join(parts)))
+    model.load_state_dict(tensors, strict=True)
+
+
+def load_optimizer(ckpt: Path, optimizer: torch.optim.Optimizer) -> None:
+    """Restore optimizer state and the torch RNG from ``optimizer.safetensors``."""
+    path = resolve(Path(ckpt)) / "optimizer.safetensors"
+    tensors, meta = _read_safetensors(path)
+    try:
+        groups = json.loads(meta["param_groups"])
+        scalars = json.loads(meta.get("scalars", "{}"))
+    except (KeyError, json.JSONDecodeError):
+        raise UserError(f"{path} lacks the optimizer metadata") from None
+    state: dict[int, dict[str, Any]] = {}
+    for key, v in tensors.items():
+        if key.startswith("state."):
+            _, pid, name = key.split(".", 2)
+            state.setdefault(int(pid), {})[name] = v
+    for pid, st in scalars.items():
+        state.setdefault(int(pid), {}).update(st)
+    try:
+        optimizer.load_state_dict({"state": state, "param_groups": groups})
+    except (ValueError, KeyError, RuntimeError) as e:
+        raise UserError(_one_line(f"{path} does not match the optimizer: {e}")) from None
+    if "rng.torch" in tensors:
+        torch.set_rng_state(tensors["rng.torch"])

@@ -1,0 +1,76 @@
+"""``posegrasp train seg|pose|refine`` and ``posegrasp eval`` subcommands.
+
+A ``--config`` TOML file may hold sections ``[seg]``, ``[pose]``, ``[refine]`` and ``[eval]`` (with
+sub-tables such as ``[pose.model]`` and ``[pose.data]``) matching the config dataclasses of
+``perception.train`` and ``perception.evaluate``; command-line flags override it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from posegrasp.config import load_toml, override
+from posegrasp.errors import UserError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``train`` and ``eval`` subcommands."""
+    p = subparsers.add_parser("train", help="train the segmentation net, the pose net or the refiner",
+                              description="Train one stage of the perception network on a BOP dataset.")
+    p.add_argument("stage", choices=["seg", "pose", "refine"], help="which network to train")
+    p.add_argument("--data", required=True, type=Path, help="BOP dataset root")
+    p.add_argument("--out", required=True, type=Path, help="run directory (RUN/<stage> holds the checkpoint)")
+    p.add_argument("--config", type=Path, help="TOML file with [seg] / [pose] / [refine] sections")
+    p.add_argument("--steps", type=int, help="total optimisation steps (overrides the config)")
+    p.add_argument("--seed", type=int, help="random seed (overrides the config)")
+    p.add_argument("--resume", action="store_true", help="continue the checkpoint in RUN/<stage>")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(run=run_train)
+
+    e = subparsers.add_parser("eval", help="evaluate a trained run on a BOP split",
+                              description="mPA/mIoU, ADD, ADD-S, AUC, accuracies, curves, BOP results CSV.")
+    e.add_argument("--data", required=True, type=Path, help="BOP dataset root")
+    e.add_argument("--weights", required=True, type=Path, help="run directory with seg/, pose/ [, refine/]")
+    e.add_argument("--split", help="split to evaluate (default: test)")
+    e.add_argument("--out", type=Path, help="report directory (default: WEIGHTS/eval_<split>)")
+    e.add_argument("--config", type=Path, help="TOML file with an [eval] section")
+    e.add_argument("--gt-masks", action="store_true", help="use ground-truth masks (pose stage only)")
+    e.add_argument("--no-refine", action="store_true", help="ablation: skip refinement")
+    e.add_argument("--max-images", type=int, help="evaluate at most this many images")
+    e.add_argument("--no-progress", action="store_true", help="no progress bar")
+    e.set_defaults(run=run_eval)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    """Handler of ``posegrasp train``."""
+    from perception import train as T
+
+    cls, fn = {"seg": (T.SegTrainConfig, T.train_seg), "pose": (T.PoseTrainConfig, T.train_pose),
+               "refine": (T.RefineTrainConfig, T.train_refine)}[args.stage]
+    if args.steps is not None and args.steps < 1:
+        raise UserError("--steps must be at least 1")
+    if not args.data.is_dir():
+        raise UserError(f"--data {args.data} is not a directory")
+    cfg = load_toml(cls, args.config, section=args.stage)
+    result = fn(args.data, args.out, cfg, steps=args.steps, seed=args.seed, resume=args.resume,
+                progress=not args.no_progress)
+    print(json.dumps({"stage": args.stage, "checkpoint": str(args.out / args.stage), **result}, default=str))
+    return 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    """Handler of ``posegrasp eval``."""
+    from perception.evaluate import EvalConfig, evaluate
+
+    cfg = load_toml(EvalConfig, args.config, section="eval")
+    cfg = override(cfg, split=args.split, max_images=args.max_images,
+                   masks="gt" if args.gt_masks else None, refine_iterations=0 if args.no_refine else None)
+    out = args.out or args.weights / f"eval_{cfg.split}"
+    report = evaluate(args.data, args.weights, out, cfg, progress=not args.no_progress)
+    summary = {"out": str(out), "segmentation": (report["segmentation"] or {}).get("mIoU"),
+               **{k: report["overall"][k] for k in ("ADD-S_AUC", "ADD_AUC", "ADD(-S)_acc_0.1d")},
+               "time_per_image_s": report["time_per_image_s"]}
+    print(json.dumps(summary))
+    return 0

@@ -1,0 +1,275 @@
+"""Torch datasets over any BOP dataset (``posegrasp.bop``): segmentation images and per-object
+pose samples, with seeded colour and depth augmentation.
+
+Every sample is a deterministic function of (dataset seed, index, augmentation key): the trainer
+passes the global sample counter as the key, so a resumed run sees exactly the same batches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from posegrasp import bop
+from posegrasp.errors import UserError
+from perception.crop import backproject, crop_box, remap_choose, sample_choose
+
+RGB_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+RGB_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+
+
+@dataclass
+class DataConfig:
+    """Sample selection and augmentation.
+
+    min_visib_fract: skip instances less visible than this (BOP convention: 0.1).
+    min_points: skip instances with fewer visible pixels with valid depth.
+    num_model_points: model points per pose sample (DenseFusion: 500).
+    model_pool: surface points sampled once per model, from which each sample draws.
+    augment: apply the augmentations below to training samples.
+    color_jitter: brightness, contrast and saturation factors drawn in [1 - j, 1 + j].
+    hue_jitter: hue shift, fraction of a full turn, drawn in [-h, h].
+    depth_noise: std (m) of Gaussian noise on each point's depth, along its ray.
+    translation_noise: each pose sample's cloud and target are shifted by U(-n, n) m per axis
+    (DenseFusion's ``noise_trans``).
+    """
+
+    min_visib_fract: float = 0.1
+    min_points: int = 50
+    num_model_points: int = 500
+    model_pool: int = 4000
+    augment: bool = True
+    color_jitter: float = 0.2
+    hue_jitter: float = 0.03
+    depth_noise: float = 0.001
+    translation_noise: float = 0.01
+
+
+def normalize_rgb(rgb: np.ndarray) -> np.ndarray:
+    """uint8 (H, W, 3) RGB -> float32 (3, H, W), ImageNet mean/std normalised."""
+    x = (rgb.astype(np.float32) / 255.0 - RGB_MEAN) / RGB_STD
+    return np.ascontiguousarray(x.transpose(2, 0, 1))
+
+
+def color_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float, hue: float) -> np.ndarray:
+    """Random brightness, contrast, saturation (factors in [1 - s, 1 + s]) and hue shift (+-hue turns)."""
+    x = rgb.astype(np.float32)
+    b, c, s = rng.uniform(1 - strength, 1 + strength, 3)
+    h = rng.uniform(-hue, hue)
+    x = x * b
+    x = (x - x.mean()) * c + x.mean()
+    gray = x @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    x = (x - gray[..., None]) * s + gray[..., None]
+    x = np.clip(x, 0, 255).astype(np.uint8)
+    if hue > 0:
+        hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
+        hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(h * 180))) % 180).astype(np.uint8)
+        x = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    return x
+
+
+def _rng(seed: int, index: int, key: int | None) -> np.random.Generator:
+    return np.random.default_rng([seed, index] if key is None else [seed, index, key])
+
+
+def load_records(root: str | Path, split: str) -> list[bop.ImageRecord]:
+    """All image records of a split; UserError when there is none."""
+    recs = list(bop.iter_scene_images(root, split))
+    if not recs:
+        raise UserError(f"BOP split {Path(root) / split} has no images")
+    return recs
+
+
+def label_map(rec: bop.ImageRecord, shape: tuple[int, int], num_classes: int | None = None) -> np.ndarray:
+    """(H, W) int64 class map from the visible masks: 0 background, obj_id on each object."""
+    lab = np.zeros(shape, dtype=np.int64)
+    for inst in rec.instances:
+        if num_classes is not None and inst.obj_id >= num_classes:
+            raise UserError(f"object id {inst.obj_id} in {rec.scene_dir} does not fit a model with {num_classes} classes")
+        p = rec.mask_path(inst.gt_index)
+        if p.exists():
+            lab[rec.load_mask(inst.gt_index)] = inst.obj_id
+    return lab
+
+
+class SegDataset(Dataset):
+    """Segmentation samples: ``{"image": (3, H, W) float32, "label": (H, W) int64}`` at input_size."""
+
+    def __init__(self, root: str | Path, split: str, input_size: tuple[int, int], num_classes: int,
+                 cfg: DataConfig | None = None, augment: bool = False, seed: int = 0):
+        self.root, self.split = Path(root), split
+        self.records = load_records(root, split)
+        self.input_size = tuple(input_size)
+        self.num_classes = num_classes
+        self.cfg = cfg or DataConfig()
+        self.augment = augment and self.cfg.augment
+        self.seed = seed
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def get(self, index: int, key: int | None = None) -> dict[str, torch.Tensor]:
+        """Sample ``index``; ``key`` seeds the augmentation (None: no augmentation)."""
+        rec = self.records[index]
+        rgb = rec.load_rgb()
+        lab = label_map(rec, rgb.shape[:2], self.num_classes)
+        h, w = self.input_size
+        if rgb.shape[:2] != (h, w):
+            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_LINEAR)
+            lab = cv2.resize(lab.astype(np.int32), (w, h), interpolation=cv2.INTER_NEAREST).astype(np.int64)
+        if self.augment and key is not None:
+            rng = _rng(self.seed, index, key)
+            rgb = color_jitter(rgb, rng, self.cfg.color_jitter, self.cfg.hue_jitter)
+            if rng.random() < 0.5:  # horizontal flip is label-preserving for segmentation
+                rgb, lab = rgb[:, ::-1], lab[:, ::-1]
+        return {"image": torch.from_numpy(normalize_rgb(np.ascontiguousarray(rgb))),
+                "label": torch.from_numpy(np.ascontiguousarray(lab))}
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        return self.get(index)
+
+
+class ObjectModels:
+    """Surface points (m) and info of every model of a BOP dataset, sampled once (seeded per object)."""
+
+    def __init__(self, root: str | Path, pool: int = 4000, seed: int = 0):
+        self.root = Path(root)
+        self.infos = bop.load_models_info(root)
+        self.pool = pool
+        self.seed = seed
+        self._points: dict[int, np.ndarray] = {}
+
+    def points(self, obj_id: int) -> np.ndarray:
+        """(pool, 3) surface points of the model in its frame (m)."""
+        if obj_id not in self._points:
+            mesh = bop.load_model(self.root, obj_id)
+            self._points[obj_id] = bop.sample_model_points(mesh, self.pool, seed=self.seed + obj_id)
+        return self._points[obj_id]
+
+
+def prepare_pose_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray, num_points: int,
+                       crop_size: int, rng: np.random.Generator, depth_noise: float = 0.0
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Crop, point sampling and back-projection for one object mask (shared by training and inference).
+
+    Returns (image (3, S, S) float32 normalised, choose (N,) int64 into the S x S crop, points (N, 3)
+    float32 camera frame, m), or None when the mask has no pixel with valid depth.
+    """
+    valid = mask & (depth > 0)
+    if not valid.any():
+        return None
+    box = crop_box(mask)
+    rmin, rmax, cmin, cmax = box
+    choose = sample_choose(valid[rmin:rmax, cmin:cmax], num_points, rng)
+    pts = backproject(depth, K, box, choose)
+    if depth_noise > 0:
+        z = pts[:, 2]
+        pts = pts * ((z + rng.normal(0.0, depth_noise, z.shape)) / z)[:, None]  # noise along each ray
+    crop = cv2.resize(np.ascontiguousarray(rgb[rmin:rmax, cmin:cmax]), (crop_size, crop_size),
+                      interpolation=cv2.INTER_LINEAR)
+    choose_s = remap_choose(choose, (rmax - rmin, cmax - cmin), crop_size)
+    return normalize_rgb(crop), choose_s, pts.astype(np.float32)
+
+
+class PoseDataset(Dataset):
+    """One sample per visible annotated object instance of the chosen objects.
+
+    Sample keys: image (3, S, S), choose (N,) int64, points (N, 3) camera frame (m), model_points
+    (M, 3) object frame (m), target (M, 3) = model points under the ground truth (m), obj (head
+    index), symmetric (bool), T (4, 4) float64 ground truth, obj_id, scene_id, im_id, gt_index.
+    """
+
+    def __init__(self, root: str | Path, split: str, obj_ids: list[int], num_points: int, crop_size: int,
+                 cfg: DataConfig | None = None, augment: bool = False, seed: int = 0,
+                 models: ObjectModels | None = None, max_images: int = 0):
+        self.root, self.split = Path(root), split
+        self.cfg = cfg or DataConfig()
+        self.models = models or ObjectModels(root, self.cfg.model_pool)
+        self.obj_ids = list(obj_ids)
+        missing = [o for o in self.obj_ids if o not in self.models.infos]
+        if missing:
+            raise UserError(f"object ids {missing} are not in {bop.models_info_path(root)}")
+        self.num_points, self.crop_size = num_points, crop_size
+        self.augment = augment and self.cfg.augment
+        self.seed = seed
+        records = load_records(root, split)
+        if max_images:
+            records = records[:max_images]
+        self.records = records
+        self.index: list[tuple[int, int]] = []
+        for ri, rec in enumerate(records):
+            for inst in rec.instances:
+                if inst.obj_id not in self.obj_ids:
+                    continue
+                if inst.info is not None and (inst.info.visib_fract < self.cfg.min_visib_fract
+                                              or inst.info.px_count_visib < self.cfg.min_points):
+                    continue
+                self.index.append((ri, inst.gt_index))
+        if not self.index:
+            raise UserError(f"no usable object instance in {self.root / split} (min_visib_fract "
+                            f"{self.cfg.min_visib_fract}, min_points {self.cfg.min_points})")
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def symmetric(self, obj_id: int) -> bool:
+        return self.models.infos[obj_id].symmetric
+
+    def get(self, index: int, key: int | None = None) -> dict[str, torch.Tensor | int | bool]:
+        """Sample ``index``; ``key`` seeds augmentation (None: none). An instance with too few valid
+        depth points is replaced by the next usable one (deterministically)."""
+        for k in range(len(self.index)):
+            s = self._sample((index + k) % len(self.index), key)
+            if s is not None:
+                return s
+        raise UserError(f"no instance in {self.root / self.split} has {self.cfg.min_points} valid depth points")
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor | int | bool]:
+        return self.get(index)
+
+    def _sample(self, index: int, key: int | None) -> dict | None:
+        ri, gi = self.index[index]
+        rec = self.records[ri]
+        inst = rec.instances[gi]
+        aug = self.augment and key is not None
+        rng = _rng(self.seed, index, key)
+        depth = rec.load_depth()
+        mask = rec.load_mask(gi)
+        if int((mask & (depth > 0)).sum()) < self.cfg.min_points:
+            return None
+        rgb = rec.load_rgb()
+        if aug:
+            rgb = color_jitter(rgb, rng, self.cfg.color_jitter, self.cfg.hue_jitter)
+        prep = prepare_pose_input(rgb, depth, rec.camera.K, mask, self.num_points, self.crop_size, rng,
+                                  self.cfg.depth_noise if aug else 0.0)
+        img, choose, pts = prep
+        pool = self.models.points(inst.obj_id)
+        mi = rng.choice(len(pool), size=min(self.cfg.num_model_points, len(pool)), replace=False)
+        model = pool[np.sort(mi)]
+        T = inst.T_cam_obj
+        target = model @ T[:3, :3].T + T[:3, 3]
+        if aug and self.cfg.translation_noise > 0:
+            shift = rng.uniform(-self.cfg.translation_noise, self.cfg.translation_noise, 3)
+            pts = pts + shift.astype(np.float32)
+            target = target + shift
+            T = T.copy()
+            T[:3, 3] += shift
+        return {
+            "image": torch.from_numpy(img), "choose": torch.from_numpy(choose),
+            "points": torch.from_numpy(pts.astype(np.float32)),
+            "model_points": torch.from_numpy(model.astype(np.float32)),
+            "target": torch.from_numpy(target.astype(np.float32)),
+            "obj": self.obj_ids.index(inst.obj_id), "symmetric": self.symmetric(inst.obj_id),
+            "T": torch.from_numpy(T), "obj_id": inst.obj_id, "scene_id": rec.scene_id, "im_id": rec.im_id,
+            "gt_index": gi,
+        }
+
+
+def collate(samples: list[dict]) -> dict[str, torch.Tensor]:
+    """Stack a list of samples into a batch (ints and bools become tensors)."""
+    return torch.utils.data.default_collate(samples)

@@ -1,0 +1,161 @@
+"""The two-stage estimator: segmentation, then per-object pose and iterative refinement.
+
+    est = Estimator("runs/blocks")           # RUN dir with seg/, pose/ and optionally refine/
+    for det in est(rgb, depth, K):           # uint8 (H, W, 3), float32 metres (H, W), (3, 3)
+        det.obj_id, det.T_cam_obj, det.score, det.mask
+
+Works on real camera data as well as on simulated frames: it only needs RGB, depth in metres and
+the intrinsics. Objects whose mask has fewer valid depth pixels than ``min_valid_points`` are
+declared invalid and skipped, as in the paper.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from perception import checkpoint as ckpt_mod
+from perception.data import normalize_rgb, prepare_pose_input
+from perception.refiner import refine
+from perception.torch_geometry import make_transform, quat_to_rotmat
+from posegrasp.errors import UserError
+
+
+@dataclass
+class Detection:
+    """One estimated object: BOP id, pose T_cam_obj (4x4, m, OpenCV camera frame), score in [0, 1]
+    (mean segmentation probability over the mask x the pose confidence) and mask (H, W) bool."""
+
+    obj_id: int
+    T_cam_obj: np.ndarray
+    score: float
+    mask: np.ndarray
+
+
+class Estimator:
+    """Segmentation + pose + refinement from a run directory (``seg/``, ``pose/``, ``refine/``).
+
+    refine_iterations: None = the refiner's configured count (0 when there is no refiner);
+    0 disables refinement (ablation). min_valid_points: minimum valid-depth pixels per object.
+    threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
+    is deterministic). ``timings`` holds the seconds spent per stage in the last call and
+    ``last_labels`` its class map (H, W).
+    """
+
+    def __init__(self, weights: str | Path, refine_iterations: int | None = None, min_valid_points: int = 50,
+                 threads: int | None = None, seed: int = 0):
+        weights = Path(weights)
+        if not weights.is_dir():
+            raise UserError(f"weights directory {weights} does not exist")
+        if threads is not None:
+            torch.set_num_threads(threads)
+        self.seg, self.seg_cfg, _ = ckpt_mod.load_model(weights / "seg", "seg")
+        self.pose, self.pose_cfg, _ = ckpt_mod.load_model(weights / "pose", "pose")
+        self.refiner, self.refiner_cfg = None, None
+        if (weights / "refine").exists():
+            self.refiner, self.refiner_cfg, _ = ckpt_mod.load_model(weights / "refine", "refine")
+            if list(self.refiner_cfg.obj_ids) != list(self.pose_cfg.obj_ids) or \
+                    self.refiner_cfg.emb_dim != self.pose_cfg.emb_dim:
+                raise UserError(f"refiner in {weights / 'refine'} was trained for another pose net")
+        default_iters = self.refiner_cfg.iterations if self.refiner_cfg is not None else 0
+        self.refine_iterations = default_iters if refine_iterations is None else refine_iterations
+        if self.refine_iterations > 0 and self.refiner is None:
+            raise UserError(f"{weights} has no refine/ checkpoint: cannot refine")
+        self.min_valid_points = min_valid_points
+        self.seed = seed
+        self.timings: dict[str, float] = {"seg": 0.0, "pose": 0.0, "refine": 0.0}
+        self.last_labels: np.ndarray | None = None
+
+    @property
+    def obj_ids(self) -> list[int]:
+        """BOP ids of the objects the pose net knows."""
+        return list(self.pose_cfg.obj_ids)
+
+    @torch.no_grad()
+    def segment(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Class map (H, W) int64 (0 background, else obj_id) and probabilities (C, H, W) float32."""
+        h, w = rgb.shape[:2]
+        ih, iw = self.seg_cfg.input_size
+        x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
+        logits = self.seg(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
+        if (h, w) != (ih, iw):
+            logits = F.interpolate(logits, size=(h, w), mode="bilinear", align_corners=False)
+        prob = torch.softmax(logits[0], dim=0)  # (C, H, W)
+        return prob.argmax(0).numpy(), prob.numpy()
+
+    @torch.no_grad()
+    def estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
+                 mask_scores: list[float] | None = None) -> list[Detection]:
+        """Poses of objects given their masks (obj_id, bool (H, W)); skips objects the pose net does
+        not know and masks with fewer than ``min_valid_points`` valid depth pixels. Each detection
+        carries the very mask array it was given."""
+        t0 = time.perf_counter()
+        rng = np.random.default_rng(self.seed)
+        cfg = self.pose_cfg
+        items, kept = [], []
+        for k, (obj_id, mask) in enumerate(masks):
+            if obj_id not in cfg.obj_ids or int((mask & (depth > 0)).sum()) < self.min_valid_points:
+                continue
+            prep = prepare_pose_input(rgb, depth, K, mask, cfg.num_points, cfg.crop_size, rng)
+            if prep is None:
+                continue
+            items.append(prep)
+            kept.append(k)
+        if not items:
+            self.timings.update(pose=time.perf_counter() - t0, refine=0.0)
+            return []
+        img = torch.from_numpy(np.stack([i[0] for i in items]))
+        choose = torch.from_numpy(np.stack([i[1] for i in items]))
+        points = torch.from_numpy(np.stack([i[2] for i in items]))
+        obj = torch.tensor([cfg.index_of(masks[k][0]) for k in kept])
+        q, t, c, emb = self.pose(img, points, choose, obj)
+        best = c.argmax(dim=1)
+        ar = torch.arange(len(kept))
+        T = make_transform(quat_to_rotmat(q[ar, best]), points[ar, best] + t[ar, best])  # (B, 4, 4)
+        conf = c[ar, best]
+        t1 = t2 = time.perf_counter()
+        if self.refine_iterations > 0 and self.refiner is not None:
+            T = refine(self.refiner, T, points, emb, obj, self.refine_iterations)
+            t2 = time.perf_counter()
+        self.timings.update(pose=t1 - t0, refine=t2 - t1)
+        out = []
+        for j, k in enumerate(kept):
+            ms = 1.0 if mask_scores is None else mask_scores[k]
+            out.append(Detection(obj_id=int(masks[k][0]), T_cam_obj=T[j].double().numpy(),
+                                 score=float(ms * float(conf[j])), mask=masks[k][1]))
+        return out
+
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> list[Detection]:
+        """Detect and estimate every known object in an RGB-D frame (depth in metres, 0 = invalid)."""
+        rgb, depth, K = _check_inputs(rgb, depth, K)
+        t0 = time.perf_counter()
+        labels, prob = self.segment(rgb)
+        self.last_labels = labels
+        masks, scores = [], []
+        for obj_id in self.obj_ids:
+            if obj_id >= prob.shape[0]:
+                continue
+            m = labels == obj_id
+            if m.any():
+                masks.append((obj_id, m))
+                scores.append(float(prob[obj_id][m].mean()))
+        self.timings["seg"] = time.perf_counter() - t0
+        return self.estimate(rgb, depth, K, masks, scores)
+
+
+def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rgb, depth, K = np.asarray(rgb), np.asarray(depth), np.asarray(K, dtype=np.float64)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be uint8 (H, W, 3), got {rgb.dtype} {rgb.shape}")
+    if depth.shape != rgb.shape[:2]:
+        raise ValueError(f"depth must be (H, W) = {rgb.shape[:2]}, got {depth.shape}")
+    if K.shape != (3, 3):
+        raise ValueError(f"K must be 3x3, got {K.shape}")
+    depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    return rgb, depth, K

@@ -1,0 +1,472 @@
+"""Reading and writing datasets in the BOP format (https://bop.felk.cvut.cz/datasets/).
+
+Layout under a dataset root::
+
+    models/obj_XXXXXX.ply, models/models_info.json      (mm)
+    camera.json
+    <split>/<scene 6 digits>/{rgb,depth,mask,mask_visib}/<im 6 digits>.png|jpg
+    <split>/<scene>/mask[_visib]/<im>_<gt index 6 digits>.png
+    <split>/<scene>/scene_gt.json, scene_camera.json, scene_gt_info.json
+
+Files are in millimetres (models, translations, depth png x depth_scale); everything this module
+returns is in metres: the conversion happens here, at the boundary. Poses are 4x4 ``T_cam_obj``
+(model frame -> OpenCV camera frame: x right, y down, z forward). Writers are atomic.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from posegrasp import io as pio
+from posegrasp.errors import UserError
+
+MM = 1e-3  # metres per millimetre
+RESULTS_HEADER = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
+
+
+# ---------------------------------------------------------------------------- paths
+
+def models_dir(root: str | Path) -> Path:
+    """``<root>/models``."""
+    return Path(root) / "models"
+
+
+def model_path(root: str | Path, obj_id: int) -> Path:
+    """``<root>/models/obj_XXXXXX.ply``."""
+    return models_dir(root) / f"obj_{obj_id:06d}.ply"
+
+
+def models_info_path(root: str | Path) -> Path:
+    """``<root>/models/models_info.json``."""
+    return models_dir(root) / "models_info.json"
+
+
+def camera_path(root: str | Path) -> Path:
+    """``<root>/camera.json``."""
+    return Path(root) / "camera.json"
+
+
+def split_dir(root: str | Path, split: str) -> Path:
+    """``<root>/<split>``."""
+    return Path(root) / split
+
+
+def scene_dir(root: str | Path, split: str, scene_id: int) -> Path:
+    """``<root>/<split>/<scene 6 digits>``."""
+    return split_dir(root, split) / f"{scene_id:06d}"
+
+
+def image_path(scene: Path, kind: str, im_id: int, ext: str = "png") -> Path:
+    """``<scene>/<kind>/<im 6 digits>.<ext>`` (kind: rgb, depth, gray)."""
+    return scene / kind / f"{im_id:06d}.{ext}"
+
+
+def mask_path(scene: Path, im_id: int, gt_index: int, visible: bool = True) -> Path:
+    """``<scene>/mask_visib/<im>_<gt>.png`` (visible part) or ``<scene>/mask/...`` (full silhouette)."""
+    return scene / ("mask_visib" if visible else "mask") / f"{im_id:06d}_{gt_index:06d}.png"
+
+
+# ---------------------------------------------------------------------------- records
+
+@dataclass
+class Camera:
+    """``camera.json``: image size (px), intrinsics K (3, 3) px, depth_scale (png value x scale = mm)."""
+
+    width: int
+    height: int
+    K: np.ndarray
+    depth_scale: float = 1.0
+
+
+@dataclass
+class ObjectInfo:
+    """One entry of ``models_info.json``, in metres.
+
+    symmetries_discrete: 4x4 transforms (m) mapping the model onto itself; symmetries_continuous:
+    (axis (3,), offset (3,) m) pairs. ``symmetric`` is True if there is any symmetry.
+    """
+
+    obj_id: int
+    diameter: float
+    min_xyz: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    size_xyz: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    symmetries_discrete: list[np.ndarray] = field(default_factory=list)
+    symmetries_continuous: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+
+    @property
+    def symmetric(self) -> bool:
+        """Whether the model has any (discrete or continuous) symmetry: ADD-S applies."""
+        return bool(self.symmetries_discrete or self.symmetries_continuous)
+
+
+@dataclass
+class GTInfo:
+    """One entry of ``scene_gt_info.json``: boxes [x, y, w, h] px and pixel counts."""
+
+    bbox_obj: tuple[int, int, int, int] = (-1, -1, 0, 0)
+    bbox_visib: tuple[int, int, int, int] = (-1, -1, 0, 0)
+    px_count_all: int = 0
+    px_count_valid: int = 0
+    px_count_visib: int = 0
+    visib_fract: float = 0.0
+
+
+@dataclass
+class GTInstance:
+    """One annotated object in an image: BOP id, pose T_cam_obj (4x4, m), index in scene_gt, info."""
+
+    obj_id: int
+    T_cam_obj: np.ndarray
+    gt_index: int
+    info: GTInfo | None = None
+
+
+@dataclass
+class SceneCamera:
+    """One entry of ``scene_camera.json``: K (3, 3), depth_scale, optional T_cam_world (4x4, m)."""
+
+    K: np.ndarray
+    depth_scale: float = 1.0
+    T_cam_world: np.ndarray | None = None
+
+
+@dataclass
+class ImageRecord:
+    """One image of a BOP split with its camera and annotations (all in metres)."""
+
+    root: Path
+    split: str
+    scene_id: int
+    im_id: int
+    camera: SceneCamera
+    instances: list[GTInstance]
+
+    @property
+    def scene_dir(self) -> Path:
+        return scene_dir(self.root, self.split, self.scene_id)
+
+    @property
+    def rgb_path(self) -> Path:
+        """The colour image (png, else jpg)."""
+        p = image_path(self.scene_dir, "rgb", self.im_id, "png")
+        return p if p.exists() else image_path(self.scene_dir, "rgb", self.im_id, "jpg")
+
+    @property
+    def depth_path(self) -> Path:
+        return image_path(self.scene_dir, "depth", self.im_id, "png")
+
+    def mask_path(self, gt_index: int, visible: bool = True) -> Path:
+        """Path of the (visible or full) mask of annotation ``gt_index``."""
+        return mask_path(self.scene_dir, self.im_id, gt_index, visible)
+
+    def load_rgb(self) -> np.ndarray:
+        """RGB uint8 (H, W, 3)."""
+        img = _read_image(self.rgb_path)
+        return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img
+
+    def load_depth(self) -> np.ndarray:
+        """Depth float32 (H, W) in metres along the optical axis; 0 = no measurement."""
+        return (_read_image(self.depth_path).astype(np.float32) * np.float32(self.camera.depth_scale * MM))
+
+    def load_mask(self, gt_index: int, visible: bool = True) -> np.ndarray:
+        """Boolean (H, W) mask of annotation ``gt_index``."""
+        return _read_image(self.mask_path(gt_index, visible)) > 0
+
+
+def _read_image(path: Path) -> np.ndarray:
+    try:
+        return pio.read_image(path)
+    except OSError as e:
+        raise UserError(str(e)) from None
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise UserError(f"BOP file {path} does not exist") from None
+    except json.JSONDecodeError as e:
+        raise UserError(f"BOP file {path} is not valid JSON: {e}") from None
+
+
+def _T_from_bop(R: list[float], t_mm: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    T[:3, 3] = np.asarray(t_mm, dtype=np.float64).reshape(3) * MM
+    return T
+
+
+# ---------------------------------------------------------------------------- readers
+
+def load_models_info(root_or_file: str | Path) -> dict[int, ObjectInfo]:
+    """``models_info.json`` (given the dataset root or the file itself) -> {obj_id: ObjectInfo} (m)."""
+    p = Path(root_or_file)
+    data = _read_json(p if p.suffix == ".json" else models_info_path(p))
+    out: dict[int, ObjectInfo] = {}
+    for key, d in data.items():
+        disc = [np.asarray(s, dtype=np.float64).reshape(4, 4) for s in d.get("symmetries_discrete", [])]
+        for s in disc:
+            s[:3, 3] *= MM
+        cont = [(np.asarray(s["axis"], dtype=np.float64), np.asarray(s.get("offset", [0, 0, 0]), dtype=np.float64) * MM)
+                for s in d.get("symmetries_continuous", [])]
+        out[int(key)] = ObjectInfo(
+            obj_id=int(key), diameter=float(d["diameter"]) * MM,
+            min_xyz=np.array([d.get("min_x", 0.0), d.get("min_y", 0.0), d.get("min_z", 0.0)]) * MM,
+            size_xyz=np.array([d.get("size_x", 0.0), d.get("size_y", 0.0), d.get("size_z", 0.0)]) * MM,
+            symmetries_discrete=disc, symmetries_continuous=cont)
+    return dict(sorted(out.items()))
+
+
+def load_camera(root_or_file: str | Path) -> Camera:
+    """``camera.json`` (given the dataset root or the file) -> Camera."""
+    p = Path(root_or_file)
+    d = _read_json(p if p.suffix == ".json" else camera_path(p))
+    K = np.array([[d["fx"], 0.0, d["cx"]], [0.0, d["fy"], d["cy"]], [0.0, 0.0, 1.0]])
+    return Camera(width=int(d["width"]), height=int(d["height"]), K=K, depth_scale=float(d.get("depth_scale", 1.0)))
+
+
+def load_scene_gt(path: str | Path) -> dict[int, list[tuple[int, np.ndarray]]]:
+    """``scene_gt.json`` -> {im_id: [(obj_id, T_cam_obj 4x4 m), ...]} in annotation order."""
+    return {int(k): [(int(g["obj_id"]), _T_from_bop(g["cam_R_m2c"], g["cam_t_m2c"])) for g in v]
+            for k, v in _read_json(Path(path)).items()}
+
+
+def load_scene_camera(path: str | Path) -> dict[int, SceneCamera]:
+    """``scene_camera.json`` -> {im_id: SceneCamera} (T_cam_world in m when present)."""
+    out = {}
+    for k, v in _read_json(Path(path)).items():
+        T = _T_from_bop(v["cam_R_w2c"], v["cam_t_w2c"]) if "cam_R_w2c" in v and "cam_t_w2c" in v else None
+        out[int(k)] = SceneCamera(K=np.asarray(v["cam_K"], dtype=np.float64).reshape(3, 3),
+                                  depth_scale=float(v.get("depth_scale", 1.0)), T_cam_world=T)
+    return out
+
+
+def load_scene_gt_info(path: str | Path) -> dict[int, list[GTInfo]]:
+    """``scene_gt_info.json`` -> {im_id: [GTInfo, ...]} in annotation order."""
+    return {int(k): [GTInfo(bbox_obj=tuple(int(x) for x in g["bbox_obj"]),
+                            bbox_visib=tuple(int(x) for x in g["bbox_visib"]),
+                            px_count_all=int(g["px_count_all"]), px_count_valid=int(g["px_count_valid"]),
+                            px_count_visib=int(g["px_count_visib"]), visib_fract=float(g["visib_fract"]))
+                     for g in v]
+            for k, v in _read_json(Path(path)).items()}
+
+
+def list_scenes(root: str | Path, split: str) -> list[int]:
+    """Scene ids present in ``<root>/<split>`` (sorted)."""
+    d = split_dir(root, split)
+    if not d.is_dir():
+        raise UserError(f"BOP split directory {d} does not exist")
+    return sorted(int(p.name) for p in d.iterdir() if p.is_dir() and p.name.isdigit())
+
+
+def iter_scene_images(root: str | Path, split: str, scene_ids: Iterable[int] | None = None) -> Iterator[ImageRecord]:
+    """Every image of a split, scene by scene, with its camera and ground truth (m).
+
+    ``scene_gt.json`` and ``scene_gt_info.json`` are optional (test images without annotations).
+    """
+    root = Path(root)
+    for sid in (list_scenes(root, split) if scene_ids is None else scene_ids):
+        sd = scene_dir(root, split, sid)
+        cams = load_scene_camera(sd / "scene_camera.json")
+        gts = load_scene_gt(sd / "scene_gt.json") if (sd / "scene_gt.json").exists() else {}
+        infos = load_scene_gt_info(sd / "scene_gt_info.json") if (sd / "scene_gt_info.json").exists() else {}
+        for im_id in sorted(cams):
+            gi = infos.get(im_id, [])
+            inst = [GTInstance(obj_id=o, T_cam_obj=T, gt_index=i, info=gi[i] if i < len(gi) else None)
+                    for i, (o, T) in enumerate(gts.get(im_id, []))]
+            yield ImageRecord(root=root, split=split, scene_id=sid, im_id=im_id, camera=cams[im_id], instances=inst)
+
+
+def load_model(root_or_file: str | Path, obj_id: int | None = None):
+    """A model PLY (mm) as a ``trimesh.Trimesh`` in metres; pass the dataset root and obj_id, or a file."""
+    import trimesh
+
+    p = model_path(root_or_file, obj_id) if obj_id is not None else Path(root_or_file)
+    if not p.exists():
+        raise UserError(f"model file {p} does not exist")
+    try:
+        mesh = trimesh.load(p, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types on corrupt files
+        raise UserError(f"cannot read model {p}: {e}") from None
+    mesh.apply_scale(MM)
+    return mesh
+
+
+def sample_model_points(mesh, n: int, seed: int = 0) -> np.ndarray:
+    """n points (m) uniformly on the surface of a trimesh model, reproducible from ``seed``."""
+    import trimesh
+
+    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(pts, dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------- writers
+
+def _R_t_mm(T: np.ndarray) -> tuple[list[float], list[float]]:
+    T = np.asarray(T, dtype=np.float64)
+    return T[:3, :3].reshape(-1).tolist(), (T[:3, 3] / MM).tolist()
+
+
+def write_camera(root: str | Path, cam: Camera) -> Path:
+    """Write ``<root>/camera.json``."""
+    K = cam.K
+    return pio.write_json(camera_path(root), {"cx": float(K[0, 2]), "cy": float(K[1, 2]), "fx": float(K[0, 0]),
+                                             "fy": float(K[1, 1]), "depth_scale": float(cam.depth_scale),
+                                             "width": int(cam.width), "height": int(cam.height)})
+
+
+def write_models_info(root: str | Path, infos: dict[int, ObjectInfo]) -> Path:
+    """Write ``<root>/models/models_info.json`` (values converted to mm)."""
+    out = {}
+    for oid, inf in sorted(infos.items()):
+        d: dict[str, Any] = {"diameter": inf.diameter / MM}
+        for ax, lo, sz in zip("xyz", inf.min_xyz, inf.size_xyz):
+            d[f"min_{ax}"], d[f"size_{ax}"] = float(lo) / MM, float(sz) / MM
+        if inf.symmetries_discrete:
+            mats = []
+            for s in inf.symmetries_discrete:
+                s = np.array(s, dtype=np.float64)
+                s[:3, 3] /= MM
+                mats.append(s.reshape(-1).tolist())
+            d["symmetries_discrete"] = mats
+        if inf.symmetries_continuous:
+            d["symmetries_continuous"] = [{"axis": np.asarray(a, float).tolist(), "offset": (np.asarray(o, float) / MM).tolist()}
+                                          for a, o in inf.symmetries_continuous]
+        out[str(oid)] = d
+    return pio.write_json(models_info_path(root), out)
+
+
+def object_info_from_mesh(obj_id: int, mesh, symmetries_discrete: list[np.ndarray] | None = None,
+                          symmetries_continuous: list[tuple[np.ndarray, np.ndarray]] | None = None) -> ObjectInfo:
+    """ObjectInfo (m) of a mesh in metres: diameter = largest vertex distance, bounding box."""
+    from scipy.spatial.distance import pdist
+
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(v) > 2000:
+        import trimesh
+
+        v = np.asarray(trimesh.convex.convex_hull(mesh).vertices)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    return ObjectInfo(obj_id=obj_id, diameter=float(pdist(v).max()), min_xyz=lo, size_xyz=hi - lo,
+                      symmetries_discrete=list(symmetries_discrete or []),
+                      symmetries_continuous=list(symmetries_continuous or []))
+
+
+def write_model_ply(root: str | Path, obj_id: int, mesh) -> Path:
+    """Write a trimesh model given in metres to ``<root>/models/obj_XXXXXX.ply`` in mm (binary PLY)."""
+    m = mesh.copy()
+    m.apply_scale(1.0 / MM)
+    return pio.write_bytes(model_path(root, obj_id), m.export(file_type="ply"))
+
+
+def write_scene_gt(path: str | Path, gt: dict[int, list[tuple[int, np.ndarray]]]) -> Path:
+    """Write ``scene_gt.json`` from {im_id: [(obj_id, T_cam_obj m), ...]} (translations in mm)."""
+    out = {}
+    for im_id, insts in sorted(gt.items()):
+        rows = []
+        for oid, T in insts:
+            R, t = _R_t_mm(T)
+            rows.append({"cam_R_m2c": R, "cam_t_m2c": t, "obj_id": int(oid)})
+        out[str(im_id)] = rows
+    return pio.write_json(path, out)
+
+
+def write_scene_camera(path: str | Path, cams: dict[int, SceneCamera]) -> Path:
+    """Write ``scene_camera.json`` from {im_id: SceneCamera} (T_cam_world translation in mm)."""
+    out = {}
+    for im_id, c in sorted(cams.items()):
+        d: dict[str, Any] = {"cam_K": np.asarray(c.K, float).reshape(-1).tolist(), "depth_scale": float(c.depth_scale)}
+        if c.T_cam_world is not None:
+            d["cam_R_w2c"], d["cam_t_w2c"] = _R_t_mm(c.T_cam_world)
+        out[str(im_id)] = d
+    return pio.write_json(path, out)
+
+
+def write_scene_gt_info(path: str | Path, infos: dict[int, list[GTInfo]]) -> Path:
+    """Write ``scene_gt_info.json`` from {im_id: [GTInfo, ...]}."""
+    out = {str(k): [{"bbox_obj": list(g.bbox_obj), "bbox_visib": list(g.bbox_visib), "px_count_all": g.px_count_all,
+                     "px_count_valid": g.px_count_valid, "px_count_visib": g.px_count_visib,
+                     "visib_fract": g.visib_fract} for g in v]
+           for k, v in sorted(infos.items())}
+    return pio.write_json(path, out)
+
+
+def depth_to_png(depth_m: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:
+    """Depth (m) -> uint16 png values (value x depth_scale = mm); 0 stays 0, clipped at 65535."""
+    v = np.round(np.asarray(depth_m, dtype=np.float64) / MM / depth_scale)
+    return np.clip(np.nan_to_num(v, nan=0.0, posinf=0.0), 0, 65535).astype(np.uint16)
+
+
+def write_depth(path: str | Path, depth_m: np.ndarray, depth_scale: float = 1.0) -> Path:
+    """Atomically write a depth map in metres as a BOP uint16 png."""
+    return pio.write_png(path, depth_to_png(depth_m, depth_scale))
+
+
+def write_mask(path: str | Path, mask: np.ndarray) -> Path:
+    """Atomically write a boolean mask as a 0/255 png."""
+    return pio.write_png(path, np.asarray(mask, dtype=bool).astype(np.uint8) * 255)
+
+
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    ys, xs = np.nonzero(mask)
+    if ys.size == 0:
+        return (-1, -1, 0, 0)
+    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
+
+
+def gt_info_from_masks(mask: np.ndarray, mask_visib: np.ndarray, depth_m: np.ndarray) -> GTInfo:
+    """GTInfo of one object from its full and visible masks and the scene depth (m).
+
+    bbox_obj is the box of the full mask inside the image (BOP projects the model; the mask is the
+    rendered silhouette, so it is the same up to the image border).
+    """
+    valid = mask & (depth_m > 0)
+    n_all, n_visib = int(mask.sum()), int(mask_visib.sum())
+    return GTInfo(bbox_obj=_bbox(mask), bbox_visib=_bbox(mask_visib), px_count_all=n_all,
+                  px_count_valid=int(valid.sum()), px_count_visib=n_visib,
+                  visib_fract=float(n_visib / n_all) if n_all else 0.0)
+
+
+# ---------------------------------------------------------------------------- results
+
+@dataclass
+class PoseResult:
+    """One pose estimate for the BOP results CSV: T_cam_obj (4x4 m), score, time (s, -1 unknown)."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    score: float
+    T_cam_obj: np.ndarray
+    time: float = -1.0
+
+
+def write_results_csv(path: str | Path, results: Iterable[PoseResult]) -> Path:
+    """Write BOP results: ``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm,
+    space-separated."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(RESULTS_HEADER)
+    for r in results:
+        R, t = _R_t_mm(r.T_cam_obj)
+        w.writerow([r.scene_id, r.im_id, r.obj_id, f"{r.score:.6f}", " ".join(f"{x:.9f}" for x in R),
+                    " ".join(f"{x:.6f}" for x in t), f"{r.time:.6f}"])
+    return pio.write_bytes(path, buf.getvalue().encode())
+
+
+def read_results_csv(path: str | Path) -> list[PoseResult]:
+    """Read a BOP results CSV back (translations to metres)."""
+    out = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            T = _T_from_bop([float(x) for x in row["R"].split()], [float(x) for x in row["t"].split()])
+            out.append(PoseResult(int(row["scene_id"]), int(row["im_id"]), int(row["obj_id"]), float(row["score"]), T,
+                                  float(row["time"])))
+    return out

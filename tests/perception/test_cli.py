@@ -1,0 +1,43 @@
+"""The ``train`` / ``eval`` subcommands registered by ``perception.cli``."""
+
+import argparse
+import json
+
+import pytest
+
+from perception import cli
+from posegrasp.errors import UserError
+
+
+def _parser():
+    p = argparse.ArgumentParser(prog="posegrasp")
+    cli.register(p.add_subparsers(dest="command", required=True))
+    return p
+
+
+def test_train_and_eval_commands(tiny_bop, tiny_run, tmp_path, capsys):
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text("[seg]\nbatch_size = 2\nlog_every = 1\n[seg.model]\nwidth = 0.125\ninput_size = [64, 96]\n"
+                   "[eval]\nmax_images = 1\n")
+    args = _parser().parse_args(["train", "seg", "--data", str(tiny_bop), "--out", str(tmp_path / "run"),
+                                 "--config", str(cfg), "--steps", "2", "--seed", "1", "--no-progress"])
+    assert args.run(args) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 2
+    saved = json.loads((tmp_path / "run" / "seg" / "config.json").read_text())
+    assert saved["train"]["seed"] == 1 and saved["model"]["input_size"] == [64, 96]
+    args = _parser().parse_args(["eval", "--data", str(tiny_bop), "--weights", str(tiny_run), "--config", str(cfg),
+                                 "--out", str(tmp_path / "ev"), "--gt-masks", "--no-refine", "--no-progress"])
+    assert args.run(args) == 0
+    rep = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert rep["images"] == 1 and rep["ablation"]["refine_iterations"] == 0
+
+
+def test_bad_config_is_user_error(tiny_bop, tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[pose]\nbatch = 3\n")
+    args = _parser().parse_args(["train", "pose", "--data", str(tiny_bop), "--out", str(tmp_path), "--config", str(cfg)])
+    with pytest.raises(UserError, match="unknown key"):
+        args.run(args)
+    args = _parser().parse_args(["train", "refine", "--data", str(tiny_bop), "--out", str(tmp_path / "x")])
+    with pytest.raises(UserError, match="train pose"):
+        args.run(args)

@@ -1,0 +1,87 @@
+"""A few training steps on the tiny dataset lower the loss; runs resume exactly; bad use is a UserError."""
+
+import dataclasses
+import json
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from perception import checkpoint
+from perception.data import PoseDataset, SegDataset, collate
+from perception.losses import pose_loss
+from perception.pose_net import build_pose_net
+from perception.seg_net import build_seg_net, seg_loss
+from perception.train import train_pose, train_seg
+from posegrasp.errors import UserError
+
+from conftest import tiny_configs
+
+
+def _fixed_seg_loss(model, ds):
+    model.eval()
+    b = collate([ds.get(i) for i in range(4)])
+    with torch.no_grad():
+        return float(seg_loss(model(b["image"]), b["label"]))
+
+
+def test_seg_training_lowers_loss(tiny_bop, tiny_run):
+    cfg = checkpoint.read_config(tiny_run / "seg")
+    trained, model_cfg, _ = checkpoint.load_model(tiny_run / "seg", "seg")
+    torch.manual_seed(cfg["train"]["seed"])
+    initial = build_seg_net(model_cfg)
+    ds = SegDataset(tiny_bop, "train", model_cfg.input_size, model_cfg.num_classes)
+    assert _fixed_seg_loss(trained, ds) < 0.7 * _fixed_seg_loss(initial, ds)
+    rows = (tiny_run / "seg_metrics.csv").read_text().splitlines()
+    assert rows[0].startswith("step,") and len(rows) == 16
+
+
+def _fixed_pose_loss(model, ds):
+    model.eval()
+    b = collate([ds.get(i) for i in range(0, len(ds), 3)])
+    with torch.no_grad():
+        q, t, c, _ = model(b["image"], b["points"], b["choose"], b["obj"])
+        return pose_loss(q, t, c, b["points"], b["model_points"], b["target"], b["symmetric"]).dis.mean().item()
+
+
+def test_pose_training_lowers_loss(tiny_bop, tiny_run):
+    cfg = checkpoint.read_config(tiny_run / "pose")
+    trained, model_cfg, _ = checkpoint.load_model(tiny_run / "pose", "pose")
+    assert model_cfg.obj_ids == [1, 2, 3] and model_cfg.symmetric == [False, True, True]
+    torch.manual_seed(cfg["train"]["seed"])
+    initial = build_pose_net(model_cfg)
+    ds = PoseDataset(tiny_bop, "train", model_cfg.obj_ids, model_cfg.num_points, model_cfg.crop_size)
+    assert _fixed_pose_loss(trained, ds) < 0.7 * _fixed_pose_loss(initial, ds)
+    state = json.loads((tiny_run / "pose" / "state.json").read_text())
+    assert state["step"] == 20 and state["best_val_dis"] is not None
+    assert (tiny_run / "refine" / "model.safetensors").exists()
+
+
+def test_resume_is_exact_and_guarded(tiny_bop, tmp_path):
+    _, pose, _ = tiny_configs()
+    pose = dataclasses.replace(pose, model=dataclasses.replace(pose.model, num_points=32, crop_size=32),
+                               batch_size=2, checkpoint_every=2, eval_every=2, eval_samples=4, decay_margin=1.0)
+    a, b = tmp_path / "a", tmp_path / "b"
+    train_pose(tiny_bop, a, pose, steps=4, progress=False)
+    train_pose(tiny_bop, b, pose, steps=2, progress=False)
+    with pytest.raises(UserError, match="--resume"):
+        train_pose(tiny_bop, b, pose, steps=4, progress=False)
+    train_pose(tiny_bop, b, None, steps=4, resume=True, progress=False)
+    wa, wb = load_file(a / "pose" / "model.safetensors"), load_file(b / "pose" / "model.safetensors")
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    sa = json.loads((a / "pose" / "state.json").read_text())
+    sb = json.loads((b / "pose" / "state.json").read_text())
+    assert sa["decayed"] and sa["lr"] == sb["lr"] == pytest.approx(1e-3 * 0.3) and sa["w"] == sb["w"]
+    assert [r.split(",")[0] for r in (b / "pose_metrics.csv").read_text().splitlines()] == \
+        ["step", "1", "2", "3", "4"]
+
+
+def test_seg_resume_after_interrupted_save(tiny_bop, tmp_path):
+    seg, _, _ = tiny_configs()
+    seg = dataclasses.replace(seg, checkpoint_every=1)
+    train_seg(tiny_bop, tmp_path, seg, steps=2, progress=False)
+    # a save killed between its two renames leaves only the previous checkpoint as .seg.old
+    (tmp_path / "seg").rename(tmp_path / ".seg.old")
+    assert checkpoint.exists(tmp_path / "seg")
+    out = train_seg(tiny_bop, tmp_path, None, steps=3, resume=True, progress=False)
+    assert out["step"] == 3
