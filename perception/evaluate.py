@@ -3,7 +3,8 @@
 Writes into ``out``: ``metrics.json`` (segmentation mPA / mIoU, per object and overall ADD, ADD-S,
 AUC, < 2 cm accuracy, accuracy at 0.1 x diameter, time per stage, the ablation flags),
 ``per_object.csv``, ``instances.csv`` (one row per evaluated ground-truth instance),
-``curves.png`` (accuracy against rotation and translation error thresholds) and a BOP results CSV
+``curves.png`` (accuracy against rotation error, up to the object's symmetries, and translation
+error thresholds) and a BOP results CSV
 ``<method>_<dataset>-<split>.csv``.
 
 Ablations: ``refine_iterations = 0`` evaluates without refinement; a pose net trained with
@@ -76,7 +77,7 @@ def _summary(rows: list[dict[str, Any]], diameter: float | None) -> dict[str, fl
         "ADD(-S)_acc_0.1d": acc01,
         "mean_ADD": float(add[fin].mean()) if fin.any() else float("nan"),
         "mean_ADD-S": float(adds[fin].mean()) if fin.any() else float("nan"),
-        "median_re_deg": float(np.median([r["re"] for r in rows if r["detected"]])) if fin.any() else float("nan"),
+        "median_re_sym_deg": float(np.median([r["re_sym"] for r in rows if r["detected"]])) if fin.any() else float("nan"),
         "median_te": float(np.median([r["te"] for r in rows if r["detected"]])) if fin.any() else float("nan"),
     }
 
@@ -93,11 +94,11 @@ def _plot_curves(path: Path, rows: list[dict[str, Any]], obj_ids: list[int]) -> 
         if not rs:
             continue
         lw = 2.5 if name == "all" else 1.0
-        re = [r["re"] if r["detected"] else np.inf for r in rs]
+        re = [r["re_sym"] if r["detected"] else np.inf for r in rs]
         te = [r["te"] if r["detected"] else np.inf for r in rs]
         axes[0].plot(RE_THRESHOLDS, M.threshold_curve(re, RE_THRESHOLDS) * 100, lw=lw, label=name)
         axes[1].plot(TE_THRESHOLDS * 100, M.threshold_curve(te, TE_THRESHOLDS) * 100, lw=lw, label=name)
-    axes[0].set(xlabel="rotation error threshold (deg)", ylabel="accuracy (%)", ylim=(0, 101), xlim=(0, 30))
+    axes[0].set(xlabel="rotation error threshold (deg, up to symmetry)", ylabel="accuracy (%)", ylim=(0, 101), xlim=(0, 30))
     axes[1].set(xlabel="translation error threshold (cm)", ylabel="accuracy (%)", ylim=(0, 101), xlim=(0, 5))
     for a in axes:
         a.grid(alpha=0.3)
@@ -187,12 +188,12 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
     out.mkdir(parents=True, exist_ok=True)
     pio.write_bytes(out / "metrics.json", (json.dumps(_clean(report), indent=2) + "\n").encode())
     cols = ["obj_id", "n", "detected", "ADD_AUC", "ADD-S_AUC", "ADD(-S)_AUC", "ADD-S_<2cm", "ADD(-S)_acc_0.1d",
-            "mean_ADD", "mean_ADD-S", "median_re_deg", "median_te"]
+            "mean_ADD", "mean_ADD-S", "median_re_sym_deg", "median_te"]
     pio.write_bytes(out / "per_object.csv", _csv_bytes(
         [{"obj_id": o, **per_object[o]} for o in obj_ids] + [{"obj_id": "all", **overall}], cols))
     pio.write_bytes(out / "instances.csv", _csv_bytes(rows, ["scene_id", "im_id", "gt_index", "obj_id", "symmetric",
                                                              "visib_fract", "detected", "score", "add", "adds",
-                                                             "add_or_adds", "re", "te"]))
+                                                             "add_or_adds", "re", "re_sym", "te"]))
     _plot_curves(out / "curves.png", rows, obj_ids)
     bop.write_results_csv(out / f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv", results)
     return report
@@ -255,13 +256,15 @@ def _match(rec: bop.ImageRecord, gts: list[bop.GTInstance], dets: list[Detection
         row = {"scene_id": rec.scene_id, "im_id": rec.im_id, "gt_index": g.gt_index, "obj_id": g.obj_id,
                "symmetric": sym, "visib_fract": g.info.visib_fract if g.info else float("nan"),
                "diameter": infos[g.obj_id].diameter, "detected": gi in assigned, "score": 0.0,
-               "add": np.inf, "adds": np.inf, "add_or_adds": np.inf, "re": np.inf, "te": np.inf}
+               "add": np.inf, "adds": np.inf, "add_or_adds": np.inf, "re": np.inf, "re_sym": np.inf, "te": np.inf}
         if gi in assigned:
             d = assigned[gi]
             Re, te, Rg, tg = d.T_cam_obj[:3, :3], d.T_cam_obj[:3, 3], g.T_cam_obj[:3, :3], g.T_cam_obj[:3, 3]
             row.update(score=d.score, add=M.add(Re, te, Rg, tg, pts[g.obj_id]),
                        adds=M.adds(Re, te, Rg, tg, pts[g.obj_id]),
-                       re=M.rotation_error_deg(Re, Rg), te=M.translation_error(te, tg))
+                       re=M.rotation_error_deg(Re, Rg), te=M.translation_error(te, tg),
+                       re_sym=M.rotation_error_sym_deg(Re, Rg, infos[g.obj_id].symmetries_discrete,
+                                                       [a for a, _ in infos[g.obj_id].symmetries_continuous]))
             row["add_or_adds"] = row["adds"] if sym else row["add"]
         rows.append(row)
     return rows

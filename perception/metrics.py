@@ -60,6 +60,20 @@ def rotation_error_deg(R_e: np.ndarray, R_g: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
+def rotation_error_sym_deg(R_e: np.ndarray, R_g: np.ndarray, discrete: list[np.ndarray] | None = None,
+                           continuous_axes: list[np.ndarray] | None = None) -> float:
+    """Rotation error (deg) up to the object's symmetries: the smallest error of R_e S over the
+    discrete symmetries S (4x4 or 3x3, identity included); with a continuous symmetry axis a, the
+    rotation about a is free and the error is the angle between R_e S a and R_g a."""
+    Ss = [np.eye(3)] + [np.asarray(S)[:3, :3] for S in (discrete or [])]
+    if continuous_axes:
+        a = np.asarray(continuous_axes[0], dtype=np.float64)
+        a = a / np.linalg.norm(a)
+        g = np.asarray(R_g) @ a
+        return float(min(np.degrees(np.arccos(np.clip(np.dot(np.asarray(R_e) @ S @ a, g), -1.0, 1.0))) for S in Ss))
+    return float(min(rotation_error_deg(np.asarray(R_e) @ S, R_g) for S in Ss))
+
+
 def translation_error(t_e: np.ndarray, t_g: np.ndarray) -> float:
     """te = ||t_e - t_g|| (m)."""
     return float(np.linalg.norm(np.asarray(t_e, dtype=np.float64) - np.asarray(t_g, dtype=np.float64)))

@@ -68,3 +68,13 @@ def test_segmentation_scores():
     np.testing.assert_allclose(s["iou"][:3], [50.0, 200 / 3, 200 / 3])
     assert s["mPA"] == pytest.approx((200 / 3 + 100 + 200 / 3) / 3)
     assert s["mIoU"] == pytest.approx((50 + 400 / 3) / 3)
+
+
+def test_rotation_error_up_to_symmetry():
+    R_g = quat_to_R(np.array([0.9, 0.1, -0.3, 0.2]))
+    flip_z = np.diag([-1.0, -1.0, 1.0, 1.0])
+    R_e = R_g @ flip_z[:3, :3]  # the box's 180 deg symmetry about z
+    assert m.rotation_error_deg(R_e, R_g) == pytest.approx(180.0)
+    assert m.rotation_error_sym_deg(R_e, R_g, [flip_z]) == pytest.approx(0.0, abs=1e-6)
+    spun = R_g @ axis_angle_R(np.array([0.0, 0.0, 1.0]), 1.0) @ axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(5))
+    assert m.rotation_error_sym_deg(spun, R_g, [], [np.array([0.0, 0.0, 1.0])]) == pytest.approx(5.0, abs=1e-6)
