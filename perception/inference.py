@@ -18,7 +18,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from perception import checkpoint as ckpt_mod
 from perception.data import normalize_rgb, prepare_pose_input
@@ -79,15 +78,19 @@ class Estimator:
 
     @torch.no_grad()
     def segment(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Class map (H, W) int64 (0 background, else obj_id) and probabilities (C, H, W) float32."""
+        """Class map (H, W) int64 (0 background, else obj_id) and class probabilities (H, W, C)
+        float32: softmax at the net's input size, bilinearly resized to the image (OpenCV, channels
+        last, which is ~5x faster on a CPU than arg-maxing upsampled logits in torch)."""
         h, w = rgb.shape[:2]
         ih, iw = self.seg_cfg.input_size
         x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
         logits = self.seg(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
+        prob = np.ascontiguousarray(torch.softmax(logits[0], dim=0).permute(1, 2, 0).numpy())  # (ih, iw, C)
         if (h, w) != (ih, iw):
-            logits = F.interpolate(logits, size=(h, w), mode="bilinear", align_corners=False)
-        prob = torch.softmax(logits[0], dim=0)  # (C, H, W)
-        return prob.argmax(0).numpy(), prob.numpy()
+            prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
+            if prob.ndim == 2:  # OpenCV drops a single channel axis
+                prob = prob[..., None]
+        return prob.argmax(axis=-1).astype(np.int64), prob
 
     @torch.no_grad()
     def estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
@@ -139,12 +142,12 @@ class Estimator:
         self.last_labels = labels
         masks, scores = [], []
         for obj_id in self.obj_ids:
-            if obj_id >= prob.shape[0]:
+            if obj_id >= prob.shape[-1]:
                 continue
             m = labels == obj_id
             if m.any():
                 masks.append((obj_id, m))
-                scores.append(float(prob[obj_id][m].mean()))
+                scores.append(float(prob[..., obj_id][m].mean()))
         self.timings["seg"] = time.perf_counter() - t0
         return self.estimate(rgb, depth, K, masks, scores)
 
