@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import mujoco
 import numpy as np
@@ -17,6 +17,7 @@ from dm_control import mjcf
 from dm_control.entities.manipulators.kinova import JacoArm, JacoHand
 
 from posegrasp.catalog import BlockType
+from posegrasp.errors import UserError
 from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
 from sim.camera import T_CV_MJ, rpy_deg_to_R
 from sim.config import WorkcellConfig
@@ -133,10 +134,14 @@ class Workcell:
     ``T_world_*`` poses are in the world frame (the arm base on the table top, z up), metres.
     """
 
-    def __init__(self, cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()):
+    def __init__(self, cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = (),
+                 extras: Callable[[mjcf.RootElement], None] | None = None):
+        """``extras(root)``, if given, adds items (textures, lights, distractors) to the MJCF before compiling."""
         self.cfg = cfg
         self.blocks = list(blocks)
         self.mjcf_root = build_mjcf(cfg, self.blocks)
+        if extras is not None:
+            extras(self.mjcf_root)
         self.model = compile_mjcf(self.mjcf_root)
         self.data = mujoco.MjData(self.model)
         m = self.model
@@ -216,16 +221,15 @@ class Workcell:
         return invert(self.gripper_pose()) @ self.camera_pose(HAND_CAMERA)
 
     # -- kinematics ----------------------------------------------------------------------------------
-    @functools.cached_property
+    @property
     def ik(self) -> ArmIK:
-        """IK on a robot-only copy of this workcell (same arm, hand and camera; no blocks)."""
-        robot = Workcell(self.cfg) if self.blocks else self
-        return ArmIK(robot.model, robot.arm_qadr)
+        """IK on a robot-only copy of this workcell (same arm, hand and camera; no blocks), one per config."""
+        return _robot_ik(self.cfg)
 
-    def solve_camera_ik(self, T_world_cam: np.ndarray, q0: np.ndarray | None = None):
+    def solve_camera_ik(self, T_world_cam: np.ndarray, q0: np.ndarray | None = None, iters: int = 400):
         """Joint angles placing the hand camera (OpenCV frame) at ``T_world_cam``; with residuals (m, rad)."""
         return self.ik.solve(f"jaco_arm/jaco_hand/{HAND_CAMERA}", T_world_cam @ T_CV_MJ,
-                             self.arm_q if q0 is None else q0)
+                             self.arm_q if q0 is None else q0, iters=iters)
 
     def solve_gripper_ik(self, T_world_gripper: np.ndarray, q0: np.ndarray | None = None):
         """Joint angles placing the gripper (pinch site) at ``T_world_gripper``; with residuals (m, rad)."""
@@ -240,14 +244,10 @@ class Workcell:
         R = look_at_R(np.array([0.0, 0.0, -1.0]), up_hint=np.array([1.0, 0.0, 0.0]))
         return make_T(R, (c[0], c[1], self.cfg.look_height))
 
-    @functools.cached_property
+    @property
     def look_q(self) -> np.ndarray:
-        """Arm joint angles of the named look pose (solved once from home)."""
-        q, dp, dr = self.solve_camera_ik(self.look_camera_pose(), np.asarray(self.cfg.home_qpos))
-        if dp > 1e-3 or dr > 1e-2:
-            raise ValueError(f"look pose unreachable: residual {dp:.4f} m, {np.rad2deg(dr):.2f} deg; "
-                             "lower look_height or move the pick area closer to the arm")
-        return q
+        """Arm joint angles of the named look pose (solved from home once per config)."""
+        return _look_q(self.cfg).copy()
 
     # -- control -------------------------------------------------------------------------------------
     def step(self, n: int = 1) -> None:
@@ -293,3 +293,19 @@ class Workcell:
 def wrap_angle(a: np.ndarray) -> np.ndarray:
     """Angles wrapped to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+@functools.lru_cache(maxsize=8)
+def _robot_ik(cfg: WorkcellConfig) -> ArmIK:
+    robot = Workcell(cfg)
+    return ArmIK(robot.model, robot.arm_qadr)
+
+
+@functools.lru_cache(maxsize=8)
+def _look_q(cfg: WorkcellConfig) -> np.ndarray:
+    wc = Workcell(cfg)
+    q, dp, dr = wc.solve_camera_ik(wc.look_camera_pose(), np.asarray(cfg.home_qpos))
+    if dp > 1e-3 or dr > 1e-2:
+        raise UserError(f"look pose unreachable: residual {dp:.4f} m, {np.rad2deg(dr):.2f} deg; "
+                        "lower look_height or move the pick area closer to the arm")
+    return q
