@@ -16,6 +16,7 @@ from posegrasp.errors import UserError
 #: Modules that register subcommands, in the order they appear in ``--help``.
 COMMAND_MODULES = (
     "sim.cli",
+    "datagen.cli",
 )
 
 

@@ -1,0 +1,72 @@
+"""Labelled frames per second of BOP dataset generation: 640x480, 5 blocks per scene, every file written.
+
+Times ``generate_dataset`` end to end (worker start-up, scene settling, arm motion, rendering, noise, encoding,
+writing) into a fresh temporary folder and prints a table and a JSON line, with the load average of the
+machine before and after (other processes on the machine slow this down; say so when you quote the figure).
+Run: ``MUJOCO_GL=egl .venv/bin/python bench/datagen.py [--workers 2] [--scenes 8] [--views 25]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+# this script is named like the ``datagen`` package: import the package, not the script
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+from datagen.cli import parse_blocks  # noqa: E402
+from datagen.config import DatagenConfig  # noqa: E402
+from datagen.generate import generate_dataset  # noqa: E402
+from sim.cli import parse_resolution  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--scenes", type=int, default=8)
+    ap.add_argument("--views", type=int, default=25)
+    ap.add_argument("--blocks", default="5")
+    ap.add_argument("--resolution", default="640x480")
+    ap.add_argument("--rgb-format", default="jpg", choices=("jpg", "png"))
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+
+    w, h = parse_resolution(args.resolution)
+    wc = DatagenConfig().workcell
+    wc = dataclasses.replace(wc, hand_camera=dataclasses.replace(wc.hand_camera, width=w, height=h))
+    cfg = DatagenConfig(blocks=parse_blocks(args.blocks), rgb_format=args.rgb_format, workcell=wc)
+    out = tempfile.mkdtemp(prefix="bench_datagen_")
+    load_before = os.getloadavg()
+    t0 = time.perf_counter()
+    try:
+        s = generate_dataset(out, args.scenes, args.views, args.seed, cfg, workers=args.workers)
+        wall = time.perf_counter() - t0
+        size_mb = sum(f.stat().st_size for f in Path(out).rglob("*") if f.is_file()) / 1e6
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
+    load_after = os.getloadavg()
+    res = {
+        "frames_per_s": round(s["images"] / wall, 2),
+        "images": s["images"], "scenes": args.scenes, "views": args.views, "workers": args.workers,
+        "resolution": args.resolution, "blocks": args.blocks, "rgb_format": args.rgb_format,
+        "wall_s": round(wall, 2), "dataset_mb": round(size_mb, 1), "cpus": os.cpu_count(),
+        "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in load_after],
+        "unreachable_views": s["views"]["out_of_reach"] + s["views"]["unreachable"] + s["views"]["blocked"],
+    }
+    width = max(len(k) for k in res)
+    for k, v in res.items():
+        print(f"{k:<{width}}  {v}")
+    print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()

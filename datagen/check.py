@@ -1,0 +1,394 @@
+"""Validating a BOP dataset: schema, units, ids, rotations, masks against ``scene_gt_info.json``, and depth
+against the models at their ground-truth poses. Works on any BOP dataset, not only generated ones.
+
+Every problem is a line naming the file (relative to the dataset root) and what is wrong with it.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from posegrasp import bop
+from posegrasp import io as pio
+from posegrasp.errors import UserError
+from posegrasp.geometry import invert
+
+#: Required keys and their kinds: "num" a number, "int" an integer, ("nums", n) a list of n numbers.
+CAMERA_KEYS = {"fx": "num", "fy": "num", "cx": "num", "cy": "num", "width": "int", "height": "int"}
+MODEL_KEYS = {"diameter": "num", **{f"{p}_{a}": "num" for p in ("min", "size") for a in "xyz"}}
+SCENE_CAMERA_KEYS = {"cam_K": ("nums", 9)}
+GT_KEYS = {"cam_R_m2c": ("nums", 9), "cam_t_m2c": ("nums", 3), "obj_id": "int"}
+INFO_KEYS = {"bbox_obj": ("nums", 4), "bbox_visib": ("nums", 4), "px_count_all": "int", "px_count_valid": "int",
+             "px_count_visib": "int", "visib_fract": "num"}
+HIST_BINS = np.linspace(0.0, 1.0, 11)
+
+
+@dataclass
+class CheckReport:
+    """What ``check_dataset`` found: problems (first ones first) and summary counts."""
+
+    problems: list[str] = field(default_factory=list)
+    splits: list[str] = field(default_factory=list)
+    scenes: int = 0
+    images: int = 0
+    instances: Counter = field(default_factory=Counter)
+    visible: Counter = field(default_factory=Counter)
+    visib_fracts: list[float] = field(default_factory=list)
+    depth_errors_mm: list[float] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def schema_problems(obj: Any, keys: dict[str, Any], where: str) -> list[str]:
+    """Missing keys and wrongly typed values of a JSON object against ``keys``."""
+    if not isinstance(obj, dict):
+        return [f"{where}: expected a JSON object, got {type(obj).__name__}"]
+    out = []
+    for k, kind in keys.items():
+        if k not in obj:
+            out.append(f"{where}: missing key '{k}'")
+            continue
+        v = obj[k]
+        if kind == "num" and not _is_num(v):
+            out.append(f"{where}: '{k}' must be a number, got {v!r}")
+        elif kind == "int" and not (isinstance(v, int) and not isinstance(v, bool)):
+            out.append(f"{where}: '{k}' must be an integer, got {v!r}")
+        elif isinstance(kind, tuple) and not (isinstance(v, list) and len(v) == kind[1] and all(_is_num(x) for x in v)):
+            out.append(f"{where}: '{k}' must be a list of {kind[1]} numbers, got {v!r}")
+    return out
+
+
+def rotation_problem(R: np.ndarray, tol: float = 1e-3) -> str | None:
+    """Why a 3x3 matrix is not a rotation (orthonormal, det +1), or None."""
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > tol:
+        return f"is not orthonormal (max |R R^T - I| = {err:.2g})"
+    if np.linalg.det(R) < 0:
+        return "has determinant -1 (a reflection)"
+    return None
+
+
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    ys, xs = np.nonzero(mask)
+    if ys.size == 0:
+        return (-1, -1, 0, 0)
+    return int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)
+
+
+def find_splits(root: Path) -> list[str]:
+    """Folders of ``root`` holding scene folders (6-digit names), models folders excluded."""
+    return sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("models")
+                  and any(c.is_dir() and c.name.isdigit() for c in p.iterdir()))
+
+
+class _Checker:
+    """Accumulates problems over one dataset; ``max_problems`` stops the search early."""
+
+    def __init__(self, root: Path, depth_tol_mm: float, max_problems: int):
+        self.root, self.tol, self.max_problems = root, depth_tol_mm, max_problems
+        self.report = CheckReport()
+        self.meshes: dict[int, Any] = {}
+        self.infos: dict[str, Any] = {}
+
+    def add(self, msg: str) -> None:
+        self.report.problems.append(msg)
+
+    @property
+    def full(self) -> bool:
+        return len(self.report.problems) >= self.max_problems
+
+    def rel(self, p: Path) -> str:
+        return str(p.relative_to(self.root))
+
+    def json(self, path: Path) -> Any:
+        """Parsed JSON, or None with a problem recorded."""
+        try:
+            return json.loads(path.read_text())
+        except FileNotFoundError:
+            self.add(f"{self.rel(path)}: missing")
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            self.add(f"{self.rel(path)}: not valid JSON ({e})")
+        return None
+
+    def image(self, path: Path, shape: tuple[int, int], what: str) -> np.ndarray | None:
+        """An image of the camera's size, or None with a problem recorded."""
+        try:
+            img = pio.read_image(path)
+        except OSError:
+            self.add(f"{self.rel(path)}: {'missing' if not path.exists() else 'unreadable (corrupt or not an image)'}")
+            return None
+        if img.shape[:2] != shape:
+            self.add(f"{self.rel(path)}: {what} is {img.shape[1]}x{img.shape[0]}, camera.json says {shape[1]}x{shape[0]}")
+            return None
+        return img
+
+    # -- dataset level --------------------------------------------------------------------------------
+    def models(self) -> None:
+        path = bop.models_info_path(self.root)
+        data = self.json(path)
+        if not isinstance(data, dict) or not data:
+            if data is not None:
+                self.add(f"{self.rel(path)}: expected a non-empty object keyed by obj_id")
+            return
+        for key, d in data.items():
+            where = f"{self.rel(path)}: obj {key}"
+            if not key.isdigit():
+                self.add(f"{where}: key must be an integer obj_id")
+                continue
+            probs = schema_problems(d, MODEL_KEYS, where)
+            if probs:
+                self.report.problems.extend(probs)
+                continue
+            if d["diameter"] < 1.0:
+                self.add(f"{where}: diameter {d['diameter']} looks like metres; BOP models_info is in millimetres")
+            for s, flat in enumerate(d.get("symmetries_discrete", [])):
+                if not (isinstance(flat, list) and len(flat) == 16 and all(_is_num(x) for x in flat)):
+                    self.add(f"{where}: symmetries_discrete[{s}] must be 16 numbers (4x4 row-major)")
+                elif (why := rotation_problem(np.reshape(flat, (4, 4))[:3, :3])) is not None:
+                    self.add(f"{where}: symmetries_discrete[{s}] rotation {why}")
+            for s, c in enumerate(d.get("symmetries_continuous", [])):
+                self.report.problems.extend(schema_problems(c, {"axis": ("nums", 3), "offset": ("nums", 3)},
+                                                            f"{where}: symmetries_continuous[{s}]"))
+            self.infos[key] = d
+            self.model(int(key), d)
+
+    def model(self, obj_id: int, d: dict[str, Any]) -> None:
+        """The PLY exists, loads, and its extent (mm) matches ``models_info.json``."""
+        p = bop.model_path(self.root, obj_id)
+        if not p.is_file():
+            self.add(f"{self.rel(p)}: missing (listed in models_info.json)")
+            return
+        try:
+            mesh = bop.load_model(p)  # metres, assuming the file is in mm
+        except UserError:
+            self.add(f"{self.rel(p)}: unreadable (corrupt or not a PLY mesh)")
+            return
+        size_mm = np.ptp(np.asarray(mesh.vertices), axis=0) * 1000.0
+        want = np.array([d["size_x"], d["size_y"], d["size_z"]], float)
+        ratio = float(np.max(want) / max(np.max(size_mm), 1e-12))
+        if not 0.98 < ratio < 1.02:
+            units = " (the model looks like metres)" if 500 < ratio < 2000 else ""
+            self.add(f"{self.rel(p)}: extent {np.round(size_mm, 2).tolist()} mm does not match models_info.json "
+                     f"size {want.tolist()} mm{units}")
+            return
+        self.meshes[obj_id] = mesh
+
+    def camera(self) -> tuple[int, int] | None:
+        path = bop.camera_path(self.root)
+        d = self.json(path)
+        if d is None:
+            return None
+        probs = schema_problems(d, CAMERA_KEYS, self.rel(path))
+        if "depth_scale" in d and not (_is_num(d["depth_scale"]) and d["depth_scale"] > 0):
+            probs.append(f"{self.rel(path)}: 'depth_scale' must be a positive number, got {d['depth_scale']!r}")
+        self.report.problems.extend(probs)
+        return None if probs else (int(d["height"]), int(d["width"]))
+
+    # -- scenes ---------------------------------------------------------------------------------------
+    def scene(self, sd: Path, shape: tuple[int, int], max_images: int | None) -> None:
+        cams = self.json(sd / "scene_camera.json")
+        gts = self.json(sd / "scene_gt.json")
+        infos = self.json(sd / "scene_gt_info.json")
+        if not all(isinstance(x, dict) for x in (cams, gts, infos)):
+            return
+        ids = [set(x) for x in (cams, gts, infos)]
+        if not ids[0] == ids[1] == ids[2]:
+            self.add(f"{self.rel(sd)}: scene_camera, scene_gt and scene_gt_info list different images")
+        self.report.scenes += 1
+        for key in sorted(ids[0] & ids[1] & ids[2], key=lambda k: int(k) if k.isdigit() else -1)[:max_images]:
+            if self.full:
+                return
+            self.image_record(sd, key, cams[key], gts[key], infos[key], shape)
+
+    def image_record(self, sd: Path, key: str, cam: Any, gts: Any, infos: Any, shape: tuple[int, int]) -> None:
+        rel = self.rel(sd)
+        probs = schema_problems(cam, SCENE_CAMERA_KEYS, f"{rel}/scene_camera.json: im {key}")
+        if not key.isdigit():
+            probs.append(f"{rel}: image id {key!r} is not an integer")
+        if not isinstance(gts, list) or not isinstance(infos, list) or len(gts) != len(infos):
+            probs.append(f"{rel}: im {key}: scene_gt and scene_gt_info must be lists of the same length")
+        if probs:
+            self.report.problems.extend(probs)
+            return
+        im = int(key)
+        scale = cam.get("depth_scale", 1.0)
+        if not (_is_num(scale) and scale > 0):
+            self.add(f"{rel}/scene_camera.json: im {key}: 'depth_scale' must be a positive number, got {scale!r}")
+            return
+        if "cam_R_w2c" in cam and (why := rotation_problem(np.reshape(cam["cam_R_w2c"], (3, 3)))):
+            self.add(f"{rel}/scene_camera.json: im {key}: cam_R_w2c {why}")
+        K = np.reshape(cam["cam_K"], (3, 3))
+        self.report.images += 1
+        rgb_png, rgb_jpg = bop.image_path(sd, "rgb", im, "png"), bop.image_path(sd, "rgb", im, "jpg")
+        self.image(rgb_png if rgb_png.exists() or not rgb_jpg.exists() else rgb_jpg, shape, "rgb")
+        dpath = bop.image_path(sd, "depth", im)
+        depth = self.image(dpath, shape, "depth")
+        if depth is not None and depth.dtype != np.uint16:
+            self.add(f"{self.rel(dpath)}: depth must be a uint16 png, got {depth.dtype}")
+            depth = None
+        depth_mm = None if depth is None else depth.astype(np.float64) * scale
+        for i, (g, info) in enumerate(zip(gts, infos)):
+            self.instance(sd, im, i, g, info, K, depth_mm, shape)
+
+    def instance(self, sd: Path, im: int, i: int, g: Any, info: Any, K: np.ndarray, depth_mm: np.ndarray | None,
+                 shape: tuple[int, int]) -> None:
+        rel = self.rel(sd)
+        where = f"{rel}/scene_gt.json: im {im} gt {i}"
+        probs = schema_problems(g, GT_KEYS, where) + schema_problems(info, INFO_KEYS, f"{rel}/scene_gt_info.json: im {im} gt {i}")
+        if probs:
+            self.report.problems.extend(probs)
+            return
+        oid = g["obj_id"]
+        if str(oid) not in self.infos:
+            self.add(f"{where}: obj_id {oid} is not in models/models_info.json")
+        R, t = np.reshape(g["cam_R_m2c"], (3, 3)), np.asarray(g["cam_t_m2c"], float)
+        units_ok = True
+        if (why := rotation_problem(R)) is not None:
+            self.add(f"{where}: cam_R_m2c {why}")
+            units_ok = False
+        if np.linalg.norm(t) < 10.0:
+            self.add(f"{where}: cam_t_m2c {t.tolist()} looks like metres; BOP translations are in millimetres")
+            units_ok = False
+        self.report.instances[oid] += 1
+        self.report.visib_fracts.append(float(info["visib_fract"]))
+        masks = [self.image(bop.mask_path(sd, im, i, visible=v), shape, "mask") for v in (False, True)]
+        if any(m is None for m in masks):
+            return
+        full, visib = (m > 0 for m in masks)
+        self.mask_info(f"{rel}/scene_gt_info.json: im {im} gt {i}", full, visib, info, depth_mm)
+        if visib.any():
+            self.report.visible[oid] += 1
+        if depth_mm is not None and units_ok and oid in self.meshes:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, t / 1000.0
+            self.depth_on_model(f"{rel}/depth/{im:06d}.png: gt {i} (obj {oid})", depth_mm, K, visib, T, self.meshes[oid])
+
+    def mask_info(self, where: str, full: np.ndarray, visib: np.ndarray, info: dict, depth_mm: np.ndarray | None) -> None:
+        """Pixel counts, boxes and visible fraction in ``scene_gt_info.json`` against the masks."""
+        n_all, n_vis = int(full.sum()), int(visib.sum())
+        outside = int((visib & ~full).sum())
+        if outside:
+            self.add(f"{where}: {outside} visible-mask pixels lie outside the full (amodal) mask")
+        if info["px_count_all"] != n_all:
+            self.add(f"{where}: px_count_all {info['px_count_all']} != {n_all} pixels in mask/")
+        if info["px_count_visib"] != n_vis:
+            self.add(f"{where}: px_count_visib {info['px_count_visib']} != {n_vis} pixels in mask_visib/")
+        if depth_mm is not None and info["px_count_valid"] != (n_valid := int((full & (depth_mm > 0)).sum())):
+            self.add(f"{where}: px_count_valid {info['px_count_valid']} != {n_valid} mask pixels with depth")
+        frac = n_vis / n_all if n_all else 0.0
+        if abs(info["visib_fract"] - frac) > 1e-3:
+            self.add(f"{where}: visib_fract {info['visib_fract']} != px_count_visib / px_count_all = {frac:.4f}")
+        bv = _bbox(visib)
+        if n_vis and np.abs(np.subtract(info["bbox_visib"], bv)).max() > 1:
+            self.add(f"{where}: bbox_visib {info['bbox_visib']} != box of mask_visib {list(bv)}")
+        if n_all:
+            x, y, w, h = _bbox(full)
+            bx, by, bw, bh = info["bbox_obj"]
+            if bx > x + 1 or by > y + 1 or bx + bw < x + w - 1 or by + bh < y + h - 1:
+                self.add(f"{where}: bbox_obj {info['bbox_obj']} does not contain the mask's box {[x, y, w, h]}")
+
+    def depth_on_model(self, where: str, depth_mm: np.ndarray, K: np.ndarray, visib: np.ndarray, T: np.ndarray,
+                       mesh) -> None:
+        """Depth at the visible mask back-projected into the object frame must lie on the model."""
+        import trimesh
+
+        v, u = np.nonzero(visib & (depth_mm > 0))
+        if len(v) < 30:
+            return
+        sel = np.linspace(0, len(v) - 1, min(len(v), 300)).astype(int)
+        v, u = v[sel], u[sel]
+        z = depth_mm[v, u] / 1000.0
+        ratio = float(np.median(z) / T[2, 3]) if T[2, 3] > 0 else float("nan")
+        for factor, what in ((10.0, "depth_scale looks 10x too large"), (0.1, "depth_scale looks 10x too small"),
+                             (1000.0, "depth looks like it is in metres x depth_scale, or translations in metres"),
+                             (0.001, "depth looks 1000x too small")):
+            if 0.7 * factor < ratio < 1.4 * factor:
+                self.add(f"{where}: measured depth / GT distance = {ratio:.3g}: {what}")
+                return
+        pts = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+        Ti = invert(T)
+        _, dist, _ = trimesh.proximity.closest_point(mesh, pts @ Ti[:3, :3].T + Ti[:3, 3])
+        med = float(np.median(dist)) * 1000.0
+        self.report.depth_errors_mm.append(med)
+        if med > self.tol:
+            self.add(f"{where}: depth at the visible mask lies {med:.1f} mm (median) from the model at its GT pose "
+                     f"(tolerance {self.tol} mm)")
+
+
+def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: float = 5.0, max_images: int | None = None,
+                  max_problems: int = 200) -> CheckReport:
+    """Validate the BOP dataset at ``root`` (all splits, or ``split``); ``max_images`` per scene limits the work."""
+    root = Path(root)
+    if not root.is_dir():
+        raise UserError(f"dataset folder {root} does not exist")
+    c = _Checker(root, depth_tol_mm, max_problems)
+    c.models()
+    shape = c.camera()
+    splits = find_splits(root)
+    if split is not None:
+        if split not in splits:
+            raise UserError(f"split {split!r} not found in {root} (splits with scenes: {splits or 'none'})")
+        splits = [split]
+    c.report.splits = splits
+    if not splits:
+        c.add(f"{root}: no split folder with scene folders (e.g. train_pbr/000000/)")
+    for tmp in sorted(root.rglob(".*.tmp"))[:5]:
+        c.add(f"{c.rel(tmp)}: leftover of an interrupted write; rerun the generator to complete the dataset")
+    if shape is None:
+        return c.report
+    for s in splits:
+        for sid in bop.list_scenes(root, s):
+            if c.full:
+                return c.report
+            c.scene(bop.scene_dir(root, s, sid), shape, max_images)
+    return c.report
+
+
+def print_report(report: CheckReport, root: str | Path, show_problems: int = 20) -> None:
+    """Summary tables (images, instances per object, visibility histogram, depth error) and the first problems."""
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    con.print(f"[bold]{root}[/bold]: splits {', '.join(report.splits) or '-'}, {report.scenes} scenes, "
+              f"{report.images} images, {sum(report.instances.values())} instances")
+    t = Table(title="instances per object")
+    for col in ("obj_id", "instances", "visible", "share"):
+        t.add_column(col, justify="right")
+    total = max(sum(report.instances.values()), 1)
+    for oid, n in sorted(report.instances.items()):
+        t.add_row(str(oid), str(n), str(report.visible[oid]), f"{100 * n / total:.1f}%")
+    con.print(t)
+    if report.visib_fracts:
+        h, _ = np.histogram(report.visib_fracts, HIST_BINS)
+        ht = Table(title="visibility (visib_fract)")
+        ht.add_column("range")
+        ht.add_column("instances", justify="right")
+        ht.add_column("")
+        for lo, hi, n in zip(HIST_BINS[:-1], HIST_BINS[1:], h):
+            ht.add_row(f"{lo:.1f}-{hi:.1f}", str(n), "#" * int(round(40 * n / max(h.max(), 1))))
+        con.print(ht)
+    if report.depth_errors_mm:
+        e = np.asarray(report.depth_errors_mm)
+        con.print(f"depth vs model at GT pose: median {np.median(e):.2f} mm, worst instance {e.max():.2f} mm "
+                  f"({len(e)} instances)")
+    if report.ok:
+        con.print("[green]OK[/green]: no problems found")
+        return
+    con.print(f"[red]{len(report.problems)} problem(s)[/red]" + (" (search stopped early)" if len(report.problems) >= 200 else ""))
+    for p in report.problems[:show_problems]:
+        con.print(f"  {p}", markup=False, highlight=False, soft_wrap=True)
+    if len(report.problems) > show_problems:
+        con.print(f"  ... and {len(report.problems) - show_problems} more")

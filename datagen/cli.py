@@ -1,0 +1,135 @@
+"""``posegrasp datagen`` (write a synthetic BOP dataset) and ``posegrasp dataset check|show`` (inspect one)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import re
+
+from posegrasp.errors import UserError
+
+
+def parse_blocks(text: str) -> tuple[int, int]:
+    """``"5"`` -> (5, 5); ``"3-8"`` -> (3, 8); a one-line error for anything else."""
+    m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", text)
+    if not m:
+        raise UserError(f"--blocks {text!r} must be a count N or a range MIN-MAX, e.g. 5 or 3-8")
+    lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
+    if lo < 1 or hi < lo:
+        raise UserError(f"--blocks {text!r} must satisfy 1 <= MIN <= MAX")
+    return lo, hi
+
+
+def _positive(name: str):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise UserError(f"{name} must be a positive integer, got {text!r}") from None
+        if v < 1:
+            raise UserError(f"{name} must be a positive integer, got {v}")
+        return v
+    return parse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("datagen", help="generate a randomised synthetic RGB-D dataset in BOP format (resumable)")
+    p.add_argument("--out", required=True, help="dataset folder (created; an existing one is completed)")
+    p.add_argument("--scenes", type=_positive("--scenes"), default=10, help="simulated scenes (one BOP scene each)")
+    p.add_argument("--views", type=_positive("--views"), default=25, help="hand-camera views per scene")
+    p.add_argument("--seed", type=int, default=0, help="dataset seed (same seed and settings, same bytes)")
+    p.add_argument("--workers", type=_positive("--workers"), default=None, help="worker processes (default: one per core)")
+    p.add_argument("--split", choices=("train_pbr", "test"), default="train_pbr", help="BOP split to write")
+    p.add_argument("--resolution", default=None, help="image WIDTHxHEIGHT (default from the config: 640x480)")
+    p.add_argument("--config", default=None, help="generation settings TOML (see datagen/config.py)")
+    p.add_argument("--rgb-format", choices=("png", "jpg"), default=None, help="colour images (default: jpg for train_pbr, png for test)")
+    p.add_argument("--blocks", default=None, help="blocks per scene: N or MIN-MAX (default 3-8)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(run=run_datagen)
+
+    d = sub.add_parser("dataset", help="check or draw a BOP dataset")
+    dsub = d.add_subparsers(dest="dataset_command", required=True, parser_class=type(d))
+    c = dsub.add_parser("check", help="validate a BOP dataset and print a summary (exit 1 when invalid)")
+    c.add_argument("dir", help="dataset root (holding models/, camera.json and split folders)")
+    c.add_argument("--split", default=None, help="only this split (default: every split found)")
+    c.add_argument("--depth-tol-mm", type=float, default=5.0, help="max median depth-to-model distance (mm)")
+    c.add_argument("--max-images", type=_positive("--max-images"), default=None, help="check at most N images per scene")
+    c.set_defaults(run=run_check)
+    s = dsub.add_parser("show", help="draw one image with masks, 3D boxes and axes next to its depth")
+    s.add_argument("dir", help="dataset root")
+    s.add_argument("--scene", type=int, required=True, help="scene id")
+    s.add_argument("--im", type=int, required=True, help="image id")
+    s.add_argument("--out", required=True, help="output PNG")
+    s.add_argument("--split", default=None, help="split (default: the only one present)")
+    s.set_defaults(run=run_show)
+
+
+def load_config(args: argparse.Namespace):
+    """The generation settings: TOML file (or defaults), overridden by the command-line flags."""
+    from datagen.config import load_datagen_config, validate
+    from posegrasp.config import override
+    from sim.cli import parse_resolution
+
+    cfg = load_datagen_config(args.config)
+    if args.resolution:
+        w, h = parse_resolution(args.resolution)
+        wc = cfg.workcell
+        cfg = dataclasses.replace(cfg, workcell=dataclasses.replace(wc, hand_camera=dataclasses.replace(
+            wc.hand_camera, width=w, height=h)))
+    cfg = override(cfg, rgb_format=args.rgb_format, blocks=parse_blocks(args.blocks) if args.blocks else None)
+    return validate(cfg)
+
+
+def run_datagen(args: argparse.Namespace) -> int:
+    from datagen.generate import generate_dataset
+    from datagen.scene import check_capacity
+    from sim.cli import writable_dir
+
+    cfg = load_config(args)
+    check_capacity(cfg)
+    out = writable_dir(args.out)
+    s = generate_dataset(out, args.scenes, args.views, args.seed, cfg, split=args.split, workers=args.workers,
+                         progress=not args.no_progress)
+    v = s["views"]
+    if s["generated_scenes"] == 0:
+        print(f"{out}: all {s['scenes']} scenes already complete; nothing to do")
+    else:
+        fps = s["generated_images"] / max(s["seconds"], 1e-9)
+        print(f"wrote {s['generated_images']} images in {s['generated_scenes']} scenes in {s['seconds']:.1f} s "
+              f"({fps:.1f} frames/s) -> {out}/{args.split}")
+    print(f"dataset: {s['images']} images, {s['instances']} instances; viewpoints: {v['candidates']} drawn, "
+          f"{v['out_of_reach']} out of reach, {v['unreachable']} failed IK, {v['blocked']} not reached")
+    return 0
+
+
+def run_check(args: argparse.Namespace) -> int:
+    from datagen.check import check_dataset, print_report
+
+    report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images)
+    print_report(report, args.dir)
+    return 0 if report.ok else 1
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from datagen.check import find_splits
+    from datagen.show import show_image
+    from posegrasp.io import write_png
+
+    root = Path(args.dir)
+    if not root.is_dir():
+        raise UserError(f"dataset folder {root} does not exist")
+    split = args.split
+    if split is None:
+        splits = find_splits(root)
+        if len(splits) != 1:
+            raise UserError(f"{root} has splits {splits or 'none'}; choose one with --split")
+        split = splits[0]
+    panel = show_image(root, split, args.scene, args.im)
+    try:
+        write_png(args.out, panel)
+    except OSError as e:
+        raise UserError(f"cannot write {args.out}: {e.strerror or e}") from None
+    print(f"scene {args.scene} image {args.im} -> {args.out}")
+    return 0

@@ -1,0 +1,166 @@
+"""Generating a BOP dataset: one simulated scene per BOP scene folder, scenes fanned out to worker processes.
+
+A scene's content depends only on (seed, scene id, settings): its random streams come from
+``SeedSequence([seed, scene_id])``, so the dataset is the same for any worker count, and a killed run resumes
+by skipping complete scenes (``scene_gt_info.json`` present) and regenerating the others from scratch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from datagen.config import DatagenConfig, validate
+from datagen.noise import noisy_depth, noisy_rgb
+from datagen.render import LabelRenderer
+from datagen.scene import build_scene, check_capacity
+from datagen.views import ViewStats, visit_views
+from datagen.writer import COMPLETE_FILE, SceneWriter, prepare_root
+from posegrasp import bop
+from posegrasp import io as pio
+from posegrasp.errors import UserError
+from posegrasp.executor import make_executor
+from sim.camera import intrinsics
+from sim.workcell import HAND_CAMERA
+
+SPLITS = ("train_pbr", "test")
+SETTINGS_FILE = "datagen_config.json"
+STATS_FILE = "datagen_stats.json"
+
+
+@dataclass(frozen=True)
+class SceneJob:
+    """Everything a worker needs to generate one scene."""
+
+    root: str
+    split: str
+    scene_id: int
+    seed: int
+    views: int
+    cfg: DatagenConfig
+
+
+def rgb_extension(cfg: DatagenConfig, split: str) -> str:
+    """``jpg`` or ``png``; ``auto`` follows the BOP datasets (jpg for train_pbr, png otherwise)."""
+    if cfg.rgb_format == "auto":
+        return "jpg" if split == "train_pbr" else "png"
+    return cfg.rgb_format
+
+
+def is_complete(root: str | Path, split: str, scene_id: int) -> bool:
+    """Whether a scene was fully written (its ``scene_gt_info.json``, written last, exists)."""
+    return (bop.scene_dir(root, split, scene_id) / COMPLETE_FILE).is_file()
+
+
+def generate_scene(job: SceneJob) -> dict[str, Any]:
+    """Simulate, render and write one scene from scratch; returns what ``scene_datagen.json`` records."""
+    cfg = job.cfg
+    sd = bop.scene_dir(job.root, job.split, job.scene_id)
+    if sd.exists():  # leftovers of a killed run
+        shutil.rmtree(sd)
+    s_scene, s_views, s_noise = np.random.SeedSequence([job.seed, job.scene_id]).spawn(3)
+    gs = build_scene(cfg, np.random.default_rng(s_scene))
+    wc = gs.workcell
+    c = cfg.workcell.hand_camera
+    renderer = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far,
+                             cfg.workcell.render.shadows, cfg.workcell.render.reflections)
+    writer = SceneWriter(sd, cfg.depth_scale, rgb_extension(cfg, job.split), cfg.jpg_quality)
+    stats, noise_rng = ViewStats(), np.random.default_rng(s_noise)
+    try:
+        for im_id, _ in enumerate(visit_views(wc, cfg.views, job.views, np.random.default_rng(s_views), stats)):
+            frame = renderer.capture()
+            dn, rn = cfg.depth_noise, cfg.rgb_noise
+            depth = noisy_depth(frame.depth, frame.K, dn, noise_rng, c.near, c.far) if dn.enabled else frame.depth
+            rgb = noisy_rgb(frame.rgb, rn, noise_rng) if rn.enabled else frame.rgb
+            writer.add(im_id, frame, rgb, depth, dn.keep_clean)
+    finally:
+        renderer.close()
+    info = {
+        "scene_id": job.scene_id,
+        "images": stats.reached,
+        "blocks": [{"obj_id": b.block.obj_id, "name": b.block.name, "rgba": list(b.rgba)} for b in wc.blocks],
+        "distractors": len(gs.look.distractors),
+        "lights": int(wc.model.nlight),
+        "drops": gs.drops,
+        "views": stats.as_dict(),
+    }
+    writer.finish(info)
+    return info
+
+
+def _check_settings(path: Path, settings: dict[str, Any]) -> None:
+    """Record the settings of a split, or refuse to mix a resumed split with other settings."""
+    want = json.loads(pio.dumps_json(settings))
+    if path.is_file():
+        try:
+            have = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            have = None
+        if have != want:
+            diff = sorted(k for k in want if not isinstance(have, dict) or have.get(k) != want[k])
+            raise UserError(f"{path.parent} was generated with other settings (differing: {', '.join(diff)}); "
+                            "use a new --out or the original options")
+        return
+    pio.write_json(path, want)
+
+
+def aggregate_stats(root: Path, split: str, scenes: int) -> dict[str, Any]:
+    """Dataset-level counts over scenes 0..scenes-1 from their ``scene_datagen.json`` (no timings: the file
+    is part of the byte-identical output)."""
+    per_scene = [json.loads((bop.scene_dir(root, split, s) / "scene_datagen.json").read_text()) for s in range(scenes)]
+    totals = {k: sum(p["views"][k] for p in per_scene) for k in ViewStats().as_dict()}
+    inst = sum(len(p["blocks"]) * p["images"] for p in per_scene)
+    return {"scenes": scenes, "images": sum(p["images"] for p in per_scene), "instances": inst, "views": totals,
+            "per_scene": [{"scene_id": p["scene_id"], "images": p["images"], "blocks": len(p["blocks"]),
+                           "distractors": p["distractors"], "lights": p["lights"], **p["views"]} for p in per_scene]}
+
+
+def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cfg: DatagenConfig | None = None,
+                     split: str = "train_pbr", workers: int | str | None = None, progress: bool = False) -> dict[str, Any]:
+    """Write (or complete) a BOP dataset of ``scenes`` x up to ``views`` images under ``out``.
+
+    Returns the dataset statistics (also in ``<out>/<split>/datagen_stats.json``) plus ``generated_scenes``
+    and ``seconds`` for this run.
+    """
+    cfg = validate(cfg or DatagenConfig())
+    if split not in SPLITS:
+        raise UserError(f"split {split!r} must be one of {', '.join(SPLITS)}")
+    if scenes < 1 or views < 1:
+        raise UserError(f"--scenes and --views must be >= 1, got {scenes} and {views}")
+    check_capacity(cfg)
+    root = Path(out)
+    c = cfg.workcell.hand_camera
+    prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), cfg.depth_scale))
+    ext = rgb_extension(cfg, split)
+    for tmp in bop.split_dir(root, split).glob(".*.tmp"):  # leftovers of a killed write
+        tmp.unlink()
+    _check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
+                    {"seed": seed, "views": views, "rgb_format": ext, "config": dataclasses.asdict(cfg)})
+    todo = [s for s in range(scenes) if not is_complete(root, split, s)]
+    jobs = [SceneJob(str(root), split, s, seed, views, cfg) for s in todo]
+    t0 = time.perf_counter()
+    frames = 0
+    with _progress(progress) as bar:
+        task = bar.add_task("datagen", total=len(todo) * views, fps=0.0)
+        for _, info in make_executor(workers).imap(generate_scene, jobs):
+            frames += info["images"]
+            bar.update(task, advance=views, fps=frames / max(time.perf_counter() - t0, 1e-9))
+    seconds = time.perf_counter() - t0
+    stats = aggregate_stats(root, split, scenes)
+    pio.write_json(bop.split_dir(root, split) / STATS_FILE, stats)
+    return {**stats, "generated_scenes": len(todo), "generated_images": frames, "seconds": seconds}
+
+
+def _progress(enabled: bool):
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("{task.fields[fps]:.1f} frames/s"), TimeElapsedColumn(), TextColumn("ETA"),
+                    TimeRemainingColumn(), disable=not enabled)

@@ -1,0 +1,188 @@
+"""Labelled frames for dataset generation: RGB, metric depth, visible instance masks and amodal masks.
+
+Two MuJoCo render passes per frame (colour; segmentation with the depth buffer read alongside), then each
+block rendered alone for its amodal mask, in a viewport cropped to its projected bounding box with the
+frustum cropped to match, so the pixels are exactly those of a full-image render of the block alone, at a
+fraction of the cost. One GL context per process is reused across scenes (each scene only gets a new
+``MjrContext`` for its model).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import mujoco
+import numpy as np
+
+from posegrasp.geometry import invert, transform_points
+from sim.camera import Frame, intrinsics
+from sim.workcell import Workcell
+
+_SEG_FLAGS = (mujoco.mjtRndFlag.mjRND_SEGMENT, mujoco.mjtRndFlag.mjRND_IDCOLOR)
+
+
+@functools.lru_cache(maxsize=1)
+def _gl_context() -> "mujoco.GLContext":
+    """This process's GL context (EGL/OSMesa per ``MUJOCO_GL``), created once and kept alive."""
+    ctx = mujoco.GLContext(64, 64)  # offscreen rendering goes to MuJoCo's own framebuffer object
+    ctx.make_current()
+    return ctx
+
+
+class LabelRenderer:
+    """Renders labelled frames from one camera of a workcell. ``close()`` frees the model's GL resources.
+
+    Images are (H, W) with OpenCV's K (pixel centres at integer coordinates); depth is metres along the optical
+    axis, 0 outside [near, far]; masks are per block k = 1..K (scene order).
+    """
+
+    def __init__(self, workcell: Workcell, camera: str, width: int, height: int, fovy_deg: float,
+                 near: float, far: float, shadows: bool = False, reflections: bool = False):
+        m = workcell.model
+        if width > m.vis.global_.offwidth or height > m.vis.global_.offheight:
+            raise ValueError(f"{width}x{height} exceeds the model's offscreen buffer "
+                             f"{m.vis.global_.offwidth}x{m.vis.global_.offheight}")
+        self.wc, self.camera = workcell, camera
+        self.width, self.height, self.near, self.far = width, height, near, far
+        self.K = intrinsics(width, height, fovy_deg)
+        _gl_context().make_current()
+        self.con = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.con)
+        self.con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self.scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom))
+        self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows
+        self.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = reflections
+        self.cam = mujoco.MjvCamera()
+        self.cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self.cam.fixedcamid = workcell.camera_ids[camera]
+        self.option = mujoco.MjvOption()  # groups 0-2: collision primitives (group 3) stay hidden
+        self.solo_option = mujoco.MjvOption()  # only group 5, where one block's visual geom is moved
+        self.solo_option.geomgroup[:] = 0
+        self.solo_option.geomgroup[5] = 1
+        self.rect = mujoco.MjrRect(0, 0, width, height)
+        # geom ids of each block's visual (rendered) geoms
+        vis = (m.geom_group != 3) & (m.geom_rgba[:, 3] > 0)
+        self.block_geoms = [np.flatnonzero(vis & (m.geom_bodyid == b)) for b in workcell.block_body]
+        # near/far planes of MuJoCo's reversed-Z projection, for depth conversion
+        ext = m.stat.extent
+        self._znear, self._zfar = np.float32(m.vis.map.znear * ext), np.float32(m.vis.map.zfar * ext)
+
+    def close(self) -> None:
+        """Free this model's GL resources (the process's GL context stays)."""
+        if self.con is not None:
+            _gl_context().make_current()
+            self.con.free()
+            self.con = None
+
+    # -- passes ----------------------------------------------------------------------------------------
+    def _update(self, option: mujoco.MjvOption) -> None:
+        _gl_context().make_current()  # another renderer in this process may have switched contexts
+        mujoco.mjv_updateScene(self.wc.model, self.wc.data, option, None, self.cam,
+                               mujoco.mjtCatBit.mjCAT_ALL.value, self.scene)
+
+    def _set_seg(self, on: bool) -> None:
+        for f in _SEG_FLAGS:
+            self.scene.flags[f] = on
+
+    def _metric_depth(self, raw: np.ndarray) -> np.ndarray:
+        """Reversed-Z depth buffer -> metres along the optical axis (as ``mujoco.Renderer`` does)."""
+        zn, zf = self._znear, self._zfar
+        c = np.float32(-0.5) * (-(zf + zn) / (zf - zn)) - np.float32(0.5)
+        d = np.float32(-0.5) * (-(np.float32(2) * zf * zn) / (zf - zn))
+        z = (d / (raw.astype(np.float64) + c)).astype(np.float32)
+        z[(z < self.near) | (z > self.far)] = 0.0
+        return z
+
+    def rgb(self) -> np.ndarray:
+        """Colour image (H, W, 3) uint8 of the current state."""
+        self._update(self.option)
+        self._set_seg(False)
+        mujoco.mjr_render(self.rect, self.scene, self.con)
+        out = np.empty((self.height, self.width, 3), np.uint8)
+        mujoco.mjr_readPixels(out, None, self.rect, self.con)
+        return out[::-1].copy()
+
+    def depth_and_instances(self) -> tuple[np.ndarray, np.ndarray]:
+        """Depth (H, W) float32 m and visible instance ids (H, W) uint16 (k for block k, 0 elsewhere)."""
+        self._update(self.option)
+        self._set_seg(True)
+        mujoco.mjr_render(self.rect, self.scene, self.con)
+        seg = np.empty((self.height, self.width, 3), np.uint8)
+        raw = np.empty((self.height, self.width), np.float32)
+        mujoco.mjr_readPixels(seg, raw, self.rect, self.con)
+        self._set_seg(False)
+        # segmentation colour = segid + 1 (little-endian RGB); map it to block instance ids
+        n = self.scene.ngeom
+        lut = np.zeros(n + 2, np.uint16)
+        geom_t = int(mujoco.mjtObj.mjOBJ_GEOM)
+        for g in self.scene.geoms[:n]:
+            if g.segid >= 0 and g.objtype == geom_t:
+                lut[g.segid + 1] = self.wc.geom_instance[g.objid]
+        ids = seg[..., 0].astype(np.int32) | (seg[..., 1].astype(np.int32) << 8) | (seg[..., 2].astype(np.int32) << 16)
+        inst = lut[np.minimum(ids, n + 1)]
+        return self._metric_depth(raw)[::-1].copy(), inst[::-1].copy()
+
+    def amodal(self, T_cam_obj: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int, int, int] | None]]:
+        """Full silhouette (H, W) bool of every block rendered alone at its pose (``T_cam_obj``: (K, 4, 4)),
+        and the pixel box [x0, x1) x [y0, y1) it was rendered in (None: not in front of the camera)."""
+        m = self.wc.model
+        H, W = self.height, self.width
+        out, boxes = [], []
+        for k, geoms in enumerate(self.block_geoms):
+            mask = np.zeros((H, W), bool)
+            box = self._bbox(k, T_cam_obj[k])
+            boxes.append(box)
+            if box is not None:
+                x0, y0, x1, y1 = box
+                saved = m.geom_group[geoms].copy()
+                m.geom_group[geoms] = 5
+                self._update(self.solo_option)
+                m.geom_group[geoms] = saved
+                self._crop_frustum(x0, y0, x1, y1)
+                self._set_seg(True)
+                rect = mujoco.MjrRect(0, 0, x1 - x0, y1 - y0)
+                mujoco.mjr_render(rect, self.scene, self.con)
+                sub = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
+                mujoco.mjr_readPixels(sub, None, rect, self.con)
+                self._set_seg(False)
+                mask[y0:y1, x0:x1] = sub[::-1, :, 0] > 0
+            out.append(mask)
+        return out, boxes
+
+    def _bbox(self, k: int, T_cam_obj: np.ndarray) -> tuple[int, int, int, int] | None:
+        """Pixel box [x0, x1) x [y0, y1) covering block k's projected vertices (+1 px), clipped to the image."""
+        p = transform_points(T_cam_obj, self.wc.blocks[k].block.vertices)
+        if np.all(p[:, 2] <= self._znear):  # behind the GL near plane: not drawn at all
+            return None
+        if np.any(p[:, 2] <= self._znear):  # cut by the near plane: its projection is unbounded
+            return 0, 0, self.width, self.height
+        uv = p[:, :2] / p[:, 2:] * self.K[[0, 1], [0, 1]] + self.K[:2, 2]
+        x0, y0 = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 1, 0)
+        x1 = min(int(np.ceil(uv[:, 0].max())) + 2, self.width)
+        y1 = min(int(np.ceil(uv[:, 1].max())) + 2, self.height)
+        return (int(x0), int(y0), x1, y1) if x1 > x0 and y1 > y0 else None
+
+    def _crop_frustum(self, x0: int, y0: int, x1: int, y1: int) -> None:
+        """Make the scene's frustum cover only pixel columns [x0, x1) and rows [y0, y1) of the full image.
+
+        MuJoCo's ``frustum_width`` is the half width at the near plane (0: from the viewport's aspect).
+        """
+        for c in (self.scene.camera[0], self.scene.camera[1]):
+            top = c.frustum_top
+            s = (top - c.frustum_bottom) / self.height  # near-plane size of one pixel
+            left, right = (x0 - self.width / 2) * s, (x1 - self.width / 2) * s
+            c.frustum_center = 0.5 * (left + right)
+            c.frustum_width = 0.5 * (right - left)
+            c.frustum_top, c.frustum_bottom = top - y0 * s, top - y1 * s
+
+    def capture(self) -> Frame:
+        """A labelled frame of the current state; ``extra``: per-block full silhouettes ``amodal`` and ``boxes``."""
+        wc = self.wc
+        T_world_cam = wc.camera_pose(self.camera)
+        T_cam_obj = np.einsum("ij,kjl->kil", invert(T_world_cam), wc.block_poses())
+        rgb = self.rgb()
+        depth, inst = self.depth_and_instances()
+        obj_ids = np.array([b.block.obj_id for b in wc.blocks], dtype=int)
+        masks, boxes = self.amodal(T_cam_obj)
+        return Frame(rgb, depth, inst, self.K.copy(), T_world_cam, T_cam_obj, obj_ids,
+                     extra={"amodal": masks, "boxes": boxes})

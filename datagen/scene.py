@@ -1,0 +1,63 @@
+"""A randomised, settled scene for dataset generation: blocks dropped into the pick area among randomised
+looks (textures, materials, lights, distractors), everything drawn from one rng.
+
+Physics runs with MuJoCo's sleeping islands enabled: blocks at rest cost nothing while the arm moves between
+viewpoints, and wake up if the arm touches them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from datagen.appearance import Look, light_tint, sample_look
+from datagen.config import DatagenConfig
+from posegrasp.errors import UserError
+from sim.scene import Scene, SceneConfig, _choose_types, _drop_positions, area_capacity, randomise_lights, settle
+from sim.workcell import BlockInstance, Workcell
+
+
+@dataclass
+class GenScene:
+    """A settled generation scene: the workcell (arm at home) and the look it was built with."""
+
+    workcell: Workcell
+    look: Look
+    drops: int
+
+
+def scene_config(cfg: DatagenConfig) -> SceneConfig:
+    """The ``sim.scene`` settings matching a generation config."""
+    return SceneConfig(block_types=cfg.block_types, palette=cfg.colours.palette, light_intensity=cfg.lights.intensity,
+                       workcell=cfg.workcell)
+
+
+def check_capacity(cfg: DatagenConfig) -> None:
+    """Raise a UserError if the largest block count does not fit in the pick area."""
+    cap = area_capacity(scene_config(cfg))
+    if cfg.blocks[1] > cap:
+        raise UserError(f"{cfg.blocks[1]} blocks do not fit in the pick area (at most {cap}); lower --blocks")
+
+
+def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 5) -> GenScene:
+    """Draw block count, types and look from ``rng``, build the workcell and settle the dropped blocks."""
+    scfg = scene_config(cfg)
+    n = int(rng.integers(cfg.blocks[0], cfg.blocks[1] + 1))
+    types = _choose_types(scfg, n, rng)
+    look = sample_look(cfg, n, rng)
+    wc = Workcell(cfg.workcell, [BlockInstance(b, c) for b, c in zip(types, look.block_rgba)], extras=look.add_to)
+    wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+    randomise_lights(wc, scfg, rng)
+    light_tint(wc.model, cfg.lights, rng)
+    scene = Scene(wc, 0, scfg)
+    for drop in range(1, max_drops + 1):
+        wc.reset()
+        for k, T in enumerate(_drop_positions(scfg, types, rng), start=1):
+            wc.set_block_pose(k, T)
+        mujoco.mj_forward(wc.model, wc.data)
+        if settle(wc, scfg) and scene.in_pick_area().all():
+            wc.data.qvel[:] = 0.0
+            return GenScene(wc, look, drop)
+    raise RuntimeError(f"blocks did not come to rest inside the pick area after {max_drops} drops")

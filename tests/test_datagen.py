@@ -1,0 +1,313 @@
+"""Synthetic BOP dataset generation on the real simulator and renderer: labels, determinism, resuming, CLI.
+
+One small dataset (2 scenes x 3 views at 320x240) is generated once per module and reused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from matplotlib.path import Path as PolyPath
+from scipy.spatial import ConvexHull
+
+from datagen.check import check_dataset
+from datagen.config import DatagenConfig, load_datagen_config
+from datagen.generate import STATS_FILE, generate_dataset, is_complete
+from posegrasp import bop
+from posegrasp.geometry import invert, transform_points
+from posegrasp.io import read_image
+
+SEED, SCENES, VIEWS = 3, 2, 3
+SMALL_TOML = """
+blocks = [3, 5]
+[workcell.hand_camera]
+width = 320
+height = 240
+[depth_noise]
+keep_clean = true
+"""
+
+
+def run_cli(*args: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "posegrasp.cli", *args], capture_output=True, text=True,
+                          timeout=300, **kw)
+
+
+def file_hashes(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def small_toml(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("cfg") / "small.toml"
+    p.write_text(SMALL_TOML)
+    return p
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory, small_toml) -> Path:
+    """The reference dataset, generated in this process (one worker)."""
+    out = tmp_path_factory.mktemp("ds") / "serial"
+    generate_dataset(out, SCENES, VIEWS, SEED, load_datagen_config(small_toml), workers=1)
+    return out
+
+
+def records(root: Path) -> list[bop.ImageRecord]:
+    return list(bop.iter_scene_images(root, "train_pbr"))
+
+
+def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    v, u = np.nonzero(mask & (depth > 0))
+    z = depth[v, u].astype(np.float64)
+    return np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+
+
+# ------------------------------------------------------------------------------------------- round trip
+
+def test_dataset_layout_and_check_passes(dataset):
+    assert (dataset / "models" / "models_info.json").is_file() and (dataset / "camera.json").is_file()
+    cam = bop.load_camera(dataset)
+    assert (cam.width, cam.height) == (320, 240) and cam.depth_scale == 0.1
+    assert bop.list_scenes(dataset, "train_pbr") == [0, 1]
+    report = check_dataset(dataset, depth_tol_mm=3.0)
+    assert report.ok, report.problems[:5]
+    assert report.images == SCENES * VIEWS and sum(report.instances.values()) >= SCENES * VIEWS * 3
+    assert np.median(report.depth_errors_mm) < 2.0  # the noisy depth, still on the models
+    stats = json.loads((dataset / "train_pbr" / STATS_FILE).read_text())
+    v = stats["views"]
+    assert stats["images"] == SCENES * VIEWS == v["reached"]
+    assert v["candidates"] == v["out_of_reach"] + v["unreachable"] + v["blocked"] + v["reached"]
+
+
+def test_clean_depth_lies_on_models(dataset):
+    checked = 0
+    meshes = {}
+    for rec in records(dataset):
+        clean = read_image(bop.image_path(rec.scene_dir, "depth_clean", rec.im_id)) * (rec.camera.depth_scale * 1e-3)
+        for g in rec.instances:
+            pts = backproject(clean, rec.camera.K, rec.load_mask(g.gt_index))
+            if len(pts) < 50:
+                continue
+            mesh = meshes.setdefault(g.obj_id, bop.load_model(dataset, g.obj_id))
+            pts_obj = transform_points(invert(g.T_cam_obj), pts[:: max(1, len(pts) // 500)])
+            _, dist, _ = trimesh.proximity.closest_point(mesh, pts_obj)
+            assert np.median(dist) < 1e-3, (rec.scene_id, rec.im_id, g.obj_id, np.median(dist))
+            checked += 1
+    assert checked >= 10
+
+
+def test_masks_and_info_agree(dataset):
+    for rec in records(dataset):
+        depth = rec.load_depth()
+        for g in rec.instances:
+            full, vis = rec.load_mask(g.gt_index, visible=False), rec.load_mask(g.gt_index)
+            assert not (vis & ~full).any()  # amodal contains visible
+            i = g.info
+            assert (i.px_count_all, i.px_count_visib) == (full.sum(), vis.sum())
+            assert i.px_count_valid == (full & (depth > 0)).sum()
+            assert i.visib_fract == (i.px_count_visib / i.px_count_all if i.px_count_all else 0.0)
+
+
+def test_amodal_masks_are_exact_projections_of_convex_blocks(dataset):
+    """The cube, long cuboid and prism are convex: their silhouette is the hull of the projected vertices."""
+    checked = 0
+    for rec in records(dataset):
+        H, W = rec.load_depth().shape
+        grid = np.stack(np.meshgrid(np.arange(W), np.arange(H)), axis=-1).reshape(-1, 2)
+        for g in rec.instances:
+            if g.obj_id not in (1, 2, 6) or g.info.px_count_all < 100:
+                continue
+            p = transform_points(g.T_cam_obj, bop.load_model(dataset, g.obj_id).vertices)
+            uv = p[:, :2] / p[:, 2:] * rec.camera.K[[0, 1], [0, 1]] + rec.camera.K[:2, 2]
+            exact = PolyPath(uv[ConvexHull(uv).vertices]).contains_points(grid).reshape(H, W)
+            full = rec.load_mask(g.gt_index, visible=False)
+            assert (exact & full).sum() / (exact | full).sum() > 0.995
+            checked += 1
+    assert checked >= 3
+
+
+#: pyrender renderers stay alive for the whole process: deleting one calls eglTerminate on the display MuJoCo shares.
+_PYRENDERERS: dict = {}
+
+
+def test_amodal_masks_match_pyrender_at_640x480():
+    """Every block rendered by pyrender alone at its GT pose agrees with the amodal mask (unoccluded, inside)."""
+    import pyrender
+
+    from datagen.render import LabelRenderer
+    from datagen.scene import build_scene
+    from sim.workcell import HAND_CAMERA
+
+    cfg = DatagenConfig(blocks=(5, 5))
+    gs = build_scene(cfg, np.random.default_rng(11))
+    wc = gs.workcell
+    assert wc.drive_arm(wc.look_q)
+    c = cfg.workcell.hand_camera
+    r = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
+    frame = r.capture()
+    r.close()
+    K = frame.K
+    cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=0.05, zfar=5.0)
+    pr = _PYRENDERERS.setdefault((c.width, c.height), pyrender.OffscreenRenderer(c.width, c.height))
+    checked = 0
+    for k, inst in enumerate(wc.blocks, start=1):
+        full, vis = frame.extra["amodal"][k - 1], frame.mask == k
+        assert not (vis & ~full).any()
+        sc = pyrender.Scene()
+        sc.add(pyrender.Mesh.from_trimesh(trimesh.Trimesh(inst.block.vertices, inst.block.faces, process=False),
+                                          smooth=False), pose=frame.T_cam_obj[k - 1])
+        sc.add(cam, pose=np.diag([1.0, -1.0, -1.0, 1.0]))
+        sil = pr.render(sc, flags=pyrender.RenderFlags.DEPTH_ONLY) > 0
+        border = full[0].any() or full[-1].any() or full[:, 0].any() or full[:, -1].any()
+        if vis.sum() < full.sum() or border or not full.any():
+            continue
+        assert (sil & full).sum() / (sil | full).sum() >= 0.97, inst.block.name
+        checked += 1
+    assert checked >= 3
+
+
+def test_cameras_look_down_at_the_blocks_from_reachable_poses(dataset):
+    for rec in records(dataset):
+        T_world_cam = invert(rec.camera.T_cam_world)
+        assert T_world_cam[2, 3] > 0.15 and T_world_cam[2, 2] < -0.3  # above the table, looking down
+        assert max(g.info.px_count_visib for g in rec.instances) > 30  # the clutter is in view
+        d = [np.linalg.norm(g.T_cam_obj[:3, 3]) for g in rec.instances if g.info.px_count_visib > 0]
+        assert 0.15 < min(d) and max(d) < 1.0
+
+
+# ------------------------------------------------------------------------------------------- determinism
+
+def test_same_bytes_with_two_workers(dataset, tmp_path, small_toml):
+    out = tmp_path / "two"
+    generate_dataset(out, SCENES, VIEWS, SEED, load_datagen_config(small_toml), workers=2)
+    assert file_hashes(out) == file_hashes(dataset)
+
+
+def test_killed_run_resumes_to_the_same_bytes(dataset, tmp_path, small_toml):
+    out = tmp_path / "killed"
+    args = ["datagen", "--out", str(out), "--scenes", str(SCENES), "--views", str(VIEWS), "--seed", str(SEED),
+            "--workers", "1", "--config", str(small_toml), "--no-progress"]
+    proc = subprocess.Popen([sys.executable, "-m", "posegrasp.cli", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, start_new_session=True)
+    t0 = time.monotonic()
+    while not is_complete(out, "train_pbr", 0):
+        assert proc.poll() is None, proc.stderr.read().decode()
+        assert time.monotonic() - t0 < 240, "first scene never completed"
+        time.sleep(0.005)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not is_complete(out, "train_pbr", 1), "the run finished before it was killed"
+    for p in out.rglob("*"):  # no partial files: everything but hidden temporaries is readable
+        if p.is_file() and p.suffix == ".json":
+            json.loads(p.read_text())
+        elif p.is_file() and p.suffix in (".png", ".jpg") and not p.name.startswith("."):
+            read_image(p)
+    r = run_cli(*args)
+    assert r.returncode == 0, r.stderr
+    assert file_hashes(out) == file_hashes(dataset)
+    r = run_cli(*args)
+    assert r.returncode == 0 and "nothing to do" in r.stdout
+
+
+def test_other_settings_are_refused_on_resume(dataset, tmp_path, small_toml):
+    import shutil
+
+    from posegrasp.errors import UserError
+
+    out = tmp_path / "copy"
+    shutil.copytree(dataset, out)
+    with pytest.raises(UserError, match="other settings"):
+        generate_dataset(out, SCENES, VIEWS, SEED + 1, load_datagen_config(small_toml), workers=1)
+
+
+# ------------------------------------------------------------------------------------------- dataset check
+
+def test_check_names_corrupt_png_missing_key_and_metres(dataset, tmp_path):
+    import shutil
+
+    out = tmp_path / "broken"
+    shutil.copytree(dataset, out)
+    sd0, sd1 = out / "train_pbr" / "000000", out / "train_pbr" / "000001"
+    mask = sd0 / "mask_visib" / "000001_000000.png"
+    mask.write_bytes(mask.read_bytes()[:40])
+    gt = json.loads((sd0 / "scene_gt.json").read_text())
+    del gt["2"][1]["cam_t_m2c"]
+    (sd0 / "scene_gt.json").write_text(json.dumps(gt))
+    gt = json.loads((sd1 / "scene_gt.json").read_text())
+    gt["0"][0]["cam_t_m2c"] = [v / 1000.0 for v in gt["0"][0]["cam_t_m2c"]]
+    (sd1 / "scene_gt.json").write_text(json.dumps(gt))
+    cams = json.loads((sd1 / "scene_camera.json").read_text())
+    cams["1"]["depth_scale"] = 1.0  # the png holds 0.1 mm units
+    (sd1 / "scene_camera.json").write_text(json.dumps(cams))
+
+    r = run_cli("dataset", "check", str(out))
+    assert r.returncode == 1
+    out_text = " ".join(r.stdout.split())
+    assert "train_pbr/000000/mask_visib/000001_000000.png: unreadable" in out_text
+    assert "train_pbr/000000/scene_gt.json: im 2 gt 1: missing key 'cam_t_m2c'" in out_text
+    assert "train_pbr/000001/scene_gt.json: im 0 gt 0: cam_t_m2c" in out_text and "looks like metres" in out_text
+    assert "train_pbr/000001/depth/000001.png" in out_text and "depth_scale looks 10x too large" in out_text
+    assert "problem" in out_text
+
+
+def test_check_flags_models_in_metres(dataset, tmp_path):
+    import shutil
+
+    out = tmp_path / "models_m"
+    shutil.copytree(dataset, out)
+    info = json.loads((out / "models" / "models_info.json").read_text())
+    info["3"]["diameter"] /= 1000.0
+    (out / "models" / "models_info.json").write_text(json.dumps(info))
+    report = check_dataset(out, max_images=1)
+    assert any("models/models_info.json: obj 3: diameter" in p and "metres" in p for p in report.problems)
+
+
+def test_show_draws_a_panel(dataset, tmp_path):
+    r = run_cli("dataset", "show", str(dataset), "--scene", "1", "--im", "2", "--out", str(tmp_path / "f.png"))
+    assert r.returncode == 0, r.stderr
+    img = read_image(tmp_path / "f.png")
+    assert img.shape == (240, 640, 3)
+    rgb = records(dataset)[-1].load_rgb()
+    assert not np.array_equal(img[:, :320], rgb)  # labels drawn over the image
+
+
+# ------------------------------------------------------------------------------------------- CLI input
+
+@pytest.mark.parametrize("args, words", [
+    (["datagen", "--out", "{tmp}/o", "--blocks", "0"], "--blocks"),
+    (["datagen", "--out", "{tmp}/o", "--blocks", "6-2"], "MIN <= MAX"),
+    (["datagen", "--out", "{tmp}/o", "--blocks", "99"], "do not fit"),
+    (["datagen", "--out", "{tmp}/o", "--resolution", "wide"], "WIDTHxHEIGHT"),
+    (["datagen", "--out", "{tmp}/o", "--scenes", "0"], "--scenes must be a positive integer"),
+    (["datagen", "--out", "{tmp}/o", "--split", "val"], "invalid choice"),
+    (["datagen", "--out", "{tmp}/o", "--config", "{tmp}/missing.toml"], "does not exist"),
+    (["datagen", "--out", "{tmp}/o", "--config", "{tmp}/bad.toml"], "views.elevation_deg"),
+    (["datagen", "--out", "{tmp}/o", "--config", "{tmp}/typo.toml"], "distractor"),
+    (["dataset", "check", "{tmp}/nowhere"], "does not exist"),
+    (["dataset", "show", "{tmp}/nowhere", "--scene", "0", "--im", "0", "--out", "{tmp}/x.png"], "does not exist"),
+])
+def test_bad_arguments_give_one_line(tmp_path, capsys, args, words):
+    from posegrasp.cli import main
+
+    (tmp_path / "bad.toml").write_text("[views]\nelevation_deg = [10.0, 95.0]\n")
+    (tmp_path / "typo.toml").write_text("[distractor]\ncount = [1, 2]\n")
+    rc = main([a.format(tmp=tmp_path) for a in args])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and words in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_arguments_exit_code_from_the_shell(tmp_path):
+    r = run_cli("datagen", "--out", str(tmp_path / "o"), "--views", "many")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
