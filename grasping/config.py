@@ -1,0 +1,92 @@
+"""Typed settings of the grasp trials: control, grasp planning, scoring and scenes.
+
+Lengths in metres, times in seconds (simulated unless the name says ``wall``), angles in degrees where
+the name says ``_deg``. Any field can be set from a TOML file of the same layout (``--config``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from posegrasp import ASSETS
+from posegrasp.config import load_toml
+from sim.scene import SceneConfig
+
+#: The shipped hand-eye calibration (``posegrasp calibrate``), used by the trials.
+HAND_EYE_JSON = ASSETS / "calibration" / "hand_eye.json"
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Closed-loop differential IK (mink) driving the arm's velocity actuators."""
+
+    dt: float = 0.04  # control period: one QP per period, physics steps in between
+    speed: float = 0.4  # peak Cartesian speed of the gripper along a straight segment (m/s)
+    angular_speed: float = 2.0  # peak rotation speed of the gripper (rad/s)
+    pos_tol: float = 0.004  # a segment is reached within this position error (m) ...
+    rot_tol_deg: float = 3.0  # ... and this orientation error
+    max_lag: float = 0.02  # the reference waits while the hand lags it by more than this (m) ...
+    max_lag_deg: float = 10.0  # ... or this angle
+    settle_timeout: float = 1.5  # time allowed after a segment's nominal duration to reach it
+    frame_gain: float = 0.8  # fraction of the pose error the IK removes per control period
+    orientation_cost: float = 0.5  # FrameTask orientation weight (position weight 1)
+    posture_cost: float = 0.01  # weak pull toward the look pose's joint angles
+    table_clearance: float = 0.002  # hand/arm geoms keep this distance (m) from the table
+    finger_speed: float = 4.0  # finger closing/opening velocity command (rad/s)
+    max_speed: float = 50.0  # any joint faster than this (rad/s or m/s) is a simulation error
+
+
+@dataclass(frozen=True)
+class GraspConfig:
+    """Grasp candidates, their filters and scores; the place and scoring rules."""
+
+    max_width: float = 0.085  # widest graspable span across the fingers (m)
+    min_width: float = 0.012  # narrowest
+    contact_depth: float = 0.018  # pinch point this far below the block's top (m) ...
+    min_pinch_height: float = 0.014  # ... but at least this high above the table (fingertips clear it)
+    max_tilt_deg: float = 50.0  # candidate approach directions within this angle of straight down
+    clearance_min: float = 0.004  # neighbours' surfaces at least this far from the finger box (m)
+    reach_tol: float = 0.004  # IK position residual (m) accepted as reachable
+    pregrasp_height: float = 0.08  # approach starts this far above the grasp (m)
+    approach_speed: float = 0.25  # peak speed of the approach and of the place descent (m/s)
+    carry_speed: float = 0.5  # peak speed while carrying (m/s; the joint speed limits usually bind first)
+    release_time: float = 0.6  # the fingers open for at most this long before the retreat (s)
+    lift_height: float = 0.10  # the block's bottom is lifted to this height (m)
+    place_gap: float = -0.002  # the block is released this far above the place pad (m)
+    retreat_height: float = 0.12  # the hand rises this far after releasing (m)
+    place_jitter: float = 0.02  # random offset of the place target from the pad centre (m)
+
+
+@dataclass(frozen=True)
+class ScoringConfig:
+    """Success criteria (REFERENCE section 8) and the failure taxonomy thresholds."""
+
+    lift_min: float = 0.05  # grasp success: block bottom at least this high ...
+    hold_time: float = 1.0  # ... for this long
+    place_tol: float = 0.025  # place success: block within this xy distance of its target ...
+    hand_away: float = 0.05  # ... the hand at least this far from it ...
+    rest_speed: tuple[float, float] = (0.01, 0.2)  # ... and the block at rest (m/s, rad/s)
+    rest_timeout: float = 1.5  # time allowed for the block to come to rest after release
+    pose_error_frac: float = 0.1  # a failed grasp counts as "pose error" if ADD(-S) > frac x diameter
+    min_visible_px: int = 150  # oracle: blocks with fewer mask pixels are not detected (640x480)
+
+
+@dataclass(frozen=True)
+class TrialConfig:
+    """One trial campaign: scenes of ``min_blocks``-``max_blocks`` blocks, control, grasps, scoring."""
+
+    min_blocks: int = 1
+    max_blocks: int = 5
+    hand_eye: str = str(HAND_EYE_JSON)  # calibrated T_gripper_cam used by the planner
+    elliptic_cones: bool = True  # elliptic friction cones and ...
+    impratio: float = 10.0  # ... a high impedance ratio stop grasped blocks from creeping out of the fingers
+    control: ControlConfig = field(default_factory=ControlConfig)
+    grasp: GraspConfig = field(default_factory=GraspConfig)
+    scoring: ScoringConfig = field(default_factory=ScoringConfig)
+    scene: SceneConfig = field(default_factory=lambda: SceneConfig(settle_timeout=2.0))
+
+
+def load_trial_config(path: str | Path | None = None) -> TrialConfig:
+    """Trial settings from a TOML file, or the defaults."""
+    return load_toml(TrialConfig, path)

@@ -1,0 +1,278 @@
+"""Closed-loop Cartesian control of the Jaco2 through its velocity actuators, with mink differential IK.
+
+Every control period (``ControlConfig.dt``) the controller reads the MEASURED arm joints, solves one
+mink QP (FrameTask on the pinch site, a weak PostureTask; configuration, joint-velocity and hand/table
+collision-avoidance limits; ``daqp``) on a robot-only copy of the workcell, sends the resulting joint
+velocities plus the gravity feed-forward to the actuators and steps the physics. Gripper poses
+``T_world_gripper`` are the pinch site's (z = approach direction, x = across the fingers).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Callable
+
+import mink
+import mujoco
+import numpy as np
+
+from grasping.config import ControlConfig
+from posegrasp.geometry import make_T, quat_to_R, R_to_quat, rotation_angle
+from sim.config import WorkcellConfig
+from sim.workcell import GRIPPER_SITE, Workcell
+
+_SITE = f"jaco_arm/jaco_hand/{GRIPPER_SITE}"
+#: Robot bodies kept away from the table by the collision-avoidance limit (the base links never reach it).
+_GUARDED_BODIES = ("b_4", "b_5", "b_6", "jaco_hand/hand", "jaco_hand/b_finger_1", "jaco_hand/b_finger_tip_1",
+                   "jaco_hand/b_finger_2", "jaco_hand/b_finger_tip_2", "jaco_hand/b_finger_3",
+                   "jaco_hand/b_finger_tip_3")
+
+
+class SimulationError(RuntimeError):
+    """The physics went unstable (NaN, runaway velocities or a MuJoCo warning)."""
+
+
+@functools.lru_cache(maxsize=4)
+def robot_workcell(cfg: WorkcellConfig) -> Workcell:
+    """A robot-only workcell (arm, hand, camera, table; no blocks) for IK, cached per process."""
+    return Workcell(cfg)
+
+
+def finger_geoms(model: mujoco.MjModel) -> np.ndarray:
+    """Per geom: finger number 1-3 for the finger geoms (knuckle and tip), 0 otherwise."""
+    out = np.zeros(model.ngeom, dtype=np.int8)
+    for i in range(model.ngeom):
+        name = model.geom(i).name
+        for f in (1, 2, 3):
+            if name.endswith((f"finger_knuckle_{f}", f"finger_tip_{f}")):
+                out[i] = f
+    return out
+
+
+def interpolate(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+    """Pose a fraction ``s`` in [0, 1] along the straight line (and geodesic rotation) from T0 to T1."""
+    q0, q1 = R_to_quat(T0[:3, :3]), R_to_quat(T1[:3, :3])
+    if np.dot(q0, q1) < 0:
+        q1 = -q1
+    theta = np.arccos(np.clip(np.dot(q0, q1), -1.0, 1.0))
+    if theta < 1e-6:
+        q = q0
+    else:
+        q = (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
+    return make_T(quat_to_R(q), (1 - s) * T0[:3, 3] + s * T1[:3, 3])
+
+
+class ArmController:
+    """Drives a workcell's arm along straight Cartesian segments and opens/closes the hand.
+
+    ``monitor`` (if set) is called after every control period; ``sim_time`` is the simulated time (s).
+    """
+
+    def __init__(self, wc: Workcell, cfg: ControlConfig, q_posture: np.ndarray):
+        self.wc, self.cfg = wc, cfg
+        robot = robot_workcell(wc.cfg)
+        m = self.model = robot.model
+        self.r_arm_q, self.r_finger_q = robot.arm_qadr, robot.finger_qadr
+        self.r_arm_v = robot.arm_dadr
+        self.finger_range = m.jnt_range[[m.joint(n).id for n in robot.finger_joint_names]]
+        self.configuration = mink.Configuration(m)
+        self.q = m.qpos0.copy()
+        self.task = mink.FrameTask(_SITE, "site", position_cost=1.0, orientation_cost=cfg.orientation_cost,
+                                   gain=cfg.frame_gain, lm_damping=1e-3)
+        self.posture = mink.PostureTask(m, cost=cfg.posture_cost)
+        qp = self.q.copy()
+        qp[self.r_arm_q] = q_posture
+        self.posture.set_target(qp)
+        guarded = [m.geom(i).name for i in range(m.ngeom)
+                   if m.geom_contype[i] and any(m.body(m.geom_bodyid[i]).name == f"jaco_arm/{b}"
+                                                for b in _GUARDED_BODIES)]
+        vlim = 0.9 * wc.arm_velocity_limits()  # headroom for the gravity feed-forward within the ctrl range
+        self.limits = [
+            mink.ConfigurationLimit(m),
+            mink.VelocityLimit(m, dict(zip(robot.arm_joint_names, vlim))),
+            mink.CollisionAvoidanceLimit(m, [(guarded, ["table"])], minimum_distance_from_collisions=cfg.table_clearance,
+                                         collision_detection_distance=0.03),
+        ]
+        self.nsub = max(1, round(cfg.dt / wc.model.opt.timestep))
+        self.fingers = finger_geoms(wc.model)
+        self.finger_dadr = np.array([wc.model.joint(n).dofadr[0] for n in wc.finger_joint_names])
+        self.finger_cmd = 0.0
+        self.finger_target: float | None = None  # pre-shape angle (rad) held by P control, or None
+        m = wc.model
+        self.robot_geom = np.array([m.body(m.geom_bodyid[i]).name.startswith("jaco_arm/") for i in range(m.ngeom)])
+        self.table_geom = m.geom("table").id
+        self.target = wc.gripper_pose()
+        self.monitor: Callable[[], None] | None = None
+
+    # -- state -----------------------------------------------------------------------------------
+    @property
+    def sim_time(self) -> float:
+        return float(self.wc.data.time)
+
+    def check_stable(self) -> None:
+        """Raise SimulationError on NaN state, runaway speeds or a MuJoCo instability warning."""
+        d = self.wc.data
+        if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
+            raise SimulationError("non-finite state")
+        if np.abs(d.qvel).max() > self.cfg.max_speed:
+            raise SimulationError(f"runaway velocity {np.abs(d.qvel).max():.1f}")
+        for w in (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_CONTACTFULL,
+                  mujoco.mjtWarning.mjWARN_CNSTRFULL):
+            if d.warning[int(w)].number > 0:
+                raise SimulationError(f"MuJoCo warning {w.name}")
+
+    def pose_error(self, T_target: np.ndarray) -> tuple[float, float]:
+        """Position (m) and rotation (rad) error of the measured gripper pose from ``T_target``."""
+        T = self.wc.gripper_pose()
+        return float(np.linalg.norm(T[:3, 3] - T_target[:3, 3])), rotation_angle(T[:3, :3], T_target[:3, :3])
+
+    def finger_contacts(self, k: int) -> np.ndarray:
+        """(3,) bool: is finger 1, 2, 3 touching scene block ``k`` (1-based)?"""
+        d = self.wc.data
+        out = np.zeros(4, dtype=bool)
+        if d.ncon:
+            g = d.contact.geom[: d.ncon]
+            inst = self.wc.geom_instance[g]
+            fing = self.fingers[g]
+            out[fing[:, 0][inst[:, 1] == k]] = True
+            out[fing[:, 1][inst[:, 0] == k]] = True
+        return out[1:]
+
+    def finger_speed(self) -> float:
+        """Largest finger joint speed (rad/s)."""
+        return float(np.abs(self.wc.data.qvel[self.finger_dadr]).max())
+
+    # -- control ---------------------------------------------------------------------------------
+    def _period(self, T_target: np.ndarray) -> None:
+        """One control period toward ``T_target``: measure, solve the IK QP, actuate, step the physics."""
+        wc = self.wc
+        self.q[self.r_arm_q] = wc.data.qpos[wc.arm_qadr]
+        self.q[self.r_finger_q] = np.clip(wc.data.qpos[wc.finger_qadr], self.finger_range[:, 0], self.finger_range[:, 1])
+        self.configuration.update(self.q)
+        self.task.set_target(mink.SE3.from_matrix(T_target))
+        v = mink.solve_ik(self.configuration, [self.task, self.posture], self.cfg.dt, "daqp", damping=1e-3,
+                          limits=self.limits)
+        wc.command_arm(v[self.r_arm_v] + wc.gravity_feedforward())
+        if self.finger_target is not None:
+            err = self.finger_target - wc.data.qpos[wc.finger_qadr]
+            wc.data.ctrl[wc.finger_act] = np.clip(8.0 * err, -self.cfg.finger_speed, self.cfg.finger_speed)
+        else:
+            wc.command_fingers(self.finger_cmd)
+        wc.step(self.nsub)
+        self.check_stable()
+        if self.monitor is not None:
+            self.monitor()
+
+    def move(self, T_goal: np.ndarray, speed: float | None = None) -> bool:
+        """Move the gripper along a straight segment from the current target to ``T_goal``.
+
+        The reference follows a smooth (cubic) time law with peak speed ``speed`` (m/s, default from the
+        config) and waits whenever the measured pose lags it by more than ``max_lag`` (joint speed limits),
+        so the hand stays on the line. True once the pose is within tolerance, False on timeout.
+        """
+        c = self.cfg
+        T0 = self.target
+        dist = float(np.linalg.norm(T_goal[:3, 3] - T0[:3, 3]))
+        ang = rotation_angle(T0[:3, :3], T_goal[:3, :3])
+        n = max(1, int(np.ceil(1.5 * max(dist / (speed or c.speed), ang / c.angular_speed) / c.dt)))
+        budget = 3 * n + int(c.settle_timeout / c.dt)
+        i, T_ref = 0, T0
+        while i < n and budget > 0:
+            dp, dr = self.pose_error(T_ref)
+            if dp < c.max_lag and dr < np.deg2rad(c.max_lag_deg):
+                i += 1
+                u = i / n
+                T_ref = interpolate(T0, T_goal, 3 * u * u - 2 * u * u * u)
+            self._period(T_ref)
+            budget -= 1
+        self.target = T_goal
+        return self.wait_reached(T_goal, max(budget * c.dt, c.settle_timeout))
+
+    def wait_reached(self, T_goal: np.ndarray, timeout: float) -> bool:
+        """Keep tracking ``T_goal`` until within tolerance (True) or ``timeout`` simulated seconds (False)."""
+        c = self.cfg
+        for _ in range(int(np.ceil(timeout / c.dt)) + 1):
+            dp, dr = self.pose_error(T_goal)
+            if dp < c.pos_tol and dr < np.deg2rad(c.rot_tol_deg):
+                return True
+            self._period(T_goal)
+        return False
+
+    def hold(self, duration: float) -> None:
+        """Track the current target for ``duration`` simulated seconds."""
+        for _ in range(int(np.ceil(duration / self.cfg.dt))):
+            self._period(self.target)
+
+    def preshape(self, opening: float) -> None:
+        """Hold the fingers at the angle that leaves ``opening`` (m) between the fingertips."""
+        self.finger_target = finger_angle_for_opening(self.wc.cfg, opening)
+
+    def close(self, k: int, timeout: float = 1.5) -> bool:
+        """Close the fingers on block ``k``: True once finger 1 and finger 2 or 3 have touched it for 3
+        control periods in a row; False when the fingers stall or time out without such a grip."""
+        self.finger_target = None
+        self.finger_cmd = self.cfg.finger_speed
+        held = still = 0
+        for _ in range(int(np.ceil(timeout / self.cfg.dt))):
+            self._period(self.target)
+            touch = self.finger_contacts(k)
+            held = held + 1 if touch[0] and (touch[1] or touch[2]) else 0
+            still = still + 1 if self.finger_speed() < 0.05 else 0
+            if held >= 3:
+                return True
+            if still >= 5:
+                return False  # stalled without an opposing grip (closed on nothing or on something else)
+        return False
+
+    def unexpected_contacts(self, k: int) -> bool:
+        """Is the robot touching the table or a block other than ``k``?"""
+        d = self.wc.data
+        if not d.ncon:
+            return False
+        g = d.contact.geom[: d.ncon]
+        inst = self.wc.geom_instance[g]
+        other = (inst > 0) & (inst != k) | (g == self.table_geom)
+        rob = self.robot_geom[g]
+        return bool(np.any(rob[:, 0] & other[:, 1]) or np.any(rob[:, 1] & other[:, 0]))
+
+    def release(self, k: int, opening: float, timeout: float) -> bool:
+        """Open the fingers to ``opening`` (m) while holding the arm, until none has touched block ``k`` for
+        2 periods (True) or ``timeout`` (False)."""
+        self.preshape(opening)
+        free = 0
+        for _ in range(int(np.ceil(timeout / self.cfg.dt))):
+            self._period(self.target)
+            free = free + 1 if not self.finger_contacts(k).any() else 0
+            if free >= 2:
+                return True
+        return False
+
+
+@functools.lru_cache(maxsize=4)
+def _opening_table(cfg: WorkcellConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Finger angle (rad) against the gap (m) between the inner faces of fingertip 1 and fingertip 2."""
+    robot = robot_workcell(cfg)
+    m = robot.model
+    d = mujoco.MjData(m)
+    d.qpos[robot.arm_qadr] = cfg.home_qpos
+    tips = [m.geom(f"jaco_arm/jaco_hand/finger_tip_{f}") for f in (1, 2)]
+    verts = [m.mesh_vert[m.mesh_vertadr[g.dataid[0]]: m.mesh_vertadr[g.dataid[0]] + m.mesh_vertnum[g.dataid[0]]]
+             for g in tips]
+    lo, hi = m.jnt_range[m.joint(robot.finger_joint_names[0]).id]
+    angles = np.linspace(lo, hi, 41)
+    gaps = []
+    for q in angles:
+        d.qpos[robot.finger_qadr] = q
+        mujoco.mj_kinematics(m, d)
+        s = robot.gripper_site
+        R_s, p_s = d.site_xmat[s].reshape(3, 3), d.site_xpos[s]
+        x = [((v @ d.geom_xmat[g.id].reshape(3, 3).T + d.geom_xpos[g.id]) - p_s) @ R_s[:, 0] for g, v in zip(tips, verts)]
+        gaps.append(x[0].min() - x[1].max())
+    return angles, np.array(gaps)
+
+
+def finger_angle_for_opening(cfg: WorkcellConfig, opening: float) -> float:
+    """Finger joint angle (rad) leaving ``opening`` (m) between the fingertips (clipped to the joint range)."""
+    angles, gaps = _opening_table(cfg)
+    order = np.argsort(gaps)
+    return float(np.interp(opening, gaps[order], angles[order]))

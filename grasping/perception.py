@@ -1,0 +1,124 @@
+"""Perception providers: what the planner knows about the blocks, as pose estimates in the camera frame.
+
+A provider receives the hand camera's captured ``Frame`` (RGB-D, K) and returns ``Estimate``s
+``(obj_id, T_cam_obj, score)``. The planner never sees simulator ground truth except through a provider.
+``make_provider(spec)`` builds one from a CLI string:
+
+- ``oracle``: the ground-truth ``T_cam_obj`` of every block with at least ``min_px`` visible mask pixels.
+- ``noisy-oracle[:TRANS_M,ROT_DEG]``: the oracle plus Gaussian translation noise (sigma TRANS_M per axis)
+  and a rotation about a uniformly random axis by an angle ~ |N(0, ROT_DEG)|; seeded per frame.
+- ``model[:RUN]``: the learned pose network (registered by the perception package when available).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from posegrasp.errors import UserError
+from posegrasp.geometry import axis_angle_R, make_T
+from sim.camera import Frame
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One detected block: catalogue id, pose in the (OpenCV) camera frame (m) and a confidence in [0, 1]."""
+
+    obj_id: int
+    T_cam_obj: np.ndarray
+    score: float
+
+
+class Provider(Protocol):
+    """Turns a captured frame into pose estimates; ``seed`` makes any randomness repeatable."""
+
+    name: str
+
+    def estimate(self, frame: Frame, seed: int) -> list[Estimate]: ...
+
+
+@dataclass(frozen=True)
+class OracleProvider:
+    """Ground truth for the blocks visible in the frame (at least ``min_px`` mask pixels at 640x480)."""
+
+    min_px: int = 150
+    name: str = "oracle"
+
+    def estimate(self, frame: Frame, seed: int) -> list[Estimate]:
+        h, w = frame.mask.shape
+        need = self.min_px * (h * w) / (640 * 480)
+        counts = np.bincount(frame.mask.ravel(), minlength=len(frame.obj_ids) + 1)
+        return [Estimate(int(frame.obj_ids[k - 1]), frame.T_cam_obj[k - 1].copy(), float(min(1.0, counts[k] / 5000)))
+                for k in range(1, len(frame.obj_ids) + 1) if counts[k] >= need]
+
+
+@dataclass(frozen=True)
+class NoisyOracleProvider:
+    """The oracle with seeded Gaussian translation noise (m, per axis) and random-axis rotation noise (deg)."""
+
+    trans_m: float = 0.005
+    rot_deg: float = 5.0
+    min_px: int = 150
+
+    @property
+    def name(self) -> str:
+        return f"noisy-oracle:{self.trans_m:g},{self.rot_deg:g}"
+
+    def estimate(self, frame: Frame, seed: int) -> list[Estimate]:
+        rng = np.random.default_rng(seed)
+        out = []
+        for e in OracleProvider(self.min_px).estimate(frame, seed):
+            axis = rng.normal(size=3)
+            angle = np.deg2rad(abs(rng.normal(0.0, self.rot_deg))) if self.rot_deg > 0 else 0.0
+            dt = rng.normal(0.0, self.trans_m, size=3) if self.trans_m > 0 else np.zeros(3)
+            T = e.T_cam_obj.copy()
+            T[:3, :3] = axis_angle_R(axis, angle) @ T[:3, :3]
+            T[:3, 3] += dt
+            out.append(Estimate(e.obj_id, T, e.score))
+        return out
+
+
+#: Provider factories by name; each gets the text after ``name:`` (or None).
+PROVIDERS: dict[str, Callable[[str | None], Provider]] = {}
+
+
+def register(name: str, factory: Callable[[str | None], Provider]) -> None:
+    """Make ``make_provider("name[:ARGS]")`` build a provider with ``factory(ARGS)``."""
+    PROVIDERS[name] = factory
+
+
+def _oracle(args: str | None) -> Provider:
+    if args:
+        raise UserError(f"perception 'oracle' takes no parameters, got 'oracle:{args}'")
+    return OracleProvider()
+
+
+def _noisy(args: str | None) -> Provider:
+    if not args:
+        return NoisyOracleProvider()
+    try:
+        t, r = (float(v) for v in args.split(","))
+    except ValueError:
+        raise UserError(f"noisy-oracle parameters {args!r} are not TRANS_M,ROT_DEG, e.g. noisy-oracle:0.005,5") from None
+    if not (0 <= t <= 0.2 and 0 <= r <= 180):
+        raise UserError(f"noisy-oracle noise {args!r} out of range: TRANS_M in [0, 0.2] m, ROT_DEG in [0, 180]")
+    return NoisyOracleProvider(t, r)
+
+
+register("oracle", _oracle)
+register("noisy-oracle", _noisy)
+
+
+def make_provider(spec: str) -> Provider:
+    """A provider from ``name[:ARGS]`` (``oracle``, ``noisy-oracle:0.005,5``, ``model:RUN``)."""
+    name, _, args = spec.partition(":")
+    if name == "model" and name not in PROVIDERS:
+        try:  # the learned model registers itself when its package is importable
+            import perception.provider  # noqa: F401
+        except ImportError:
+            pass
+    if name not in PROVIDERS:
+        raise UserError(f"unknown perception {spec!r}; choose one of: {', '.join(sorted(PROVIDERS))}")
+    return PROVIDERS[name](args or None)
