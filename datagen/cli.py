@@ -59,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("dir", help="dataset root")
     s.add_argument("--scene", type=int, required=True, help="scene id")
     s.add_argument("--im", type=int, required=True, help="image id")
-    s.add_argument("--out", required=True, help="output PNG")
+    s.add_argument("--out", required=True, help="output image (.png, or .jpg)")
     s.add_argument("--split", default=None, help="split (default: the only one present)")
     s.set_defaults(run=run_show)
 
@@ -115,7 +115,7 @@ def run_show(args: argparse.Namespace) -> int:
 
     from datagen.check import find_splits
     from datagen.show import show_image
-    from posegrasp.io import write_png
+    from posegrasp.io import write_jpg, write_png
 
     root = Path(args.dir)
     if not root.is_dir():
@@ -128,7 +128,7 @@ def run_show(args: argparse.Namespace) -> int:
         split = splits[0]
     panel = show_image(root, split, args.scene, args.im)
     try:
-        write_png(args.out, panel)
+        (write_jpg if Path(args.out).suffix.lower() in (".jpg", ".jpeg") else write_png)(args.out, panel)
     except OSError as e:
         raise UserError(f"cannot write {args.out}: {e.strerror or e}") from None
     print(f"scene {args.scene} image {args.im} -> {args.out}")

@@ -127,16 +127,22 @@ class RgbNoiseConfig:
 class DatagenConfig:
     """Everything that decides the content of a generated dataset (besides seed, scene and view counts).
 
-    ``blocks``: blocks per scene, drawn uniformly in [min, max]; ``block_types``: catalogue names (empty: all).
+    ``blocks``: blocks per scene, drawn uniformly in [min, max]; ``block_types``: catalogue names (empty: all);
+    ``min_spacing``: least distance (m) between drop points in the plane (smaller: piles, more occlusion);
+    blocks must come to rest within ``area_margin`` (m) of the pick area, else they are dropped again.
     ``depth_scale``: BOP depth png units (value x depth_scale = mm). ``rgb_format``: ``jpg``, ``png`` or
-    ``auto`` (jpg for ``train_pbr``, png otherwise, as in the BOP datasets).
+    ``auto`` (jpg for ``train_pbr``, png otherwise, as in the BOP datasets). ``msaa``: multisamples per pixel
+    of the colour image (anti-aliasing; 0 renders it faster with jagged edges).
     """
 
     blocks: tuple[int, int] = (3, 8)
     block_types: tuple[str, ...] = ()
+    min_spacing: float = 0.03
+    area_margin: float = 0.04
     depth_scale: float = 0.1
     rgb_format: str = "auto"
     jpg_quality: int = 95
+    msaa: int = 4
     views: ViewConfig = field(default_factory=ViewConfig)
     colours: ColourConfig = field(default_factory=ColourConfig)
     textures: TextureConfig = field(default_factory=TextureConfig)
@@ -161,6 +167,8 @@ def _check_range(name: str, r: tuple, lo: float | None = None) -> None:
 def validate(cfg: DatagenConfig) -> DatagenConfig:
     """Check value ranges, raising a one-line UserError naming the bad setting; returns ``cfg``."""
     _check_range("blocks", cfg.blocks, 1)
+    if not 0.01 <= cfg.min_spacing <= 0.2:
+        raise UserError(f"min_spacing {cfg.min_spacing} m is out of range: use 0.01-0.2")
     v = cfg.views
     _check_range("views.distance", v.distance, 0.05)
     _check_range("views.elevation_deg", v.elevation_deg, 0.0)
@@ -184,6 +192,8 @@ def validate(cfg: DatagenConfig) -> DatagenConfig:
         raise UserError(f"rgb_format {cfg.rgb_format!r} must be one of {', '.join(RGB_FORMATS)}")
     if not 0.01 <= cfg.depth_scale <= 10.0:
         raise UserError(f"depth_scale {cfg.depth_scale} is out of range: use 0.01-10 (png value x depth_scale = mm)")
+    if cfg.msaa not in (0, 2, 4, 8):
+        raise UserError(f"msaa must be 0, 2, 4 or 8 samples per pixel, got {cfg.msaa}")
     if not 1 <= cfg.jpg_quality <= 100:
         raise UserError(f"jpg_quality must be 1-100, got {cfg.jpg_quality}")
     return cfg

@@ -66,11 +66,14 @@ def generate_scene(job: SceneJob) -> dict[str, Any]:
     if sd.exists():  # leftovers of a killed run
         shutil.rmtree(sd)
     s_scene, s_views, s_noise = np.random.SeedSequence([job.seed, job.scene_id]).spawn(3)
-    gs = build_scene(cfg, np.random.default_rng(s_scene))
+    try:
+        gs = build_scene(cfg, np.random.default_rng(s_scene))
+    except RuntimeError as e:
+        raise RuntimeError(f"scene {job.scene_id}: {e}; lower --blocks or raise min_spacing / area_margin") from None
     wc = gs.workcell
     c = cfg.workcell.hand_camera
     renderer = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far,
-                             cfg.workcell.render.shadows, cfg.workcell.render.reflections)
+                             cfg.workcell.render.shadows, cfg.workcell.render.reflections, cfg.msaa)
     writer = SceneWriter(sd, cfg.depth_scale, rgb_extension(cfg, job.split), cfg.jpg_quality)
     stats, noise_rng = ViewStats(), np.random.default_rng(s_noise)
     try:

@@ -37,7 +37,7 @@ class LabelRenderer:
     """
 
     def __init__(self, workcell: Workcell, camera: str, width: int, height: int, fovy_deg: float,
-                 near: float, far: float, shadows: bool = False, reflections: bool = False):
+                 near: float, far: float, shadows: bool = False, reflections: bool = False, msaa: int = 4):
         m = workcell.model
         if width > m.vis.global_.offwidth or height > m.vis.global_.offheight:
             raise ValueError(f"{width}x{height} exceeds the model's offscreen buffer "
@@ -46,8 +46,8 @@ class LabelRenderer:
         self.width, self.height, self.near, self.far = width, height, near, far
         self.K = intrinsics(width, height, fovy_deg)
         _gl_context().make_current()
-        self.con = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.con)
+        # two GL resource sets: multisampled (anti-aliased) for colour, single-sampled for labels and depth
+        self.con_rgb, self.con = self._context(m, msaa), self._context(m, 0)
         self.con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self.scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom))
         self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows
@@ -67,12 +67,23 @@ class LabelRenderer:
         ext = m.stat.extent
         self._znear, self._zfar = np.float32(m.vis.map.znear * ext), np.float32(m.vis.map.zfar * ext)
 
+    @staticmethod
+    def _context(m: mujoco.MjModel, samples: int) -> mujoco.MjrContext:
+        """An ``MjrContext`` for ``m`` rendering offscreen with ``samples`` multisamples per pixel."""
+        saved = m.vis.quality.offsamples
+        m.vis.quality.offsamples = samples
+        try:
+            return mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
+        finally:
+            m.vis.quality.offsamples = saved
+
     def close(self) -> None:
         """Free this model's GL resources (the process's GL context stays)."""
         if self.con is not None:
             _gl_context().make_current()
             self.con.free()
-            self.con = None
+            self.con_rgb.free()
+            self.con = self.con_rgb = None
 
     # -- passes ----------------------------------------------------------------------------------------
     def _update(self, option: mujoco.MjvOption) -> None:
@@ -81,8 +92,10 @@ class LabelRenderer:
                                mujoco.mjtCatBit.mjCAT_ALL.value, self.scene)
 
     def _set_seg(self, on: bool) -> None:
+        """Segmentation colours on/off, and the matching resources bound (single-sampled for labels)."""
         for f in _SEG_FLAGS:
             self.scene.flags[f] = on
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.con if on else self.con_rgb)
 
     def _metric_depth(self, raw: np.ndarray) -> np.ndarray:
         """Reversed-Z depth buffer -> metres along the optical axis (as ``mujoco.Renderer`` does)."""
@@ -97,9 +110,9 @@ class LabelRenderer:
         """Colour image (H, W, 3) uint8 of the current state."""
         self._update(self.option)
         self._set_seg(False)
-        mujoco.mjr_render(self.rect, self.scene, self.con)
+        mujoco.mjr_render(self.rect, self.scene, self.con_rgb)
         out = np.empty((self.height, self.width, 3), np.uint8)
-        mujoco.mjr_readPixels(out, None, self.rect, self.con)
+        mujoco.mjr_readPixels(out, None, self.rect, self.con_rgb)
         return out[::-1].copy()
 
     def depth_and_instances(self) -> tuple[np.ndarray, np.ndarray]:

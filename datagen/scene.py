@@ -1,5 +1,6 @@
-"""A randomised, settled scene for dataset generation: blocks dropped into the pick area among randomised
-looks (textures, materials, lights, distractors), everything drawn from one rng.
+"""A randomised, settled scene for dataset generation: blocks dropped into the pick area (closer than their
+size, so some land on others) among randomised looks (textures, materials, lights, distractors), everything
+drawn from one rng.
 
 Physics runs with MuJoCo's sleeping islands enabled: blocks at rest cost nothing while the arm moves between
 viewpoints, and wake up if the arm touches them.
@@ -14,6 +15,7 @@ import numpy as np
 
 from datagen.appearance import Look, light_tint, sample_look
 from datagen.config import DatagenConfig
+from posegrasp.catalog import BlockType
 from posegrasp.errors import UserError
 from sim.scene import Scene, SceneConfig, _choose_types, _drop_positions, area_capacity, randomise_lights, settle
 from sim.workcell import BlockInstance, Workcell
@@ -30,8 +32,8 @@ class GenScene:
 
 def scene_config(cfg: DatagenConfig) -> SceneConfig:
     """The ``sim.scene`` settings matching a generation config."""
-    return SceneConfig(block_types=cfg.block_types, palette=cfg.colours.palette, light_intensity=cfg.lights.intensity,
-                       workcell=cfg.workcell)
+    return SceneConfig(block_types=cfg.block_types, palette=cfg.colours.palette, min_spacing=cfg.min_spacing,
+                       light_intensity=cfg.lights.intensity, workcell=cfg.workcell)
 
 
 def check_capacity(cfg: DatagenConfig) -> None:
@@ -39,6 +41,20 @@ def check_capacity(cfg: DatagenConfig) -> None:
     cap = area_capacity(scene_config(cfg))
     if cfg.blocks[1] > cap:
         raise UserError(f"{cfg.blocks[1]} blocks do not fit in the pick area (at most {cap}); lower --blocks")
+
+
+def stack_drops(poses: list[np.ndarray], types: list[BlockType]) -> list[np.ndarray]:
+    """Raise drop poses whose bounding spheres overlap an earlier block's in the plane above it, so blocks
+    dropped closer than their size start apart and land on each other (piles) instead of interpenetrating."""
+    out: list[np.ndarray] = []
+    for T, b in zip(poses, types):
+        T = T.copy()
+        for U, c in zip(out, types):
+            r = 0.5 * (b.diameter + c.diameter)
+            if np.linalg.norm(T[:2, 3] - U[:2, 3]) < r:
+                T[2, 3] = max(T[2, 3], U[2, 3] + r)
+        out.append(T)
+    return out
 
 
 def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 5) -> GenScene:
@@ -54,10 +70,10 @@ def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 5
     scene = Scene(wc, 0, scfg)
     for drop in range(1, max_drops + 1):
         wc.reset()
-        for k, T in enumerate(_drop_positions(scfg, types, rng), start=1):
+        for k, T in enumerate(stack_drops(_drop_positions(scfg, types, rng), types), start=1):
             wc.set_block_pose(k, T)
         mujoco.mj_forward(wc.model, wc.data)
-        if settle(wc, scfg) and scene.in_pick_area().all():
+        if settle(wc, scfg) and scene.in_pick_area(margin=cfg.area_margin).all():
             wc.data.qvel[:] = 0.0
             return GenScene(wc, look, drop)
     raise RuntimeError(f"blocks did not come to rest inside the pick area after {max_drops} drops")

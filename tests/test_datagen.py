@@ -21,7 +21,7 @@ from matplotlib.path import Path as PolyPath
 from scipy.spatial import ConvexHull
 
 from datagen.check import check_dataset
-from datagen.config import DatagenConfig, load_datagen_config
+from datagen.config import load_datagen_config
 from datagen.generate import STATS_FILE, generate_dataset, is_complete
 from posegrasp import bop
 from posegrasp.geometry import invert, transform_points
@@ -139,42 +139,33 @@ def test_amodal_masks_are_exact_projections_of_convex_blocks(dataset):
 
 #: pyrender renderers stay alive for the whole process: deleting one calls eglTerminate on the display MuJoCo shares.
 _PYRENDERERS: dict = {}
+#: pyrender's principal point is in pixel-edge coordinates (+0.5 px), and its depth is read from a 4x multisampled
+#: buffer, i.e. at sample 0, which Mesa places at (-1/8, +3/8) px from the pixel centre: shift K to match.
+PYRENDER_PP_SHIFT = (0.5 - 0.125, 0.5 + 0.375)
 
 
-def test_amodal_masks_match_pyrender_at_640x480():
-    """Every block rendered by pyrender alone at its GT pose agrees with the amodal mask (unoccluded, inside)."""
+def test_amodal_masks_match_pyrender(dataset):
+    """Each block rendered alone by pyrender (from the PLY model) at its GT pose gives its amodal mask."""
     import pyrender
 
-    from datagen.render import LabelRenderer
-    from datagen.scene import build_scene
-    from sim.workcell import HAND_CAMERA
-
-    cfg = DatagenConfig(blocks=(5, 5))
-    gs = build_scene(cfg, np.random.default_rng(11))
-    wc = gs.workcell
-    assert wc.drive_arm(wc.look_q)
-    c = cfg.workcell.hand_camera
-    r = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
-    frame = r.capture()
-    r.close()
-    K = frame.K
-    cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=0.05, zfar=5.0)
-    pr = _PYRENDERERS.setdefault((c.width, c.height), pyrender.OffscreenRenderer(c.width, c.height))
-    checked = 0
-    for k, inst in enumerate(wc.blocks, start=1):
-        full, vis = frame.extra["amodal"][k - 1], frame.mask == k
-        assert not (vis & ~full).any()
-        sc = pyrender.Scene()
-        sc.add(pyrender.Mesh.from_trimesh(trimesh.Trimesh(inst.block.vertices, inst.block.faces, process=False),
-                                          smooth=False), pose=frame.T_cam_obj[k - 1])
-        sc.add(cam, pose=np.diag([1.0, -1.0, -1.0, 1.0]))
-        sil = pr.render(sc, flags=pyrender.RenderFlags.DEPTH_ONLY) > 0
-        border = full[0].any() or full[-1].any() or full[:, 0].any() or full[:, -1].any()
-        if vis.sum() < full.sum() or border or not full.any():
-            continue
-        assert (sil & full).sum() / (sil | full).sum() >= 0.97, inst.block.name
-        checked += 1
-    assert checked >= 3
+    cam_info = bop.load_camera(dataset)
+    W, H = cam_info.width, cam_info.height
+    pr = _PYRENDERERS.setdefault((W, H), pyrender.OffscreenRenderer(W, H))
+    ious = []
+    for rec in records(dataset):
+        K = rec.camera.K
+        cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + PYRENDER_PP_SHIFT[0], K[1, 2] + PYRENDER_PP_SHIFT[1],
+                                        znear=0.05, zfar=5.0)
+        for g in rec.instances:
+            if g.info.px_count_all < 20:
+                continue  # (nearly) out of view; occluded blocks are compared too: both render them alone
+            full = rec.load_mask(g.gt_index, visible=False)
+            sc = pyrender.Scene()
+            sc.add(pyrender.Mesh.from_trimesh(bop.load_model(dataset, g.obj_id), smooth=False), pose=g.T_cam_obj)
+            sc.add(cam, pose=np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenCV camera -> OpenGL camera
+            sil = pr.render(sc, flags=pyrender.RenderFlags.DEPTH_ONLY) > 0
+            ious.append((sil & full).sum() / (sil | full).sum())
+    assert len(ious) >= 10 and min(ious) >= 0.97 and np.mean(ious) > 0.99, ious
 
 
 def test_cameras_look_down_at_the_blocks_from_reachable_poses(dataset):
