@@ -62,12 +62,11 @@ def noisy_depth(depth: np.ndarray, K: np.ndarray, cfg: DepthNoiseConfig, rng: np
     gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
     z = cv2.remap(depth, gx + shift[0], gy + shift[1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
     valid = z > 0
-    # axial noise, growing with distance and with the incidence angle (tan(theta) ~ |grad z| f / z)
-    gzx, gzy = np.zeros_like(z), np.zeros_like(z)
-    gzx[:, 1:-1], gzy[1:-1] = 0.5 * (z[:, 2:] - z[:, :-2]), 0.5 * (z[2:] - z[:-2])
-    tan_t = np.hypot(gzx, gzy) * np.float32(fx) / np.where(valid, z, np.float32(1.0))
-    theta = np.minimum(np.arctan(tan_t), np.float32(np.deg2rad(85.0)))
+    # axial noise, growing with distance and with the incidence angle theta = atan(|grad z| f / z)
+    grad = cv2.magnitude(cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=1))
+    theta = cv2.phase(np.where(valid, z, np.float32(1.0)), grad * np.float32(0.5 * fx))  # central differences
     f32 = np.float32
+    theta = np.minimum(theta, f32(np.deg2rad(85.0)))
     sigma = (f32(cfg.sigma_base) + f32(cfg.sigma_quad) * (z - f32(cfg.z_ref)) ** 2
              + f32(cfg.sigma_angle) / np.sqrt(np.maximum(z, f32(1e-3))) * theta ** 2 / (f32(np.pi / 2) - theta) ** 2)
     z = z + sigma * gaussian((H, W), 1.0, rng)

@@ -67,6 +67,7 @@ def _summary(rows: list[dict[str, Any]], diameter: float | None) -> dict[str, fl
     else:  # overall: each instance against its own object's diameter
         acc01 = float(np.mean([r["add_or_adds"] < 0.1 * r["diameter"] for r in rows]) * 100.0) if n else float("nan")
     fin = det & np.isfinite(adds)
+    nan = float("nan")
     return {
         "n": n,
         "detected": float(det.mean() * 100.0) if n else float("nan"),
@@ -77,8 +78,8 @@ def _summary(rows: list[dict[str, Any]], diameter: float | None) -> dict[str, fl
         "ADD(-S)_acc_0.1d": acc01,
         "mean_ADD": float(add[fin].mean()) if fin.any() else float("nan"),
         "mean_ADD-S": float(adds[fin].mean()) if fin.any() else float("nan"),
-        "median_re_sym_deg": float(np.median([r["re_sym"] for r in rows if r["detected"]])) if fin.any() else float("nan"),
-        "median_te": float(np.median([r["te"] for r in rows if r["detected"]])) if fin.any() else float("nan"),
+        "median_re_sym_deg": float(np.median([r["re_sym"] for r in rows if r["detected"]])) if fin.any() else nan,
+        "median_te": float(np.median([r["te"] for r in rows if r["detected"]])) if fin.any() else nan,
     }
 
 
@@ -98,7 +99,8 @@ def _plot_curves(path: Path, rows: list[dict[str, Any]], obj_ids: list[int]) -> 
         te = [r["te"] if r["detected"] else np.inf for r in rs]
         axes[0].plot(RE_THRESHOLDS, M.threshold_curve(re, RE_THRESHOLDS) * 100, lw=lw, label=name)
         axes[1].plot(TE_THRESHOLDS * 100, M.threshold_curve(te, TE_THRESHOLDS) * 100, lw=lw, label=name)
-    axes[0].set(xlabel="rotation error threshold (deg, up to symmetry)", ylabel="accuracy (%)", ylim=(0, 101), xlim=(0, 30))
+    axes[0].set(xlabel="rotation error threshold (deg, up to symmetry)", ylabel="accuracy (%)", ylim=(0, 101),
+                xlim=(0, 30))
     axes[1].set(xlabel="translation error threshold (cm)", ylabel="accuracy (%)", ylim=(0, 101), xlim=(0, 5))
     for a in axes:
         a.grid(alpha=0.3)

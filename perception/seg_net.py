@@ -36,8 +36,9 @@ class SegNetConfig:
 
     num_classes: background + objects (class = BOP obj_id). width: channel multiplier (1.0 = the
     paper; 0.25 runs on a CPU). input_size: (height, width) px the image is resized to (at least
-    32; multiples of 32 avoid rounding of the pooled sizes). mffm_channels: output channels of MFFM1..3 at width 1.0. encoder_skip_channels:
-    the conv width of every encoder input of an MFFM (64 in the paper).
+    32; multiples of 32 avoid rounding of the pooled sizes). mffm_channels: output channels of
+    MFFM1..3 at width 1.0. encoder_skip_channels: the conv width of every encoder input of an MFFM
+    (64 in the paper). up_channels: the two upsampling convs. All widths are scaled by ``width``.
     """
 
     num_classes: int = 4

@@ -39,11 +39,13 @@ from perception.seg_net import SegNetConfig, build_seg_net, seg_loss
 
 @dataclass
 class SegTrainConfig:
-    """Segmentation training. ``model.num_classes`` is set from the dataset (max obj_id + 1)."""
+    """Segmentation training. ``model.num_classes`` is set from the dataset (max obj_id + 1).
+    ``train_split`` empty = ``train_pbr`` if present, else ``train``; ``val_split`` is evaluated
+    every ``eval_every`` steps when it exists."""
 
     model: SegNetConfig = field(default_factory=SegNetConfig)
     data: DataConfig = field(default_factory=DataConfig)
-    train_split: str = "train"
+    train_split: str = ""
     val_split: str = "val"
     steps: int = 20000
     batch_size: int = 4
@@ -63,12 +65,14 @@ class SegTrainConfig:
 @dataclass
 class PoseTrainConfig:
     """Pose net training. ``obj_ids`` empty = every object of models_info; ``model.obj_ids`` and
-    ``model.symmetric`` are set from the dataset."""
+    ``model.symmetric`` are set from the dataset. ``train_split`` empty = ``train_pbr`` if present,
+    else ``train``. The evaluation that drives the lr / w decay uses ``val_split``, or a fixed
+    subset of the training instances (no augmentation) when that split does not exist."""
 
     model: PoseNetConfig = field(default_factory=PoseNetConfig)
     data: DataConfig = field(default_factory=DataConfig)
     obj_ids: list[int] = field(default_factory=list)
-    train_split: str = "train"
+    train_split: str = ""
     val_split: str = "val"
     steps: int = 20000
     batch_size: int = 8
@@ -93,7 +97,7 @@ class RefineTrainConfig:
 
     model: RefinerConfig = field(default_factory=RefinerConfig)
     data: DataConfig = field(default_factory=DataConfig)
-    train_split: str = "train"
+    train_split: str = ""
     val_split: str = "val"
     steps: int = 10000
     batch_size: int = 8
@@ -241,6 +245,14 @@ def _split_exists(root: Path, split: str) -> bool:
     return bool(split) and bop.split_dir(root, split).is_dir()
 
 
+def train_split(root: Path, split: str) -> str:
+    """The training split: ``split`` if given, else ``train_pbr`` (BOP's synthetic training data)
+    when present, else ``train``."""
+    if split:
+        return split
+    return "train_pbr" if _split_exists(root, "train_pbr") else "train"
+
+
 def _resumed_cfg(cls: type, prior: dict[str, Any] | None, cfg: Any, overrides: dict[str, Any]) -> Any:
     """Training config: the checkpoint's when resuming (CLI overrides like steps still apply)."""
     from posegrasp.config import from_dict
@@ -270,8 +282,8 @@ def train_seg(data: str | Path, out: str | Path, cfg: SegTrainConfig | None = No
         ckpt_mod.load_state(model, tensors, run.ckpt / "model.safetensors")
         ckpt_mod.load_optimizer(run.ckpt, opt)
         state = prior["state"]
-    ds = SegDataset(data, cfg.train_split, model_cfg.input_size, model_cfg.num_classes, cfg.data, augment=True,
-                    seed=cfg.seed)
+    ds = SegDataset(data, train_split(data, cfg.train_split), model_cfg.input_size, model_cfg.num_classes, cfg.data,
+                    augment=True, seed=cfg.seed)
     val = (SegDataset(data, cfg.val_split, model_cfg.input_size, model_cfg.num_classes, cfg.data)
            if _split_exists(data, cfg.val_split) else None)
     log = MetricsLog(run.metrics, ["step", "time_s", "loss", "pixel_acc", "lr", "val_mPA", "val_mIoU"],
@@ -324,12 +336,13 @@ def evaluate_seg(model: torch.nn.Module, ds: SegDataset, max_images: int = 0) ->
 def _pose_datasets(data: Path, cfg: Any, obj_ids: list[int], num_points: int, crop_size: int
                    ) -> tuple[PoseDataset, PoseDataset, list[int]]:
     models = ObjectModels(data, cfg.data.model_pool)
-    train = PoseDataset(data, cfg.train_split, obj_ids, num_points, crop_size, cfg.data, augment=True,
+    split = train_split(data, cfg.train_split)
+    train = PoseDataset(data, split, obj_ids, num_points, crop_size, cfg.data, augment=True,
                         seed=cfg.seed, models=models)
     if _split_exists(data, cfg.val_split):
         val = PoseDataset(data, cfg.val_split, obj_ids, num_points, crop_size, cfg.data, models=models)
     else:  # no validation split: a fixed subset of the training instances, without augmentation
-        val = PoseDataset(data, cfg.train_split, obj_ids, num_points, crop_size, cfg.data, models=models)
+        val = PoseDataset(data, split, obj_ids, num_points, crop_size, cfg.data, models=models)
     n = min(cfg.eval_samples, len(val))
     idx = sorted({int(i) for i in np.linspace(0, len(val) - 1, n)})
     return train, val, idx

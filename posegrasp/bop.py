@@ -337,7 +337,8 @@ def write_models_info(root: str | Path, infos: dict[int, ObjectInfo]) -> Path:
                 mats.append(s.reshape(-1).tolist())
             d["symmetries_discrete"] = mats
         if inf.symmetries_continuous:
-            d["symmetries_continuous"] = [{"axis": np.asarray(a, float).tolist(), "offset": (np.asarray(o, float) / MM).tolist()}
+            d["symmetries_continuous"] = [{"axis": np.asarray(a, float).tolist(),
+                                           "offset": (np.asarray(o, float) / MM).tolist()}
                                           for a, o in inf.symmetries_continuous]
         out[str(oid)] = d
     return pio.write_json(models_info_path(root), out)

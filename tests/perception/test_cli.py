@@ -35,7 +35,8 @@ def test_train_and_eval_commands(tiny_bop, tiny_run, tmp_path, capsys):
 def test_bad_config_is_user_error(tiny_bop, tmp_path):
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[pose]\nbatch = 3\n")
-    args = _parser().parse_args(["train", "pose", "--data", str(tiny_bop), "--out", str(tmp_path), "--config", str(cfg)])
+    args = _parser().parse_args(["train", "pose", "--data", str(tiny_bop), "--out", str(tmp_path),
+                                 "--config", str(cfg)])
     with pytest.raises(UserError, match="unknown key"):
         args.run(args)
     args = _parser().parse_args(["train", "refine", "--data", str(tiny_bop), "--out", str(tmp_path / "x")])
