@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -148,6 +149,8 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
                     {"seed": seed, "views": views, "rgb_format": ext, "config": dataclasses.asdict(cfg)})
     todo = [s for s in range(scenes) if not is_complete(root, split, s)]
     jobs = [SceneJob(str(root), split, s, seed, views, cfg) for s in todo]
+    if isinstance(workers, int) or workers is None:  # no idle worker processes
+        workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
     t0 = time.perf_counter()
     frames = 0
     with _progress(progress) as bar:
