@@ -28,8 +28,10 @@ from sim.camera import Frame
 
 COMPLETE_FILE = "scene_gt_info.json"
 SOURCE_MODELS = ASSETS / "blocks" / "models"
-#: PNG row filters: none for masks and noisy depth (fastest and smallest there), sub for colour images.
+#: PNG settings, the fastest (and smallest) measured for each kind: unfiltered rows for noisy depth, plus
+#: run-length deflate for masks; sub-filtered rows for colour images.
 _PNG_NONE = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+_PNG_MASK = [*_PNG_NONE, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
 _PNG_SUB = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
 
 
@@ -43,7 +45,7 @@ def encode(ext: str, img: np.ndarray, params: list[int]) -> bytes:
 
 def encode_mask(mask: np.ndarray) -> bytes:
     """A boolean mask as a 0/255 8-bit PNG."""
-    return encode(".png", np.asarray(mask, bool).astype(np.uint8) * 255, _PNG_NONE)
+    return encode(".png", np.asarray(mask, bool).view(np.uint8) * np.uint8(255), _PNG_MASK)
 
 
 def put(path: Path, data: bytes) -> None:
