@@ -302,3 +302,39 @@ def test_bad_arguments_give_one_line(tmp_path, capsys, args, words):
 def test_bad_arguments_exit_code_from_the_shell(tmp_path):
     r = run_cli("datagen", "--out", str(tmp_path / "o"), "--views", "many")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+
+
+def test_distractors_occlude_but_are_never_labelled():
+    import dataclasses
+
+    from datagen.config import DatagenConfig, DistractorConfig
+    from datagen.render import LabelRenderer
+    from datagen.scene import build_scene
+    from posegrasp.geometry import look_at_R, make_T
+    from sim.workcell import HAND_CAMERA
+
+    cfg = DatagenConfig(blocks=(4, 4), distractors=DistractorConfig(count=(3, 3)))
+    wc = build_scene(cfg, np.random.default_rng(2)).workcell
+    ids = [i for i in range(wc.model.ngeom) if wc.model.geom(i).name.startswith("distractor_")]
+    assert len(ids) == 3 and not wc.geom_instance[ids].any()
+    for i in ids:  # look at a distractor from the arm's side
+        target = wc.data.geom_xpos[i]
+        toward_base = -target[:2] / np.linalg.norm(target[:2])
+        pos = target + 0.4 * np.array([*(np.cos(np.pi / 4) * toward_base), np.sin(np.pi / 4)])  # 45 deg up
+        q, dp, dr = wc.solve_camera_ik(make_T(look_at_R(target - pos), pos), wc.look_q)
+        if dp < 5e-3 and dr < 0.02 and wc.drive_arm(q):
+            break
+    else:
+        pytest.fail("no distractor could be looked at")
+    c = dataclasses.replace(cfg.workcell.hand_camera, width=320, height=240)
+    r = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
+    with_d = r.capture()
+    wc.model.geom_group[ids] = 5  # hidden from the renderer
+    without = r.capture()
+    r.close()
+    drawn = with_d.depth < np.where(without.depth > 0, without.depth, np.inf)  # distractor pixels in front
+    assert drawn.sum() > 100
+    assert not with_d.mask[drawn].any()  # no label on a distractor
+    for a, b in zip(with_d.extra["amodal"], without.extra["amodal"]):
+        np.testing.assert_array_equal(a, b)  # amodal masks ignore them; visible ones lose what they hide
+    assert all((with_d.mask == k).sum() <= (without.mask == k).sum() for k in range(1, 5))
