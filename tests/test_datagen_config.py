@@ -1,0 +1,33 @@
+"""Dataset generation settings: the shipped TOML documents the defaults; bad values are one-line errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import datagen
+from datagen.config import DatagenConfig, load_datagen_config
+from posegrasp.errors import UserError
+
+SHIPPED = Path(datagen.__file__).parent / "datagen.toml"
+
+
+def test_shipped_toml_equals_defaults():
+    assert load_datagen_config(SHIPPED) == DatagenConfig()
+
+
+@pytest.mark.parametrize("text, words", [
+    ("blocks = [5, 2]\n", "blocks"),
+    ("rgb_format = 'bmp'\n", "rgb_format"),
+    ("msaa = 3\n", "msaa"),
+    ("[textures]\nkinds = ['marble']\n", "textures.kinds"),
+    ("[lights]\nextra = [0, 9]\n", "lights.extra"),
+    ("[views]\ndistance = [0.5]\n", "views.distance"),
+    ("[depth_noise]\nsigma_base = 'big'\n", "sigma_base"),
+])
+def test_bad_settings_name_the_setting(tmp_path, text, words):
+    p = tmp_path / "c.toml"
+    p.write_text(text)
+    with pytest.raises(UserError, match=words):
+        load_datagen_config(p)
