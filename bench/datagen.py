@@ -2,7 +2,9 @@
 
 Times ``generate_dataset`` end to end (worker start-up, scene settling, arm motion, rendering, noise, encoding,
 writing) into a fresh temporary folder and prints a table and a JSON line, with the load average of the
-machine before and after (other processes on the machine slow this down; say so when you quote the figure).
+machine before and after (other processes on the machine slow this down; say so when you quote the figure),
+and the CPU seconds spent per frame by this process and its workers, with the rate they would give if the
+worker count of cores were free.
 Run: ``MUJOCO_GL=egl .venv/bin/python bench/datagen.py [--workers 2] [--scenes 8] [--views 25]``.
 """
 
@@ -29,6 +31,14 @@ from datagen.generate import generate_dataset  # noqa: E402
 from sim.cli import parse_resolution  # noqa: E402
 
 
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process and its waited-for children."""
+    import resource
+
+    return sum(r.ru_utime + r.ru_stime for r in (resource.getrusage(resource.RUSAGE_SELF),
+                                                resource.getrusage(resource.RUSAGE_CHILDREN)))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workers", type=int, default=2)
@@ -38,18 +48,21 @@ def main() -> None:
     ap.add_argument("--resolution", default="640x480")
     ap.add_argument("--rgb-format", default="jpg", choices=("jpg", "png"))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--msaa", type=int, default=DatagenConfig().msaa, help="colour anti-aliasing samples (0: off)")
     args = ap.parse_args()
 
     w, h = parse_resolution(args.resolution)
     wc = DatagenConfig().workcell
     wc = dataclasses.replace(wc, hand_camera=dataclasses.replace(wc.hand_camera, width=w, height=h))
-    cfg = DatagenConfig(blocks=parse_blocks(args.blocks), rgb_format=args.rgb_format, workcell=wc)
+    cfg = DatagenConfig(blocks=parse_blocks(args.blocks), rgb_format=args.rgb_format, msaa=args.msaa, workcell=wc)
     out = tempfile.mkdtemp(prefix="bench_datagen_")
     load_before = os.getloadavg()
+    cpu0 = _cpu_seconds()
     t0 = time.perf_counter()
     try:
         s = generate_dataset(out, args.scenes, args.views, args.seed, cfg, workers=args.workers)
         wall = time.perf_counter() - t0
+        cpu = _cpu_seconds() - cpu0
         size_mb = sum(f.stat().st_size for f in Path(out).rglob("*") if f.is_file()) / 1e6
     finally:
         shutil.rmtree(out, ignore_errors=True)
@@ -57,8 +70,11 @@ def main() -> None:
     res = {
         "frames_per_s": round(s["images"] / wall, 2),
         "images": s["images"], "scenes": args.scenes, "views": args.views, "workers": args.workers,
-        "resolution": args.resolution, "blocks": args.blocks, "rgb_format": args.rgb_format,
+        "resolution": args.resolution, "blocks": args.blocks, "rgb_format": args.rgb_format, "msaa": args.msaa,
         "wall_s": round(wall, 2), "dataset_mb": round(size_mb, 1), "cpus": os.cpu_count(),
+        # CPU time of this process and its (finished) workers: what the frames cost, whatever else runs
+        "cpu_ms_per_frame": round(1000 * cpu / max(s["images"], 1), 1),
+        "frames_per_s_if_cores_idle": round(args.workers * s["images"] / max(cpu, 1e-9), 1),
         "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in load_after],
         "unreachable_views": s["views"]["out_of_reach"] + s["views"]["unreachable"] + s["views"]["blocked"],
     }

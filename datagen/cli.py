@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=_positive("--workers"), default=None, help="worker processes (default: one per core)")
     p.add_argument("--split", choices=("train_pbr", "test"), default="train_pbr", help="BOP split to write")
     p.add_argument("--resolution", default=None, help="image WIDTHxHEIGHT (default from the config: 640x480)")
-    p.add_argument("--config", default=None, help="generation settings TOML (see datagen/config.py)")
+    p.add_argument("--config", default=None, help="generation settings TOML (defaults: datagen/datagen.toml)")
     p.add_argument("--rgb-format", choices=("png", "jpg"), default=None, help="colour images (default: jpg for train_pbr, png for test)")
     p.add_argument("--blocks", default=None, help="blocks per scene: N or MIN-MAX (default 3-8)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -126,13 +126,16 @@ class LabelRenderer:
         self._set_seg(False)
         # segmentation colour = segid + 1 (little-endian RGB); map it to block instance ids
         n = self.scene.ngeom
-        lut = np.zeros(n + 2, np.uint16)
+        lut = np.zeros(max(n + 2, 256), np.uint16)
         geom_t = int(mujoco.mjtObj.mjOBJ_GEOM)
         for g in self.scene.geoms[:n]:
             if g.segid >= 0 and g.objtype == geom_t:
                 lut[g.segid + 1] = self.wc.geom_instance[g.objid]
-        ids = seg[..., 0].astype(np.int32) | (seg[..., 1].astype(np.int32) << 8) | (seg[..., 2].astype(np.int32) << 16)
-        inst = lut[np.minimum(ids, n + 1)]
+        if n + 1 < 256:  # one byte holds every id
+            inst = lut[seg[..., 0]]
+        else:
+            ids = seg[..., 0].astype(np.int32) | (seg[..., 1].astype(np.int32) << 8) | (seg[..., 2].astype(np.int32) << 16)
+            inst = lut[np.minimum(ids, n + 1)]
         return self._metric_depth(raw)[::-1].copy(), inst[::-1].copy()
 
     def amodal(self, T_cam_obj: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int, int, int] | None]]:
