@@ -17,6 +17,7 @@ from posegrasp.errors import UserError
 COMMAND_MODULES = (
     "sim.cli",
     "datagen.cli",
+    "perception.cli",
 )
 
 
