@@ -41,6 +41,7 @@ class CheckReport:
     visible: Counter = field(default_factory=Counter)
     visib_fracts: list[float] = field(default_factory=list)
     depth_errors_mm: list[float] = field(default_factory=list)
+    stopped_early: bool = False
 
     @property
     def ok(self) -> bool:
@@ -328,8 +329,13 @@ class _Checker:
 
 
 def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: float = 5.0, max_images: int | None = None,
-                  max_problems: int = 200) -> CheckReport:
-    """Validate the BOP dataset at ``root`` (all splits, or ``split``); ``max_images`` per scene limits the work."""
+                  max_problems: int = 200, progress: bool = False) -> CheckReport:
+    """Validate the BOP dataset at ``root`` (all splits, or ``split``); ``max_images`` per scene limits the work.
+
+    The search stops after ``max_problems`` problems; ``progress`` shows a bar over scenes.
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
     root = Path(root)
     if not root.is_dir():
         raise UserError(f"dataset folder {root} does not exist")
@@ -348,11 +354,14 @@ def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: floa
         c.add(f"{c.rel(tmp)}: leftover of an interrupted write; rerun the generator to complete the dataset")
     if shape is None:
         return c.report
-    for s in splits:
-        for sid in bop.list_scenes(root, s):
+    scenes = [bop.scene_dir(root, s, sid) for s in splits for sid in bop.list_scenes(root, s)]
+    with Progress(TextColumn("checking"), BarColumn(), MofNCompleteColumn(), TextColumn("scenes"),
+                  TimeRemainingColumn(), transient=True, disable=not progress) as bar:
+        for sd in bar.track(scenes):
             if c.full:
-                return c.report
-            c.scene(bop.scene_dir(root, s, sid), shape, max_images)
+                c.report.stopped_early = True
+                break
+            c.scene(sd, shape, max_images)
     return c.report
 
 
@@ -387,7 +396,7 @@ def print_report(report: CheckReport, root: str | Path, show_problems: int = 20)
     if report.ok:
         con.print("[green]OK[/green]: no problems found")
         return
-    con.print(f"[red]{len(report.problems)} problem(s)[/red]" + (" (search stopped early)" if len(report.problems) >= 200 else ""))
+    con.print(f"[red]{len(report.problems)} problem(s)[/red]" + (", search stopped early" if report.stopped_early else ""))
     for p in report.problems[:show_problems]:
         con.print(f"  {p}", markup=False, highlight=False, soft_wrap=True)
     if len(report.problems) > show_problems:

@@ -105,7 +105,7 @@ def run_datagen(args: argparse.Namespace) -> int:
 def run_check(args: argparse.Namespace) -> int:
     from datagen.check import check_dataset, print_report
 
-    report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images)
+    report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images, progress=True)
     print_report(report, args.dir)
     return 0 if report.ok else 1
 
