@@ -12,6 +12,7 @@ marked complete has all its images on disk even after a power cut. Per-file fsyn
 
 from __future__ import annotations
 
+import functools
 import os
 import tempfile
 from pathlib import Path
@@ -127,13 +128,21 @@ class SceneWriter:
         gts, infos = [], []
         for i, (oid, T) in enumerate(zip(frame.obj_ids, frame.T_cam_obj)):
             amodal, box, visib = frame.extra["amodal"][i], frame.extra["boxes"][i], frame.mask == i + 1
-            put(bop.mask_path(d, im_id, i, visible=False), encode_mask(amodal))
-            put(bop.mask_path(d, im_id, i, visible=True), encode_mask(visib))
+            info = gt_info(amodal, visib, depth, box)
+            full_png = encode_mask(amodal) if info.px_count_all else self._empty_mask(amodal.shape)
+            same = info.px_count_visib == info.px_count_all and np.array_equal(visib, amodal)  # fully visible
+            put(bop.mask_path(d, im_id, i, visible=False), full_png)
+            put(bop.mask_path(d, im_id, i, visible=True), full_png if same else encode_mask(visib))
             gts.append((int(oid), T))
-            infos.append(gt_info(amodal, visib, depth, box))
+            infos.append(info)
         self.gt[im_id], self.infos[im_id] = gts, infos
         self.cams[im_id] = bop.SceneCamera(K=frame.K, depth_scale=self.depth_scale,
                                            T_cam_world=invert(frame.T_world_cam))
+
+    @staticmethod
+    @functools.lru_cache(maxsize=4)
+    def _empty_mask(shape: tuple[int, int]) -> bytes:
+        return encode_mask(np.zeros(shape, bool))
 
     def finish(self, extra: dict[str, Any]) -> None:
         """Flush the images to disk, then write the JSON files, ``scene_gt_info.json`` last (scene complete)."""
