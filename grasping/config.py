@@ -33,7 +33,9 @@ class ControlConfig:
     orientation_cost: float = 0.5  # FrameTask orientation weight (position weight 1)
     posture_cost: float = 0.01  # weak pull toward the look pose's joint angles
     table_clearance: float = 0.002  # hand/arm geoms keep this distance (m) from the table
-    finger_speed: float = 4.0  # finger closing/opening velocity command (rad/s)
+    finger_speed: float = 4.0  # finger closing velocity command (rad/s)
+    release_speed: float = 0.6  # finger opening speed when releasing a block (rad/s) ...
+    relax_time: float = 0.0  # ... after the grip has relaxed for this long (s)
     max_speed: float = 50.0  # any joint faster than this (rad/s or m/s) is a simulation error
 
 
@@ -52,8 +54,11 @@ class GraspConfig:
     approach_speed: float = 0.25  # peak speed of the approach and of the place descent (m/s)
     carry_speed: float = 0.5  # peak speed while carrying (m/s; the joint speed limits usually bind first)
     release_time: float = 0.6  # the fingers open for at most this long before the retreat (s)
+    release_shift: float = 0.0  # while opening, the hand slides this far toward fingers 2-3 (m) ...
+    release_push: float = 0.004  # ... and this far down (m)
     lift_height: float = 0.10  # the block's bottom is lifted to this height (m)
-    place_gap: float = -0.002  # the block is released this far above the place pad (m)
+    place_gap: float = 0.004  # the block is brought this far above the place pad (m), then lowered ...
+    place_press: float = 0.003  # ... until it touches, at most this far into the pad (m), and released
     retreat_height: float = 0.12  # the hand rises this far after releasing (m)
     place_jitter: float = 0.02  # random offset of the place target from the pad centre (m)
 

@@ -96,8 +96,9 @@ class ArmController:
         self.nsub = max(1, round(cfg.dt / wc.model.opt.timestep))
         self.fingers = finger_geoms(wc.model)
         self.finger_dadr = np.array([wc.model.joint(n).dofadr[0] for n in wc.finger_joint_names])
-        self.finger_cmd = 0.0
+        self.finger_cmd = np.zeros(3)  # finger velocity commands (rad/s), + closes
         self.finger_target: float | None = None  # pre-shape angle (rad) held by P control, or None
+        self.finger_limit: float | None = None  # speed limit (rad/s) of that P control (default finger_speed)
         m = wc.model
         self.robot_geom = np.array([m.body(m.geom_bodyid[i]).name.startswith("jaco_arm/") for i in range(m.ngeom)])
         self.table_geom = m.geom("table").id
@@ -155,20 +156,22 @@ class ArmController:
         wc.command_arm(v[self.r_arm_v] + wc.gravity_feedforward())
         if self.finger_target is not None:
             err = self.finger_target - wc.data.qpos[wc.finger_qadr]
-            wc.data.ctrl[wc.finger_act] = np.clip(8.0 * err, -self.cfg.finger_speed, self.cfg.finger_speed)
+            lim = self.finger_limit or self.cfg.finger_speed
+            wc.data.ctrl[wc.finger_act] = np.clip(8.0 * err, -lim, lim)
         else:
-            wc.command_fingers(self.finger_cmd)
+            wc.data.ctrl[wc.finger_act] = self.finger_cmd
         wc.step(self.nsub)
         self.check_stable()
         if self.monitor is not None:
             self.monitor()
 
-    def move(self, T_goal: np.ndarray, speed: float | None = None) -> bool:
+    def move(self, T_goal: np.ndarray, speed: float | None = None, until: Callable[[], bool] | None = None) -> bool:
         """Move the gripper along a straight segment from the current target to ``T_goal``.
 
         The reference follows a smooth (cubic) time law with peak speed ``speed`` (m/s, default from the
         config) and waits whenever the measured pose lags it by more than ``max_lag`` (joint speed limits),
-        so the hand stays on the line. True once the pose is within tolerance, False on timeout.
+        so the hand stays on the line. True once the pose is within tolerance, False on timeout. If
+        ``until()`` becomes true first, the hand stops where the reference is and the move returns True.
         """
         c = self.cfg
         T0 = self.target
@@ -185,6 +188,9 @@ class ArmController:
                 T_ref = interpolate(T0, T_goal, 3 * u * u - 2 * u * u * u)
             self._period(T_ref)
             budget -= 1
+            if until is not None and until():
+                self.target = T_ref
+                return True
         self.target = T_goal
         return self.wait_reached(T_goal, max(budget * c.dt, c.settle_timeout))
 
@@ -203,15 +209,17 @@ class ArmController:
         for _ in range(int(np.ceil(duration / self.cfg.dt))):
             self._period(self.target)
 
-    def preshape(self, opening: float) -> None:
-        """Hold the fingers at the angle that leaves ``opening`` (m) between the fingertips."""
+    def preshape(self, opening: float, speed: float | None = None) -> None:
+        """Move the fingers to (and hold them at) the angle leaving ``opening`` (m) between the fingertips."""
         self.finger_target = finger_angle_for_opening(self.wc.cfg, opening)
+        self.finger_limit = speed
 
     def close(self, k: int, timeout: float = 1.5) -> bool:
         """Close the fingers on block ``k``: True once finger 1 and finger 2 or 3 have touched it for 3
-        control periods in a row; False when the fingers stall or time out without such a grip."""
+        control periods in a row (a finger not touching it then stops, so it does not hook under the block);
+        False when the fingers stall or time out without such a grip."""
         self.finger_target = None
-        self.finger_cmd = self.cfg.finger_speed
+        self.finger_cmd = np.full(3, self.cfg.finger_speed)
         held = still = 0
         for _ in range(int(np.ceil(timeout / self.cfg.dt))):
             self._period(self.target)
@@ -219,10 +227,25 @@ class ArmController:
             held = held + 1 if touch[0] and (touch[1] or touch[2]) else 0
             still = still + 1 if self.finger_speed() < 0.05 else 0
             if held >= 3:
+                self._balance_grip(touch)
                 return True
             if still >= 5:
                 return False  # stalled without an opposing grip (closed on nothing or on something else)
         return False
+
+    def _balance_grip(self, touch: np.ndarray) -> None:
+        """Hold the grip with balanced squeezing torques: finger 1 against fingers 2 and 3 together.
+
+        At stall a velocity actuator pushes with ``kv * ctrl`` (clipped to its force range), so finger 1 gets
+        the full torque and the touching fingers among 2 and 3 share it; a finger not touching stops. Equal
+        commands would let fingers 2 and 3 push the block toward finger 1 until they reach their joint limits.
+        """
+        m, wc = self.wc.model, self.wc
+        kv = m.actuator_gainprm[wc.finger_act, 0]
+        full = m.actuator_forcerange[wc.finger_act, 1]
+        n23 = max(1, int(touch[1]) + int(touch[2]))
+        torque = np.array([full[0], full[1] / n23, full[2] / n23]) * touch
+        self.finger_cmd = torque / kv
 
     def unexpected_contacts(self, k: int) -> bool:
         """Is the robot touching the table or a block other than ``k``?"""
@@ -235,13 +258,22 @@ class ArmController:
         rob = self.robot_geom[g]
         return bool(np.any(rob[:, 0] & other[:, 1]) or np.any(rob[:, 1] & other[:, 0]))
 
-    def release(self, k: int, opening: float, timeout: float) -> bool:
-        """Open the fingers to ``opening`` (m) while holding the arm, until none has touched block ``k`` for
-        2 periods (True) or ``timeout`` (False)."""
-        self.preshape(opening)
+    def release(self, k: int, opening: float, timeout: float, shift: float = 0.0, push: float = 0.0) -> bool:
+        """Open the fingers to ``opening`` (m) until none has touched block ``k`` for 2 periods (True) or
+        ``timeout`` (False), meanwhile sliding the hand ``shift`` (m) along its -x axis and ``push`` (m) down,
+        so the curled fingertips, which often bear on the block's top edges, slide off instead of dragging
+        the block along."""
+        self.finger_target = None
+        self.finger_cmd = np.full(3, -0.2)  # first let the squeeze relax, so no fingertip drags the block
+        self.hold(self.cfg.relax_time)
+        self.preshape(opening, self.cfg.release_speed)
+        T0, n = self.target, int(np.ceil(timeout / self.cfg.dt))
         free = 0
-        for _ in range(int(np.ceil(timeout / self.cfg.dt))):
-            self._period(self.target)
+        for i in range(n):
+            T = T0.copy()
+            T[:3, 3] += min(1.0, 2 * (i + 1) / n) * (push * T0[:3, 2] - shift * T0[:3, 0])
+            self.target = T
+            self._period(T)
             free = free + 1 if not self.finger_contacts(k).any() else 0
             if free >= 2:
                 return True

@@ -71,6 +71,18 @@ def _block_bottom(wc: Workcell, k: int) -> float:
     return float(transform_points(wc.block_poses()[k - 1], b.vertices)[:, 2].min())
 
 
+def _block_supported(wc: Workcell, k: int) -> bool:
+    """Does block ``k`` touch the table, the place pad or another block?"""
+    d = wc.data
+    if not d.ncon:
+        return False
+    g = d.contact.geom[: d.ncon]
+    inst = wc.geom_instance[g]
+    static = np.isin(g, [wc.model.geom("table").id, wc.model.geom("place_pad").id])
+    return bool(np.any((inst[:, 0] == k) & (static[:, 1] | (inst[:, 1] > 0) & (inst[:, 1] != k)))
+                or np.any((inst[:, 1] == k) & (static[:, 0] | (inst[:, 0] > 0) & (inst[:, 0] != k))))
+
+
 def _hand_block_distance(wc: Workcell, k: int, ctl: ArmController, dmax: float) -> float:
     """Smallest distance (m, capped at ``dmax``) between any hand/finger geom and block ``k``."""
     m, d = wc.model, wc.data
@@ -270,10 +282,14 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
     # -- place, release, retreat ----------------------------------------------------------------------
     T_place = T_above.copy()
     T_place[2, 3] = T_grasp[2, 3] + (_PAD_TOP + g_cfg.place_gap - bottom_est)
+    T_down = T_place.copy()
+    T_down[2, 3] -= g_cfg.place_gap + g_cfg.place_press  # then down slowly until the block touches the pad
     ctl.move(T_place, speed=g_cfg.approach_speed)
+    ctl.move(T_down, speed=0.03, until=lambda: _block_supported(wc, k))
     if not ctl.finger_contacts(k).any():
         raise _Failure("drop")
-    ctl.release(k, grasp.width + 0.03, g_cfg.release_time)
+    ctl.release(k, grasp.width + 0.03, g_cfg.release_time, g_cfg.release_shift,
+                g_cfg.release_push)
     T_retreat = T_place.copy()
     T_retreat[2, 3] += g_cfg.retreat_height
     ctl.move(T_retreat)
