@@ -36,7 +36,7 @@ class ViewConfig:
     target_jitter: float = 0.02
     max_pos_residual: float = 0.005
     max_rot_residual_deg: float = 1.0
-    max_reach: float = 0.70
+    max_reach: float = 0.66
     ik_iters: int = 60
     attempts_per_view: int = 4
     drive_gain: float = 10.0
