@@ -136,6 +136,12 @@ def tiny_configs():
     return seg, pose, refine
 
 
+@pytest.fixture(name="tiny_configs")
+def tiny_configs_fixture():
+    """``tiny_configs()`` as a fixture: (seg, pose, refine) training configs."""
+    return tiny_configs()
+
+
 @pytest.fixture(scope="session")
 def tiny_run(tiny_bop, tmp_path_factory) -> Path:
     """A run directory with seg/, pose/ and refine/ trained for a few steps on the tiny dataset."""

@@ -15,8 +15,6 @@ from perception.seg_net import build_seg_net, seg_loss
 from perception.train import train_pose, train_seg
 from posegrasp.errors import UserError
 
-from conftest import tiny_configs
-
 
 def _fixed_seg_loss(model, ds):
     model.eval()
@@ -57,8 +55,8 @@ def test_pose_training_lowers_loss(tiny_bop, tiny_run):
     assert (tiny_run / "refine" / "model.safetensors").exists()
 
 
-def test_resume_is_exact_and_guarded(tiny_bop, tmp_path):
-    _, pose, _ = tiny_configs()
+def test_resume_is_exact_and_guarded(tiny_bop, tiny_configs, tmp_path):
+    _, pose, _ = tiny_configs
     pose = dataclasses.replace(pose, model=dataclasses.replace(pose.model, num_points=32, crop_size=32),
                                batch_size=2, checkpoint_every=2, eval_every=2, eval_samples=4, decay_margin=1.0)
     a, b = tmp_path / "a", tmp_path / "b"
@@ -76,8 +74,8 @@ def test_resume_is_exact_and_guarded(tiny_bop, tmp_path):
         ["step", "1", "2", "3", "4"]
 
 
-def test_seg_resume_after_interrupted_save(tiny_bop, tmp_path):
-    seg, _, _ = tiny_configs()
+def test_seg_resume_after_interrupted_save(tiny_bop, tiny_configs, tmp_path):
+    seg, _, _ = tiny_configs
     seg = dataclasses.replace(seg, checkpoint_every=1)
     train_seg(tiny_bop, tmp_path, seg, steps=2, progress=False)
     # a save killed between its two renames leaves only the previous checkpoint as .seg.old
