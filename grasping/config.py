@@ -59,7 +59,8 @@ class GraspConfig:
     lift_height: float = 0.10  # the block's bottom is lifted to this height (m)
     place_gap: float = 0.004  # the block is brought this far above the place pad (m), then lowered ...
     place_press: float = 0.003  # ... until it touches, at most this far into the pad (m), and released
-    retreat_height: float = 0.12  # the hand rises this far after releasing (m)
+    place_approach: float = 0.03  # the carry ends this far above the place pose; the last part is slow (m)
+    retreat_height: float = 0.08  # the hand rises this far after releasing (m)
     place_jitter: float = 0.02  # random offset of the place target from the pad centre (m)
 
 

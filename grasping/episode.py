@@ -208,7 +208,7 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
              place_offset: np.ndarray) -> None:
     cfg, g_cfg, s_cfg = task.cfg, task.cfg.grasp, task.cfg.scoring
     # -- look and perceive ---------------------------------------------------------------------------
-    if not wc.drive_arm(_look_q(wc), tol=0.01, timeout=4.0, gain=6.0):
+    if not wc.drive_arm(_look_q(wc), tol=0.01, timeout=4.0, gain=10.0):
         raise _Failure("timeout")
     ctl.check_stable()
     ctl.target = wc.gripper_pose()
@@ -267,8 +267,11 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
     lifted = ctl.move(T_lift)
     log.stop("lift", ctl)
     target_xy = np.asarray(wc.cfg.place_area.center) + place_offset
-    T_above = T_lift.copy()
-    T_above[:2, 3] = target_xy + (T_grasp[:2, 3] - T_world_obj_est[:2, 3])
+    T_place = T_lift.copy()  # the block's bottom place_gap above the pad, its centre over the target
+    T_place[:2, 3] = target_xy + (T_grasp[:2, 3] - T_world_obj_est[:2, 3])
+    T_place[2, 3] = T_grasp[2, 3] + (_PAD_TOP + g_cfg.place_gap - bottom_est)
+    T_above = T_place.copy()
+    T_above[2, 3] += g_cfg.place_approach
     carried = ctl.move(T_above, speed=g_cfg.carry_speed)
     if state["max_held"] < s_cfg.hold_time:
         ctl.hold(s_cfg.hold_time - state["held"])
@@ -280,8 +283,6 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
     if not carried or not ctl.finger_contacts(k).any():
         raise _Failure("drop" if not ctl.finger_contacts(k).any() else "timeout")
     # -- place, release, retreat ----------------------------------------------------------------------
-    T_place = T_above.copy()
-    T_place[2, 3] = T_grasp[2, 3] + (_PAD_TOP + g_cfg.place_gap - bottom_est)
     T_down = T_place.copy()
     T_down[2, 3] -= g_cfg.place_gap + g_cfg.place_press  # then down slowly until the block touches the pad
     ctl.move(T_place, speed=g_cfg.approach_speed)

@@ -18,6 +18,7 @@ COMMAND_MODULES = (
     "sim.cli",
     "datagen.cli",
     "perception.cli",
+    "grasping.cli",
 )
 
 

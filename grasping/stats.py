@@ -1,0 +1,48 @@
+"""Honest statistics for trial outcomes: Wilson score intervals and per-group success tables."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, defaultdict
+from typing import Iterable
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval for ``k`` successes in ``n`` trials (REFERENCE section 8); (0, 1) when n = 0.
+
+    (p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)
+    """
+    if not 0 <= k <= n:
+        raise ValueError(f"need 0 <= k <= n, got k={k}, n={n}")
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    centre = p + z * z / (2 * n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    den = 1 + z * z / n
+    return max(0.0, (centre - half) / den), min(1.0, (centre + half) / den)
+
+
+def rate_row(k: int, n: int) -> dict:
+    """Successes, trials, rate and its Wilson 95 % interval."""
+    lo, hi = wilson(k, n)
+    return {"success": k, "n": n, "rate": k / n if n else float("nan"), "wilson95": [lo, hi]}
+
+
+def summarise(records: Iterable[dict]) -> dict:
+    """Success rate with its interval, per-block and per-failure tables, mean pose error and simulated time."""
+    recs = list(records)
+    ok = [r["outcome"] == "success" for r in recs]
+    by_block: dict[str, list[bool]] = defaultdict(list)
+    for r, s in zip(recs, ok):
+        by_block[r["target"]["type"] if r.get("target") else "(none)"].append(s)
+    errs = [r["pose_error"]["err"] for r in recs if r.get("pose_error")]
+    return {
+        "episodes": len(recs),
+        **rate_row(sum(ok), len(recs)),
+        "grasp_success": rate_row(sum(bool(r.get("grasped")) for r in recs), len(recs)),
+        "per_block": {b: rate_row(sum(v), len(v)) for b, v in sorted(by_block.items())},
+        "failures": dict(sorted(Counter(r["failure"] for r in recs if r["failure"]).items())),
+        "mean_pose_error_m": sum(errs) / len(errs) if errs else None,
+        "mean_sim_time_s": sum(r["sim_time"] for r in recs) / len(recs) if recs else None,
+    }

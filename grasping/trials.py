@@ -1,0 +1,189 @@
+"""Trial campaigns: many episodes in parallel, resumable, with a summary and a noise sweep.
+
+``DIR/episodes.jsonl`` holds one JSON line per finished episode, appended as they finish; a rerun skips
+the episodes already there (a torn last line from a kill is dropped) and the file is finally rewritten
+sorted by episode, so it is identical for any worker count and after a kill and resume. Wall-clock
+timings, which differ run to run, go to ``DIR/timings.jsonl``; ``DIR/summary.json`` has the success rate
+with its Wilson 95 % interval and the per-block and per-failure tables.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from grasping.calibration import load_hand_eye
+from grasping.config import TrialConfig
+from grasping.episode import FAILURES, EpisodeTask, run_episode
+from grasping.perception import make_provider
+from grasping.stats import rate_row, summarise
+from posegrasp.errors import UserError
+from posegrasp.executor import make_executor
+from posegrasp.io import atomic_write, dumps_json, write_bytes, write_json
+
+EPISODES, TIMINGS, SUMMARY, CAMPAIGN = "episodes.jsonl", "timings.jsonl", "summary.json", "campaign.json"
+#: Noise levels (translation m, rotation deg) of ``--sweep-noise``.
+SWEEP_LEVELS = ((0.0, 0.0), (0.0025, 2.5), (0.005, 5.0), (0.01, 10.0), (0.02, 20.0), (0.04, 40.0))
+
+
+def _line(rec: dict) -> str:
+    return json.dumps(rec, sort_keys=True, separators=(",", ":")) + "\n"
+
+
+def read_records(path: Path) -> dict[int, dict]:
+    """Complete records of a (possibly torn) JSON-lines file, by episode index."""
+    out: dict[int, dict] = {}
+    if not path.exists():
+        return out
+    for line in path.read_text().splitlines(keepends=True):
+        if not line.endswith("\n"):
+            break  # torn last line of a killed run
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        out[int(rec["episode"])] = rec
+    return out
+
+
+def _write_lines(path: Path, records: list[dict]) -> None:
+    atomic_write(path, lambda p: p.write_text("".join(_line(r) for r in records)))
+
+
+def _check_campaign(out: Path, campaign: dict) -> None:
+    """Refuse to mix two campaigns in one folder; record this one."""
+    path = out / CAMPAIGN
+    if path.exists():
+        old = json.loads(path.read_text())
+        if old != json.loads(dumps_json(campaign)):
+            keys = sorted(k for k in campaign if old.get(k) != json.loads(dumps_json(campaign[k])))
+            raise UserError(f"{out} holds a different campaign (differs in {', '.join(keys)}); "
+                            "use another --out or the same settings to resume")
+    else:
+        write_json(path, campaign)
+
+
+def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: int | str | None,
+               cfg: TrialConfig, console: Console | None = None) -> dict:
+    """Run (or resume) a campaign of ``episodes`` episodes into ``out``; returns the summary."""
+    if episodes < 1:
+        raise UserError(f"--episodes must be at least 1, got {episodes}")
+    if not 1 <= cfg.min_blocks <= cfg.max_blocks:
+        raise UserError(f"need 1 <= min_blocks <= max_blocks, got {cfg.min_blocks} and {cfg.max_blocks}")
+    make_provider(perception)  # validates the spec before any work starts
+    T_gripper_cam = load_hand_eye(cfg.hand_eye)
+    console = console or Console(stderr=True)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_campaign(out, {"seed": seed, "perception": perception, "config": dataclasses.asdict(cfg),
+                          "T_gripper_cam": T_gripper_cam})
+    done = {i: r for i, r in read_records(out / EPISODES).items() if i < episodes}
+    _write_lines(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
+    T = tuple(tuple(float(v) for v in row) for row in T_gripper_cam)
+    todo = [EpisodeTask(seed, i, perception, cfg, T) for i in range(episodes) if i not in done]
+    t0 = time.perf_counter()
+    if todo:
+        with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, Progress(
+                TextColumn("[bold]trials[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
+                TimeRemainingColumn(), console=console, transient=True) as bar:
+            task = bar.add_task(f"{perception}", total=episodes, completed=len(done))
+            ok = sum(r["outcome"] == "success" for r in done.values())
+            for _, rec in make_executor(workers).imap(run_episode, todo):
+                wall = rec.pop("_wall")
+                f.write(_line(rec))
+                f.flush()
+                os.fsync(f.fileno())
+                ft.write(_line({"episode": rec["episode"], "wall_s": wall}))
+                ft.flush()
+                done[rec["episode"]] = rec
+                ok += rec["outcome"] == "success"
+                bar.update(task, advance=1, description=f"{perception}  success {ok}/{len(done)}")
+    elapsed = time.perf_counter() - t0
+    records = [done[i] for i in sorted(done)]
+    _write_lines(out / EPISODES, records)
+    summary = summarise(records)
+    summary.update(seed=seed, perception=perception, workers=workers,
+                   wall={"seconds": elapsed, "episodes_run": len(todo),
+                         "episodes_per_min": 60 * len(todo) / elapsed if todo and elapsed > 0 else None})
+    write_json(out / SUMMARY, summary)
+    print_summary(summary, console)
+    return summary
+
+
+def print_summary(s: dict, console: Console) -> None:
+    """The success rate, per-block and per-failure tables, printed with rich."""
+    lo, hi = s["wilson95"]
+    console.print(f"[bold]{s['perception']}[/]: {s['success']}/{s['n']} episodes succeeded = "
+                  f"{100 * s['rate']:.1f} % (Wilson 95 % interval {100 * lo:.1f}-{100 * hi:.1f} %); "
+                  f"grasped {s['grasp_success']['success']}/{s['n']}")
+    t = Table(title="per target block")
+    for col in ("block", "success", "n", "rate", "95 % interval"):
+        t.add_column(col)
+    for b, row in s["per_block"].items():
+        t.add_row(b, str(row["success"]), str(row["n"]), f"{100 * row['rate']:.1f} %",
+                  f"{100 * row['wilson95'][0]:.1f}-{100 * row['wilson95'][1]:.1f} %")
+    console.print(t)
+    f = Table(title="failures")
+    f.add_column("reason")
+    f.add_column("count")
+    for reason in FAILURES:
+        if s["failures"].get(reason):
+            f.add_row(reason, str(s["failures"][reason]))
+    console.print(f)
+    if s["wall"]["episodes_per_min"]:
+        console.print(f"{s['wall']['episodes_run']} episodes in {s['wall']['seconds']:.1f} s wall = "
+                      f"{s['wall']['episodes_per_min']:.0f} episodes/min")
+
+
+def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, cfg: TrialConfig,
+                levels=SWEEP_LEVELS, console: Console | None = None) -> list[dict]:
+    """Noisy-oracle campaigns at increasing noise (same seeds); writes ``sweep.json`` and ``sweep.png``."""
+    console = console or Console(stderr=True)
+    rows = []
+    for t, r in levels:
+        spec = f"noisy-oracle:{t:g},{r:g}"
+        s = run_trials(out / f"noise_{t:g}m_{r:g}deg", episodes, seed, spec, workers, cfg, console)
+        errs = [rec["pose_error"]["err"] for rec in read_records(out / f"noise_{t:g}m_{r:g}deg" / EPISODES).values()
+                if rec.get("pose_error")]
+        rows.append({"trans_m": t, "rot_deg": r, **rate_row(s["success"], s["n"]),
+                     "median_pose_error_m": float(np.median(errs)) if errs else None})
+    write_json(out / "sweep.json", rows)
+    plot_sweep(rows, out / "sweep.png")
+    return rows
+
+
+def plot_sweep(rows: list[dict], path: Path) -> None:
+    """Success rate (with Wilson intervals) against median pose error (ADD(-S), mm), the table beside it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [1000 * (r["median_pose_error_m"] or 0.0) for r in rows]
+    y = [100 * r["rate"] for r in rows]
+    err = [[100 * (r["rate"] - r["wilson95"][0]) for r in rows], [100 * (r["wilson95"][1] - r["rate"]) for r in rows]]
+    fig, (ax, tab) = plt.subplots(1, 2, figsize=(11, 4.2), gridspec_kw={"width_ratios": [1.2, 1]})
+    ax.errorbar(x, y, yerr=err, fmt="o-", capsize=4)
+    ax.set_xlabel("median pose error of the estimate used, ADD(-S) (mm)")
+    ax.set_ylabel("grasp-and-place success (%)")
+    ax.set_ylim(-3, 103)
+    ax.grid(alpha=0.3)
+    tab.axis("off")
+    cells = [[f"{r['trans_m'] * 1000:g}", f"{r['rot_deg']:g}", f"{xi:.1f}", f"{r['success']}/{r['n']}",
+              f"{100 * r['wilson95'][0]:.0f}-{100 * r['wilson95'][1]:.0f}"] for r, xi in zip(rows, x)]
+    t = tab.table(cellText=cells, colLabels=["sigma t (mm)", "sigma r (deg)", "ADD(-S) mm", "success", "95 % CI (%)"],
+                  loc="center")
+    t.scale(1, 1.4)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    write_bytes(path, buf.getvalue())

@@ -1,0 +1,151 @@
+"""Controller, grasp candidates and perception providers on the real simulator and renderer."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from grasping.config import ControlConfig, GraspConfig
+from grasping.controller import ArmController, finger_angle_for_opening
+from grasping.grasps import object_candidates, plan_grasps, squeeze_axes, surface_points
+from grasping.perception import NoisyOracleProvider, OracleProvider, make_provider
+from posegrasp.catalog import load_catalog, symmetry_transforms
+from posegrasp.errors import UserError
+from posegrasp.geometry import make_T, rotation_angle, transform_points
+from sim.camera import CameraRenderer, Frame
+from sim.config import WorkcellConfig
+from sim.scene import make_scene
+from sim.workcell import HAND_CAMERA, Workcell
+
+DOWN = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # gripper z down, x along -y
+
+
+@pytest.fixture(scope="module")
+def arm():
+    wc = Workcell(WorkcellConfig())
+    wc.reset(wc.look_q)
+    return wc
+
+
+def test_straight_segment_within_joint_speed_limits(arm):
+    ctl = ArmController(arm, ControlConfig(), arm.look_q)
+    start = make_T(DOWN, (0.40, 0.05, 0.15))
+    assert ctl.move(start)
+    goal = make_T(DOWN, (0.50, -0.10, 0.10))
+    line = goal[:3, 3] - start[:3, 3]
+    dev, speed = [], []
+
+    def watch():
+        p = arm.gripper_pose()[:3, 3] - start[:3, 3]
+        dev.append(np.linalg.norm(p - np.clip(p @ line / (line @ line), 0, 1) * line))
+        speed.append(np.abs(arm.data.qvel[arm.arm_dadr]) / arm.arm_velocity_limits())
+
+    ctl.monitor = watch
+    assert ctl.move(goal)
+    dp, dr = ctl.pose_error(goal)
+    assert dp < ctl.cfg.pos_tol and np.degrees(dr) < ctl.cfg.rot_tol_deg
+    assert max(dev) < 0.015  # stays on the straight line
+    assert np.max(speed) <= 1.02  # the Jaco2's joint velocity limits hold (measured)
+    assert np.max(speed) > 0.5  # and the move is not needlessly slow
+
+
+def test_table_collision_avoidance_stops_the_fingers(arm):
+    ctl = ArmController(arm, ControlConfig(), arm.look_q)
+    assert ctl.move(make_T(DOWN, (0.45, 0.0, 0.06)))
+    assert not ctl.move(make_T(DOWN, (0.45, 0.0, -0.05)))  # the open fingertips would be in the table
+    table = arm.model.geom("table").id
+    hand = [i for i in range(arm.model.ngeom) if ctl.robot_geom[i] and arm.model.geom_contype[i]
+            and "jaco_hand" in arm.model.geom(i).name]
+    gap = min(mujoco.mj_geomDistance(arm.model, arm.data, g, table, 0.05, None) for g in hand)
+    assert 0.0 < gap < 0.01, gap  # held just above the table, not in it
+
+
+def test_fingers_preshape_to_an_opening(arm):
+    wc = Workcell(WorkcellConfig())
+    wc.reset(wc.look_q)
+    ctl = ArmController(wc, ControlConfig(), wc.look_q)
+    for opening in (0.08, 0.05):
+        ctl.preshape(opening)
+        ctl.hold(0.8)
+        q = finger_angle_for_opening(wc.cfg, opening)
+        assert np.allclose(wc.data.qpos[wc.finger_qadr], q, atol=0.03)
+    assert finger_angle_for_opening(wc.cfg, 0.08) < finger_angle_for_opening(wc.cfg, 0.05)
+
+
+def test_candidates_are_closed_under_symmetry():
+    for block in load_catalog().values():
+        C = object_candidates(block)
+        for S in symmetry_transforms(block)[:6]:
+            for T in C[:10]:
+                moved = S @ T
+                d = np.linalg.norm(C[:, :3, 3] - moved[:3, 3], axis=1) + np.abs(C[:, :3, :3] - moved[:3, :3]).sum((1, 2))
+                assert d.min() < 5e-3, block.name
+
+
+def test_squeeze_axes_skip_studs_and_round_ends():
+    cat = load_catalog()
+    assert squeeze_axes(cat["brick_2x4"]) == [0, 1]  # not across the studs (z)
+    assert squeeze_axes(cat["cylinder"]) == [0, 1]  # not along the axis of the round ends
+    assert squeeze_axes(cat["cube"]) == [0, 1, 2]
+
+
+def test_grasps_avoid_a_neighbour():
+    block = load_catalog()["long_cuboid"]
+    T = make_T(np.eye(3), (0.45, 0.0, 0.0125))
+    free = plan_grasps(block, T, np.zeros((0, 3)), GraspConfig(), yaw_now=0.0)
+    narrow_middle = [g for g in free if g.width < 0.03 and abs(g.T_world_gripper[0, 3] - 0.45) < 0.01]
+    assert narrow_middle and {round(g.width, 3) for g in free} == {0.025, 0.08}
+    # A cube right beside the cuboid's middle, where the fingers would go for a centred pinch.
+    cube = load_catalog()["cube"]
+    nb = transform_points(make_T(np.eye(3), (0.45, 0.045, 0.02)), surface_points(cube, 300))
+    crowded = plan_grasps(block, T, nb, GraspConfig(), yaw_now=0.0)
+    assert len(crowded) < len(free)
+    assert all(g.clearance >= GraspConfig().clearance_min for g in crowded)
+    assert crowded and not [g for g in crowded if g.width < 0.03 and abs(g.T_world_gripper[0, 3] - 0.45) < 0.01]
+
+
+@pytest.fixture(scope="module")
+def look_frame():
+    scene = make_scene(5, 4)
+    wc = scene.workcell
+    assert wc.drive_arm(wc.look_q)
+    wc.set_block_pose(4, make_T(np.eye(3), (-0.4, -0.4, 0.02)))  # out of the camera's view
+    mujoco.mj_forward(wc.model, wc.data)
+    c = wc.cfg.hand_camera
+    cam = CameraRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
+    frame = cam.capture()
+    cam.close()
+    return frame
+
+
+def test_oracle_reports_only_visible_blocks(look_frame):
+    est = OracleProvider().estimate(look_frame, seed=0)
+    assert len(est) == 3
+    for e, k in zip(est, (1, 2, 3)):
+        assert e.obj_id == look_frame.obj_ids[k - 1]
+        np.testing.assert_array_equal(e.T_cam_obj, look_frame.T_cam_obj[k - 1])
+
+
+def test_noisy_oracle_is_seeded_and_has_the_requested_noise():
+    rng = np.random.default_rng(0)
+    K = 400
+    mask = np.repeat(np.arange(1, K + 1, dtype=np.uint16), 200).reshape(400, 200)
+    T = np.tile(np.eye(4), (K, 1, 1))
+    T[:, :3, 3] = rng.normal(size=(K, 3))
+    frame = Frame(np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32), mask, np.eye(3), np.eye(4), T,
+                  np.ones(K, int))
+    p = make_provider("noisy-oracle:0.01,5")
+    a, b = p.estimate(frame, seed=7), p.estimate(frame, seed=7)
+    assert all(np.array_equal(x.T_cam_obj, y.T_cam_obj) for x, y in zip(a, b))
+    dt = np.array([e.T_cam_obj[:3, 3] - T[i, :3, 3] for i, e in enumerate(a)])
+    assert np.std(dt) == pytest.approx(0.01, rel=0.1)
+    angles = np.degrees([rotation_angle(e.T_cam_obj[:3, :3], np.eye(3)) for e in a])
+    assert np.mean(angles) == pytest.approx(5 * np.sqrt(2 / np.pi), rel=0.1)  # E|N(0, 5)|
+    assert isinstance(p, NoisyOracleProvider)
+
+
+@pytest.mark.parametrize("spec", ["lidar", "oracle:1", "noisy-oracle:1", "noisy-oracle:-1,2"])
+def test_bad_provider_specs(spec):
+    with pytest.raises(UserError):
+        make_provider(spec)
