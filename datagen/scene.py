@@ -17,7 +17,7 @@ from datagen.appearance import Look, light_tint, sample_look
 from datagen.config import DatagenConfig
 from posegrasp.catalog import BlockType
 from posegrasp.errors import UserError
-from sim.scene import Scene, SceneConfig, _choose_types, _drop_positions, area_capacity, randomise_lights, settle
+from sim.scene import SceneConfig, area_capacity, choose_types, drop_and_settle, randomise_lights
 from sim.workcell import BlockInstance, Workcell
 
 
@@ -57,23 +57,15 @@ def stack_drops(poses: list[np.ndarray], types: list[BlockType]) -> list[np.ndar
     return out
 
 
-def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 5) -> GenScene:
+def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 20) -> GenScene:
     """Draw block count, types and look from ``rng``, build the workcell and settle the dropped blocks."""
     scfg = scene_config(cfg)
     n = int(rng.integers(cfg.blocks[0], cfg.blocks[1] + 1))
-    types = _choose_types(scfg, n, rng)
+    types = choose_types(scfg, n, rng)
     look = sample_look(cfg, n, rng)
     wc = Workcell(cfg.workcell, [BlockInstance(b, c) for b, c in zip(types, look.block_rgba)], extras=look.add_to)
     wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
     randomise_lights(wc, scfg, rng)
     light_tint(wc.model, cfg.lights, rng)
-    scene = Scene(wc, 0, scfg)
-    for drop in range(1, max_drops + 1):
-        wc.reset()
-        for k, T in enumerate(stack_drops(_drop_positions(scfg, types, rng), types), start=1):
-            wc.set_block_pose(k, T)
-        mujoco.mj_forward(wc.model, wc.data)
-        if settle(wc, scfg) and scene.in_pick_area(margin=cfg.area_margin).all():
-            wc.data.qvel[:] = 0.0
-            return GenScene(wc, look, drop)
-    raise RuntimeError(f"blocks did not come to rest inside the pick area after {max_drops} drops")
+    drops = drop_and_settle(wc, scfg, types, rng, max_drops, margin=cfg.area_margin, arrange=stack_drops)
+    return GenScene(wc, look, drops)

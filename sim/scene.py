@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import mujoco
 import numpy as np
@@ -45,7 +46,7 @@ def area_capacity(cfg: SceneConfig) -> int:
     return int((2 * hx // s + 1) * (2 * hy // (s * np.sqrt(3) / 2) + 1) * 0.5)
 
 
-def _choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[BlockType]:
+def choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[BlockType]:
     cat = load_catalog()
     names = list(cfg.block_types) or list(cat)
     unknown = [t for t in names if t not in cat]
@@ -88,7 +89,7 @@ class Scene:
         return worst
 
 
-def _drop_positions(cfg: SceneConfig, blocks: list[BlockType], rng: np.random.Generator) -> list[np.ndarray]:
+def drop_poses(cfg: SceneConfig, blocks: list[BlockType], rng: np.random.Generator) -> list[np.ndarray]:
     """Poses above the pick area, random orientation, at least ``min_spacing`` apart in the plane."""
     a = cfg.workcell.pick_area
     placed: list[np.ndarray] = []
@@ -139,10 +140,30 @@ def randomise_lights(workcell: Workcell, cfg: SceneConfig, rng: np.random.Genera
     m.vis.headlight.diffuse[:] = rng.uniform(0.2, 0.45)
 
 
-def make_scene(seed: int, n_blocks: int, cfg: SceneConfig | None = None, max_attempts: int = 5) -> Scene:
+def drop_and_settle(workcell: Workcell, cfg: SceneConfig, types: list[BlockType], rng: np.random.Generator,
+                    max_drops: int = 20, margin: float = 0.0,
+                    arrange: Callable[[list[np.ndarray], list[BlockType]], list[np.ndarray]] | None = None) -> int:
+    """Drop every block (poses from ``rng``, optionally rearranged by ``arrange``) and settle, until all rest
+    inside the pick area grown by ``margin`` m; returns the number of drops used, raises after ``max_drops``."""
+    scene = Scene(workcell, 0, cfg)
+    for drop in range(1, max_drops + 1):
+        workcell.reset()
+        poses = drop_poses(cfg, types, rng)
+        for k, T in enumerate(arrange(poses, types) if arrange else poses, start=1):
+            workcell.set_block_pose(k, T)
+        mujoco.mj_forward(workcell.model, workcell.data)
+        if settle(workcell, cfg) and scene.in_pick_area(margin).all():
+            workcell.data.qvel[:] = 0.0
+            workcell.data.time = 0.0
+            return drop
+    raise RuntimeError(f"blocks did not come to rest inside the pick area after {max_drops} drops; "
+                       "use fewer blocks or a larger pick area")
+
+
+def make_scene(seed: int, n_blocks: int, cfg: SceneConfig | None = None, max_drops: int = 20) -> Scene:
     """Build and settle a random scene of ``n_blocks`` blocks; the arm starts at home.
 
-    If a block ends outside the pick area, all blocks are dropped again (same rng stream), up to ``max_attempts``.
+    If a block ends outside the pick area, all blocks are dropped again (same rng stream), up to ``max_drops``.
     """
     cfg = cfg or SceneConfig()
     if not isinstance(n_blocks, (int, np.integer)) or n_blocks < 1:
@@ -151,19 +172,9 @@ def make_scene(seed: int, n_blocks: int, cfg: SceneConfig | None = None, max_att
     if n_blocks > cap:
         raise UserError(f"{n_blocks} blocks do not fit in the pick area (at most {cap}); use --blocks {cap} or fewer")
     rng = np.random.default_rng(seed)
-    types = _choose_types(cfg, n_blocks, rng)
+    types = choose_types(cfg, n_blocks, rng)
     colours = [cfg.palette[i] for i in rng.integers(0, len(cfg.palette), size=n_blocks)]
     wc = Workcell(cfg.workcell, [BlockInstance(b, (*c, 1.0)) for b, c in zip(types, colours)])
     randomise_lights(wc, cfg, rng)
-    scene = Scene(wc, seed, cfg)
-    for _ in range(max_attempts):
-        wc.reset()
-        for k, T in enumerate(_drop_positions(cfg, types, rng), start=1):
-            wc.set_block_pose(k, T)
-        mujoco.mj_forward(wc.model, wc.data)
-        if settle(wc, cfg) and scene.in_pick_area().all():
-            wc.data.qvel[:] = 0.0
-            wc.data.time = 0.0
-            return scene
-    raise RuntimeError(f"scene seed {seed}: blocks did not come to rest inside the pick area after "
-                       f"{max_attempts} drops")
+    drop_and_settle(wc, cfg, types, rng, max_drops)
+    return Scene(wc, seed, cfg)
