@@ -34,8 +34,7 @@ class ControlConfig:
     posture_cost: float = 0.01  # weak pull toward the look pose's joint angles
     table_clearance: float = 0.002  # hand/arm geoms keep this distance (m) from the table
     finger_speed: float = 4.0  # finger closing velocity command (rad/s)
-    release_speed: float = 0.6  # finger opening speed when releasing a block (rad/s) ...
-    relax_time: float = 0.0  # ... after the grip has relaxed for this long (s)
+    release_speed: float = 0.6  # finger opening speed when releasing a block (rad/s)
     max_speed: float = 50.0  # any joint faster than this (rad/s or m/s) is a simulation error
 
 
@@ -45,7 +44,8 @@ class GraspConfig:
 
     max_width: float = 0.085  # widest graspable span across the fingers (m)
     min_width: float = 0.012  # narrowest
-    contact_depth: float = 0.018  # pinch point this far below the block's top (m) ...
+    contact_depths: tuple[float, ...] = (0.010, 0.018, 0.026, 0.034)  # pinch point this far below the block's
+    # top (m): the one with the flattest contact faces nearest the block centre's height ...
     min_pinch_height: float = 0.014  # ... but at least this high above the table (fingertips clear it)
     max_tilt_deg: float = 50.0  # candidate approach directions within this angle of straight down
     clearance_min: float = 0.004  # neighbours' surfaces at least this far from the finger box (m)
@@ -54,13 +54,12 @@ class GraspConfig:
     approach_speed: float = 0.25  # peak speed of the approach and of the place descent (m/s)
     carry_speed: float = 0.5  # peak speed while carrying (m/s; the joint speed limits usually bind first)
     release_time: float = 0.6  # the fingers open for at most this long before the retreat (s)
-    release_shift: float = 0.0  # while opening, the hand slides this far toward fingers 2-3 (m) ...
-    release_push: float = 0.004  # ... and this far down (m)
+    release_push: float = 0.008  # while opening, the hand pushes this far down (m)
     lift_height: float = 0.10  # the block's bottom is lifted to this height (m)
     place_gap: float = 0.004  # the block is brought this far above the place pad (m), then lowered ...
     place_press: float = 0.003  # ... until it touches, at most this far into the pad (m), and released
     place_approach: float = 0.03  # the carry ends this far above the place pose; the last part is slow (m)
-    retreat_height: float = 0.08  # the hand rises this far after releasing (m)
+    retreat_height: float = 0.055  # after releasing, the fingertips rise this far above the block's top (m)
     place_jitter: float = 0.02  # random offset of the place target from the pad centre (m)
 
 

@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from grasping.config import ControlConfig
-from posegrasp.geometry import make_T, quat_to_R, R_to_quat, rotation_angle
+from posegrasp.geometry import make_T, rotation_angle
 from sim.config import WorkcellConfig
 from sim.workcell import GRIPPER_SITE, Workcell
 
@@ -50,16 +50,9 @@ def finger_geoms(model: mujoco.MjModel) -> np.ndarray:
 
 
 def interpolate(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
-    """Pose a fraction ``s`` in [0, 1] along the straight line (and geodesic rotation) from T0 to T1."""
-    q0, q1 = R_to_quat(T0[:3, :3]), R_to_quat(T1[:3, :3])
-    if np.dot(q0, q1) < 0:
-        q1 = -q1
-    theta = np.arccos(np.clip(np.dot(q0, q1), -1.0, 1.0))
-    if theta < 1e-6:
-        q = q0
-    else:
-        q = (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
-    return make_T(quat_to_R(q), (1 - s) * T0[:3, 3] + s * T1[:3, 3])
+    """Pose a fraction ``s`` in [0, 1] along the straight line (and the geodesic rotation) from T0 to T1."""
+    R = mink.SO3.from_matrix(T0[:3, :3]).interpolate(mink.SO3.from_matrix(T1[:3, :3]), s).as_matrix()
+    return make_T(R, (1 - s) * T0[:3, 3] + s * T1[:3, 3])
 
 
 class ArmController:
@@ -258,20 +251,16 @@ class ArmController:
         rob = self.robot_geom[g]
         return bool(np.any(rob[:, 0] & other[:, 1]) or np.any(rob[:, 1] & other[:, 0]))
 
-    def release(self, k: int, opening: float, timeout: float, shift: float = 0.0, push: float = 0.0) -> bool:
+    def release(self, k: int, opening: float, timeout: float, push: float = 0.0) -> bool:
         """Open the fingers to ``opening`` (m) until none has touched block ``k`` for 2 periods (True) or
-        ``timeout`` (False), meanwhile sliding the hand ``shift`` (m) along its -x axis and ``push`` (m) down,
-        so the curled fingertips, which often bear on the block's top edges, slide off instead of dragging
-        the block along."""
-        self.finger_target = None
-        self.finger_cmd = np.full(3, -0.2)  # first let the squeeze relax, so no fingertip drags the block
-        self.hold(self.cfg.relax_time)
+        ``timeout`` (False), meanwhile pushing the hand ``push`` (m) down, so the curled fingertips, which
+        often bear on a low block's top edges, slide off instead of dragging the block along."""
         self.preshape(opening, self.cfg.release_speed)
         T0, n = self.target, int(np.ceil(timeout / self.cfg.dt))
         free = 0
         for i in range(n):
             T = T0.copy()
-            T[:3, 3] += min(1.0, 2 * (i + 1) / n) * (push * T0[:3, 2] - shift * T0[:3, 0])
+            T[:3, 3] += min(1.0, 2 * (i + 1) / n) * push * T0[:3, 2]
             self.target = T
             self._period(T)
             free = free + 1 if not self.finger_contacts(k).any() else 0

@@ -19,9 +19,9 @@ from grasping.config import TrialConfig
 from grasping.controller import ArmController, SimulationError, robot_workcell
 from grasping.grasps import Grasp, plan_grasps, surface_points
 from grasping.perception import Estimate, make_provider
+from grasping.render import EpisodeCamera
 from posegrasp.catalog import BlockType, load_catalog
 from posegrasp.geometry import invert, make_T, rotation_angle, transform_points
-from sim.camera import CameraRenderer
 from sim.scene import make_scene
 from sim.workcell import HAND_CAMERA, Workcell
 
@@ -44,18 +44,20 @@ class EpisodeTask:
 
 @dataclass
 class _Log:
-    """Phase timings (simulated and wall seconds) and what happened, filled as the episode runs."""
+    """Phase timings, filled as the episode runs: simulated, wall-clock and CPU seconds."""
 
     sim: dict[str, float] = field(default_factory=dict)
     wall: dict[str, float] = field(default_factory=dict)
-    _t: tuple[float, float] = (0.0, 0.0)
+    cpu: dict[str, float] = field(default_factory=dict)
+    _t: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def start(self, ctl: ArmController | None) -> None:
-        self._t = (ctl.sim_time if ctl else 0.0, time.perf_counter())
+        self._t = (ctl.sim_time if ctl else 0.0, time.perf_counter(), time.process_time())
 
     def stop(self, phase: str, ctl: ArmController | None) -> None:
         self.sim[phase] = round((ctl.sim_time if ctl else 0.0) - self._t[0], 3)
         self.wall[phase] = round(time.perf_counter() - self._t[1], 4)
+        self.cpu[phase] = round(time.process_time() - self._t[2], 4)
         self.start(ctl)
 
 
@@ -147,7 +149,8 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
 
 
 def run_episode(task: EpisodeTask) -> dict:
-    """Run one episode; returns its JSON-ready record (deterministic) with wall timings under ``"_wall"``."""
+    """Run one episode; returns its JSON-ready record (deterministic), with the wall-clock and CPU
+    timings of its phases (which vary run to run) under ``"_wall"``."""
     cfg = task.cfg
     rng = np.random.default_rng(np.random.SeedSequence([task.seed, task.index]))
     n_blocks = int(rng.integers(cfg.min_blocks, cfg.max_blocks + 1))
@@ -178,12 +181,12 @@ def run_episode(task: EpisodeTask) -> dict:
         rec["failure"] = "simulation error"
     if rec["failure"] is None:
         rec["outcome"] = "success"
-    elif rec["failure"] not in ("no detection", "simulation error") and rec["pose_error"] is not None:
+    elif rec["failure"] not in ("no detection", "simulation error") and rec["pose_error"]:
         if rec["pose_error"]["err"] > cfg.scoring.pose_error_frac * rec["target"]["diameter"]:
             rec["failure"] = "pose error"
     rec["sim_time"] = round(sum(log.sim.values()), 3)
     rec["phases"] = log.sim
-    rec["_wall"] = log.wall
+    rec["_wall"] = {"wall_s": log.wall, "cpu_s": log.cpu}
     return _rounded(rec)
 
 
@@ -213,9 +216,7 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
     ctl.check_stable()
     ctl.target = wc.gripper_pose()
     log.stop("look", ctl)
-    c = wc.cfg.hand_camera
-    cam = CameraRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far, wc.cfg.render.shadows,
-                         wc.cfg.render.reflections)
+    cam = EpisodeCamera(wc, HAND_CAMERA, wc.cfg.hand_camera, wc.cfg.render)
     frame = cam.capture()
     cam.close()
     ests = make_provider(task.perception).estimate(frame, percept_seed)
@@ -230,6 +231,9 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
         raise _Failure("unreachable")
     j, grasp, T_world_obj_est = choice
     k = _match(wc, ests[j], T_world_obj_est)
+    if k == 0:  # the chosen estimate is no block of the scene (a false detection)
+        rec["target"] = {"instance": 0, "obj_id": ests[j].obj_id}
+        raise _Failure("pose error")
     block = wc.blocks[k - 1].block
     rec["target"] = {"instance": k, "type": block.name, "diameter": block.diameter, "grasp_width": grasp.width,
                      "clearance": grasp.clearance, "support": grasp.support, "tilt_deg": grasp.tilt_deg}
@@ -242,18 +246,23 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
     if not ctl.move(T_pre):
         raise _Failure("collision" if ctl.unexpected_contacts(k) else "timeout")
     log.stop("pregrasp", ctl)
-    collided = []
-    ctl.monitor = lambda: collided.append(ctl.unexpected_contacts(k)) if not collided or not collided[-1] else None
+    hit = [False]  # did the hand touch the table or another block on the way down?
+
+    def watch_approach() -> None:
+        hit[0] = hit[0] or ctl.unexpected_contacts(k)
+
+    ctl.monitor = watch_approach
     reached = ctl.move(T_grasp, speed=g_cfg.approach_speed)
     ctl.monitor = None
     log.stop("approach", ctl)
     if not reached:
-        raise _Failure("collision" if any(collided) else "timeout")
+        raise _Failure("collision" if hit[0] else "timeout")
     if not ctl.close(k):
-        raise _Failure("collision" if any(collided) else "slip")
+        raise _Failure("collision" if hit[0] else "slip")
     log.stop("close", ctl)
     # -- lift, hold and carry (grasp success: bottom >= lift_min for hold_time) ------------------------
-    bottom_est = float(transform_points(T_world_obj_est, block.vertices)[:, 2].min())
+    z_est = transform_points(T_world_obj_est, block.vertices)[:, 2]
+    bottom_est, top_est = float(z_est.min()), float(z_est.max())
     state = {"held": 0.0, "max_held": 0.0}
 
     def watch() -> None:
@@ -289,10 +298,9 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
     ctl.move(T_down, speed=0.03, until=lambda: _block_supported(wc, k))
     if not ctl.finger_contacts(k).any():
         raise _Failure("drop")
-    ctl.release(k, grasp.width + 0.03, g_cfg.release_time, g_cfg.release_shift,
-                g_cfg.release_push)
-    T_retreat = T_place.copy()
-    T_retreat[2, 3] += g_cfg.retreat_height
+    ctl.release(k, grasp.width + 0.03, g_cfg.release_time, g_cfg.release_push)
+    T_retreat = T_place.copy()  # fingertips (1 cm below the pinch point) retreat_height above the block's top
+    T_retreat[2, 3] += top_est - T_grasp[2, 3] + 0.012 + g_cfg.retreat_height
     ctl.move(T_retreat)
     log.stop("place", ctl)
     rest = 0

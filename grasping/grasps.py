@@ -134,7 +134,7 @@ def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarra
     keep = cos_tilt > np.cos(np.deg2rad(cfg.max_tilt_deg))
     C, tilt = C[keep], np.degrees(np.arccos(np.clip(cos_tilt[keep], -1, 1)))
     pts = transform_points(T_world_obj, surface_points(block))
-    centre_xy = T_world_obj[:2, 3]
+    centre = T_world_obj[:3, 3]
     grasps: list[Grasp] = []
     seen: set[tuple[int, int, int]] = set()
     for Tc, tl in zip(C, tilt):
@@ -147,13 +147,13 @@ def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarra
             if key in seen:
                 continue
             seen.add(key)
-            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre_xy, neighbours, cfg, yaw_now, opening_margin)
+            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, opening_margin)
             if g is not None:
                 grasps.append(g)
     return sorted(grasps, key=lambda g: -g.score)
 
 
-def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray, centre_xy: np.ndarray,
+def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray, centre: np.ndarray,
               neighbours: np.ndarray, cfg: GraspConfig, yaw_now: float, opening_margin: float) -> Grasp | None:
     """A straight-down grasp with squeeze axis ``x`` through ``entry_xy``, checked on the estimated geometry."""
     z = np.array([0.0, 0.0, -1.0])
@@ -164,17 +164,24 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     column = (np.abs(px) < cfg.max_width / 2) & (np.abs(py) < _PAD_HALF)
     if not column.any():
         return None
-    z_pinch = max(h[column].max() - cfg.contact_depth, cfg.min_pinch_height)
-    band = column & (h > z_pinch + _BAND[0]) & (h < z_pinch + _BAND[1])
-    if not band.any():
+    best = None
+    for depth in cfg.contact_depths:  # the pinch height with the flattest contact faces ...
+        z_pinch = max(h[column].max() - depth, cfg.min_pinch_height)
+        band = column & (h > z_pinch + _BAND[0]) & (h < z_pinch + _BAND[1])
+        if not band.any():
+            continue
+        lo, hi = px[band].min(), px[band].max()
+        # Flat contact faces: the share of the window's points on each extreme plane (studs, curves: few).
+        support = min((px[band] < lo + 0.0015).sum(), (px[band] > hi - 0.0015).sum()) / band.sum()
+        merit = support - 5.0 * abs(z_pinch - centre[2])  # and close to the centre's height (less torque)
+        if best is None or merit > best[0]:
+            best = (merit, support, z_pinch, lo, hi)
+    if best is None:
         return None
-    lo, hi = px[band].min(), px[band].max()
+    _, support, z_pinch, lo, hi = best
     width = float(hi - lo)
     if not cfg.min_width <= width <= cfg.max_width:
         return None
-    # Flat contact faces: the share of the window's points lying on each extreme plane (studs, curves: few).
-    n = band.sum()
-    support = min((px[band] < lo + 0.0015).sum(), (px[band] > hi - 0.0015).sum()) / n
     grasp_point = np.array([entry_xy[0], entry_xy[1], z_pinch]) + 0.5 * (lo + hi) * x
     T = make_T(R, grasp_point - HAND_Y * y)
     clearance = 0.05
@@ -187,7 +194,7 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
                                        for lo, hi in boxes))
         if clearance < cfg.clearance_min:
             return None
-    off_centre = float(np.linalg.norm(grasp_point[:2] - centre_xy))
+    off_centre = float(np.linalg.norm(grasp_point[:2] - centre[:2]))
     turn = abs(float(_wrap(np.arctan2(x[1], x[0]) - yaw_now)))
     score = (-0.01 * tilt - 30.0 * off_centre + 20.0 * min(clearance, 0.02) - 0.3 * turn - 2.0 * width
              + 2.0 * support)

@@ -101,7 +101,7 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                 f.write(_line(rec))
                 f.flush()
                 os.fsync(f.fileno())
-                ft.write(_line({"episode": rec["episode"], "wall_s": wall}))
+                ft.write(_line({"episode": rec["episode"], **wall}))
                 ft.flush()
                 done[rec["episode"]] = rec
                 ok += rec["outcome"] == "success"
