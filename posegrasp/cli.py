@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "datagen.cli",
     "perception.cli",
     "grasping.cli",
+    "grasping.compare",
 )
 
 

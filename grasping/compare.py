@@ -1,0 +1,131 @@
+"""``posegrasp compare RUN_A RUN_B``: did a perception change make grasping better or worse?
+
+Two trial runs on the same episode seeds are paired episode by episode. Reported: each run's success rate with
+its Wilson 95 % interval, the difference, McNemar's exact test on the discordant pairs (b = A succeeded and B
+failed, c = A failed and B succeeded; two-sided p = min(1, 2 P[X <= min(b, c)]) with X ~ Binomial(b + c, 1/2)),
+per-block differences and the episodes that flipped. ``--fail-if-worse`` makes the exit status 1 when B is
+worse than A with p < alpha, for CI.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections import defaultdict
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from grasping.stats import rate_row
+from grasping.trials import EPISODES, read_records
+from posegrasp.errors import UserError
+from posegrasp.io import write_json
+
+
+def mcnemar_exact(b: int, c: int) -> float:
+    """Two-sided exact McNemar p-value for ``b`` and ``c`` discordant pairs (1.0 when there are none)."""
+    if b < 0 or c < 0:
+        raise ValueError(f"discordant counts must be >= 0, got b={b}, c={c}")
+    n = b + c
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(min(b, c) + 1)) / 2.0**n
+    return min(1.0, 2.0 * tail)
+
+
+def _success(rec: dict) -> bool:
+    return rec["outcome"] == "success"
+
+
+def load_run(path: str | Path) -> dict[int, dict]:
+    """Episode records of a trial run folder (or its episodes.jsonl), by episode index; UserError if none."""
+    p = Path(path)
+    f = p / EPISODES if p.is_dir() else p
+    recs = read_records(f)
+    if not recs:
+        raise UserError(f"{path} holds no trial episodes (expected {EPISODES} written by 'posegrasp trials')")
+    return recs
+
+
+def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
+    """Paired comparison of two runs on their common episodes (the same seeds in both)."""
+    common = sorted(set(a) & set(b))
+    if not common:
+        raise UserError("the two runs share no episodes; run both with the same --seed and --episodes")
+    bad = [i for i in common if a[i].get("seed") != b[i].get("seed")]
+    if bad:
+        raise UserError(f"episode {bad[0]} has different seeds in the two runs; compare runs made with the same --seed")
+    sa = [_success(a[i]) for i in common]
+    sb = [_success(b[i]) for i in common]
+    only_a = [i for i, x, y in zip(common, sa, sb) if x and not y]
+    only_b = [i for i, x, y in zip(common, sa, sb) if y and not x]
+    blocks: dict[str, list[tuple[bool, bool]]] = defaultdict(list)
+    for i, x, y in zip(common, sa, sb):
+        t = a[i].get("target") or {}
+        blocks[t.get("type", "(none)")].append((x, y))
+    n = len(common)
+    return {
+        "episodes": n,
+        "a": rate_row(sum(sa), n),
+        "b": rate_row(sum(sb), n),
+        "difference": (sum(sb) - sum(sa)) / n,
+        "mcnemar": {"a_only": len(only_a), "b_only": len(only_b), "p_value": mcnemar_exact(len(only_a), len(only_b))},
+        "per_block": {k: {"n": len(v), "a": sum(x for x, _ in v), "b": sum(y for _, y in v),
+                          "difference": (sum(y for _, y in v) - sum(x for x, _ in v)) / len(v)}
+                      for k, v in sorted(blocks.items())},
+        "flipped": {"a_success_b_failure": [{"episode": i, "b_failure": b[i].get("failure")} for i in only_a],
+                    "a_failure_b_success": [{"episode": i, "a_failure": a[i].get("failure")} for i in only_b]},
+    }
+
+
+def is_worse(result: dict, alpha: float) -> bool:
+    """B is significantly worse than A: lower success and McNemar p < ``alpha``."""
+    return result["difference"] < 0 and result["mcnemar"]["p_value"] < alpha
+
+
+def print_comparison(result: dict, names: tuple[str, str], console: Console) -> None:
+    t = Table(title=f"{result['episodes']} paired episodes")
+    for col in ("run", "success", "rate", "Wilson 95 %"):
+        t.add_column(col)
+    for key, name in zip(("a", "b"), names):
+        r = result[key]
+        t.add_row(name, f"{r['success']}/{r['n']}", f"{100 * r['rate']:.1f} %",
+                  f"[{100 * r['wilson95'][0]:.1f}, {100 * r['wilson95'][1]:.1f}]")
+    console.print(t)
+    m = result["mcnemar"]
+    console.print(f"difference B - A: {100 * result['difference']:+.1f} points; McNemar exact: "
+                  f"A-only {m['a_only']}, B-only {m['b_only']}, p = {m['p_value']:.4g}")
+    pb = Table(title="per block (target type)")
+    for col in ("block", "n", "A", "B", "B - A"):
+        pb.add_column(col)
+    for k, v in result["per_block"].items():
+        pb.add_row(k, str(v["n"]), str(v["a"]), str(v["b"]), f"{100 * v['difference']:+.0f}")
+    console.print(pb)
+    for key, label in (("a_success_b_failure", "A succeeded, B failed"), ("a_failure_b_success", "A failed, B succeeded")):
+        eps = result["flipped"][key]
+        if eps:
+            console.print(f"{label}: " + ", ".join(str(e["episode"]) for e in eps))
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("compare", help="compare two trial runs on the same seeds (Wilson intervals, McNemar)")
+    p.add_argument("run_a", help="baseline trial run folder")
+    p.add_argument("run_b", help="candidate trial run folder")
+    p.add_argument("--fail-if-worse", action="store_true", help="exit 1 if B is significantly worse than A")
+    p.add_argument("--alpha", type=float, default=0.05, help="significance level for --fail-if-worse")
+    p.add_argument("--out", default=None, help="also write the comparison as JSON here")
+    p.set_defaults(run=run_compare)
+
+
+def run_compare(args: argparse.Namespace) -> int:
+    if not 0 < args.alpha < 1:
+        raise UserError(f"--alpha must be in (0, 1), got {args.alpha}")
+    result = compare_runs(load_run(args.run_a), load_run(args.run_b))
+    print_comparison(result, (f"A {args.run_a}", f"B {args.run_b}"), Console())
+    if args.out:
+        write_json(args.out, result)
+    if args.fail_if_worse and is_worse(result, args.alpha):
+        print(f"B is worse than A (p = {result['mcnemar']['p_value']:.4g} < {args.alpha})")
+        return 1
+    return 0
