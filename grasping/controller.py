@@ -146,7 +146,9 @@ class ArmController:
         self.task.set_target(mink.SE3.from_matrix(T_target))
         v = mink.solve_ik(self.configuration, [self.task, self.posture], self.cfg.dt, "daqp", damping=1e-3,
                           limits=self.limits)
-        wc.command_arm(v[self.r_arm_v] + wc.gravity_feedforward())
+        # Rounded: numpy's results can differ in the last bit with memory alignment, i.e. between processes;
+        # the physics would amplify that, and episodes must not depend on which worker ran them.
+        wc.command_arm(np.round(v[self.r_arm_v], 9) + wc.gravity_feedforward())
         if self.finger_target is not None:
             err = self.finger_target - wc.data.qpos[wc.finger_qadr]
             lim = self.finger_limit or self.cfg.finger_speed
