@@ -4,6 +4,7 @@
     for det in est(rgb, depth, K):           # uint8 (H, W, 3), float32 metres (H, W), (3, 3)
         det.obj_id, det.T_cam_obj, det.score, det.mask
 
+Several blocks of one type are told apart as the connected components of their class mask.
 Works on real camera data as well as on simulated frames: it only needs RGB, depth in metres and
 the intrinsics. Objects whose mask has fewer valid depth pixels than ``min_valid_points`` are
 declared invalid and skipped, as in the paper.
@@ -144,12 +145,21 @@ class Estimator:
         for obj_id in self.obj_ids:
             if obj_id >= prob.shape[-1]:
                 continue
-            m = labels == obj_id
-            if m.any():
+            for m in instance_masks(labels == obj_id, self.min_valid_points):
                 masks.append((obj_id, m))
                 scores.append(float(prob[..., obj_id][m].mean()))
         self.timings["seg"] = time.perf_counter() - t0
         return self.estimate(rgb, depth, K, masks, scores)
+
+
+def instance_masks(class_mask: np.ndarray, min_pixels: int) -> list[np.ndarray]:
+    """Split one class's mask into instances: its 8-connected components of at least ``min_pixels`` pixels.
+
+    The segmentation net is semantic (one class per block type), while a scene may hold several blocks of
+    a type; separated blocks become separate instances, touching ones stay merged.
+    """
+    n, comp, stats, _ = cv2.connectedComponentsWithStats(class_mask.astype(np.uint8), connectivity=8)
+    return [comp == i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_pixels]
 
 
 def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

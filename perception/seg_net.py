@@ -173,9 +173,17 @@ class SegNet(nn.Module):
         return self.classifier(d)
 
 
-def seg_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Pixel-wise cross-entropy; logits (B, C, H, W), labels (B, H, W) int64."""
-    return F.cross_entropy(logits, labels)
+def seg_loss(logits: torch.Tensor, labels: torch.Tensor, background_weight: float = 1.0) -> torch.Tensor:
+    """Pixel-wise cross-entropy; logits (B, C, H, W), labels (B, H, W) int64.
+
+    ``background_weight`` < 1 down-weights class 0: small objects in wide views cover a few percent of
+    the pixels, and plain cross-entropy (weight 1, the paper's loss) then first settles on all-background.
+    """
+    weight = None
+    if background_weight != 1.0:
+        weight = torch.ones(logits.shape[1], dtype=logits.dtype)
+        weight[0] = background_weight
+    return F.cross_entropy(logits, labels, weight=weight)
 
 
 def build_seg_net(cfg: SegNetConfig) -> SegNet:

@@ -54,6 +54,8 @@ class SegTrainConfig:
     weight_decay: float = 1e-4
     lr_decay: float = 0.8
     lr_decay_every: int = 5000
+    optimizer: str = "sgd"
+    background_weight: float = 1.0
     log_every: int = 20
     checkpoint_every: int = 500
     eval_every: int = 2000
@@ -275,7 +277,10 @@ def train_seg(data: str | Path, out: str | Path, cfg: SegTrainConfig | None = No
     model_cfg = dataclasses.replace(cfg.model, num_classes=max(infos) + 1)
     cfg = dataclasses.replace(cfg, model=model_cfg)
     model = build_seg_net(model_cfg)
-    opt = torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    if cfg.optimizer not in ("sgd", "adam"):
+        raise UserError(f"seg optimizer {cfg.optimizer!r} is not 'sgd' or 'adam'")
+    opt = (torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+           if cfg.optimizer == "sgd" else torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay))
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr}
     if prior is not None:
         tensors, _ = ckpt_mod._read_safetensors(run.ckpt / "model.safetensors")
@@ -293,7 +298,7 @@ def train_seg(data: str | Path, out: str | Path, cfg: SegTrainConfig | None = No
         model.train()
         batch = collate([ds.get(i, key) for i, key in batch_keys(len(ds), step, cfg.batch_size, cfg.seed)])
         logits = model(batch["image"])
-        loss = seg_loss(logits, batch["label"])
+        loss = seg_loss(logits, batch["label"], cfg.background_weight)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
