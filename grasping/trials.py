@@ -87,6 +87,8 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                           "T_gripper_cam": T_gripper_cam})
     done = {i: r for i, r in read_records(out / EPISODES).items() if i < episodes}
     _write_lines(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
+    timings = read_records(out / TIMINGS)
+    _write_lines(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
     T = tuple(tuple(float(v) for v in row) for row in T_gripper_cam)
     todo = [EpisodeTask(seed, i, perception, cfg, T) for i in range(episodes) if i not in done]
     t0 = time.perf_counter()
