@@ -183,7 +183,9 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
               f"{100 * r['wilson95'][0]:.0f}-{100 * r['wilson95'][1]:.0f}"] for r, xi in zip(rows, x)]
     t = tab.table(cellText=cells, colLabels=["sigma t (mm)", "sigma r (deg)", "ADD(-S) mm", "success", "95 % CI (%)"],
                   loc="center")
-    t.scale(1, 1.4)
+    t.auto_set_font_size(False)
+    t.set_fontsize(9)
+    t.scale(1, 1.5)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
