@@ -7,7 +7,7 @@ A provider receives the hand camera's captured ``Frame`` (RGB-D, K) and returns 
 - ``oracle``: the ground-truth ``T_cam_obj`` of every block with at least ``min_px`` visible mask pixels.
 - ``noisy-oracle[:TRANS_M,ROT_DEG]``: the oracle plus Gaussian translation noise (sigma TRANS_M per axis)
   and a rotation about a uniformly random axis by an angle ~ |N(0, ROT_DEG)|; seeded per frame.
-- ``model[:RUN]``: the learned pose network (registered by the perception package when available).
+- ``model[:RUN]``: the learned two-stage network (``grasping.model_provider``; default: the shipped weights).
 """
 
 from __future__ import annotations
@@ -114,11 +114,8 @@ register("noisy-oracle", _noisy)
 def make_provider(spec: str) -> Provider:
     """A provider from ``name[:ARGS]`` (``oracle``, ``noisy-oracle:0.005,5``, ``model:RUN``)."""
     name, _, args = spec.partition(":")
-    if name == "model" and name not in PROVIDERS:
-        try:  # the learned model registers itself when its package is importable
-            import perception.provider  # noqa: F401
-        except ImportError:
-            pass
+    if name == "model":
+        import grasping.model_provider  # noqa: F401  (registers itself; imports torch only when asked for)
     if name not in PROVIDERS:
         raise UserError(f"unknown perception {spec!r}; choose one of: {', '.join(sorted(PROVIDERS))}")
     return PROVIDERS[name](args or None)

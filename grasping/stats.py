@@ -35,7 +35,7 @@ def summarise(records: Iterable[dict]) -> dict:
     ok = [r["outcome"] == "success" for r in recs]
     by_block: dict[str, list[bool]] = defaultdict(list)
     for r, s in zip(recs, ok):
-        by_block[r["target"]["type"] if r.get("target") else "(none)"].append(s)
+        by_block[(r.get("target") or {}).get("type", "(no matching block)")].append(s)
     errs = [r["pose_error"]["err"] for r in recs if r.get("pose_error")]
     return {
         "episodes": len(recs),
