@@ -11,10 +11,11 @@ export PYOPENGL_PLATFORM ?= egl
 
 setup: $(STAMP)
 
+# Mesa EGL for headless rendering; Chromium for the test that opens the trial report in a real browser.
 sysdeps:
-	@if ! dpkg -s libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null 2>&1; then \
-	  echo "Installing Mesa EGL (software rendering)"; \
-	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null; \
+	@if ! dpkg -s libegl1 libegl-mesa0 libgl1-mesa-dri chromium >/dev/null 2>&1; then \
+	  echo "Installing Mesa EGL (software rendering) and Chromium"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri chromium >/dev/null; \
 	fi
 
 $(STAMP): pyproject.toml constraints.txt | sysdeps
