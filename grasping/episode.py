@@ -22,6 +22,7 @@ from grasping.perception import Estimate, make_provider
 from grasping.render import EpisodeCamera
 from posegrasp.catalog import BlockType, load_catalog
 from posegrasp.geometry import invert, make_T, rotation_angle, transform_points
+from sim.camera import Frame
 from sim.scene import make_scene
 from sim.workcell import HAND_CAMERA, Workcell
 
@@ -148,14 +149,42 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
     return None
 
 
-def run_episode(task: EpisodeTask) -> dict:
-    """Run one episode; returns its JSON-ready record (deterministic), with the wall-clock and CPU
-    timings of its phases (which vary run to run) under ``"_wall"``."""
+def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
+    """Episode ``task.index``'s random draws: block count, scene seed, perception seed, place offset (m)."""
     cfg = task.cfg
     rng = np.random.default_rng(np.random.SeedSequence([task.seed, task.index]))
     n_blocks = int(rng.integers(cfg.min_blocks, cfg.max_blocks + 1))
     scene_seed, percept_seed = (int(v) for v in rng.integers(0, 2**31 - 1, size=2))
     place_offset = rng.uniform(-cfg.grasp.place_jitter, cfg.grasp.place_jitter, size=2)
+    return n_blocks, scene_seed, percept_seed, place_offset
+
+
+def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
+    """The episode's settled scene, with the trial's contact settings."""
+    wc = make_scene(scene_seed, n_blocks, cfg.scene).workcell
+    wc.model.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.elliptic_cones else mujoco.mjtCone.mjCONE_PYRAMIDAL
+    wc.model.opt.impratio = cfg.impratio
+    return wc
+
+
+def drive_to_look(wc: Workcell) -> bool:
+    """Drive the arm to the look pose; False if it does not get there."""
+    return wc.drive_arm(_look_q(wc), tol=0.01, timeout=4.0, gain=10.0)
+
+
+def capture_look(wc: Workcell) -> Frame:
+    """The hand camera's frame (RGB-D, mask, ground truth) at the arm's current pose."""
+    cam = EpisodeCamera(wc, HAND_CAMERA, wc.cfg.hand_camera, wc.cfg.render)
+    frame = cam.capture()
+    cam.close()
+    return frame
+
+
+def run_episode(task: EpisodeTask) -> dict:
+    """Run one episode; returns its JSON-ready record (deterministic), with the wall-clock and CPU
+    timings of its phases (which vary run to run) under ``"_wall"``."""
+    cfg = task.cfg
+    n_blocks, scene_seed, percept_seed, place_offset = episode_draws(task)
     rec: dict = {"episode": task.index, "seed": task.seed, "scene_seed": scene_seed, "n_blocks": n_blocks,
                  "perception": task.perception, "blocks": [], "target": None, "outcome": "failure", "failure": None,
                  "grasped": False, "placed": False, "pose_error": None, "place_error": None, "detected": 0}
@@ -163,11 +192,8 @@ def run_episode(task: EpisodeTask) -> dict:
     log.start(None)
     ctl: ArmController | None = None
     try:
-        scene = make_scene(scene_seed, n_blocks, cfg.scene)
-        wc = scene.workcell
+        wc = episode_workcell(cfg, scene_seed, n_blocks)
         rec["blocks"] = [inst.block.name for inst in wc.blocks]
-        wc.model.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.elliptic_cones else mujoco.mjtCone.mjCONE_PYRAMIDAL
-        wc.model.opt.impratio = cfg.impratio
         log.stop("scene", None)
         ctl = ArmController(wc, cfg.control, _look_q(wc))
         _execute(task, wc, ctl, rec, log, percept_seed, place_offset)
@@ -211,14 +237,12 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
              place_offset: np.ndarray) -> None:
     cfg, g_cfg, s_cfg = task.cfg, task.cfg.grasp, task.cfg.scoring
     # -- look and perceive ---------------------------------------------------------------------------
-    if not wc.drive_arm(_look_q(wc), tol=0.01, timeout=4.0, gain=10.0):
+    if not drive_to_look(wc):
         raise _Failure("timeout")
     ctl.check_stable()
     ctl.target = wc.gripper_pose()
     log.stop("look", ctl)
-    cam = EpisodeCamera(wc, HAND_CAMERA, wc.cfg.hand_camera, wc.cfg.render)
-    frame = cam.capture()
-    cam.close()
+    frame = capture_look(wc)
     ests = make_provider(task.perception).estimate(frame, percept_seed)
     rec["detected"] = len(ests)
     log.stop("perceive", ctl)

@@ -117,6 +117,9 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                          "episodes_per_min": 60 * len(todo) / elapsed if todo and elapsed > 0 else None})
     write_json(out / SUMMARY, summary)
     print_summary(summary, console)
+    from grasping.report import write_report  # here: the report module imports this one
+
+    console.print(f"report -> {write_report(out)}")
     return summary
 
 
