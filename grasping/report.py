@@ -220,7 +220,8 @@ def _caption(rec: dict) -> str:
     pe = rec.get("pose_error")
     err = f", {pe['metric']} {1000 * pe['err']:.1f} mm, rot {pe['re_deg']:.1f} deg" if pe else ""
     what = "success" if rec["outcome"] == "success" else f"failure: {rec['failure']}"
-    return (f"episode {rec['episode']} ({what}); target {t.get('type', '-')}{err}; "
+    target = t.get("type", "a false detection (no block)" if t else "-")
+    return (f"episode {rec['episode']} ({what}); target {target}{err}; "
             f"{rec['n_blocks']} blocks, {rec['detected']} detected")
 
 
