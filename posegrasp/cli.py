@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "perception.cli",
     "grasping.cli",
     "grasping.compare",
+    "grasping.report",
 )
 
 

@@ -150,7 +150,9 @@ def test_amodal_masks_match_pyrender(dataset):
 
     cam_info = bop.load_camera(dataset)
     W, H = cam_info.width, cam_info.height
-    pr = _PYRENDERERS.setdefault((W, H), pyrender.OffscreenRenderer(W, H))
+    if (W, H) not in _PYRENDERERS:  # (not setdefault: a spare renderer would be freed at once)
+        _PYRENDERERS[(W, H)] = pyrender.OffscreenRenderer(W, H)
+    pr = _PYRENDERERS[(W, H)]
     ious = []
     for rec in records(dataset):
         K = rec.camera.K

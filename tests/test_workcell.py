@@ -64,28 +64,11 @@ def test_depth_lies_on_model_surface(look_frame):
     assert checked >= 3
 
 
-#: pyrender renderers are kept alive: deleting one (explicitly or by garbage collection) calls
-#: eglTerminate on the EGL display that MuJoCo's renderer shares.
-_PYRENDERERS: dict = {}
-
-
 def pyrender_silhouettes(frame: Frame, scene, width: int, height: int) -> list[np.ndarray]:
     """Each block rendered alone by pyrender from its PLY-equivalent mesh at the ground-truth pose."""
-    import pyrender
+    from grasping.report import silhouette
 
-    K = frame.K
-    # pyrender's principal point is in pixel-edge coordinates; OpenCV's K uses pixel centres.
-    cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=0.05, zfar=5.0)
-    r = _PYRENDERERS.setdefault((width, height), pyrender.OffscreenRenderer(width, height))
-    out = []
-    for k, inst in enumerate(scene.blocks, start=1):
-        sc = pyrender.Scene()
-        mesh = trimesh.Trimesh(inst.block.vertices, inst.block.faces, process=False)
-        sc.add(pyrender.Mesh.from_trimesh(mesh, smooth=False), pose=frame.T_cam_obj[k - 1])
-        sc.add(cam, pose=np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenCV camera -> OpenGL camera
-        depth = r.render(sc, flags=pyrender.RenderFlags.DEPTH_ONLY)
-        out.append(depth > 0)
-    return out
+    return [silhouette(inst.block, frame.T_cam_obj[k], frame.K, width, height) for k, inst in enumerate(scene.blocks)]
 
 
 def test_masks_agree_with_pyrender(look_frame):
