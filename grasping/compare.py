@@ -63,7 +63,7 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
     blocks: dict[str, list[tuple[bool, bool]]] = defaultdict(list)
     for i, x, y in zip(common, sa, sb):
         t = a[i].get("target") or {}
-        blocks[t.get("type", "(no matching block)")].append((x, y))
+        blocks[t.get("type", "(no block there)")].append((x, y))
     n = len(common)
     return {
         "episodes": n,

@@ -111,13 +111,13 @@ def pose_errors(block: BlockType, T_est: np.ndarray, T_gt: np.ndarray) -> dict[s
             "add": a, "adds": s, "metric": "ADD-S" if symmetric else "ADD", "err": s if symmetric else a}
 
 
-def _match(wc: Workcell, est: Estimate, T_world_obj: np.ndarray) -> int:
-    """The scene block (1-based) an estimate most likely refers to: same type, nearest centre (evaluation only)."""
-    same = [k for k, inst in enumerate(wc.blocks, start=1) if inst.block.obj_id == est.obj_id]
-    if not same:
-        return 0
-    gt = wc.block_poses()
-    return min(same, key=lambda k: float(np.linalg.norm(gt[k - 1][:3, 3] - T_world_obj[:3, 3])))
+def _match(wc: Workcell, T_world_obj: np.ndarray) -> int:
+    """The scene block (1-based) an estimate refers to: the one whose centre is nearest the estimated centre,
+    if within that block's diameter, else 0 (a false detection). The estimate's class may be wrong: the
+    robot then grasps with the wrong model, as a real one would (evaluation only)."""
+    d = [float(np.linalg.norm(T[:3, 3] - T_world_obj[:3, 3])) for T in wc.block_poses()]
+    k = int(np.argmin(d))
+    return k + 1 if d[k] <= wc.blocks[k].block.diameter else 0
 
 
 def _yaw(T: np.ndarray) -> float:
@@ -254,12 +254,13 @@ def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log
     if choice is None:
         raise _Failure("unreachable")
     j, grasp, T_world_obj_est = choice
-    k = _match(wc, ests[j], T_world_obj_est)
+    k = _match(wc, T_world_obj_est)
     if k == 0:  # the chosen estimate is no block of the scene (a false detection)
         rec["target"] = {"instance": 0, "obj_id": ests[j].obj_id}
         raise _Failure("pose error")
     block = wc.blocks[k - 1].block
-    rec["target"] = {"instance": k, "type": block.name, "diameter": block.diameter, "grasp_width": grasp.width,
+    rec["target"] = {"instance": k, "type": block.name, "class_ok": block.obj_id == ests[j].obj_id,
+                     "diameter": block.diameter, "grasp_width": grasp.width,
                      "clearance": grasp.clearance, "support": grasp.support, "tilt_deg": grasp.tilt_deg}
     rec["pose_error"] = pose_errors(block, T_world_obj_est, wc.block_poses()[k - 1])
     # -- pick ---------------------------------------------------------------------------------------

@@ -30,12 +30,13 @@ def rate_row(k: int, n: int) -> dict:
 
 
 def summarise(records: Iterable[dict]) -> dict:
-    """Success rate with its interval, per-block and per-failure tables, mean pose error and simulated time."""
+    """Success rate with its interval, per-block and per-failure tables, targets whose class perception got
+    wrong, mean pose error and simulated time."""
     recs = list(records)
     ok = [r["outcome"] == "success" for r in recs]
     by_block: dict[str, list[bool]] = defaultdict(list)
     for r, s in zip(recs, ok):
-        by_block[(r.get("target") or {}).get("type", "(no matching block)")].append(s)
+        by_block[(r.get("target") or {}).get("type", "(no block there)")].append(s)
     errs = [r["pose_error"]["err"] for r in recs if r.get("pose_error")]
     return {
         "episodes": len(recs),
@@ -43,6 +44,7 @@ def summarise(records: Iterable[dict]) -> dict:
         "grasp_success": rate_row(sum(bool(r.get("grasped")) for r in recs), len(recs)),
         "per_block": {b: rate_row(sum(v), len(v)) for b, v in sorted(by_block.items())},
         "failures": dict(sorted(Counter(r["failure"] for r in recs if r["failure"]).items())),
+        "wrong_class": sum((r.get("target") or {}).get("class_ok") is False for r in recs),
         "mean_pose_error_m": sum(errs) / len(errs) if errs else None,
         "mean_sim_time_s": sum(r["sim_time"] for r in recs) / len(recs) if recs else None,
     }

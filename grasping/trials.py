@@ -128,7 +128,8 @@ def print_summary(s: dict, console: Console) -> None:
     lo, hi = s["wilson95"]
     console.print(f"[bold]{s['perception']}[/]: {s['success']}/{s['n']} episodes succeeded = "
                   f"{100 * s['rate']:.1f} % (Wilson 95 % interval {100 * lo:.1f}-{100 * hi:.1f} %); "
-                  f"grasped {s['grasp_success']['success']}/{s['n']}")
+                  f"grasped {s['grasp_success']['success']}/{s['n']}; "
+                  f"target of the wrong class {s.get('wrong_class', 0)}/{s['n']}")
     t = Table(title="per target block")
     for col in ("block", "success", "n", "rate", "95 % interval"):
         t.add_column(col)
