@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episodes", type=int, default=200, help="number of episodes (default 200)")
     p.add_argument("--seed", type=int, default=0, help="campaign seed: episode i draws from (seed, i) only")
     p.add_argument("--perception", default="oracle",
-                   help="oracle | noisy-oracle[:TRANS_M,ROT_DEG] (default oracle)")
+                   help="oracle | noisy-oracle[:TRANS_M,ROT_DEG] | model[:RUN] (the learned network; without RUN the shipped weights) (default oracle)")
     p.add_argument("--workers", default="2", help="worker processes (default 2), or 'ray'")
     p.add_argument("--out", required=True, help="output folder (episodes.jsonl, summary.json)")
     p.add_argument("--config", default=None, help="trial settings TOML (grasping.config.TrialConfig layout)")

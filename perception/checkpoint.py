@@ -205,3 +205,29 @@ def load_optimizer(ckpt: Path, optimizer: torch.optim.Optimizer) -> None:
         raise UserError(_one_line(f"{path} does not match the optimizer: {e}")) from None
     if "rng.torch" in tensors:
         torch.set_rng_state(tensors["rng.torch"])
+
+
+def perturb_run(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...] = ("pose",), seed: int = 0) -> Path:
+    """A deliberately degraded copy of the run ``src`` in ``dst``: every learned parameter tensor W of the
+    given stages (not scalars such as the attention gammas, not batch-norm statistics) gets Gaussian noise of standard deviation ``rel_sigma * std(W)`` (seeded); other stages are
+    copied as they are. For sensitivity studies: how much worse does grasping get with a worse model?"""
+    if rel_sigma < 0:
+        raise ValueError(f"rel_sigma must be >= 0, got {rel_sigma}")
+    src, dst = Path(src), Path(dst)
+    gen = torch.Generator().manual_seed(seed)
+    for stage in STAGES:
+        ckpt = resolve(src / stage)
+        if not exists(ckpt):
+            continue
+        model, model_cfg, cfg = load_model(ckpt, stage)
+        if stage in stages:
+            with torch.no_grad():
+                for _, p in sorted(model.named_parameters()):
+                    if p.numel() > 1:
+                        p += rel_sigma * p.std() * torch.randn(p.shape, generator=gen)
+        state = {**read_state(ckpt), "perturbed": {"from": str(src), "rel_sigma": rel_sigma, "seed": seed}}
+        train_cfg = cfg["train"]
+        save(dst / stage, stage, model, model_cfg, None, state)
+        if train_cfg is not None:  # keep the training settings the weights came from
+            pio.write_json(dst / stage / "config.json", {**read_config(dst / stage), "train": train_cfg})
+    return dst
