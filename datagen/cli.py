@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import re
 
+from posegrasp.cli import positive_int, workers_arg
 from posegrasp.errors import UserError
 
 
@@ -20,25 +21,13 @@ def parse_blocks(text: str) -> tuple[int, int]:
     return lo, hi
 
 
-def _positive(name: str):
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise UserError(f"{name} must be a positive integer, got {text!r}") from None
-        if v < 1:
-            raise UserError(f"{name} must be a positive integer, got {v}")
-        return v
-    return parse
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("datagen", help="generate a randomised synthetic RGB-D dataset in BOP format (resumable)")
     p.add_argument("--out", required=True, help="dataset folder (created; an existing one is completed)")
-    p.add_argument("--scenes", type=_positive("--scenes"), default=10, help="simulated scenes (one BOP scene each)")
-    p.add_argument("--views", type=_positive("--views"), default=25, help="hand-camera views per scene")
+    p.add_argument("--scenes", type=positive_int("--scenes"), default=10, help="simulated scenes (one BOP scene each)")
+    p.add_argument("--views", type=positive_int("--views"), default=25, help="hand-camera views per scene")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (same seed and settings, same bytes)")
-    p.add_argument("--workers", type=_positive("--workers"), default=None, help="worker processes (default: one per core)")
+    p.add_argument("--workers", type=workers_arg, default=None, help="worker processes (default: one per core), or 'ray'")
     p.add_argument("--split", choices=("train_pbr", "test"), default="train_pbr", help="BOP split to write")
     p.add_argument("--resolution", default=None, help="image WIDTHxHEIGHT (default from the config: 640x480)")
     p.add_argument("--config", default=None, help="generation settings TOML (defaults: datagen/datagen.toml)")
@@ -53,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("dir", help="dataset root (holding models/, camera.json and split folders)")
     c.add_argument("--split", default=None, help="only this split (default: every split found)")
     c.add_argument("--depth-tol-mm", type=float, default=5.0, help="max median depth-to-model distance (mm)")
-    c.add_argument("--max-images", type=_positive("--max-images"), default=None, help="check at most N images per scene")
+    c.add_argument("--max-images", type=positive_int("--max-images"), default=None, help="check at most N images per scene")
     c.set_defaults(run=run_check)
     s = dsub.add_parser("show", help="draw one image with masks, 3D boxes and axes next to its depth")
     s.add_argument("dir", help="dataset root")

@@ -6,28 +6,18 @@ import argparse
 import dataclasses
 from pathlib import Path
 
+from posegrasp.cli import positive_int, workers_arg
 from posegrasp.errors import UserError
-
-
-def _workers(text: str) -> int | str:
-    if text == "ray":
-        return text
-    try:
-        n = int(text)
-    except ValueError:
-        raise UserError(f"--workers {text!r} is not a number of processes (or 'ray')") from None
-    if n < 1:
-        raise UserError(f"--workers must be at least 1, got {n}")
-    return n
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("trials", help="grasp-and-place trials with a perception provider; resumable")
-    p.add_argument("--episodes", type=int, default=200, help="number of episodes (default 200)")
+    p.add_argument("--episodes", type=positive_int("--episodes"), default=200, help="number of episodes (default 200)")
     p.add_argument("--seed", type=int, default=0, help="campaign seed: episode i draws from (seed, i) only")
     p.add_argument("--perception", default="oracle",
-                   help="oracle | noisy-oracle[:TRANS_M,ROT_DEG] | model[:RUN] (the learned network; without RUN the shipped weights) (default oracle)")
-    p.add_argument("--workers", default="2", help="worker processes (default 2), or 'ray'")
+                   help="oracle (default) | noisy-oracle[:TRANS_M,ROT_DEG] | model[:RUN]: the learned network, "
+                        "the shipped weights without RUN")
+    p.add_argument("--workers", type=workers_arg, default=2, help="worker processes (default 2), or 'ray'")
     p.add_argument("--out", required=True, help="output folder (episodes.jsonl, summary.json)")
     p.add_argument("--config", default=None, help="trial settings TOML (grasping.config.TrialConfig layout)")
     p.add_argument("--sweep-noise", action="store_true",
@@ -48,15 +38,12 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
     from sim.cli import writable_dir
 
     cfg = load_trial_config(args.config)
-    workers = _workers(args.workers)
     out = writable_dir(args.out)
-    if args.episodes < 1:
-        raise UserError(f"--episodes must be at least 1, got {args.episodes}")
     if args.sweep_noise:
-        sweep_noise(out, args.episodes, args.seed, workers, cfg)
+        sweep_noise(out, args.episodes, args.seed, args.workers, cfg)
         print(f"noise sweep -> {out / 'sweep.png'}")
     else:
-        run_trials(out, args.episodes, args.seed, args.perception, workers, cfg)
+        run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg)
     return 0
 
 

@@ -13,6 +13,26 @@ import sys
 
 from posegrasp.errors import UserError
 
+def positive_int(name: str):
+    """An argparse ``type`` for option ``name``: a positive integer, else a one-line UserError."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise UserError(f"{name} must be a positive integer, got {text!r}") from None
+        if v < 1:
+            raise UserError(f"{name} must be a positive integer, got {v}")
+        return v
+
+    return parse
+
+
+def workers_arg(text: str) -> int | str:
+    """An argparse ``type`` for ``--workers``: a number of local processes, or ``ray``."""
+    return text if text == "ray" else positive_int("--workers (a number of processes, or 'ray')")(text)
+
+
 #: Modules that register subcommands, in the order they appear in ``--help``.
 COMMAND_MODULES = (
     "sim.cli",

@@ -94,7 +94,7 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize("args, words", [
-    (["trials", "--episodes", "0"], "at least 1"),
+    (["trials", "--episodes", "0"], "--episodes must be a positive integer"),
     (["trials", "--perception", "psychic"], "unknown perception"),
     (["trials", "--perception", "noisy-oracle:lots"], "TRANS_M,ROT_DEG"),
     (["trials", "--workers", "zero"], "--workers"),
