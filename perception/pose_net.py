@@ -166,14 +166,11 @@ class ColorCNN(nn.Module):
 
 # ---------------------------------------------------------------------------- fusion and heads
 
-class DenseFusionFeat(nn.Module):
-    """Per-point geometry (3 -> p1 -> p2) and colour (emb -> p1 -> p2) 1x1 convs, concatenated at both
-    levels, then p2*2 -> g1 -> g2 and average-pooled to a global feature repeated per point.
+class PointFusion(nn.Module):
+    """DenseFusion's per-point fusion: geometry (3 -> p1 -> p2) and colour (emb -> p1 -> p2) 1x1 convs,
+    concatenated at both levels, and the two global convs g_in -> g1 -> g2 its subclasses feed."""
 
-    (B, 3, N), (B, emb, N) -> (B, 2 p1 + 2 p2 + g2, N) (1408 with DenseFusion's widths).
-    """
-
-    def __init__(self, emb_dim: int, point_widths: tuple[int, int], global_widths: tuple[int, int]):
+    def __init__(self, emb_dim: int, point_widths: tuple[int, int], global_widths: tuple[int, int], g_in: int):
         super().__init__()
         p1, p2 = point_widths
         g1, g2 = global_widths
@@ -181,18 +178,35 @@ class DenseFusionFeat(nn.Module):
         self.conv2 = nn.Conv1d(p1, p2, 1)
         self.e_conv1 = nn.Conv1d(emb_dim, p1, 1)
         self.e_conv2 = nn.Conv1d(p1, p2, 1)
-        self.conv5 = nn.Conv1d(2 * p2, g1, 1)
+        self.conv5 = nn.Conv1d(g_in, g1, 1)
         self.conv6 = nn.Conv1d(g1, g2, 1)
 
-    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+    def levels(self, x: torch.Tensor, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, 3, N), (B, emb, N) -> (B, 2 p1, N), (B, 2 p2, N)."""
         x = F.relu(self.conv1(x))
         emb = F.relu(self.e_conv1(emb))
-        feat1 = torch.cat([x, emb], dim=1)  # (B, 2 p1, N)
+        feat1 = torch.cat([x, emb], dim=1)
         x = F.relu(self.conv2(x))
         emb = F.relu(self.e_conv2(emb))
-        feat2 = torch.cat([x, emb], dim=1)  # (B, 2 p2, N)
-        g = F.relu(self.conv6(F.relu(self.conv5(feat2))))  # (B, g2, N)
-        g = g.mean(dim=2, keepdim=True).expand(-1, -1, x.shape[2])
+        return feat1, torch.cat([x, emb], dim=1)
+
+    def global_convs(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, g_in, N) -> (B, g2, N)."""
+        return F.relu(self.conv6(F.relu(self.conv5(x))))
+
+
+class DenseFusionFeat(PointFusion):
+    """Both fusion levels, plus p2*2 -> g1 -> g2 average-pooled to a global feature repeated per point.
+
+    (B, 3, N), (B, emb, N) -> (B, 2 p1 + 2 p2 + g2, N) (1408 with DenseFusion's widths).
+    """
+
+    def __init__(self, emb_dim: int, point_widths: tuple[int, int], global_widths: tuple[int, int]):
+        super().__init__(emb_dim, point_widths, global_widths, 2 * point_widths[1])
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        feat1, feat2 = self.levels(x, emb)
+        g = self.global_convs(feat2).mean(dim=2, keepdim=True).expand(-1, -1, x.shape[2])  # (B, g2, N)
         return torch.cat([feat1, feat2, g], dim=1)
 
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
+from perception.pose_net import PointFusion
 from perception.torch_geometry import make_transform, quat_to_rotmat
 
 
@@ -38,31 +38,16 @@ class RefinerConfig:
         return len(self.obj_ids)
 
 
-class RefinerFeat(nn.Module):
-    """Per-point geometry/colour convs, both levels concatenated (2 p1 + 2 p2), then g1 -> g2 and
-    average pooling: (B, 3, N), (B, E, N) -> (B, g2)."""
+class RefinerFeat(PointFusion):
+    """Both fusion levels concatenated (2 p1 + 2 p2), then g1 -> g2 and average pooling:
+    (B, 3, N), (B, E, N) -> (B, g2)."""
 
     def __init__(self, emb_dim: int, point_widths: tuple[int, int], global_widths: tuple[int, int]):
-        super().__init__()
-        p1, p2 = point_widths
-        g1, g2 = global_widths
-        self.conv1 = nn.Conv1d(3, p1, 1)
-        self.conv2 = nn.Conv1d(p1, p2, 1)
-        self.e_conv1 = nn.Conv1d(emb_dim, p1, 1)
-        self.e_conv2 = nn.Conv1d(p1, p2, 1)
-        self.conv5 = nn.Conv1d(2 * p1 + 2 * p2, g1, 1)
-        self.conv6 = nn.Conv1d(g1, g2, 1)
+        super().__init__(emb_dim, point_widths, global_widths, 2 * sum(point_widths))
 
     def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
-        x = F.relu(self.conv1(x))
-        emb = F.relu(self.e_conv1(emb))
-        feat1 = torch.cat([x, emb], dim=1)  # (B, 2 p1, N)
-        x = F.relu(self.conv2(x))
-        emb = F.relu(self.e_conv2(emb))
-        feat2 = torch.cat([x, emb], dim=1)  # (B, 2 p2, N)
-        x = torch.cat([feat1, feat2], dim=1)  # (B, 2 p1 + 2 p2, N)
-        x = F.relu(self.conv6(F.relu(self.conv5(x))))  # (B, g2, N)
-        return x.mean(dim=2)  # (B, g2)
+        x = torch.cat(self.levels(x, emb), dim=1)  # (B, 2 p1 + 2 p2, N)
+        return self.global_convs(x).mean(dim=2)  # (B, g2)
 
 
 def _mlp(cin: int, widths: tuple[int, ...], out: int) -> nn.Sequential:

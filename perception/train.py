@@ -41,7 +41,8 @@ from perception.seg_net import SegNetConfig, build_seg_net, seg_loss
 class SegTrainConfig:
     """Segmentation training. ``model.num_classes`` is set from the dataset (max obj_id + 1).
     ``train_split`` empty = ``train_pbr`` if present, else ``train``; ``val_split`` is evaluated
-    every ``eval_every`` steps when it exists."""
+    every ``eval_every`` steps when it exists. ``init`` names a seg checkpoint (or a run holding
+    ``seg/``) whose weights the net starts from (fine-tuning, fresh optimizer); empty = from scratch."""
 
     model: SegNetConfig = field(default_factory=SegNetConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -62,6 +63,7 @@ class SegTrainConfig:
     eval_images: int = 50
     seed: int = 0
     threads: int = 2
+    init: str = ""
 
 
 @dataclass
@@ -264,6 +266,19 @@ def _resumed_cfg(cls: type, prior: dict[str, Any] | None, cfg: Any, overrides: d
     return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
 
 
+def _init_from(model: torch.nn.Module, model_cfg: Any, src: Path, stage: str) -> None:
+    """Load the weights of the ``stage`` checkpoint at ``src`` (or ``src/stage``) into ``model``."""
+    ckpt = src / stage if (src / stage).is_dir() else src
+    if not ckpt_mod.exists(ckpt):
+        raise UserError(f"init weights {src} hold no {stage} checkpoint: name a run or its {stage}/ folder")
+    _, src_cfg, _ = ckpt_mod.load_model(ckpt, stage)
+    if src_cfg != model_cfg:
+        raise UserError(f"init weights {ckpt} were trained with another {stage} model config than this run's: "
+                        f"use the same [{stage}.model] settings and dataset objects")
+    tensors, _ = ckpt_mod._read_safetensors(ckpt / "model.safetensors")
+    ckpt_mod.load_state(model, tensors, ckpt / "model.safetensors")
+
+
 # ---------------------------------------------------------------------------- segmentation
 
 def train_seg(data: str | Path, out: str | Path, cfg: SegTrainConfig | None = None, steps: int | None = None,
@@ -287,6 +302,8 @@ def train_seg(data: str | Path, out: str | Path, cfg: SegTrainConfig | None = No
         ckpt_mod.load_state(model, tensors, run.ckpt / "model.safetensors")
         ckpt_mod.load_optimizer(run.ckpt, opt)
         state = prior["state"]
+    elif cfg.init:
+        _init_from(model, model_cfg, Path(cfg.init), "seg")
     ds = SegDataset(data, train_split(data, cfg.train_split), model_cfg.input_size, model_cfg.num_classes, cfg.data,
                     augment=True, seed=cfg.seed)
     val = (SegDataset(data, cfg.val_split, model_cfg.input_size, model_cfg.num_classes, cfg.data)

@@ -83,3 +83,23 @@ def test_seg_resume_after_interrupted_save(tiny_bop, tiny_configs, tmp_path):
     assert checkpoint.exists(tmp_path / "seg")
     out = train_seg(tiny_bop, tmp_path, None, steps=3, resume=True, progress=False)
     assert out["step"] == 3
+
+
+def test_seg_fine_tunes_from_init_weights(tiny_bop, tiny_run, tiny_configs, tmp_path):
+    seg, _, _ = tiny_configs
+    ds = SegDataset(tiny_bop, "train", seg.model.input_size, 4)
+
+    def ds_loss(run):
+        return _fixed_seg_loss(checkpoint.load_model(run / "seg", "seg")[0], ds)
+
+    train_seg(tiny_bop, tmp_path / "ft", dataclasses.replace(seg, init=str(tiny_run), lr=1e-4), steps=1,
+              progress=False)
+    train_seg(tiny_bop, tmp_path / "scratch", dataclasses.replace(seg, lr=1e-4), steps=1, progress=False)
+    # one small step from the trained weights stays near them; one from scratch does not
+    assert ds_loss(tmp_path / "ft") < 1.2 * ds_loss(tiny_run) < ds_loss(tmp_path / "scratch")
+    assert checkpoint.read_config(tmp_path / "ft" / "seg")["train"]["init"] == str(tiny_run)
+    wide = dataclasses.replace(seg, init=str(tiny_run), model=dataclasses.replace(seg.model, width=0.25))
+    with pytest.raises(UserError, match="another seg model config"):
+        train_seg(tiny_bop, tmp_path / "bad", wide, steps=1, progress=False)
+    with pytest.raises(UserError, match="no seg checkpoint"):
+        train_seg(tiny_bop, tmp_path / "none", dataclasses.replace(seg, init=str(tmp_path)), steps=1, progress=False)
