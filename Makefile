@@ -27,8 +27,8 @@ $(STAMP): pyproject.toml constraints.txt | sysdeps
 	@touch $(STAMP)
 
 demo: setup sysdeps
-	$(BIN)/posegrasp scene --seed 0 --blocks 5 --out demo_out
-	@echo "Preview written to demo_out/ (overview.png, rgb.png, depth.png, mask.png, scene.json)"
+	$(BIN)/posegrasp trials --episodes 20 --seed 0 --perception model --workers 2 --out demo_out
+	@echo "Open demo_out/report.html (episodes.jsonl and summary.json beside it)"
 
 test: setup sysdeps
 	$(BIN)/python -m pytest -q
