@@ -209,8 +209,9 @@ def load_optimizer(ckpt: Path, optimizer: torch.optim.Optimizer) -> None:
 
 def perturb_run(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...] = ("pose",), seed: int = 0) -> Path:
     """A deliberately degraded copy of the run ``src`` in ``dst``: every learned parameter tensor W of the
-    given stages (not scalars such as the attention gammas, not batch-norm statistics) gets Gaussian noise of standard deviation ``rel_sigma * std(W)`` (seeded); other stages are
-    copied as they are. For sensitivity studies: how much worse does grasping get with a worse model?"""
+    given stages (not scalars such as the attention gammas, not batch-norm statistics) gets Gaussian
+    noise of standard deviation ``rel_sigma * std(W)`` (seeded); other stages are copied as they are.
+    For sensitivity studies: how much worse does grasping get with a worse model?"""
     if rel_sigma < 0:
         raise ValueError(f"rel_sigma must be >= 0, got {rel_sigma}")
     src, dst = Path(src), Path(dst)

@@ -1,4 +1,4 @@
-"""``posegrasp train seg|pose|refine`` and ``posegrasp eval`` subcommands.
+"""``posegrasp train seg|pose|refine``, ``posegrasp eval`` and ``posegrasp perturb`` subcommands.
 
 A ``--config`` TOML file may hold sections ``[seg]``, ``[pose]``, ``[refine]`` and ``[eval]`` (with
 sub-tables such as ``[pose.model]`` and ``[pose.data]``) matching the config dataclasses of
@@ -16,7 +16,7 @@ from posegrasp.errors import UserError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``train`` and ``eval`` subcommands."""
+    """Add the ``train``, ``eval`` and ``perturb`` subcommands."""
     p = subparsers.add_parser("train", help="train the segmentation net, the pose net or the refiner",
                               description="Train one stage of the perception network on a BOP dataset.")
     p.add_argument("stage", choices=["seg", "pose", "refine"], help="which network to train")
@@ -42,6 +42,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--max-images", type=int, help="evaluate at most this many images")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(run=run_eval)
+
+    d = subparsers.add_parser("perturb", help="write a deliberately degraded copy of a run (seeded weight noise)",
+                              description="For sensitivity studies: run trials with model:OUT and compare.")
+    d.add_argument("--weights", required=True, type=Path, help="run directory with seg/, pose/ [, refine/]")
+    d.add_argument("--out", required=True, type=Path, help="new run directory")
+    d.add_argument("--rel-sigma", required=True, type=float, help="noise std as a fraction of each tensor's std")
+    d.add_argument("--stages", default="pose", help="comma-separated stages to perturb (default: pose)")
+    d.add_argument("--seed", type=int, default=0, help="noise seed")
+    d.set_defaults(run=run_perturb)
 
 
 def run_train(args: argparse.Namespace) -> int:
@@ -78,4 +87,22 @@ def run_eval(args: argparse.Namespace) -> int:
                **{k: report["overall"][k] for k in ("ADD-S_AUC", "ADD_AUC", "ADD(-S)_acc_0.1d")},
                "time_per_image_s": report["time_per_image_s"]}
     print(json.dumps(summary))
+    return 0
+
+
+def run_perturb(args: argparse.Namespace) -> int:
+    """Handler of ``posegrasp perturb``."""
+    from perception.checkpoint import STAGES, perturb_run
+
+    stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
+    bad = [s for s in stages if s not in STAGES]
+    if bad or not stages:
+        raise UserError(f"--stages {args.stages!r}: name one or more of {', '.join(STAGES)}")
+    if args.rel_sigma < 0:
+        raise UserError(f"--rel-sigma must be >= 0, got {args.rel_sigma}")
+    if not (args.weights / "pose").is_dir():
+        raise UserError(f"--weights {args.weights} holds no pose/ checkpoint")
+    if args.out.exists() and any(args.out.iterdir()):
+        raise UserError(f"--out {args.out} is not empty: choose a new folder")
+    print(perturb_run(args.weights, args.out, args.rel_sigma, stages, args.seed))
     return 0

@@ -1,4 +1,4 @@
-"""The ``train`` / ``eval`` subcommands registered by ``perception.cli``."""
+"""The ``train`` / ``eval`` / ``perturb`` subcommands registered by ``perception.cli``."""
 
 import argparse
 import json
@@ -41,4 +41,18 @@ def test_bad_config_is_user_error(tiny_bop, tmp_path):
         args.run(args)
     args = _parser().parse_args(["train", "refine", "--data", str(tiny_bop), "--out", str(tmp_path / "x")])
     with pytest.raises(UserError, match="train pose"):
+        args.run(args)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--stages", "pose,nope"], "name one or more of"),
+    (["--rel-sigma", "-1"], "must be >= 0"),
+    (["--weights", "."], "holds no pose/"),
+    (["--out", "."], "is not empty"),
+])
+def test_perturb_rejects_bad_input(tiny_run, tmp_path, argv, message):
+    base = {"--weights": str(tiny_run), "--out": str(tmp_path / "noisy"), "--rel-sigma": "0.1"}
+    base.update(dict(zip(argv[::2], argv[1::2])))
+    args = _parser().parse_args(["perturb", *[x for kv in base.items() for x in kv]])
+    with pytest.raises(UserError, match=message):
         args.run(args)
