@@ -38,17 +38,31 @@ from perception.seg_net import SegNetConfig, build_seg_net, seg_loss
 
 
 @dataclass
-class SegTrainConfig:
-    """Segmentation training. ``model.num_classes`` is set from the dataset (max obj_id + 1).
-    ``train_split`` empty = ``train_pbr`` if present, else ``train``; ``val_split`` is evaluated
-    every ``eval_every`` steps when it exists. ``init`` names a seg checkpoint (or a run holding
-    ``seg/``) whose weights the net starts from (fine-tuning, fresh optimizer); empty = from scratch."""
+class StageConfig:
+    """What every stage's training has: splits (``train_split`` empty = ``train_pbr`` if present,
+    else ``train``), logging, checkpoint and evaluation intervals (steps), seed and CPU threads."""
 
-    model: SegNetConfig = field(default_factory=SegNetConfig)
-    data: DataConfig = field(default_factory=DataConfig)
     train_split: str = ""
     val_split: str = "val"
     steps: int = 20000
+    batch_size: int = 8
+    lr: float = 1e-4
+    log_every: int = 20
+    checkpoint_every: int = 500
+    eval_every: int = 1000
+    seed: int = 0
+    threads: int = 2
+
+
+@dataclass
+class SegTrainConfig(StageConfig):
+    """Segmentation training. ``model.num_classes`` is set from the dataset (max obj_id + 1).
+    ``val_split`` is evaluated (on ``eval_images``) every ``eval_every`` steps when it exists.
+    ``init`` names a seg checkpoint (or a run holding ``seg/``) whose weights the net starts from
+    (fine-tuning, fresh optimizer); empty = from scratch."""
+
+    model: SegNetConfig = field(default_factory=SegNetConfig)
+    data: DataConfig = field(default_factory=DataConfig)
     batch_size: int = 4
     lr: float = 1e-2
     momentum: float = 0.9
@@ -57,62 +71,40 @@ class SegTrainConfig:
     lr_decay_every: int = 5000
     optimizer: str = "sgd"
     background_weight: float = 1.0
-    log_every: int = 20
-    checkpoint_every: int = 500
     eval_every: int = 2000
     eval_images: int = 50
-    seed: int = 0
-    threads: int = 2
     init: str = ""
 
 
 @dataclass
-class PoseTrainConfig:
+class PoseTrainConfig(StageConfig):
     """Pose net training. ``obj_ids`` empty = every object of models_info; ``model.obj_ids`` and
-    ``model.symmetric`` are set from the dataset. ``train_split`` empty = ``train_pbr`` if present,
-    else ``train``. The evaluation that drives the lr / w decay uses ``val_split``, or a fixed
-    subset of the training instances (no augmentation) when that split does not exist."""
+    ``model.symmetric`` are set from the dataset. The evaluation that drives the lr / w decay uses
+    ``val_split``, or a fixed subset of the training instances (no augmentation) when that split
+    does not exist."""
 
     model: PoseNetConfig = field(default_factory=PoseNetConfig)
     data: DataConfig = field(default_factory=DataConfig)
     obj_ids: list[int] = field(default_factory=list)
-    train_split: str = ""
-    val_split: str = "val"
-    steps: int = 20000
-    batch_size: int = 8
-    lr: float = 1e-4
     w: float = 0.015
     decay_margin: float = 0.016
     lr_decay: float = 0.3
     w_decay: float = 0.3
     refine_margin: float = 0.013
-    log_every: int = 20
-    checkpoint_every: int = 500
-    eval_every: int = 1000
     eval_samples: int = 200
-    seed: int = 0
-    threads: int = 2
 
 
 @dataclass
-class RefineTrainConfig:
+class RefineTrainConfig(StageConfig):
     """Refiner training on top of the frozen pose net in ``RUN/pose`` (its objects and embedding
     width are copied into ``model``). lr defaults to DenseFusion's decayed lr (1e-4 x 0.3)."""
 
     model: RefinerConfig = field(default_factory=RefinerConfig)
     data: DataConfig = field(default_factory=DataConfig)
-    train_split: str = ""
-    val_split: str = "val"
     steps: int = 10000
-    batch_size: int = 8
     lr: float = 3e-5
     iterations: int = 2
-    log_every: int = 20
-    checkpoint_every: int = 500
-    eval_every: int = 1000
     eval_samples: int = 200
-    seed: int = 0
-    threads: int = 2
 
 
 # ---------------------------------------------------------------------------- shared machinery
