@@ -47,8 +47,10 @@ def test_shipped_model_meets_the_ci_floor_and_records_pose_errors(model_run):
 
 
 def test_a_degraded_model_shows_up_as_worse_in_compare(model_run, tmp_path):
+    # rel-sigma 0.2: measured 14 -> 1 successes over these 20 episodes (McNemar p = 0.001); with 0.1 the drop
+    # (14 -> 7, 87/200 over 200 episodes) is real but p = 0.07 at 20 episodes.
     noisy = tmp_path / "noisy"
-    assert main(["perturb", "--weights", str(SHIPPED_MODEL), "--out", str(noisy), "--rel-sigma", "0.1"]) == 0
+    assert main(["perturb", "--weights", str(SHIPPED_MODEL), "--out", str(noisy), "--rel-sigma", "0.2"]) == 0
     out = tmp_path / "trials"
     assert main(["trials", "--episodes", "20", "--seed", "0", "--perception", f"model:{noisy}", "--workers", "2",
                  "--out", str(out)]) == 0
