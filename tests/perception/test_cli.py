@@ -2,10 +2,13 @@
 
 import argparse
 import json
+import tomllib
 
 import pytest
 
 from perception import cli
+from posegrasp import ASSETS
+from posegrasp.config import load_toml
 from posegrasp.errors import UserError
 
 
@@ -56,3 +59,15 @@ def test_perturb_rejects_bad_input(tiny_run, tmp_path, argv, message):
     args = _parser().parse_args(["perturb", *[x for kv in base.items() for x in kv]])
     with pytest.raises(UserError, match=message):
         args.run(args)
+
+
+@pytest.mark.parametrize("path", sorted((ASSETS / "perception").glob("*.toml")), ids=lambda p: p.name)
+def test_shipped_training_configs_load(path):
+    from perception import train as T
+
+    sections = tomllib.loads(path.read_text())
+    classes = {"seg": T.SegTrainConfig, "pose": T.PoseTrainConfig, "refine": T.RefineTrainConfig}
+    assert sections and set(sections) <= set(classes)
+    for name in sections:
+        cfg = load_toml(classes[name], path, section=name)
+        assert cfg.steps >= 1000 and cfg.checkpoint_every <= 500
