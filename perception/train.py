@@ -263,12 +263,11 @@ def _init_from(model: torch.nn.Module, model_cfg: Any, src: Path, stage: str) ->
     ckpt = src / stage if (src / stage).is_dir() else src
     if not ckpt_mod.exists(ckpt):
         raise UserError(f"init weights {src} hold no {stage} checkpoint: name a run or its {stage}/ folder")
-    _, src_cfg, _ = ckpt_mod.load_model(ckpt, stage)
+    src_model, src_cfg, _ = ckpt_mod.load_model(ckpt, stage)
     if src_cfg != model_cfg:
         raise UserError(f"init weights {ckpt} were trained with another {stage} model config than this run's: "
                         f"use the same [{stage}.model] settings and dataset objects")
-    tensors, _ = ckpt_mod._read_safetensors(ckpt / "model.safetensors")
-    ckpt_mod.load_state(model, tensors, ckpt / "model.safetensors")
+    model.load_state_dict(src_model.state_dict())
 
 
 # ---------------------------------------------------------------------------- segmentation
