@@ -74,7 +74,7 @@ def _chromium(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
 
 def test_report_loads_in_headless_chromium(run, tmp_path):
     if not CHROMIUM.exists():
-        pytest.skip("chromium not installed: apt-get install -y chromium (the Makefile's CI setup does)")
+        pytest.skip(reason="chromium not installed: apt-get install -y chromium (the Makefile's CI setup does)")
     out, _ = run
     write_report(out)
     url = (out / REPORT).resolve().as_uri()
