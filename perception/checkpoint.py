@@ -213,7 +213,7 @@ def perturb_run(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...] 
     noise of standard deviation ``rel_sigma * std(W)`` (seeded); other stages are copied as they are.
     For sensitivity studies: how much worse does grasping get with a worse model?"""
     if rel_sigma < 0:
-        raise ValueError(f"rel_sigma must be >= 0, got {rel_sigma}")
+        raise UserError(f"rel_sigma (--rel-sigma) must be >= 0, got {rel_sigma}")
     src, dst = Path(src), Path(dst)
     gen = torch.Generator().manual_seed(seed)
     for stage in STAGES:

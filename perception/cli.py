@@ -98,8 +98,6 @@ def run_perturb(args: argparse.Namespace) -> int:
     bad = [s for s in stages if s not in STAGES]
     if bad or not stages:
         raise UserError(f"--stages {args.stages!r}: name one or more of {', '.join(STAGES)}")
-    if args.rel_sigma < 0:
-        raise UserError(f"--rel-sigma must be >= 0, got {args.rel_sigma}")
     if not (args.weights / "pose").is_dir():
         raise UserError(f"--weights {args.weights} holds no pose/ checkpoint")
     if args.out.exists() and any(args.out.iterdir()):
