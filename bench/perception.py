@@ -5,7 +5,8 @@
 Without --weights the nets are built at their default (CPU) configurations with random weights
 (the timing does not depend on the weight values) and saved to a temporary run directory, so the
 real loading path is exercised. Stages: seg = resize, segmentation net, upsampling to 640x480,
-softmax and argmax; pose = crops, point sampling and the pose net on the 5 objects as one batch;
+softmax and argmax; cls = the instance classifier on the 5 objects' segments (when the run has one);
+pose = crops, point sampling and the pose net on the 5 objects as one batch;
 refine = the refiner's iterations on the 5 objects. Prints a table and a JSON line.
 """
 
@@ -26,6 +27,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from perception import checkpoint  # noqa: E402
+from perception.classifier import ClassifierConfig, build_classifier  # noqa: E402
 from perception.inference import Estimator  # noqa: E402
 from perception.pose_net import PoseNetConfig, build_pose_net  # noqa: E402
 from perception.refiner import RefinerConfig, build_refiner  # noqa: E402
@@ -43,6 +45,8 @@ def make_default_run(root: Path) -> Path:
     checkpoint.save(root / "seg", "seg", build_seg_net(seg_cfg), seg_cfg, None, {"step": 0})
     checkpoint.save(root / "pose", "pose", build_pose_net(pose_cfg), pose_cfg, None, {"step": 0})
     checkpoint.save(root / "refine", "refine", build_refiner(ref_cfg), ref_cfg, None, {"step": 0})
+    cls_cfg = ClassifierConfig(obj_ids=OBJ_IDS)
+    checkpoint.save(root / "cls", "cls", build_classifier(cls_cfg), cls_cfg, None, {"step": 0})
     return root
 
 
@@ -69,16 +73,23 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
         est.refine_iterations = est.refiner_cfg.iterations
     rgb, depth, K, masks = synthetic_frame()
     masks = [(o, m) for o, m in masks if o in est.obj_ids]
-    times: dict[str, list[float]] = {"seg": [], "pose": [], "refine": [], "total": []}
+    labels = np.zeros(rgb.shape[:2], dtype=np.int64)  # the 5 objects as the seg net's class map
+    for o, m in masks:
+        labels[m] = o
+    times: dict[str, list[float]] = {"seg": [], "cls": [], "pose": [], "refine": [], "total": []}
     for i in range(warmup + repeats):
         t0 = time.perf_counter()
         est.segment(rgb)
         t1 = time.perf_counter()
+        if est.classifier is not None:
+            est.classify(rgb, depth, K, labels)
+        t15 = time.perf_counter()
         dets = est.estimate(rgb, depth, K, masks)
         t2 = time.perf_counter()
         assert len(dets) == len(masks)
         if i >= warmup:
             times["seg"].append(t1 - t0)
+            times["cls"].append(t15 - t1)
             times["pose"].append(est.timings["pose"])
             times["refine"].append(est.timings["refine"])
             times["total"].append(t2 - t0)

@@ -1,6 +1,6 @@
 """Checkpoints of the perception nets: safetensors + JSON, never pickles, written all-or-nothing.
 
-A checkpoint is a directory (``RUN/seg``, ``RUN/pose``, ``RUN/refine``) holding
+A checkpoint is a directory (``RUN/seg``, ``RUN/pose``, ``RUN/refine``, ``RUN/cls``) holding
 
 - ``model.safetensors``: the model's state dict,
 - ``config.json``: ``{"format", "version", "stage", "model": {...}, "train": {...}}``,
@@ -30,6 +30,7 @@ from torch import nn
 from posegrasp import io as pio
 from posegrasp.config import from_dict
 from posegrasp.errors import UserError
+from perception.classifier import ClassifierConfig, build_classifier
 from perception.pose_net import PoseNetConfig, build_pose_net
 from perception.refiner import RefinerConfig, build_refiner
 from perception.seg_net import SegNetConfig, build_seg_net
@@ -40,6 +41,7 @@ STAGES: dict[str, tuple[type, Callable[[Any], nn.Module]]] = {
     "seg": (SegNetConfig, build_seg_net),
     "pose": (PoseNetConfig, build_pose_net),
     "refine": (RefinerConfig, build_refiner),
+    "cls": (ClassifierConfig, build_classifier),
 }
 
 

@@ -1,6 +1,6 @@
 """``posegrasp train seg|pose|refine``, ``posegrasp eval`` and ``posegrasp perturb`` subcommands.
 
-A ``--config`` TOML file may hold sections ``[seg]``, ``[pose]``, ``[refine]`` and ``[eval]`` (with
+A ``--config`` TOML file may hold sections ``[seg]``, ``[pose]``, ``[refine]``, ``[cls]`` and ``[eval]`` (with
 sub-tables such as ``[pose.model]`` and ``[pose.data]``) matching the config dataclasses of
 ``perception.train`` and ``perception.evaluate``; command-line flags override it.
 """
@@ -19,7 +19,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``train``, ``eval`` and ``perturb`` subcommands."""
     p = subparsers.add_parser("train", help="train the segmentation net, the pose net or the refiner",
                               description="Train one stage of the perception network on a BOP dataset.")
-    p.add_argument("stage", choices=["seg", "pose", "refine"], help="which network to train")
+    p.add_argument("stage", choices=["seg", "pose", "refine", "cls"],
+                   help="which network to train (cls: the instance classifier, after seg)")
     p.add_argument("--data", required=True, type=Path, help="BOP dataset root")
     p.add_argument("--out", required=True, type=Path, help="run directory (RUN/<stage> holds the checkpoint)")
     p.add_argument("--config", type=Path, help="TOML file with [seg] / [pose] / [refine] sections")
@@ -39,6 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--config", type=Path, help="TOML file with an [eval] section")
     e.add_argument("--gt-masks", action="store_true", help="use ground-truth masks (pose stage only)")
     e.add_argument("--no-refine", action="store_true", help="ablation: skip refinement")
+    e.add_argument("--no-cls", action="store_true", help="ablation: no instance classifier (the paper's pipeline)")
     e.add_argument("--max-images", type=int, help="evaluate at most this many images")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(run=run_eval)
@@ -58,7 +60,7 @@ def run_train(args: argparse.Namespace) -> int:
     from perception import train as T
 
     cls, fn = {"seg": (T.SegTrainConfig, T.train_seg), "pose": (T.PoseTrainConfig, T.train_pose),
-               "refine": (T.RefineTrainConfig, T.train_refine)}[args.stage]
+               "refine": (T.RefineTrainConfig, T.train_refine), "cls": (T.ClsTrainConfig, T.train_cls)}[args.stage]
     if args.steps is not None and args.steps < 1:
         raise UserError("--steps must be at least 1")
     if not args.data.is_dir():
@@ -80,7 +82,8 @@ def run_eval(args: argparse.Namespace) -> int:
 
     cfg = load_toml(EvalConfig, args.config, section="eval")
     cfg = override(cfg, split=args.split, max_images=args.max_images,
-                   masks="gt" if args.gt_masks else None, refine_iterations=0 if args.no_refine else None)
+                   masks="gt" if args.gt_masks else None, refine_iterations=0 if args.no_refine else None,
+                   classify=False if args.no_cls else None)
     out = args.out or args.weights / f"eval_{cfg.split}"
     report = evaluate(args.data, args.weights, out, cfg, progress=not args.no_progress)
     summary = {"out": str(out), "segmentation": (report["segmentation"] or {}).get("mIoU"),

@@ -178,6 +178,124 @@ def prepare_pose_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: 
     return normalize_rgb(crop), choose_s, pts.astype(np.float32)
 
 
+def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray, size: int,
+                      side: float, depth_range: float, min_valid: int = 10) -> np.ndarray | None:
+    """Fixed-metric-size crop of one segment for the instance classifier (``perception.classifier``).
+
+    The square of ``side`` metres at the segment's median depth z, centred on the mask's centroid, is
+    resampled to size x size px (scale s = size z / (side f_x)). Channels (6, S, S) float32: RGB in [0, 1],
+    the mask, (depth - z) / depth_range clipped to [-1, 1] (0 where invalid), and the valid-depth flag.
+    RGB is not normalised here (``normalize_cls_input`` does it after augmentation). None when the
+    mask has fewer than ``min_valid`` pixels with valid depth.
+    """
+    valid = mask & (depth > 0)
+    if int(valid.sum()) < min_valid:
+        return None
+    z = float(np.median(depth[valid]))
+    vs, us = np.nonzero(mask)
+    s = size * z / (side * float(K[0, 0]))
+    A = np.array([[s, 0.0, size / 2 - s * us.mean()], [0.0, s, size / 2 - s * vs.mean()]], dtype=np.float32)
+    rgb_c = cv2.warpAffine(rgb, A, (size, size), flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    mask_c = cv2.warpAffine(mask.astype(np.uint8), A, (size, size), flags=cv2.INTER_NEAREST)
+    d_c = cv2.warpAffine(depth.astype(np.float32), A, (size, size), flags=cv2.INTER_NEAREST)
+    ok = d_c > 0
+    rel = np.where(ok, np.clip((d_c - z) / depth_range, -1.0, 1.0), 0.0)
+    return np.concatenate([rgb_c.transpose(2, 0, 1) / np.float32(255.0), mask_c[None], rel[None], ok[None]]
+                          ).astype(np.float32)
+
+
+def normalize_cls_input(x: np.ndarray) -> np.ndarray:
+    """``prepare_cls_input``'s (6, S, S) with the RGB channels ImageNet-normalised."""
+    x = x.astype(np.float32, copy=True)
+    x[:3] = (x[:3] - RGB_MEAN[:, None, None]) / RGB_STD[:, None, None]
+    return x
+
+
+def instance_masks(class_mask: np.ndarray, min_pixels: int) -> list[np.ndarray]:
+    """Split one class's mask into instances: its 8-connected components of at least ``min_pixels`` pixels.
+
+    The segmentation net is semantic (one class per block type), while a scene may hold several blocks of
+    a type; separated blocks become separate instances, touching ones stay merged.
+    """
+    n, comp, stats, _ = cv2.connectedComponentsWithStats(class_mask.astype(np.uint8), connectivity=8)
+    return [comp == i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_pixels]
+
+
+def segment_components(labels: np.ndarray, min_pixels: int) -> list[tuple[int, np.ndarray]]:
+    """(class, mask) of the ``instance_masks`` of every non-background class of a class map (H, W)."""
+    return [(int(c), m) for c in np.unique(labels) if c != 0 for m in instance_masks(labels == c, min_pixels)]
+
+
+class ClsDataset(Dataset):
+    """Instance classifier samples: ``{"image": (6, S, S) float32, "label": index into obj_ids}``.
+
+    One sample per annotated visible instance (its ground-truth mask) and, when ``segmenter`` is given
+    (a function RGB -> class map, e.g. a trained segmentation net), one per connected segment of the
+    predicted class map labelled with the ground-truth object covering most of it (segments mostly on
+    background are skipped): the classifier then learns on the fragments it will see at run time.
+    Crops are computed once, at construction. Augmentation (seeded by index and key): a random
+    permutation of the colour channels (block colours carry no class information), brightness and
+    contrast, a rotation by a multiple of 90 degrees and a mirror flip (the blocks' shapes are
+    mirror-symmetric).
+    """
+
+    def __init__(self, root: str | Path, split: str, obj_ids: list[int], size: int, side: float,
+                 depth_range: float, cfg: DataConfig | None = None, augment: bool = False, seed: int = 0,
+                 segmenter=None, progress: bool = False):
+        from rich.progress import track
+
+        self.cfg = cfg or DataConfig()
+        self.obj_ids = list(obj_ids)
+        self.augment = augment and self.cfg.augment
+        self.seed = seed
+        crops, labels = [], []
+        records = load_records(root, split)
+        for rec in track(records, description=f"crops {split}", disable=not progress):
+            rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
+            masks = []
+            for inst in rec.instances:
+                if inst.obj_id in self.obj_ids and (inst.info is None or (
+                        inst.info.visib_fract >= self.cfg.min_visib_fract
+                        and inst.info.px_count_visib >= self.cfg.min_points)):
+                    masks.append((inst.obj_id, rec.load_mask(inst.gt_index)))
+            if segmenter is not None:
+                gt = label_map(rec, rgb.shape[:2])
+                for _, m in segment_components(segmenter(rgb), self.cfg.min_points):
+                    major = int(np.bincount(gt[m]).argmax())
+                    if major in self.obj_ids:
+                        masks.append((major, m))
+            for obj_id, m in masks:
+                x = prepare_cls_input(rgb, depth, K, m, size, side, depth_range)
+                if x is not None:
+                    crops.append(x.astype(np.float16))
+                    labels.append(self.obj_ids.index(obj_id))
+        if not crops:
+            raise UserError(f"no usable object instance in {Path(root) / split} for the classifier")
+        self.crops = np.stack(crops)  # (N, 6, S, S) float16
+        self.labels = np.array(labels, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def get(self, index: int, key: int | None = None) -> dict[str, torch.Tensor | int]:
+        """Sample ``index``; ``key`` seeds the augmentation (None: none)."""
+        x = self.crops[index].astype(np.float32)
+        if self.augment and key is not None:
+            rng = _rng(self.seed, index, key)
+            j = self.cfg.color_jitter
+            rgb = x[rng.permutation(3)] * rng.uniform(1 - j, 1 + j)
+            mean = rgb.mean()
+            x[:3] = np.clip((rgb - mean) * rng.uniform(1 - j, 1 + j) + mean, 0.0, 1.0)
+            x = np.rot90(x, int(rng.integers(4)), axes=(1, 2))
+            if rng.random() < 0.5:
+                x = x[:, :, ::-1]
+        return {"image": torch.from_numpy(normalize_cls_input(np.ascontiguousarray(x))),
+                "label": int(self.labels[index])}
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor | int]:
+        return self.get(index)
+
+
 class PoseDataset(Dataset):
     """One sample per visible annotated object instance of the chosen objects.
 

@@ -9,7 +9,8 @@ error thresholds) and a BOP results CSV
 
 Ablations: ``refine_iterations = 0`` evaluates without refinement; a pose net trained with
 ``use_pam = use_cam = use_gfem = false`` is the DenseFusion-like variant (its flags are reported);
-``masks = "gt"`` isolates the pose stage by using ground-truth visible masks.
+``masks = "gt"`` isolates the pose stage by using ground-truth visible masks; ``classify = false``
+evaluates without the instance classifier (the paper's pipeline).
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ TE_THRESHOLDS = np.linspace(0.0, 0.05, 51)  # metres
 @dataclass
 class EvalConfig:
     """split: BOP split to evaluate. masks: "pred" (full pipeline) or "gt" (ground-truth visible
-    masks, pose stage only). refine_iterations: -1 = as trained, 0 = no refinement.
+    masks, pose stage only). refine_iterations: -1 = as trained, 0 = no refinement. classify: re-label
+    segments with the run's instance classifier when it has one (false: the paper's pipeline).
     min_visib_fract: ground-truth instances less visible are not evaluated (BOP: 0.1).
     min_valid_points: the estimator's minimum valid-depth pixels per object. model_points: surface
     points per model for ADD / ADD-S. max_images: 0 = all. method: name in the results CSV file."""
@@ -46,6 +48,7 @@ class EvalConfig:
     split: str = "test"
     masks: str = "pred"
     refine_iterations: int = -1
+    classify: bool = True
     min_visib_fract: float = 0.1
     min_valid_points: int = 50
     model_points: int = 1000
@@ -132,7 +135,8 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
         raise UserError(f"eval masks must be 'pred' or 'gt', got {cfg.masks!r}")
     data, out = Path(data), Path(out)
     est = Estimator(weights, refine_iterations=None if cfg.refine_iterations < 0 else cfg.refine_iterations,
-                    min_valid_points=cfg.min_valid_points, threads=cfg.threads, seed=cfg.seed)
+                    min_valid_points=cfg.min_valid_points, threads=cfg.threads, seed=cfg.seed,
+                    classify=None if cfg.classify else False)
     infos = bop.load_models_info(data)
     obj_ids = [o for o in est.obj_ids if o in infos]
     pts = {o: bop.sample_model_points(bop.load_model(data, o), cfg.model_points, seed=o) for o in obj_ids}
@@ -143,7 +147,7 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
     conf = np.zeros((nc, nc), dtype=np.int64)
     rows: list[dict[str, Any]] = []
     results: list[bop.PoseResult] = []
-    times: dict[str, list[float]] = {"seg": [], "pose": [], "refine": [], "total": []}
+    times: dict[str, list[float]] = {k: [] for k in (*est.timings, "total")}
     with Progress(disable=not progress) as bar:
         task = bar.add_task(f"eval {cfg.split}", total=len(records))
         for rec in records:
@@ -155,13 +159,13 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
             if cfg.masks == "pred":
                 dets = est(rgb, depth, K)
             else:
-                est.timings["seg"] = 0.0
+                est.timings.update(seg=0.0, cls=0.0)
                 dets = est.estimate(rgb, depth, K, gt_masks)
             total = time.perf_counter() - t0
             if cfg.masks == "pred":
                 conf += M.confusion_matrix(est.last_labels, label_map(rec, rgb.shape[:2]), nc)
-            for k in ("seg", "pose", "refine"):
-                times[k].append(est.timings[k])
+            for k, v in est.timings.items():
+                times[k].append(v)
             times["total"].append(total)
             rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
             results.extend(bop.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total) for d in dets)
@@ -174,7 +178,8 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
         "data": str(data), "split": cfg.split, "weights": str(weights), "images": len(records),
         "config": asdict(cfg),
         "ablation": {"pam": pose_cfg.use_pam, "cam": pose_cfg.use_cam, "gfem": pose_cfg.use_gfem,
-                     "refine_iterations": est.refine_iterations, "masks": cfg.masks},
+                     "refine_iterations": est.refine_iterations, "masks": cfg.masks,
+                     "classifier": est.classifier is not None and cfg.masks == "pred"},
         "segmentation": None,
         "overall": overall,
         "mean_over_objects": {k: _nanmean([per_object[o][k] for o in obj_ids if per_object[o]["n"]])

@@ -1,10 +1,12 @@
 """The two-stage estimator: segmentation, then per-object pose and iterative refinement.
 
-    est = Estimator("runs/blocks")           # RUN dir with seg/, pose/ and optionally refine/
+    est = Estimator("runs/blocks")           # RUN dir with seg/, pose/ and optionally cls/, refine/
     for det in est(rgb, depth, K):           # uint8 (H, W, 3), float32 metres (H, W), (3, 3)
         det.obj_id, det.T_cam_obj, det.score, det.mask
 
-Several blocks of one type are told apart as the connected components of their class mask.
+Several blocks of one type are told apart as the connected components of their class mask. When the
+run has an instance classifier (``cls/``, ``perception.classifier``), every connected segment of the
+class map is re-labelled by it before the instances are formed.
 Works on real camera data as well as on simulated frames: it only needs RGB, depth in metres and
 the intrinsics. Objects whose mask has fewer valid depth pixels than ``min_valid_points`` are
 declared invalid and skipped, as in the paper.
@@ -21,8 +23,10 @@ import numpy as np
 import torch
 
 from perception import checkpoint as ckpt_mod
-from perception.data import normalize_rgb, prepare_pose_input
+from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
+                             prepare_pose_input, segment_components)
 from perception.refiner import refine
+from perception.seg_net import SegNetConfig
 from perception.torch_geometry import make_transform, quat_to_rotmat
 from posegrasp.errors import UserError
 
@@ -38,24 +42,56 @@ class Detection:
     mask: np.ndarray
 
 
+class Segmenter:
+    """The segmentation stage alone: a seg net and its config; ``segmenter(rgb)`` -> class map."""
+
+    def __init__(self, model: torch.nn.Module, cfg: SegNetConfig):
+        self.model, self.cfg = model.eval(), cfg
+
+    @classmethod
+    def load(cls, ckpt: str | Path) -> "Segmenter":
+        """From a ``seg`` checkpoint directory."""
+        model, cfg, _ = ckpt_mod.load_model(Path(ckpt), "seg")
+        return cls(model, cfg)
+
+    @torch.no_grad()
+    def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Class map (H, W) int64 (0 background, else obj_id) and class probabilities (H, W, C)
+        float32: softmax at the net's input size, bilinearly resized to the image (OpenCV, channels
+        last, which is ~5x faster on a CPU than arg-maxing upsampled logits in torch)."""
+        h, w = rgb.shape[:2]
+        ih, iw = self.cfg.input_size
+        x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
+        logits = self.model(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
+        prob = np.ascontiguousarray(torch.softmax(logits[0], dim=0).permute(1, 2, 0).numpy())  # (ih, iw, C)
+        if (h, w) != (ih, iw):
+            prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
+            if prob.ndim == 2:  # OpenCV drops a single channel axis
+                prob = prob[..., None]
+        return prob.argmax(axis=-1).astype(np.int64), prob
+
+
 class Estimator:
     """Segmentation + pose + refinement from a run directory (``seg/``, ``pose/``, ``refine/``).
 
     refine_iterations: None = the refiner's configured count (0 when there is no refiner);
-    0 disables refinement (ablation). min_valid_points: minimum valid-depth pixels per object.
+    0 disables refinement (ablation). classify: None = re-label segments with the run's ``cls/``
+    classifier when it has one; False = never (ablation: the paper's pipeline); True = required.
+    min_valid_points: minimum valid-depth pixels per object.
     threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
     is deterministic). ``timings`` holds the seconds spent per stage in the last call and
     ``last_labels`` its class map (H, W).
     """
 
     def __init__(self, weights: str | Path, refine_iterations: int | None = None, min_valid_points: int = 50,
-                 threads: int | None = None, seed: int = 0):
+                 threads: int | None = None, seed: int = 0, classify: bool | None = None):
         weights = Path(weights)
         if not weights.is_dir():
             raise UserError(f"weights directory {weights} does not exist")
         if threads is not None:
             torch.set_num_threads(threads)
-        self.seg, self.seg_cfg, _ = ckpt_mod.load_model(weights / "seg", "seg")
+        self.segmenter = Segmenter.load(weights / "seg")
+        self.seg_cfg = self.segmenter.cfg
         self.pose, self.pose_cfg, _ = ckpt_mod.load_model(weights / "pose", "pose")
         self.refiner, self.refiner_cfg = None, None
         if (weights / "refine").exists():
@@ -63,13 +99,18 @@ class Estimator:
             if list(self.refiner_cfg.obj_ids) != list(self.pose_cfg.obj_ids) or \
                     self.refiner_cfg.emb_dim != self.pose_cfg.emb_dim:
                 raise UserError(f"refiner in {weights / 'refine'} was trained for another pose net")
+        self.classifier, self.cls_cfg = None, None
+        if classify is not False and (weights / "cls").exists():
+            self.classifier, self.cls_cfg, _ = ckpt_mod.load_model(weights / "cls", "cls")
+        elif classify:
+            raise UserError(f"{weights} has no cls/ checkpoint: train one with 'posegrasp train cls'")
         default_iters = self.refiner_cfg.iterations if self.refiner_cfg is not None else 0
         self.refine_iterations = default_iters if refine_iterations is None else refine_iterations
         if self.refine_iterations > 0 and self.refiner is None:
             raise UserError(f"{weights} has no refine/ checkpoint: cannot refine")
         self.min_valid_points = min_valid_points
         self.seed = seed
-        self.timings: dict[str, float] = {"seg": 0.0, "pose": 0.0, "refine": 0.0}
+        self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "pose": 0.0, "refine": 0.0}
         self.last_labels: np.ndarray | None = None
 
     @property
@@ -77,21 +118,9 @@ class Estimator:
         """BOP ids of the objects the pose net knows."""
         return list(self.pose_cfg.obj_ids)
 
-    @torch.no_grad()
     def segment(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Class map (H, W) int64 (0 background, else obj_id) and class probabilities (H, W, C)
-        float32: softmax at the net's input size, bilinearly resized to the image (OpenCV, channels
-        last, which is ~5x faster on a CPU than arg-maxing upsampled logits in torch)."""
-        h, w = rgb.shape[:2]
-        ih, iw = self.seg_cfg.input_size
-        x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
-        logits = self.seg(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
-        prob = np.ascontiguousarray(torch.softmax(logits[0], dim=0).permute(1, 2, 0).numpy())  # (ih, iw, C)
-        if (h, w) != (ih, iw):
-            prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
-            if prob.ndim == 2:  # OpenCV drops a single channel axis
-                prob = prob[..., None]
-        return prob.argmax(axis=-1).astype(np.int64), prob
+        """Class map and class probabilities of an RGB image (see ``Segmenter``)."""
+        return self.segmenter(rgb)
 
     @torch.no_grad()
     def estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
@@ -135,11 +164,40 @@ class Estimator:
                                  score=float(ms * float(conf[j])), mask=masks[k][1]))
         return out
 
+    @torch.no_grad()
+    def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Re-label every connected segment of the class map (H, W) with the instance classifier.
+
+        Returns the new class map and the per-pixel confidence (H, W) float32: the classifier's
+        probability of the chosen class on re-labelled segments, 0 elsewhere. Segments without enough
+        valid depth for a crop keep their label and get confidence 0."""
+        cfg = self.cls_cfg
+        new, conf = labels.copy(), np.zeros(labels.shape, dtype=np.float32)
+        segs, crops = [], []
+        for _, m in segment_components(labels, 1):
+            x = prepare_cls_input(rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range)
+            if x is not None:
+                segs.append(m)
+                crops.append(normalize_cls_input(x))
+        if segs:
+            p = torch.softmax(self.classifier(torch.from_numpy(np.stack(crops))), dim=1)  # (S, K)
+            pmax, k = p.max(dim=1)
+            for m, kk, pp in zip(segs, k.tolist(), pmax.tolist()):
+                new[m] = cfg.obj_ids[kk]
+                conf[m] = pp
+        return new, conf
+
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> list[Detection]:
         """Detect and estimate every known object in an RGB-D frame (depth in metres, 0 = invalid)."""
         rgb, depth, K = _check_inputs(rgb, depth, K)
         t0 = time.perf_counter()
         labels, prob = self.segment(rgb)
+        t1 = time.perf_counter()
+        conf, t_cls = None, 0.0
+        if self.classifier is not None:
+            labels, conf = self.classify(rgb, depth, K, labels)
+            t_cls = time.perf_counter() - t1
         self.last_labels = labels
         masks, scores = [], []
         for obj_id in self.obj_ids:
@@ -147,19 +205,11 @@ class Estimator:
                 continue
             for m in instance_masks(labels == obj_id, self.min_valid_points):
                 masks.append((obj_id, m))
-                scores.append(float(prob[..., obj_id][m].mean()))
-        self.timings["seg"] = time.perf_counter() - t0
+                # foreground probability x the classifier's confidence, or the seg net's class probability
+                s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
+                scores.append(float(s.mean()))
+        self.timings.update(seg=time.perf_counter() - t0 - t_cls, cls=t_cls)
         return self.estimate(rgb, depth, K, masks, scores)
-
-
-def instance_masks(class_mask: np.ndarray, min_pixels: int) -> list[np.ndarray]:
-    """Split one class's mask into instances: its 8-connected components of at least ``min_pixels`` pixels.
-
-    The segmentation net is semantic (one class per block type), while a scene may hold several blocks of
-    a type; separated blocks become separate instances, touching ones stay merged.
-    """
-    n, comp, stats, _ = cv2.connectedComponentsWithStats(class_mask.astype(np.uint8), connectivity=8)
-    return [comp == i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_pixels]
 
 
 def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

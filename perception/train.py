@@ -1,6 +1,6 @@
 """Training of the segmentation net, the pose net and the refiner on a BOP dataset.
 
-``train_seg``, ``train_pose`` and ``train_refine`` write ``RUN/<stage>/`` checkpoints (see
+``train_seg``, ``train_pose``, ``train_refine`` and ``train_cls`` write ``RUN/<stage>/`` checkpoints (see
 ``perception.checkpoint``) and ``RUN/<stage>_metrics.csv``. Runs are seeded and resumable: batch
 composition and augmentation are functions of (seed, step), and the checkpoint holds the weights,
 the optimizer state, the schedule state and the torch RNG, so a killed run resumed with
@@ -29,7 +29,8 @@ from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
 from perception import checkpoint as ckpt_mod
-from perception.data import DataConfig, ObjectModels, PoseDataset, SegDataset, collate
+from perception.classifier import ClassifierConfig, build_classifier
+from perception.data import ClsDataset, DataConfig, ObjectModels, PoseDataset, SegDataset, collate
 from perception.losses import pose_loss, refine_loss
 from perception.metrics import confusion_matrix, segmentation_scores
 from perception.pose_net import PoseNetConfig, build_pose_net
@@ -105,6 +106,24 @@ class RefineTrainConfig(StageConfig):
     lr: float = 3e-5
     iterations: int = 2
     eval_samples: int = 200
+
+
+@dataclass
+class ClsTrainConfig(StageConfig):
+    """Instance classifier training (``perception.classifier``). ``obj_ids`` empty = every object of
+    models_info. ``use_seg``: also learn on the segments that the run's ``seg/`` net predicts on the
+    training images (when the run has one), labelled by the ground truth. The learning rate rises
+    linearly over the first ``warmup`` of the steps, then follows a cosine to 0."""
+
+    model: ClassifierConfig = field(default_factory=ClassifierConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    obj_ids: list[int] = field(default_factory=list)
+    steps: int = 3000
+    batch_size: int = 64
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    warmup: float = 0.1
+    use_seg: bool = True
 
 
 # ---------------------------------------------------------------------------- shared machinery
@@ -258,6 +277,25 @@ def _resumed_cfg(cls: type, prior: dict[str, Any] | None, cfg: Any, overrides: d
     return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
 
 
+def _objects(data: Path, wanted: list[int]) -> tuple[dict[int, bop.ObjectInfo], list[int]]:
+    """The dataset's model infos and the objects to train for (``wanted``, or all when empty)."""
+    infos = bop.load_models_info(data)
+    obj_ids = list(wanted) or sorted(infos)
+    unknown = [o for o in obj_ids if o not in infos]
+    if unknown:
+        raise UserError(f"obj_ids {unknown} are not in {bop.models_info_path(data)}")
+    return infos, obj_ids
+
+
+def _restore(run: _Run, prior: dict[str, Any], model: torch.nn.Module, opt: torch.optim.Optimizer
+             ) -> dict[str, Any]:
+    """Load the checkpoint's weights and optimizer state for a resumed run; its training state."""
+    tensors, _ = ckpt_mod._read_safetensors(run.ckpt / "model.safetensors")
+    ckpt_mod.load_state(model, tensors, run.ckpt / "model.safetensors")
+    ckpt_mod.load_optimizer(run.ckpt, opt)
+    return prior["state"]
+
+
 def _init_from(model: torch.nn.Module, model_cfg: Any, src: Path, stage: str) -> None:
     """Load the weights of the ``stage`` checkpoint at ``src`` (or ``src/stage``) into ``model``."""
     ckpt = src / stage if (src / stage).is_dir() else src
@@ -289,10 +327,7 @@ def train_seg(data: str | Path, out: str | Path, cfg: SegTrainConfig | None = No
            if cfg.optimizer == "sgd" else torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay))
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr}
     if prior is not None:
-        tensors, _ = ckpt_mod._read_safetensors(run.ckpt / "model.safetensors")
-        ckpt_mod.load_state(model, tensors, run.ckpt / "model.safetensors")
-        ckpt_mod.load_optimizer(run.ckpt, opt)
-        state = prior["state"]
+        state = _restore(run, prior, model, opt)
     elif cfg.init:
         _init_from(model, model_cfg, Path(cfg.init), "seg")
     ds = SegDataset(data, train_split(data, cfg.train_split), model_cfg.input_size, model_cfg.num_classes, cfg.data,
@@ -412,11 +447,7 @@ def train_pose(data: str | Path, out: str | Path, cfg: PoseTrainConfig | None = 
     prior = run.prepare()
     cfg = _resumed_cfg(PoseTrainConfig, prior, cfg or PoseTrainConfig(), {"steps": steps, "seed": seed})
     _setup(cfg)
-    infos = bop.load_models_info(data)
-    obj_ids = list(cfg.obj_ids) or sorted(infos)
-    unknown = [o for o in obj_ids if o not in infos]
-    if unknown:
-        raise UserError(f"obj_ids {unknown} are not in {bop.models_info_path(data)}")
+    infos, obj_ids = _objects(data, cfg.obj_ids)
     model_cfg = dataclasses.replace(cfg.model, obj_ids=obj_ids, symmetric=[infos[o].symmetric for o in obj_ids])
     cfg = dataclasses.replace(cfg, model=model_cfg)
     model = build_pose_net(model_cfg)
@@ -424,10 +455,7 @@ def train_pose(data: str | Path, out: str | Path, cfg: PoseTrainConfig | None = 
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr, "w": cfg.w, "decayed": False, "refine_ready": False,
                              "best_val_dis": None}
     if prior is not None:
-        tensors, _ = ckpt_mod._read_safetensors(run.ckpt / "model.safetensors")
-        ckpt_mod.load_state(model, tensors, run.ckpt / "model.safetensors")
-        ckpt_mod.load_optimizer(run.ckpt, opt)
-        state = prior["state"]
+        state = _restore(run, prior, model, opt)
     train_ds, val_ds, val_idx = _pose_datasets(data, cfg, obj_ids, model_cfg.num_points, model_cfg.crop_size)
     log = MetricsLog(run.metrics, ["step", "time_s", "loss", "dis", "lr", "w", "val_dis"],
                      state["step"] if prior else None)
@@ -485,10 +513,7 @@ def train_refine(data: str | Path, out: str | Path, cfg: RefineTrainConfig | Non
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr, "best_val_dis": None}
     if prior is not None:
-        tensors, _ = ckpt_mod._read_safetensors(run.ckpt / "model.safetensors")
-        ckpt_mod.load_state(model, tensors, run.ckpt / "model.safetensors")
-        ckpt_mod.load_optimizer(run.ckpt, opt)
-        state = prior["state"]
+        state = _restore(run, prior, model, opt)
     train_ds, val_ds, val_idx = _pose_datasets(data, cfg, list(pose_cfg.obj_ids), pose_cfg.num_points,
                                                pose_cfg.crop_size)
     log = MetricsLog(run.metrics, ["step", "time_s", "loss", "dis_pose", "dis", "lr", "val_dis"],
@@ -522,5 +547,87 @@ def train_refine(data: str | Path, out: str | Path, cfg: RefineTrainConfig | Non
     return {**last, "step": state["step"], "best_val_dis": state["best_val_dis"]}
 
 
-__all__ = ["SegTrainConfig", "PoseTrainConfig", "RefineTrainConfig", "train_seg", "train_pose", "train_refine",
-           "evaluate_seg", "evaluate_pose", "batch_keys"]
+# ---------------------------------------------------------------------------- instance classifier
+
+def cls_lr(cfg: ClsTrainConfig, step: int) -> float:
+    """Learning rate at ``step``: linear warm-up over ``warmup x steps``, then cosine to 0."""
+    w = max(1, int(cfg.warmup * cfg.steps))
+    if step < w:
+        return cfg.lr * (step + 1) / w
+    return 0.5 * cfg.lr * (1.0 + math.cos(math.pi * min(1.0, (step - w) / max(1, cfg.steps - w))))
+
+
+def train_cls(data: str | Path, out: str | Path, cfg: ClsTrainConfig | None = None, steps: int | None = None,
+              seed: int | None = None, resume: bool = False, progress: bool = True) -> dict[str, float]:
+    """Train the instance classifier on ``data`` (with the segments of ``out/seg`` when present and
+    ``cfg.use_seg``); checkpoints in ``out/cls``."""
+    from perception.inference import Segmenter
+
+    data, run = Path(data), _Run(Path(out), "cls", resume)
+    prior = run.prepare()
+    cfg = _resumed_cfg(ClsTrainConfig, prior, cfg or ClsTrainConfig(), {"steps": steps, "seed": seed})
+    _setup(cfg)
+    infos, obj_ids = _objects(data, cfg.obj_ids)
+    model_cfg = dataclasses.replace(cfg.model, obj_ids=obj_ids)
+    cfg = dataclasses.replace(cfg, model=model_cfg)
+    model = build_classifier(model_cfg)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    state: dict[str, Any] = {"step": 0, "lr": cfg.lr}
+    if prior is not None:
+        state = _restore(run, prior, model, opt)
+    segmenter = None
+    if cfg.use_seg and ckpt_mod.exists(run.out / "seg"):
+        seg = Segmenter.load(run.out / "seg")
+
+        def segmenter(rgb: np.ndarray) -> np.ndarray:
+            return seg(rgb)[0]
+    crop = (model_cfg.crop_size, model_cfg.crop_side, model_cfg.depth_range)
+
+    def dataset(split: str, augment: bool) -> ClsDataset:
+        return ClsDataset(data, split, obj_ids, *crop, cfg.data, augment=augment, seed=cfg.seed,
+                          segmenter=segmenter, progress=progress)
+
+    ds = dataset(train_split(data, cfg.train_split), True)
+    val = dataset(cfg.val_split, False) if _split_exists(data, cfg.val_split) else None
+    log = MetricsLog(run.metrics, ["step", "time_s", "loss", "acc", "lr", "val_acc"],
+                     state["step"] if prior else None)
+
+    def step_fn(step: int) -> dict[str, float]:
+        model.train()
+        _set_lr(opt, cls_lr(cfg, step))
+        b = collate([ds.get(i, key) for i, key in batch_keys(len(ds), step, cfg.batch_size, cfg.seed)])
+        logits = model(b["image"])
+        loss = torch.nn.functional.cross_entropy(logits, b["label"])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return {"loss": float(loss.detach()), "acc": float((logits.argmax(1) == b["label"]).float().mean())}
+
+    def after_step(step: int, values: dict[str, float]) -> dict[str, Any]:
+        state.update(step=step, lr=cls_lr(cfg, step))
+        if val is not None and cfg.eval_every and step % cfg.eval_every == 0:
+            state["val_acc"] = evaluate_cls(model, val)
+            return {"lr": state["lr"], "val_acc": state["val_acc"]}
+        return {"lr": state["lr"]}
+
+    def save(step: int) -> None:
+        state["step"] = step
+        ckpt_mod.save(run.ckpt, "cls", model, model_cfg, cfg, state, opt)
+
+    last = _loop(run, cfg.steps, int(state["step"]), step_fn, after_step, save, cfg, log, progress, state)
+    return {**last, "step": state["step"], "samples": len(ds)}
+
+
+@torch.no_grad()
+def evaluate_cls(model: torch.nn.Module, ds: ClsDataset, batch_size: int = 256) -> float:
+    """Accuracy (fraction) of the classifier on every sample of ``ds`` (no augmentation)."""
+    model.eval()
+    right = 0
+    for s in range(0, len(ds), batch_size):
+        b = collate([ds.get(i) for i in range(s, min(len(ds), s + batch_size))])
+        right += int((model(b["image"]).argmax(1) == b["label"]).sum())
+    return right / len(ds)
+
+
+__all__ = ["SegTrainConfig", "PoseTrainConfig", "RefineTrainConfig", "ClsTrainConfig", "train_seg", "train_pose",
+           "train_refine", "train_cls", "evaluate_seg", "evaluate_pose", "evaluate_cls", "batch_keys"]

@@ -136,6 +136,15 @@ def tiny_configs():
     return seg, pose, refine
 
 
+def tiny_cls_config():
+    """A small instance classifier training config for the tiny dataset."""
+    from perception.classifier import ClassifierConfig
+    from perception.train import ClsTrainConfig
+
+    return ClsTrainConfig(model=ClassifierConfig(widths=(8, 16), crop_size=32), batch_size=16, lr=1e-2,
+                          log_every=1, checkpoint_every=10, eval_every=0)
+
+
 @pytest.fixture(name="tiny_configs")
 def tiny_configs_fixture():
     """``tiny_configs()`` as a fixture: (seg, pose, refine) training configs."""
@@ -144,12 +153,13 @@ def tiny_configs_fixture():
 
 @pytest.fixture(scope="session")
 def tiny_run(tiny_bop, tmp_path_factory) -> Path:
-    """A run directory with seg/, pose/ and refine/ trained for a few steps on the tiny dataset."""
-    from perception.train import train_pose, train_refine, train_seg
+    """A run directory with seg/, pose/, refine/ and cls/ trained for a few steps on the tiny dataset."""
+    from perception.train import train_cls, train_pose, train_refine, train_seg
 
     out = tmp_path_factory.mktemp("tiny_run")
     seg, pose, refine = tiny_configs()
     train_seg(tiny_bop, out, seg, steps=15, progress=False)
     train_pose(tiny_bop, out, pose, steps=20, progress=False)
     train_refine(tiny_bop, out, refine, steps=5, progress=False)
+    train_cls(tiny_bop, out, tiny_cls_config(), steps=60, progress=False)
     return out

@@ -66,7 +66,8 @@ def test_shipped_training_configs_load(path):
     from perception import train as T
 
     sections = tomllib.loads(path.read_text())
-    classes = {"seg": T.SegTrainConfig, "pose": T.PoseTrainConfig, "refine": T.RefineTrainConfig}
+    classes = {"seg": T.SegTrainConfig, "pose": T.PoseTrainConfig, "refine": T.RefineTrainConfig,
+               "cls": T.ClsTrainConfig}
     assert sections and set(sections) <= set(classes)
     for name in sections:
         cfg = load_toml(classes[name], path, section=name)

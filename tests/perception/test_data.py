@@ -54,3 +54,41 @@ def test_seg_samples(tiny_bop):
 
     with pytest.raises(UserError, match="classes"):
         SegDataset(tiny_bop, "train", (96, 128), num_classes=3).get(0)
+
+
+def test_cls_crop_has_a_fixed_metric_size():
+    from perception.data import prepare_cls_input
+
+    K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
+    for z in (0.3, 0.6):  # a 0.08 m square face, fronto-parallel, at two distances
+        side_px = int(round(0.08 * 150.0 / z))
+        depth = np.full((120, 160), z + 0.05, np.float32)
+        mask = np.zeros((120, 160), bool)
+        mask[30:30 + side_px, 40:40 + side_px] = True
+        depth[mask] = z
+        rgb = np.zeros((120, 160, 3), np.uint8)
+        x = prepare_cls_input(rgb, depth, K, mask, size=64, side=0.16, depth_range=0.05)
+        assert x.shape == (6, 64, 64) and x.dtype == np.float32
+        # half the crop's side: ~32 x 32 px of mask, centred, whatever the distance
+        assert abs(x[3].sum() - 32 * 32) < 0.1 * 32 * 32 and x[3, 32, 32] == 1.0
+        rel = x[4][x[5] > 0]
+        np.testing.assert_allclose(sorted(set(np.round(rel, 4))), [0.0, 1.0])  # object 0, table +0.05 m
+    assert prepare_cls_input(rgb, np.zeros_like(depth), K, mask, 64, 0.16, 0.05) is None
+
+
+def test_cls_samples_from_gt_and_from_segments(tiny_bop):
+    from perception.data import ClsDataset, label_map, load_records
+
+    kw = dict(size=32, side=0.16, depth_range=0.05)
+    gt_only = ClsDataset(tiny_bop, "train", [1, 2, 3], **kw, segmenter=lambda rgb: np.zeros(rgb.shape[:2], int))
+    by_rgb = {r.load_rgb().tobytes(): r for r in load_records(tiny_bop, "train")}
+
+    def perfect(rgb):  # a segmenter that returns the ground truth
+        return label_map(by_rgb[rgb.tobytes()], rgb.shape[:2])
+
+    both = ClsDataset(tiny_bop, "train", [1, 2, 3], **kw, segmenter=perfect, augment=True, seed=1)
+    assert len(gt_only) >= 20 and len(both) > len(gt_only)
+    assert sorted(set(both.labels.tolist())) == [0, 1, 2]
+    a, b, c = both.get(3, key=7), both.get(3, key=7), both.get(3, key=8)
+    assert a["image"].shape == (6, 32, 32) and torch.equal(a["image"], b["image"])
+    assert not torch.equal(a["image"], c["image"]) and a["label"] == both.get(3)["label"]

@@ -16,8 +16,15 @@ def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
     on_disk = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert on_disk["overall"]["n"] == rep["overall"]["n"] == 9
     assert 0 <= on_disk["segmentation"]["mIoU"] <= 100
-    assert set(rep["time_per_image_s"]) == {"seg", "pose", "refine", "total"}
-    assert rep["ablation"]["refine_iterations"] == 2
+    assert set(rep["time_per_image_s"]) == {"seg", "cls", "pose", "refine", "total"}
+    assert rep["ablation"]["refine_iterations"] == 2 and rep["ablation"]["classifier"]
+    assert rep["time_per_image_s"]["cls"] > 0
+
+
+def test_evaluate_without_classifier(tiny_bop, tiny_run, tmp_path):
+    rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", EvalConfig(classify=False), progress=False)
+    assert not rep["ablation"]["classifier"] and rep["time_per_image_s"]["cls"] == 0.0
+    assert 0 <= rep["segmentation"]["mIoU"] <= 100
 
 
 def test_evaluate_gt_masks_without_refinement(tiny_bop, tiny_run, tmp_path):
@@ -35,6 +42,12 @@ def test_estimator_api(tiny_bop, tiny_run):
     est = Estimator(tiny_run)
     dets = est(rgb, depth, K)
     assert isinstance(dets, list) and all(isinstance(d, Detection) for d in dets)
+    assert est.classifier is not None and Estimator(tiny_run, classify=False).classifier is None
+    # every connected segment of the class map gets one label from the classifier
+    labels, _ = est.segment(rgb)
+    new, conf = est.classify(rgb, depth, K, labels)
+    assert np.array_equal(new == 0, labels == 0) and set(np.unique(new)) <= {0, 1, 2, 3}
+    assert np.all((conf > 0) <= (labels > 0)) and conf.max() <= 1.0
     masks = [(g.obj_id, rec.load_mask(g.gt_index)) for g in rec.instances]
     dets = est.estimate(rgb, depth, K, masks)
     assert [d.obj_id for d in dets] == [1, 2, 3]

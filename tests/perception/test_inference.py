@@ -3,7 +3,7 @@
 def test_instance_masks_split_separated_blocks_of_one_type():
     import numpy as np
 
-    from perception.inference import instance_masks
+    from perception.data import instance_masks
 
     m = np.zeros((40, 60), bool)
     m[5:15, 5:15] = True  # block A

@@ -1,10 +1,12 @@
-"""Output shapes of the segmentation net, the pose net (with and without attention) and the refiner."""
+"""Output shapes of the segmentation net, the pose net (with and without attention), the refiner and the
+instance classifier."""
 
 import dataclasses
 
 import pytest
 import torch
 
+from perception.classifier import ClassifierConfig, build_classifier
 from perception.pose_net import PoseNetConfig, build_pose_net
 from perception.refiner import RefinerConfig, build_refiner, refine
 from perception.seg_net import SegNetConfig, build_seg_net, seg_loss
@@ -73,3 +75,13 @@ def test_config_validation():
         build_seg_net(SegNetConfig(input_size=(16, 320)))
     with pytest.raises(ValueError):
         build_pose_net(dataclasses.replace(PoseNetConfig(), symmetric=[True]))
+
+
+def test_classifier_shapes_and_validation():
+    net = build_classifier(ClassifierConfig(obj_ids=[1, 2, 5], widths=(8, 16, 32), crop_size=32)).eval()
+    with torch.no_grad():
+        assert net(torch.randn(4, 6, 32, 32)).shape == (4, 3)
+    with pytest.raises(ValueError, match="crop_size"):
+        build_classifier(ClassifierConfig(widths=(8, 8, 8, 8, 8, 8, 8), crop_size=32))
+    with pytest.raises(ValueError, match="obj_ids"):
+        build_classifier(ClassifierConfig(obj_ids=[]))

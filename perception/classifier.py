@@ -1,0 +1,75 @@
+"""Instance classifier: which block is this segment? (an addition to the paper's pipeline).
+
+The segmentation net finds the blocks well (foreground IoU ~86 on the test split) but often confuses
+their types: the blocks differ by shape, not colour (datagen draws colours at random), and at the
+CPU input size a block is a few dozen pixels. This net re-labels every connected segment of the
+class map from a crop of fixed metric size (``crop_side`` metres at the segment's median depth, so
+pixels have the same size in metres at any distance) with RGB, the segment's mask and the depth
+relative to the segment (``perception.data.prepare_cls_input``).
+
+    x (B, 6, S, S) -> [conv-BN-ReLU x2, max-pool] per width -> global average -> linear -> (B, K) logits
+
+K = len(obj_ids); logit k is object ``obj_ids[k]``. ``Estimator(..., classify=False)`` and
+``posegrasp eval --no-cls`` give the paper's pipeline without it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from perception.seg_net import ConvBNReLU
+
+IN_CHANNELS = 6  # RGB (normalised), mask, relative depth, valid depth
+
+
+@dataclass
+class ClassifierConfig:
+    """obj_ids: the objects (set from the dataset). widths: channels of the conv stages (a 2x max-pool
+    between stages). crop_size: input side (px). crop_side: the crop's side (m) at the segment's
+    median depth. depth_range: relative depths are clipped to +-this (m) and scaled to [-1, 1]."""
+
+    obj_ids: list[int] = field(default_factory=lambda: [1, 2, 3])
+    widths: tuple[int, ...] = (16, 32, 64, 128)
+    crop_size: int = 64
+    crop_side: float = 0.16
+    depth_range: float = 0.05
+
+    def validate(self) -> None:
+        """Raise ValueError on an unusable configuration."""
+        if not self.obj_ids:
+            raise ValueError("obj_ids must name at least one object")
+        if not self.widths or min(self.widths) < 1:
+            raise ValueError(f"widths must be positive channel counts, got {self.widths}")
+        if self.crop_size < 2 ** (len(self.widths) - 1):
+            raise ValueError(f"crop_size {self.crop_size} is too small for {len(self.widths)} pooled stages")
+        if self.crop_side <= 0 or self.depth_range <= 0:
+            raise ValueError(f"crop_side ({self.crop_side}) and depth_range ({self.depth_range}) must be positive")
+
+
+class CropClassifier(nn.Module):
+    """A small VGG-style CNN over metric crops: (B, 6, S, S) -> (B, K) logits."""
+
+    def __init__(self, cfg: ClassifierConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        layers: list[nn.Module] = []
+        cin = IN_CHANNELS
+        for i, w in enumerate(cfg.widths):
+            if i:
+                layers.append(nn.MaxPool2d(2))  # (B, C, S / 2^i, S / 2^i)
+            layers += [ConvBNReLU(cin, w), ConvBNReLU(w, w)]
+            cin = w
+        self.features = nn.Sequential(*layers)
+        self.fc = nn.Linear(cin, len(cfg.obj_ids))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc(self.features(x).mean(dim=(2, 3)))  # (B, C) -> (B, K)
+
+
+def build_classifier(cfg: ClassifierConfig) -> CropClassifier:
+    """The instance classifier for ``cfg`` (random init)."""
+    return CropClassifier(cfg)
