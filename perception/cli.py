@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, help="total optimisation steps (overrides the config)")
     p.add_argument("--seed", type=int, help="random seed (overrides the config)")
     p.add_argument("--resume", action="store_true", help="continue the checkpoint in RUN/<stage>")
-    p.add_argument("--init", type=Path, help="seg only: start from these weights (a run or its seg/ folder)")
+    p.add_argument("--init", type=Path, help="seg and pose: start from these weights (a run or its stage folder)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_train)
 
@@ -67,8 +67,8 @@ def run_train(args: argparse.Namespace) -> int:
         raise UserError(f"--data {args.data} is not a directory")
     cfg = load_toml(cls, args.config, section=args.stage)
     if args.init is not None:
-        if args.stage != "seg":
-            raise UserError("--init is only for 'train seg' (fine-tuning the segmentation net)")
+        if args.stage not in ("seg", "pose"):
+            raise UserError("--init is only for 'train seg' and 'train pose' (fine-tuning)")
         cfg = override(cfg, init=str(args.init))
     result = fn(args.data, args.out, cfg, steps=args.steps, seed=args.seed, resume=args.resume,
                 progress=not args.no_progress)

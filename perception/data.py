@@ -301,7 +301,10 @@ class PoseDataset(Dataset):
 
     Sample keys: image (3, S, S), choose (N,) int64, points (N, 3) camera frame (m), model_points
     (M, 3) object frame (m), target (M, 3) = model points under the ground truth (m), obj (head
-    index), symmetric (bool), T (4, 4) float64 ground truth, obj_id, scene_id, im_id, gt_index.
+    index), symmetric (bool), T (4, 4) float64 ground truth, obj_id, scene_id, im_id, gt_index;
+    sym_targets (S, M, 3): the model points under T S_k for the identity and each discrete symmetry S_k of
+    the object (S = 1 + the most discrete symmetries of any object of the dataset, padded with the
+    identity's copy), and continuous (bool): the object has a continuous symmetry.
     """
 
     def __init__(self, root: str | Path, split: str, obj_ids: list[int], num_points: int, crop_size: int,
@@ -333,12 +336,20 @@ class PoseDataset(Dataset):
         if not self.index:
             raise UserError(f"no usable object instance in {self.root / split} (min_visib_fract "
                             f"{self.cfg.min_visib_fract}, min_points {self.cfg.min_points})")
+        self.num_sym = 1 + max(len(self.models.infos[o].symmetries_discrete) for o in self.obj_ids)
 
     def __len__(self) -> int:
         return len(self.index)
 
     def symmetric(self, obj_id: int) -> bool:
         return self.models.infos[obj_id].symmetric
+
+    def _sym_targets(self, obj_id: int, model: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """(num_sym, M, 3) float32: ``model`` under T S_k, identity first, padded with the identity's copy."""
+        syms = [np.eye(4)] + list(self.models.infos[obj_id].symmetries_discrete)
+        syms += [np.eye(4)] * (self.num_sym - len(syms))
+        out = np.stack([model @ (T @ S)[:3, :3].T + (T @ S)[:3, 3] for S in syms])
+        return out.astype(np.float32)
 
     def get(self, index: int, key: int | None = None) -> dict[str, torch.Tensor | int | bool]:
         """Sample ``index``; ``key`` seeds augmentation (None: none). An instance with too few valid
@@ -385,6 +396,8 @@ class PoseDataset(Dataset):
             "model_points": torch.from_numpy(model.astype(np.float32)),
             "target": torch.from_numpy(target.astype(np.float32)),
             "obj": self.obj_ids.index(inst.obj_id), "symmetric": self.symmetric(inst.obj_id),
+            "sym_targets": torch.from_numpy(self._sym_targets(inst.obj_id, model, T)),
+            "continuous": bool(self.models.infos[inst.obj_id].symmetries_continuous),
             "T": torch.from_numpy(T), "obj_id": inst.obj_id, "scene_id": rec.scene_id, "im_id": rec.im_id,
             "gt_index": gi,
         }

@@ -1,4 +1,5 @@
-"""Pose losses (DenseFusion's, batched): ADD for asymmetric objects, ADD-S for symmetric ones.
+"""Pose losses (DenseFusion's, batched): ADD for asymmetric objects, ADD-S for symmetric ones, or
+optionally the minimum ADD over an object's discrete symmetries.
 
 All points are in metres. ``model_points`` (B, M, 3) are in the object frame; ``target`` (B, M, 3)
 are the same points under the ground-truth pose, in the camera frame (or, for the refiner, in the
@@ -38,6 +39,26 @@ def point_distances(pred: torch.Tensor, target: torch.Tensor, symmetric: torch.T
     return (pred - tgt).norm(dim=-1).mean(dim=-1)  # (B, P)
 
 
+def min_symmetry_targets(pred: torch.Tensor, sym_targets: torch.Tensor, max_elems: int = 1 << 24) -> torch.Tensor:
+    """For each proposal, the copy of the target under the object's discrete symmetries closest to it.
+
+    pred (B, P, M, 3); sym_targets (B, S, M, 3): the model points under T_gt S_k for the identity and each
+    discrete symmetry S_k (padded with repeats). Returns (B, P, M, 3), chosen under no_grad: the ADD to it
+    is min_k ADD(pred, T_gt S_k), which unlike ADD-S pins the rotation down to the true symmetries.
+    """
+    B, P, M, _ = pred.shape
+    S = sym_targets.shape[1]
+    out = torch.empty_like(pred)
+    chunk = max(1, max_elems // max(S * M * 3, 1))
+    with torch.no_grad():
+        for b in range(B):
+            for s in range(0, P, chunk):
+                p = pred[b, s:s + chunk].detach()  # (p, M, 3)
+                d = (p[:, None] - sym_targets[b][None]).norm(dim=-1).mean(dim=-1)  # (p, S)
+                out[b, s:s + chunk] = sym_targets[b][d.argmin(dim=1)]
+    return out
+
+
 @dataclass
 class PoseLossOutput:
     """Loss of the pose net and the best proposal per sample (detached).
@@ -57,17 +78,29 @@ class PoseLossOutput:
 
 def pose_loss(pred_q: torch.Tensor, pred_t: torch.Tensor, pred_c: torch.Tensor, points: torch.Tensor,
               model_points: torch.Tensor, target: torch.Tensor, symmetric: torch.Tensor,
-              w: float = 0.015) -> PoseLossOutput:
+              w: float = 0.015, sym_targets: torch.Tensor | None = None,
+              continuous: torch.Tensor | None = None) -> PoseLossOutput:
     """DenseFusion loss mean_i(dis_i * c_i - w log c_i) over points i and the batch.
 
     pred_q (B, N, 4) quaternions (w, x, y, z), pred_t (B, N, 3) translation offsets (the proposal
     of point i has t = points_i + pred_t_i), pred_c (B, N) confidences in (0, 1), points (B, N, 3).
+    dis_i is ADD / ADD-S by ``symmetric``, or, with ``sym_targets`` (B, S, M, 3) (see
+    ``min_symmetry_targets``), the minimum ADD over the discrete symmetries, and ADD-S only for
+    samples with a continuous symmetry (``continuous`` (B,) bool).
     """
     B, N, _ = pred_q.shape
     R = quat_to_rotmat(pred_q)  # (B, N, 3, 3)
     t = points + pred_t  # (B, N, 3)
     pred = torch.einsum("bmk,bnjk->bnmj", model_points, R) + t[:, :, None, :]  # (B, N, M, 3)
-    dis = point_distances(pred, target, symmetric)  # (B, N)
+    if sym_targets is None:
+        dis = point_distances(pred, target, symmetric)  # (B, N)
+    else:
+        cont = continuous.bool() if continuous is not None else torch.zeros(B, dtype=torch.bool)
+        dis = point_distances(pred, target, cont)  # ADD-S where continuous, else overwritten below
+        disc = torch.nonzero(~cont, as_tuple=False).flatten()
+        if disc.numel():
+            tgt = min_symmetry_targets(pred[disc], sym_targets[disc])  # (b, N, M, 3)
+            dis = dis.index_put((disc,), (pred[disc] - tgt).norm(dim=-1).mean(dim=-1))
     c = pred_c.clamp(1e-6, 1.0)
     loss = (dis * c - w * torch.log(c)).mean()
     with torch.no_grad():

@@ -82,7 +82,10 @@ class PoseTrainConfig(StageConfig):
     """Pose net training. ``obj_ids`` empty = every object of models_info; ``model.obj_ids`` and
     ``model.symmetric`` are set from the dataset. The evaluation that drives the lr / w decay uses
     ``val_split``, or a fixed subset of the training instances (no augmentation) when that split
-    does not exist."""
+    does not exist. ``sym_loss``: "adds" (the paper: ADD-S for every symmetric object) or "min_sym"
+    (the minimum ADD over each object's discrete symmetries, ADD-S only for continuous ones; it pins
+    the rotation down where ADD-S lets near-symmetric shapes settle on a wrong one). ``init``: a pose
+    checkpoint (or a run holding ``pose/``) to start from (fine-tuning), as for segmentation."""
 
     model: PoseNetConfig = field(default_factory=PoseNetConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -93,6 +96,8 @@ class PoseTrainConfig(StageConfig):
     w_decay: float = 0.3
     refine_margin: float = 0.013
     eval_samples: int = 200
+    sym_loss: str = "adds"
+    init: str = ""
 
 
 @dataclass
@@ -400,9 +405,10 @@ def _to_batch(ds: PoseDataset, keys: list[tuple[int, int | None]]) -> dict[str, 
     return collate([ds.get(i, k) for i, k in keys])
 
 
-def _pose_forward(model, b: dict[str, torch.Tensor], w: float):
+def _pose_forward(model, b: dict[str, torch.Tensor], w: float, sym_loss: str = "adds"):
     q, t, c, emb = model(b["image"], b["points"], b["choose"], b["obj"])
-    return pose_loss(q, t, c, b["points"], b["model_points"], b["target"], b["symmetric"], w), emb
+    sym = {"sym_targets": b["sym_targets"], "continuous": b["continuous"]} if sym_loss == "min_sym" else {}
+    return pose_loss(q, t, c, b["points"], b["model_points"], b["target"], b["symmetric"], w, **sym), emb
 
 
 @torch.no_grad()
@@ -454,8 +460,12 @@ def train_pose(data: str | Path, out: str | Path, cfg: PoseTrainConfig | None = 
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr, "w": cfg.w, "decayed": False, "refine_ready": False,
                              "best_val_dis": None}
+    if cfg.sym_loss not in ("adds", "min_sym"):
+        raise UserError(f"pose sym_loss {cfg.sym_loss!r} is not 'adds' or 'min_sym'")
     if prior is not None:
         state = _restore(run, prior, model, opt)
+    elif cfg.init:
+        _init_from(model, model_cfg, Path(cfg.init), "pose")
     train_ds, val_ds, val_idx = _pose_datasets(data, cfg, obj_ids, model_cfg.num_points, model_cfg.crop_size)
     log = MetricsLog(run.metrics, ["step", "time_s", "loss", "dis", "lr", "w", "val_dis"],
                      state["step"] if prior else None)
@@ -463,7 +473,7 @@ def train_pose(data: str | Path, out: str | Path, cfg: PoseTrainConfig | None = 
     def step_fn(step: int) -> dict[str, float]:
         model.train()
         b = _to_batch(train_ds, batch_keys(len(train_ds), step, cfg.batch_size, cfg.seed))
-        out, _ = _pose_forward(model, b, state["w"])
+        out, _ = _pose_forward(model, b, state["w"], cfg.sym_loss)
         opt.zero_grad(set_to_none=True)
         out.loss.backward()
         opt.step()

@@ -20,6 +20,13 @@ def test_pose_samples_are_consistent(tiny_bop):
     T = s["T"].numpy()
     np.testing.assert_allclose(s["model_points"].numpy() @ T[:3, :3].T + T[:3, 3], s["target"].numpy(), atol=1e-6)
     assert s["symmetric"] == (s["obj_id"] != 1)
+    # the target under each discrete symmetry covers the same surface (box: 3 flips -> 4 copies)
+    assert ds.num_sym == 4 and s["sym_targets"].shape == (4, 128, 3)
+    box = next(ds.get(i) for i in range(len(ds)) if ds.get(i)["obj_id"] == 3)
+    assert torch.equal(box["sym_targets"][0], box["target"]) and not box["continuous"]
+    for k in range(1, 4):
+        assert nearest_distances(box["sym_targets"][k].numpy(), box["target"].numpy()).mean() < 0.004
+        assert (box["sym_targets"][k] - box["target"]).norm(dim=-1).mean() > 0.005
     b = collate([ds.get(i) for i in range(3)])
     assert b["points"].shape == (3, 100, 3) and b["obj"].dtype == torch.int64
 

@@ -71,3 +71,29 @@ def test_symmetric_loss_ignores_symmetry():
     out = refine_loss(qz, torch.zeros(1, 3, dtype=torch.float64), target[:, :5], model, target,
                       torch.tensor([True]))
     assert out.dis.shape == (1,)
+
+
+def test_min_symmetry_loss_is_zero_at_every_symmetric_pose_and_not_at_a_near_symmetry():
+    from perception.losses import min_symmetry_targets
+
+    # a 60 x 30 x 20 mm box; its true symmetries: 180 deg about z (and x, y); a 90 deg turn about z is not one
+    g = torch.Generator().manual_seed(0)
+    model = (torch.rand(1, 200, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([0.06, 0.03, 0.02])
+    flip_z = torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=torch.float64))
+    quarter_z = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    t = torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64)
+    target = model + t
+    sym_targets = torch.stack([model[0], model[0] @ flip_z.T])[None] + t  # (1, S=2, M, 3)
+    pred = torch.stack([model[0] @ R.T + t for R in (torch.eye(3, dtype=torch.float64), flip_z, quarter_z)])[None]
+    tgt = min_symmetry_targets(pred, sym_targets)
+    add_min = (pred - tgt).norm(dim=-1).mean(dim=-1)[0]  # (P,)
+    assert add_min[0] < 1e-12 and add_min[1] < 1e-12 and add_min[2] > 0.01
+    # ADD-S, by contrast, barely sees the quarter turn
+    adds = point_distances(pred, target, torch.tensor([True]))[0]
+    assert adds[2] < 0.5 * add_min[2]
+    # in pose_loss: min over symmetries where discrete, ADD-S where continuous
+    q = torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], dtype=torch.float64)  # 180 deg about z
+    pts = target[:, :1]
+    out = pose_loss(q, t - pts, torch.ones(1, 1, dtype=torch.float64), pts, model, target, torch.tensor([True]),
+                    sym_targets=sym_targets, continuous=torch.tensor([False]))
+    assert out.dis[0] < 1e-12

@@ -129,3 +129,16 @@ def test_seg_fine_tunes_from_init_weights(tiny_bop, tiny_run, tiny_configs, tmp_
         train_seg(tiny_bop, tmp_path / "bad", wide, steps=1, progress=False)
     with pytest.raises(UserError, match="no seg checkpoint"):
         train_seg(tiny_bop, tmp_path / "none", dataclasses.replace(seg, init=str(tmp_path)), steps=1, progress=False)
+
+
+def test_pose_fine_tuning_with_the_symmetry_loss(tiny_bop, tiny_run, tiny_configs, tmp_path):
+    _, pose, _ = tiny_configs
+    start = load_file(tiny_run / "pose" / "model.safetensors")
+    cfg = dataclasses.replace(pose, sym_loss="min_sym", init=str(tiny_run), eval_every=0)
+    train_pose(tiny_bop, tmp_path / "ft", cfg, steps=2, progress=False)
+    after = load_file(tmp_path / "ft" / "pose" / "model.safetensors")
+    assert set(after) == set(start) and any(not torch.equal(after[k], start[k]) for k in start)  # from the init
+    learned = [k for k in start if "running_" not in k and "num_batches" not in k]  # not batch-norm statistics
+    assert all(torch.allclose(after[k], start[k], atol=0.01) for k in learned)  # 2 Adam steps of lr 1e-3
+    with pytest.raises(UserError, match="sym_loss"):
+        train_pose(tiny_bop, tmp_path / "bad", dataclasses.replace(pose, sym_loss="add"), steps=1, progress=False)
