@@ -1,7 +1,7 @@
 """The learned two-stage network as a perception provider: ``--perception model[:RUN_OR_WEIGHTS]``.
 
-The hand camera's RGB-D frame goes through segmentation, pose estimation and refinement
-(``perception.inference.Estimator``); only the resulting ``T_cam_obj`` estimates reach the planner.
+The hand camera's RGB-D frame goes through segmentation, instance classification, pose estimation and
+depth refinement against the catalogue's block models (``perception.inference.Estimator``); only the resulting ``T_cam_obj`` estimates reach the planner.
 Without an argument the shipped model in ``assets/perception/model`` is used.
 """
 
@@ -24,7 +24,7 @@ SHIPPED_MODEL = ASSETS / "perception" / "model"
 def _estimator(weights: str):
     from perception.inference import Estimator
 
-    return Estimator(weights, threads=1)
+    return Estimator(weights, threads=1, models=ASSETS / "blocks")  # the catalogue's meshes, for ICP
 
 
 @dataclass(frozen=True)

@@ -25,9 +25,11 @@ import torch
 from perception import checkpoint as ckpt_mod
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
+from perception.icp import ICPConfig, refine_pose
 from perception.refiner import refine
 from perception.seg_net import SegNetConfig
 from perception.torch_geometry import make_transform, quat_to_rotmat
+from posegrasp import bop
 from posegrasp.errors import UserError
 
 
@@ -77,14 +79,17 @@ class Estimator:
     refine_iterations: None = the refiner's configured count (0 when there is no refiner);
     0 disables refinement (ablation). classify: None = re-label segments with the run's ``cls/``
     classifier when it has one; False = never (ablation: the paper's pipeline); True = required.
-    min_valid_points: minimum valid-depth pixels per object.
+    min_valid_points: minimum valid-depth pixels per object. models: a BOP dataset root whose
+    ``models/`` hold the objects' meshes; with it every estimate is refined against the depth image by
+    ICP from rotation hypotheses (``perception.icp``, settings ``icp``); None skips that step.
     threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
     is deterministic). ``timings`` holds the seconds spent per stage in the last call and
     ``last_labels`` its class map (H, W).
     """
 
     def __init__(self, weights: str | Path, refine_iterations: int | None = None, min_valid_points: int = 50,
-                 threads: int | None = None, seed: int = 0, classify: bool | None = None):
+                 threads: int | None = None, seed: int = 0, classify: bool | None = None,
+                 models: str | Path | None = None, icp: ICPConfig | None = None):
         weights = Path(weights)
         if not weights.is_dir():
             raise UserError(f"weights directory {weights} does not exist")
@@ -110,7 +115,16 @@ class Estimator:
             raise UserError(f"{weights} has no refine/ checkpoint: cannot refine")
         self.min_valid_points = min_valid_points
         self.seed = seed
-        self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "pose": 0.0, "refine": 0.0}
+        self.icp = icp or ICPConfig()
+        self.model_points: dict[int, np.ndarray] | None = None
+        if models is not None:
+            infos = bop.load_models_info(models)
+            missing = [o for o in self.obj_ids if o not in infos]
+            if missing:
+                raise UserError(f"models in {models} lack objects {missing} of the pose net")
+            self.model_points = {o: bop.sample_model_points(bop.load_model(models, o), 500, seed=o)
+                                 for o in self.obj_ids}
+        self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "pose": 0.0, "refine": 0.0, "icp": 0.0}
         self.last_labels: np.ndarray | None = None
 
     @property
@@ -141,7 +155,7 @@ class Estimator:
             items.append(prep)
             kept.append(k)
         if not items:
-            self.timings.update(pose=time.perf_counter() - t0, refine=0.0)
+            self.timings.update(pose=time.perf_counter() - t0, refine=0.0, icp=0.0)
             return []
         img = torch.from_numpy(np.stack([i[0] for i in items]))
         choose = torch.from_numpy(np.stack([i[1] for i in items]))
@@ -156,13 +170,28 @@ class Estimator:
         if self.refine_iterations > 0 and self.refiner is not None:
             T = refine(self.refiner, T, points, emb, obj, self.refine_iterations)
             t2 = time.perf_counter()
-        self.timings.update(pose=t1 - t0, refine=t2 - t1)
         out = []
         for j, k in enumerate(kept):
             ms = 1.0 if mask_scores is None else mask_scores[k]
-            out.append(Detection(obj_id=int(masks[k][0]), T_cam_obj=T[j].double().numpy(),
-                                 score=float(ms * float(conf[j])), mask=masks[k][1]))
+            T_j = T[j].double().numpy()
+            if self.model_points is not None:
+                T_j = self._depth_refine(T_j, masks[k], depth, K, rng)
+            out.append(Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, score=float(ms * float(conf[j])),
+                                 mask=masks[k][1]))
+        self.timings.update(pose=t1 - t0, refine=t2 - t1, icp=time.perf_counter() - t2)
         return out
+
+    def _depth_refine(self, T: np.ndarray, mask: tuple[int, np.ndarray], depth: np.ndarray, K: np.ndarray,
+                      rng: np.random.Generator) -> np.ndarray:
+        """``perception.icp.refine_pose`` on (up to ``icp.max_points`` of) the mask's valid depth points."""
+        obj_id, m = mask
+        vs, us = np.nonzero(m & (depth > 0))
+        if vs.size > self.icp.max_points:
+            keep = np.sort(rng.choice(vs.size, self.icp.max_points, replace=False))
+            vs, us = vs[keep], us[keep]
+        z = depth[vs, us].astype(np.float64)
+        pts = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)
+        return refine_pose(T, self.model_points[obj_id], pts, depth, K, self.icp)[0]
 
     @torch.no_grad()
     def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray

@@ -15,7 +15,7 @@ from posegrasp.cli import main
 #: Success floor for 20 episodes (seed 0) with the shipped model. Measured: 200 episodes (seed 0) succeed at
 #: the rate in README.md; the floor is the 1st percentile of a binomial with that rate over 20 episodes, so an
 #: unchanged model fails this test with probability < 1 % on any machine, while a much worse one does not pass.
-FLOOR = 12
+FLOOR = 16
 
 
 @pytest.fixture(scope="module")
@@ -48,9 +48,11 @@ def test_shipped_model_meets_the_ci_floor_and_records_pose_errors(model_run):
 
 
 def test_a_degraded_model_shows_up_as_worse_in_compare(model_run, tmp_path):
-    # rel-sigma 0.2 on the pose net: measured 13 -> 1 successes over these 20 episodes (McNemar p = 0.001).
+    # Noise on the segmentation net (rel-sigma 1.0): measured 19 -> 9 successes over these 20 episodes. The depth
+    # refinement repairs noise on the pose net (rel-sigma 0.2 there: still 19/20), so the masks are degraded here.
     noisy = tmp_path / "noisy"
-    assert main(["perturb", "--weights", str(SHIPPED_MODEL), "--out", str(noisy), "--rel-sigma", "0.2"]) == 0
+    assert main(["perturb", "--weights", str(SHIPPED_MODEL), "--out", str(noisy), "--rel-sigma", "1.0",
+                 "--stages", "seg"]) == 0
     out = tmp_path / "trials"
     assert main(["trials", "--episodes", "20", "--seed", "0", "--perception", f"model:{noisy}", "--workers", "2",
                  "--out", str(out)]) == 0

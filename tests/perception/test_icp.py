@@ -1,0 +1,41 @@
+"""Depth refinement: ICP from rotation hypotheses recovers a block turned onto a near-symmetry."""
+
+import numpy as np
+
+from perception.icp import ICPConfig, cube_rotations, refine_pose
+from perception.metrics import rotation_error_sym_deg
+from posegrasp import bop
+from posegrasp.geometry import axis_angle_R, make_T
+
+
+def test_cube_rotations_are_the_24_axis_maps():
+    Q = cube_rotations()
+    assert Q.shape == (24, 3, 3) and np.allclose(np.linalg.det(Q), 1.0)
+    assert len({tuple(np.round(q).astype(int).ravel()) for q in Q}) == 24
+
+
+def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
+    """The tiny set's 60 x 30 x 20 mm box (obj 3), its estimate turned 90 deg about its z axis (not one of
+    its symmetries, but ADD-S barely sees it) and shifted 4 mm: the hypotheses find the true pose back."""
+    info = bop.load_models_info(tiny_bop)[3]
+    model = bop.sample_model_points(bop.load_model(tiny_bop, 3), 500, seed=3)
+    fixed, stuck = 0, 0
+    recs = list(bop.iter_scene_images(tiny_bop, "train"))
+    for rec in recs:
+        g = next(g for g in rec.instances if g.obj_id == 3)
+        depth, K = rec.load_depth(), rec.camera.K
+        m = rec.load_mask(g.gt_index) & (depth > 0)
+        vs, us = np.nonzero(m)
+        z = depth[vs, us].astype(np.float64)
+        obs = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)
+        T_est = g.T_cam_obj @ make_T(axis_angle_R(np.array([0.0, 0.0, 1.0]), np.pi / 2), np.array([0.004, 0.0, 0.0]))
+
+        def err(T):
+            return rotation_error_sym_deg(T[:3, :3], g.T_cam_obj[:3, :3], info.symmetries_discrete)
+
+        T, _ = refine_pose(T_est, model, obs[::max(1, len(obs) // 300)], depth, K)
+        fixed += err(T) < 10.0 and np.linalg.norm(T[:3, 3] - g.T_cam_obj[:3, 3]) < 0.005
+        T1, _ = refine_pose(T_est, model, obs[::max(1, len(obs) // 300)], depth, K, ICPConfig(hypotheses="identity"))
+        stuck += err(T1) > 45.0
+    # measured: 7 of 8 recovered with the 24 hypotheses; plain ICP stays turned in 8 of 8
+    assert fixed >= 0.75 * len(recs) and stuck >= 0.75 * len(recs)
