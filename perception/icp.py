@@ -43,7 +43,7 @@ class ICPConfig:
     truncation (m): per-point distance cap in the score. violation_margin (m) and violation_weight (m per
     unit share): the free-space term. hypotheses: "cube" (24 rotations) or "identity" (plain ICP)."""
 
-    iterations: int = 5
+    iterations: int = 12
     max_points: int = 300
     truncation: float = 0.01
     violation_margin: float = 0.005
