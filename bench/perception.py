@@ -7,7 +7,8 @@ Without --weights the nets are built at their default (CPU) configurations with 
 real loading path is exercised. Stages: seg = resize, segmentation net, upsampling to 640x480,
 softmax and argmax; cls = the instance classifier on the 5 objects' segments (when the run has one);
 pose = crops, point sampling and the pose net on the 5 objects as one batch;
-refine = the refiner's iterations on the 5 objects. Prints a table and a JSON line.
+refine = the refiner's iterations on the 5 objects; icp = the depth refinement of the 5 estimates
+(``perception.icp``, with the block catalogue's meshes). Prints a table and a JSON line.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from perception import checkpoint  # noqa: E402
+from posegrasp import ASSETS  # noqa: E402
 from perception.classifier import ClassifierConfig, build_classifier  # noqa: E402
 from perception.inference import Estimator  # noqa: E402
 from perception.pose_net import PoseNetConfig, build_pose_net  # noqa: E402
@@ -68,7 +70,7 @@ def synthetic_frame(n_objects: int = 5, seed: int = 0) -> tuple[np.ndarray, np.n
 
 
 def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float]]:
-    est = Estimator(weights)
+    est = Estimator(weights, models=ASSETS / "blocks")  # the catalogue's meshes, for the depth refinement
     if est.refine_iterations == 0 and est.refiner is not None:
         est.refine_iterations = est.refiner_cfg.iterations
     rgb, depth, K, masks = synthetic_frame()
@@ -76,7 +78,7 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
     labels = np.zeros(rgb.shape[:2], dtype=np.int64)  # the 5 objects as the seg net's class map
     for o, m in masks:
         labels[m] = o
-    times: dict[str, list[float]] = {"seg": [], "cls": [], "pose": [], "refine": [], "total": []}
+    times: dict[str, list[float]] = {"seg": [], "cls": [], "pose": [], "refine": [], "icp": [], "total": []}
     for i in range(warmup + repeats):
         t0 = time.perf_counter()
         est.segment(rgb)
@@ -92,6 +94,7 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
             times["cls"].append(t15 - t1)
             times["pose"].append(est.timings["pose"])
             times["refine"].append(est.timings["refine"])
+            times["icp"].append(est.timings["icp"])
             times["total"].append(t2 - t0)
     return {k: {"median_ms": 1000 * statistics.median(v), "mean_ms": 1000 * statistics.fmean(v),
                 "min_ms": 1000 * min(v)} for k, v in times.items()}
