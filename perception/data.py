@@ -154,6 +154,13 @@ class ObjectModels:
         return self._points[obj_id]
 
 
+def usable(inst: bop.GTInstance, cfg: DataConfig) -> bool:
+    """Whether an annotated instance is visible enough to train on (``min_visib_fract``, ``min_points``);
+    instances without gt_info count as usable."""
+    return inst.info is None or (inst.info.visib_fract >= cfg.min_visib_fract
+                                 and inst.info.px_count_visib >= cfg.min_points)
+
+
 def prepare_pose_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray, num_points: int,
                        crop_size: int, rng: np.random.Generator, depth_noise: float = 0.0
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -252,12 +259,8 @@ class ClsDataset(Dataset):
         records = load_records(root, split)
         for rec in track(records, description=f"crops {split}", disable=not progress):
             rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
-            masks = []
-            for inst in rec.instances:
-                if inst.obj_id in self.obj_ids and (inst.info is None or (
-                        inst.info.visib_fract >= self.cfg.min_visib_fract
-                        and inst.info.px_count_visib >= self.cfg.min_points)):
-                    masks.append((inst.obj_id, rec.load_mask(inst.gt_index)))
+            masks = [(inst.obj_id, rec.load_mask(inst.gt_index)) for inst in rec.instances
+                     if inst.obj_id in self.obj_ids and usable(inst, self.cfg)]
             if segmenter is not None:
                 gt = label_map(rec, rgb.shape[:2])
                 for _, m in segment_components(segmenter(rgb), self.cfg.min_points):
@@ -326,13 +329,8 @@ class PoseDataset(Dataset):
         self.records = records
         self.index: list[tuple[int, int]] = []
         for ri, rec in enumerate(records):
-            for inst in rec.instances:
-                if inst.obj_id not in self.obj_ids:
-                    continue
-                if inst.info is not None and (inst.info.visib_fract < self.cfg.min_visib_fract
-                                              or inst.info.px_count_visib < self.cfg.min_points):
-                    continue
-                self.index.append((ri, inst.gt_index))
+            self.index += [(ri, inst.gt_index) for inst in rec.instances
+                           if inst.obj_id in self.obj_ids and usable(inst, self.cfg)]
         if not self.index:
             raise UserError(f"no usable object instance in {self.root / split} (min_visib_fract "
                             f"{self.cfg.min_visib_fract}, min_points {self.cfg.min_points})")

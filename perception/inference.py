@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from perception import checkpoint as ckpt_mod
+from perception.crop import backproject
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
 from perception.icp import ICPConfig, refine_pose
@@ -189,8 +190,8 @@ class Estimator:
         if vs.size > self.icp.max_points:
             keep = np.sort(rng.choice(vs.size, self.icp.max_points, replace=False))
             vs, us = vs[keep], us[keep]
-        z = depth[vs, us].astype(np.float64)
-        pts = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)
+        h, w = depth.shape
+        pts = backproject(depth, K, (0, h, 0, w), vs * w + us)
         return refine_pose(T, self.model_points[obj_id], pts, depth, K, self.icp)[0]
 
     @torch.no_grad()
