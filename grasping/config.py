@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp import ASSETS
+from grasping.support import RestConfig
 from posegrasp.config import load_toml
 from sim.scene import SceneConfig
 
@@ -86,9 +87,12 @@ class TrialConfig:
     hand_eye: str = str(HAND_EYE_JSON)  # calibrated T_gripper_cam used by the planner
     elliptic_cones: bool = True  # elliptic friction cones and ...
     impratio: float = 10.0  # ... a high impedance ratio stop grasped blocks from creeping out of the fingers
+    support_timeconst: float = 0.01  # stiffness of contacts with the table and the pad once the scene has settled
+    # (MuJoCo solref time constant, s): at the default 0.02 a brick set down on its studs walks away over the pad
     control: ControlConfig = field(default_factory=ControlConfig)
     grasp: GraspConfig = field(default_factory=GraspConfig)
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
+    rest: RestConfig = field(default_factory=RestConfig)  # levelling of pose estimates (grasping.support)
     scene: SceneConfig = field(default_factory=lambda: SceneConfig(settle_timeout=2.0))
 
 

@@ -20,6 +20,7 @@ from grasping.controller import ArmController, SimulationError, robot_workcell
 from grasping.grasps import Grasp, plan_grasps, surface_points
 from grasping.perception import Estimate, make_provider
 from grasping.render import EpisodeCamera
+from grasping.support import rest_on_table
 from posegrasp.catalog import BlockType, load_catalog
 from posegrasp.geometry import invert, make_T, rotation_angle, transform_points
 from sim.camera import Frame
@@ -126,9 +127,10 @@ def _yaw(T: np.ndarray) -> float:
 
 def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
             yaw_now: float) -> tuple[int, Grasp, np.ndarray] | None:
-    """Target estimate index, its best reachable grasp and estimated ``T_world_obj``; None if none is feasible."""
+    """Target estimate index, its best reachable grasp and estimated ``T_world_obj`` (levelled by
+    ``rest_on_table``); None if none is feasible."""
     cat = {b.obj_id: b for b in load_catalog().values()}
-    poses = [T_world_cam @ e.T_cam_obj for e in ests]
+    poses = [rest_on_table(cat[e.obj_id], T_world_cam @ e.T_cam_obj, cfg.rest) for e in ests]
     clouds = [transform_points(T, surface_points(cat[e.obj_id], 300)) for e, T in zip(ests, poses)]
     options = []
     for j, (e, T) in enumerate(zip(ests, poses)):
@@ -160,8 +162,11 @@ def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
 
 
 def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
-    """The episode's settled scene, with the trial's contact settings."""
+    """The episode's settled scene (settled with the scene defaults), then the trial's contact settings."""
     wc = make_scene(scene_seed, n_blocks, cfg.scene).workcell
+    for name in ("table", "place_pad"):  # solmix: their contacts with the blocks take their solref
+        g = wc.model.geom(name).id
+        wc.model.geom_solref[g, 0], wc.model.geom_solmix[g] = cfg.support_timeconst, 1e3
     wc.model.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.elliptic_cones else mujoco.mjtCone.mjCONE_PYRAMIDAL
     wc.model.opt.impratio = cfg.impratio
     return wc

@@ -11,7 +11,7 @@ import functools
 from dataclasses import dataclass
 from pathlib import Path
 
-from grasping.perception import Estimate, register
+from grasping.perception import Estimate, register, visible_enough
 from posegrasp import ASSETS
 from posegrasp.errors import UserError
 from sim.camera import Frame
@@ -29,9 +29,12 @@ def _estimator(weights: str):
 
 @dataclass(frozen=True)
 class ModelProvider:
-    """Pose estimates from a trained run directory; one estimator per worker process, loaded on first use."""
+    """Pose estimates from a trained run directory; one estimator per worker process, loaded on first use.
+    Like the oracle, it reports no block from a mask of fewer than ``min_px`` pixels at 640x480: a sliver
+    cut off a block's edge gives an unreliable class and pose."""
 
     weights: str
+    min_px: int = 150
 
     @property
     def name(self) -> str:
@@ -39,7 +42,8 @@ class ModelProvider:
 
     def estimate(self, frame: Frame, seed: int) -> list[Estimate]:
         dets = _estimator(self.weights)(frame.rgb, frame.depth, frame.K)
-        return [Estimate(d.obj_id, d.T_cam_obj, d.score) for d in dets]
+        return [Estimate(d.obj_id, d.T_cam_obj, d.score) for d in dets
+                if visible_enough(int(d.mask.sum()), d.mask.shape, self.min_px)]
 
 
 def _model(args: str | None) -> ModelProvider:

@@ -39,6 +39,11 @@ class Provider(Protocol):
     def estimate(self, frame: Frame, seed: int) -> list[Estimate]: ...
 
 
+def visible_enough(pixels: int, shape: tuple[int, int], min_px: int) -> bool:
+    """Does a mask of ``pixels`` in an image of ``shape`` (H, W) hold at least ``min_px`` pixels at 640x480?"""
+    return pixels >= min_px * (shape[0] * shape[1]) / (640 * 480)
+
+
 @dataclass(frozen=True)
 class OracleProvider:
     """Ground truth for the blocks visible in the frame (at least ``min_px`` mask pixels at 640x480)."""
@@ -47,11 +52,9 @@ class OracleProvider:
     name: str = "oracle"
 
     def estimate(self, frame: Frame, seed: int) -> list[Estimate]:
-        h, w = frame.mask.shape
-        need = self.min_px * (h * w) / (640 * 480)
         counts = np.bincount(frame.mask.ravel(), minlength=len(frame.obj_ids) + 1)
         return [Estimate(int(frame.obj_ids[k - 1]), frame.T_cam_obj[k - 1].copy(), float(min(1.0, counts[k] / 5000)))
-                for k in range(1, len(frame.obj_ids) + 1) if counts[k] >= need]
+                for k in range(1, len(frame.obj_ids) + 1) if visible_enough(counts[k], frame.mask.shape, self.min_px)]
 
 
 @dataclass(frozen=True)

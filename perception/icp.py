@@ -10,9 +10,12 @@ rotations of the cube group, in the object frame) so that it can leave a wrong b
                             point m_j under (R_h, t_h); (R_h, t_h) <- Kabsch(m_j -> p_i)
     score_h = mean_i min(d_i, truncation) + violation_weight * v_h
 
+Hypotheses that differ by a symmetry of the object start the same fit, so only one of them is run
+(``distinct_rotations``).
 d_i: distance of observed point i to the model at the final pose; v_h: the share of model points that
 project onto valid depth pixels and lie more than ``violation_margin`` in front of the observed surface
-(the model would fill space the camera sees through). The hypothesis with the lowest score wins.
+(the model would fill space the camera sees through), plus, given the supporting plane, the share of model
+points more than ``violation_margin`` beneath it (sunk into the table). The hypothesis with the lowest score wins.
 Points are camera-frame metres; K is the 3x3 intrinsic matrix.
 """
 
@@ -58,6 +61,31 @@ class ICPConfig:
         raise ValueError(f"ICP hypotheses must be 'cube' or 'identity', got {self.hypotheses!r}")
 
 
+def distinct_rotations(Q: np.ndarray, discrete: list[np.ndarray], axes: list[np.ndarray],
+                       tol_deg: float = 1.0) -> np.ndarray:
+    """The hypotheses Q (H, 3, 3) less those that start the same fit under the object's symmetries.
+
+    With S a symmetry (S maps the model onto itself), R Q_i S places the model exactly where R Q_i
+    does, so Q_j is dropped when Q_i^T Q_j = D C for a kept Q_i, D the identity or a discrete symmetry
+    (4x4, rotation part) and C a rotation about a continuous symmetry axis (the identity without one).
+    The translation parts of the symmetries are ignored: ICP absorbs them. Q keeps its order."""
+    Ds = [np.eye(3)] + [np.asarray(D)[:3, :3] for D in discrete]
+    cos_tol = np.cos(np.radians(tol_deg))
+
+    def is_symmetry(g: np.ndarray) -> bool:
+        for D in Ds:
+            C = D.T @ g
+            if (np.trace(C) - 1) / 2 > cos_tol or any(np.asarray(a) @ C @ np.asarray(a) > cos_tol for a in axes):
+                return True
+        return False
+
+    kept: list[np.ndarray] = []
+    for q in Q:
+        if not any(is_symmetry(k.T @ q) for k in kept):
+            kept.append(q)
+    return np.stack(kept)
+
+
 def _kabsch(src: torch.Tensor, dst: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched least-squares rigid fit dst ~ R src + t: src, dst (H, N, 3) -> R (H, 3, 3), t (H, 3)."""
     cs, cd = src.mean(dim=1), dst.mean(dim=1)
@@ -70,33 +98,51 @@ def _kabsch(src: torch.Tensor, dst: torch.Tensor) -> tuple[torch.Tensor, torch.T
 
 
 def refine_pose(T_cam_obj: np.ndarray, model: np.ndarray, observed: np.ndarray, depth: np.ndarray, K: np.ndarray,
-                cfg: ICPConfig | None = None) -> tuple[np.ndarray, float]:
+                cfg: ICPConfig | None = None, rotations: np.ndarray | None = None, plane: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float]:
     """The best-scoring ICP result over the hypotheses (see module docstring).
 
     T_cam_obj (4, 4) estimate; model (M, 3) surface points, object frame (m); observed (N, 3) camera-frame
-    points of the object's mask (m); depth (H, W) m. Returns (T_cam_obj refined, its score in m)."""
+    points of the object's mask (m); depth (H, W) m; rotations (H, 3, 3): the hypotheses, by default
+    ``cfg.rotations()`` (``distinct_rotations`` of them for a symmetric object); plane (4,): the supporting
+    plane (``perception.plane``), or None. Returns (T_cam_obj refined, its score in m)."""
     cfg = cfg or ICPConfig()
-    Q = torch.from_numpy(cfg.rotations())  # (H, 3, 3)
-    m = torch.from_numpy(np.asarray(model, dtype=np.float64))
-    p = torch.from_numpy(np.asarray(observed, dtype=np.float64))
-    R = torch.from_numpy(np.asarray(T_cam_obj[:3, :3], dtype=np.float64))[None] @ Q  # (H, 3, 3)
-    t = torch.from_numpy(np.asarray(T_cam_obj[:3, 3], dtype=np.float64))[None].repeat(len(Q), 1)  # (H, 3)
+    Q = torch.from_numpy(cfg.rotations() if rotations is None else rotations).float()  # (H, 3, 3)
+    m = torch.from_numpy(np.asarray(model, dtype=np.float32))
+    p = torch.from_numpy(np.asarray(observed, dtype=np.float32))
+    dz = torch.from_numpy(np.asarray(depth, dtype=np.float32))
+    pl = None if plane is None else torch.from_numpy(np.asarray(plane, dtype=np.float32))
+    R = torch.from_numpy(np.asarray(T_cam_obj[:3, :3], dtype=np.float32))[None] @ Q  # (H, 3, 3)
+    t = torch.from_numpy(np.asarray(T_cam_obj[:3, 3], dtype=np.float32))[None].repeat(len(Q), 1)  # (H, 3)
+    if pl is not None:  # each hypothesis also starts moved along the plane normal to rest on the plane
+        lowest = ((m[None] @ R.transpose(1, 2) + t[:, None]) @ pl[:3] + pl[3]).min(dim=1).values  # (H,)
+        R, t = torch.cat([R, R]), torch.cat([t, t - lowest[:, None] * pl[:3]])  # (2H, 3, 3), (2H, 3)
     for _ in range(cfg.iterations):
         mc = m[None] @ R.transpose(1, 2) + t[:, None]  # (H, M, 3)
-        nn = torch.cdist(p[None].expand(len(Q), -1, -1), mc).argmin(dim=2)  # (H, N)
-        R, t = _kabsch(m[nn], p[None].expand(len(Q), -1, -1))
-    mc = m[None] @ R.transpose(1, 2) + t[:, None]  # (H, M, 3)
-    dist = torch.cdist(p[None].expand(len(Q), -1, -1), mc).min(dim=2).values  # (H, N)
-    fit = dist.clamp(max=cfg.truncation).mean(dim=1)
-    z = mc[..., 2].clamp(min=1e-6)
-    u = torch.round(mc[..., 0] * K[0, 0] / z + K[0, 2]).long()
-    v = torch.round(mc[..., 1] * K[1, 1] / z + K[1, 2]).long()
-    h, w = depth.shape
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    dz = torch.from_numpy(np.asarray(depth, dtype=np.float64))[v.clamp(0, h - 1), u.clamp(0, w - 1)]
-    viol = (inside & (dz > 0) & (z < dz - cfg.violation_margin)).sum(dim=1) / inside.sum(dim=1).clamp(min=1)
-    score = fit + cfg.violation_weight * viol
+        nn = torch.cdist(p[None].expand(len(R), -1, -1), mc).argmin(dim=2)  # (H, N)
+        R, t = _kabsch(m[nn], p[None].expand(len(R), -1, -1))
+    score = _score(R, t, m, p, dz, K, cfg, pl)
     best = int(score.argmin())
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R[best].numpy(), t[best].numpy()
+    T[:3, :3], T[:3, 3] = R[best].double().numpy(), t[best].double().numpy()
     return T, float(score[best])
+
+
+def _score(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, p: torch.Tensor, depth: torch.Tensor, K: np.ndarray,
+           cfg: ICPConfig, plane: torch.Tensor | None) -> torch.Tensor:
+    """Score (H,) of the poses (R (H, 3, 3), t (H, 3)): truncated fit of the observed points p (N, 3) to the
+    model points m (M, 3) plus the weighted shares of model points in free space against ``depth`` (H, W)
+    and beneath the plane (4,) if given, m."""
+    mc = m[None] @ R.transpose(1, 2) + t[:, None]  # (H, M, 3)
+    dist = torch.cdist(p[None].expand(len(R), -1, -1), mc).min(dim=2).values  # (H, N)
+    fit = dist.clamp(max=cfg.truncation).mean(dim=1)
+    z = mc[..., 2].clamp(min=1e-6)
+    u = torch.round(mc[..., 0] * float(K[0, 0]) / z + float(K[0, 2])).long()
+    v = torch.round(mc[..., 1] * float(K[1, 1]) / z + float(K[1, 2])).long()
+    h, w = depth.shape
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    dz = depth[v.clamp(0, h - 1), u.clamp(0, w - 1)]
+    viol = (inside & (dz > 0) & (z < dz - cfg.violation_margin)).sum(dim=1) / inside.sum(dim=1).clamp(min=1)
+    if plane is not None:
+        viol = viol + (mc @ plane[:3] + plane[3] < -cfg.violation_margin).float().mean(dim=1)
+    return fit + cfg.violation_weight * viol

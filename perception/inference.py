@@ -26,7 +26,8 @@ from perception import checkpoint as ckpt_mod
 from perception.crop import backproject
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
-from perception.icp import ICPConfig, refine_pose
+from perception.icp import ICPConfig, distinct_rotations, refine_pose
+from perception.plane import PlaneConfig, fit_support_plane, plane_pixels
 from perception.refiner import refine
 from perception.seg_net import SegNetConfig
 from perception.torch_geometry import make_transform, quat_to_rotmat
@@ -83,14 +84,15 @@ class Estimator:
     min_valid_points: minimum valid-depth pixels per object. models: a BOP dataset root whose
     ``models/`` hold the objects' meshes; with it every estimate is refined against the depth image by
     ICP from rotation hypotheses (``perception.icp``, settings ``icp``); None skips that step.
-    threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
+    support_plane: fit the frame's dominant plane (``perception.plane``); segmented pixels on it become
+    background and ICP hypotheses sunk into it lose. threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
     is deterministic). ``timings`` holds the seconds spent per stage in the last call and
     ``last_labels`` its class map (H, W).
     """
 
     def __init__(self, weights: str | Path, refine_iterations: int | None = None, min_valid_points: int = 50,
                  threads: int | None = None, seed: int = 0, classify: bool | None = None,
-                 models: str | Path | None = None, icp: ICPConfig | None = None):
+                 models: str | Path | None = None, icp: ICPConfig | None = None, support_plane: bool = True):
         weights = Path(weights)
         if not weights.is_dir():
             raise UserError(f"weights directory {weights} does not exist")
@@ -117,7 +119,9 @@ class Estimator:
         self.min_valid_points = min_valid_points
         self.seed = seed
         self.icp = icp or ICPConfig()
+        self.support_plane, self.plane_cfg = support_plane, PlaneConfig()
         self.model_points: dict[int, np.ndarray] | None = None
+        self.hypotheses: dict[int, np.ndarray] = {}
         if models is not None:
             infos = bop.load_models_info(models)
             missing = [o for o in self.obj_ids if o not in infos]
@@ -125,6 +129,9 @@ class Estimator:
                 raise UserError(f"models in {models} lack objects {missing} of the pose net")
             self.model_points = {o: bop.sample_model_points(bop.load_model(models, o), 500, seed=o)
                                  for o in self.obj_ids}
+            self.hypotheses = {o: distinct_rotations(self.icp.rotations(), infos[o].symmetries_discrete,
+                                                     [a for a, _ in infos[o].symmetries_continuous])
+                               for o in self.obj_ids}
         self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "pose": 0.0, "refine": 0.0, "icp": 0.0}
         self.last_labels: np.ndarray | None = None
 
@@ -139,11 +146,14 @@ class Estimator:
 
     @torch.no_grad()
     def estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
-                 mask_scores: list[float] | None = None) -> list[Detection]:
+                 mask_scores: list[float] | None = None, plane: np.ndarray | None = None) -> list[Detection]:
         """Poses of objects given their masks (obj_id, bool (H, W)); skips objects the pose net does
         not know and masks with fewer than ``min_valid_points`` valid depth pixels. Each detection
-        carries the very mask array it was given."""
+        carries the very mask array it was given. plane: the supporting plane for the depth refinement
+        (fitted here when None and ``support_plane`` is on)."""
         t0 = time.perf_counter()
+        if plane is None and self.support_plane and self.model_points is not None:
+            plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
         rng = np.random.default_rng(self.seed)
         cfg = self.pose_cfg
         items, kept = [], []
@@ -176,14 +186,14 @@ class Estimator:
             ms = 1.0 if mask_scores is None else mask_scores[k]
             T_j = T[j].double().numpy()
             if self.model_points is not None:
-                T_j = self._depth_refine(T_j, masks[k], depth, K, rng)
+                T_j = self._depth_refine(T_j, masks[k], depth, K, rng, plane)
             out.append(Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, score=float(ms * float(conf[j])),
                                  mask=masks[k][1]))
         self.timings.update(pose=t1 - t0, refine=t2 - t1, icp=time.perf_counter() - t2)
         return out
 
     def _depth_refine(self, T: np.ndarray, mask: tuple[int, np.ndarray], depth: np.ndarray, K: np.ndarray,
-                      rng: np.random.Generator) -> np.ndarray:
+                      rng: np.random.Generator, plane: np.ndarray | None) -> np.ndarray:
         """``perception.icp.refine_pose`` on (up to ``icp.max_points`` of) the mask's valid depth points."""
         obj_id, m = mask
         vs, us = np.nonzero(m & (depth > 0))
@@ -192,7 +202,7 @@ class Estimator:
             vs, us = vs[keep], us[keep]
         h, w = depth.shape
         pts = backproject(depth, K, (0, h, 0, w), vs * w + us)
-        return refine_pose(T, self.model_points[obj_id], pts, depth, K, self.icp)[0]
+        return refine_pose(T, self.model_points[obj_id], pts, depth, K, self.icp, self.hypotheses[obj_id], plane)[0]
 
     @torch.no_grad()
     def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray
@@ -223,6 +233,9 @@ class Estimator:
         rgb, depth, K = _check_inputs(rgb, depth, K)
         t0 = time.perf_counter()
         labels, prob = self.segment(rgb)
+        plane = fit_support_plane(depth, K, self.seed, self.plane_cfg) if self.support_plane else None
+        if plane is not None and self.plane_cfg.mask_tol > 0:  # segmented pixels lying on the table
+            labels = np.where(plane_pixels(plane, depth, K, labels > 0, self.plane_cfg.mask_tol), 0, labels)
         t1 = time.perf_counter()
         conf, t_cls = None, 0.0
         if self.classifier is not None:
@@ -239,7 +252,7 @@ class Estimator:
                 s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
                 scores.append(float(s.mean()))
         self.timings.update(seg=time.perf_counter() - t0 - t_cls, cls=t_cls)
-        return self.estimate(rgb, depth, K, masks, scores)
+        return self.estimate(rgb, depth, K, masks, scores, plane)
 
 
 def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

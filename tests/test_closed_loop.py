@@ -12,10 +12,11 @@ from grasping.model_provider import SHIPPED_MODEL
 from grasping.trials import EPISODES
 from posegrasp.cli import main
 
-#: Success floor for 20 episodes (seed 0) with the shipped model. Measured: 200 episodes (seed 0) succeed at
-#: the rate in README.md; the floor is the 1st percentile of a binomial with that rate over 20 episodes, so an
-#: unchanged model fails this test with probability < 1 % on any machine, while a much worse one does not pass.
-FLOOR = 16
+#: Success floor for 20 episodes (seed 0) with the shipped model. Measured: 196/200 episodes (seed 0) succeed
+#: (98 %, Wilson 95.0-99.2; README.md). The floor is the 1st percentile of a binomial over 20 episodes at 96.5 %,
+#: a rate below the measured one to allow for other machines' floating point (P(X < 17) = 0.5 %), so an unchanged
+#: model fails this test with probability < 1 %, while a much worse one does not pass.
+FLOOR = 17
 
 
 @pytest.fixture(scope="module")
@@ -48,11 +49,12 @@ def test_shipped_model_meets_the_ci_floor_and_records_pose_errors(model_run):
 
 
 def test_a_degraded_model_shows_up_as_worse_in_compare(model_run, tmp_path):
-    # Noise on the segmentation net (rel-sigma 1.0): measured 19 -> 9 successes over these 20 episodes. The depth
-    # refinement repairs noise on the pose net (rel-sigma 0.2 there: still 19/20), so the masks are degraded here.
+    # Noise on the segmentation net and the classifier (rel-sigma 1.0): measured 20 -> 9 successes over these 20
+    # episodes (11 flips, McNemar p = 0.001). The table-plane cleanup, the classifier and the depth refinement
+    # repair much of a single stage's damage: noise on the seg net alone gave 14/20, on the classifier alone 18/20.
     noisy = tmp_path / "noisy"
     assert main(["perturb", "--weights", str(SHIPPED_MODEL), "--out", str(noisy), "--rel-sigma", "1.0",
-                 "--stages", "seg"]) == 0
+                 "--stages", "seg,cls"]) == 0
     out = tmp_path / "trials"
     assert main(["trials", "--episodes", "20", "--seed", "0", "--perception", f"model:{noisy}", "--workers", "2",
                  "--out", str(out)]) == 0

@@ -24,6 +24,7 @@ def test_wilson_hand_computed():
     lo, hi = wilson(9, 10)
     assert (lo, hi) == pytest.approx((0.59585, 0.98212), abs=1e-4)
     assert wilson(0, 10)[0] == 0.0 and wilson(10, 10)[1] == pytest.approx(1.0)
+    assert all(wilson(n, n)[1] == 1.0 and wilson(0, n)[0] == 0.0 for n in range(1, 300))  # exact: k/n - lo, hi - k/n >= 0
 
 
 def _runs(a_ok: list[bool], b_ok: list[bool]) -> tuple[dict, dict]:

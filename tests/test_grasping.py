@@ -9,10 +9,11 @@ import pytest
 from grasping.config import ControlConfig, GraspConfig
 from grasping.controller import ArmController, finger_angle_for_opening
 from grasping.grasps import object_candidates, plan_grasps, squeeze_axes, surface_points
-from grasping.perception import NoisyOracleProvider, OracleProvider, make_provider
+from grasping.support import RestConfig, rest_on_table
+from grasping.perception import NoisyOracleProvider, OracleProvider, make_provider, visible_enough
 from posegrasp.catalog import load_catalog, symmetry_transforms
 from posegrasp.errors import UserError
-from posegrasp.geometry import make_T, rotation_angle, transform_points
+from posegrasp.geometry import axis_angle_R, make_T, rotation_angle, transform_points
 from sim.camera import CameraRenderer, Frame
 from sim.config import WorkcellConfig
 from sim.scene import make_scene
@@ -127,6 +128,19 @@ def test_oracle_reports_only_visible_blocks(look_frame):
         np.testing.assert_array_equal(e.T_cam_obj, look_frame.T_cam_obj[k - 1])
 
 
+def test_model_provider_drops_slivers_like_the_oracle(look_frame):
+    from grasping.model_provider import SHIPPED_MODEL, ModelProvider, _estimator
+
+    assert visible_enough(150, (480, 640), 150) and not visible_enough(149, (480, 640), 150)
+    assert visible_enough(38, (240, 320), 150) and not visible_enough(37, (240, 320), 150)
+    dets = _estimator(str(SHIPPED_MODEL))(look_frame.rgb, look_frame.depth, look_frame.K)
+    sizes = [int(d.mask.sum()) for d in dets]
+    assert len(dets) >= 2
+    cut = max(sizes)  # a threshold that drops all but the largest mask
+    kept = ModelProvider(str(SHIPPED_MODEL), min_px=cut).estimate(look_frame, seed=0)
+    assert len(kept) == sum(n >= cut for n in sizes) < len(dets)
+
+
 def test_noisy_oracle_is_seeded_and_has_the_requested_noise():
     rng = np.random.default_rng(0)
     K = 400
@@ -166,3 +180,24 @@ def test_episode_camera_matches_camera_renderer_across_scenes():
         for name in ("rgb", "depth", "mask", "T_cam_obj"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
         assert (b.mask > 0).sum() > 1000
+
+
+def test_rest_prior_levels_near_resting_estimates_only():
+    cat = load_catalog()
+    cube, cyl = cat["cube"], cat["cylinder"]
+    R_true = axis_angle_R(np.array([0.0, 0.0, 1.0]), 0.7)  # lying on a face, turned about z
+    T = make_T(axis_angle_R(np.array([1.0, 1.0, 0.0]), np.radians(5)) @ R_true, np.array([0.3, 0.0, 0.024]))
+    T_rest = rest_on_table(cube, T)
+    assert np.degrees(rotation_angle(T_rest[:3, :3], R_true)) < 1e-6  # levelled, the yaw kept
+    assert abs(transform_points(T_rest, cube.vertices)[:, 2].min()) < 1e-9  # set onto the table
+    assert np.allclose(T_rest[:2, 3], T[:2, 3])
+    steep = make_T(axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(20)) @ R_true, T[:3, 3])
+    assert np.allclose(rest_on_table(cube, steep), steep)  # leaning on something: kept
+    high = T.copy()
+    high[2, 3] += 0.05  # on top of another block: levelled, not moved down
+    assert abs(rest_on_table(cube, high)[2, 3] - high[2, 3]) < 1e-3
+    assert np.allclose(rest_on_table(cube, T, RestConfig(enabled=False)), T)
+    # a lying cylinder: its symmetry axis is made horizontal, whatever the spin about it
+    R_lying = axis_angle_R(np.array([1.0, 0.0, 0.0]), np.pi / 2 + np.radians(4)) @ axis_angle_R(np.array([0.0, 0.0, 1.0]), 1.0)
+    T_c = rest_on_table(cyl, make_T(R_lying, np.array([0.3, 0.0, 0.02])))
+    assert abs(T_c[:3, :3][2, 2]) < 1e-9

@@ -1,0 +1,50 @@
+"""The supporting plane: RANSAC recovers a table under a block; pixels on it; ICP hypotheses sunk into it lose."""
+
+import numpy as np
+import pytest
+
+from perception.icp import ICPConfig, refine_pose
+from perception.plane import fit_support_plane, plane_pixels
+
+K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
+
+
+def _table_with_box(n: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (240, 320) of the plane n . x + d = 0 with a patch 3 cm nearer the camera, and the patch mask."""
+    v, u = np.mgrid[0:240, 0:320]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(u.shape)], axis=-1)
+    depth = -d / (rays @ n)
+    box = (abs(u - 160) < 30) & (abs(v - 120) < 20)
+    depth[box] -= 0.03
+    depth[:5] = 0.0  # invalid rows
+    return depth, box
+
+
+def test_ransac_finds_the_table_and_its_pixels():
+    n = np.array([0.0, -0.6, -0.8])  # a table seen obliquely, its normal towards the camera
+    depth, box = _table_with_box(n, 0.5)
+    plane = fit_support_plane(depth, K, seed=0)
+    assert plane is not None and plane[3] > 0
+    np.testing.assert_allclose(plane, np.append(n, 0.5), atol=1e-6)
+    on = plane_pixels(plane, depth, K, np.ones(depth.shape, bool), 0.002)
+    assert not on[box].any() and on[~box & (depth > 0)].all() and not on[:5].any()
+    assert fit_support_plane(np.zeros((240, 320)), K) is None
+
+
+def test_icp_scores_a_pose_sunk_into_the_table_worse():
+    """Score of a fixed pose (no ICP steps): a 4 cm cube on the table 0.5 m below the camera; the same cube
+    1 cm lower (a quarter of it beneath the table) pays the plane term, the one on the table does not."""
+    rng = np.random.default_rng(0)
+    plane = np.array([0.0, 0.0, -1.0, 0.5])  # normal up the optical axis, towards the camera
+    model = rng.uniform(-0.02, 0.02, (2000, 3))
+    depth = np.zeros((240, 320))  # no depth: the free-space term stays 0
+    cfg = ICPConfig(iterations=0)
+    for dz, share in ((0.0, 0.0), (0.01, 0.25)):  # the cube's bottom 0 or 1 cm beneath the table
+        T = np.eye(4)
+        T[2, 3] = 0.48 + dz
+        obs = model[:300] @ T[:3, :3].T + T[:3, 3]
+        s_free = refine_pose(T, model, obs, depth, K, cfg, np.eye(3)[None])[1]
+        s_plane = refine_pose(T, model, obs, depth, K, cfg, np.eye(3)[None], plane)[1]
+        below = np.mean(model[:, 2] + T[2, 3] > 0.5 + cfg.violation_margin)
+        assert abs(below - share / 2) < 0.03  # points more than the 5 mm margin beneath: half the sunk part
+        assert s_plane - s_free == pytest.approx(cfg.violation_weight * below, abs=1e-6)
