@@ -20,7 +20,8 @@ from perception.crop import backproject
 @dataclass
 class PlaneConfig:
     """iterations: RANSAC samples. points: depth pixels drawn for it. inlier_tol (m). min_share: the plane's
-    inliers must be at least this share of the drawn points, else there is no supporting plane.
+    inliers must cover at least this share of the image (a table does; one face of a block seldom), else
+    there is no supporting plane.
     mask_tol (m): segmented pixels closer than this to the plane become background (0 keeps them)."""
 
     iterations: int = 100
@@ -57,7 +58,7 @@ def fit_support_plane(depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: Plan
     d = -np.einsum("ij,ij->i", n, tri[ok, 0])
     counts = (np.abs(P @ n.T + d) < cfg.inlier_tol).sum(axis=0)  # (I,)
     best = int(counts.argmax())
-    if counts[best] < cfg.min_share * len(P):
+    if counts[best] / len(P) * len(valid) < cfg.min_share * depth.size:
         return None
     inl = P[np.abs(P @ n[best] + d[best]) < cfg.inlier_tol]
     c = inl.mean(axis=0)

@@ -18,12 +18,14 @@ def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
     assert 0 <= on_disk["segmentation"]["mIoU"] <= 100
     assert set(rep["time_per_image_s"]) == {"seg", "cls", "pose", "refine", "icp", "total"}
     assert rep["ablation"]["refine_iterations"] == 2 and rep["ablation"]["classifier"]
-    assert rep["time_per_image_s"]["cls"] > 0 and rep["ablation"]["icp"]
+    assert rep["time_per_image_s"]["cls"] > 0 and rep["ablation"]["icp"] and rep["ablation"]["plane"]
 
 
 def test_evaluate_without_classifier(tiny_bop, tiny_run, tmp_path):
-    rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", EvalConfig(classify=False, icp=False), progress=False)
+    rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", EvalConfig(classify=False, icp=False, plane=False),
+                   progress=False)
     assert not rep["ablation"]["classifier"] and rep["time_per_image_s"]["cls"] == 0.0
+    assert not rep["ablation"]["plane"]
     assert not rep["ablation"]["icp"] and rep["time_per_image_s"]["icp"] == 0.0
     assert 0 <= rep["segmentation"]["mIoU"] <= 100
 

@@ -48,3 +48,14 @@ def test_icp_scores_a_pose_sunk_into_the_table_worse():
         below = np.mean(model[:, 2] + T[2, 3] > 0.5 + cfg.violation_margin)
         assert abs(below - share / 2) < 0.03  # points more than the 5 mm margin beneath: half the sunk part
         assert s_plane - s_free == pytest.approx(cfg.violation_weight * below, abs=1e-6)
+
+
+def test_no_plane_without_a_table(tiny_bop):
+    """The tiny set has no table (background depth 0): its blocks' faces are no supporting plane."""
+    from posegrasp import bop
+
+    rec = next(bop.iter_scene_images(tiny_bop, "train"))
+    depth, K = rec.load_depth(), rec.camera.K
+    assert fit_support_plane(depth, K) is None
+    table = np.where(depth > 0, depth, depth.max() + 0.01)  # a table 1 cm behind the objects
+    np.testing.assert_allclose(fit_support_plane(table, K), [0.0, 0.0, -1.0, depth.max() + 0.01], atol=1e-5)
