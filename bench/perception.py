@@ -7,7 +7,8 @@ Without --weights the nets are built at their default (CPU) configurations with 
 real loading path is exercised. Stages: seg = resize, segmentation net, upsampling to 640x480,
 softmax and argmax; cls = the instance classifier on the 5 objects' segments (when the run has one);
 pose = crops, point sampling and the pose net on the 5 objects as one batch;
-refine = the refiner's iterations on the 5 objects; icp = the depth refinement of the 5 estimates
+refine = the refiner's iterations on the 5 objects; plane = the supporting plane's RANSAC fit and mask cleanup;
+icp = the depth refinement of the 5 estimates
 (``perception.icp``, with the block catalogue's meshes). Prints a table and a JSON line.
 """
 
@@ -30,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from perception import checkpoint  # noqa: E402
 from posegrasp import ASSETS  # noqa: E402
 from perception.classifier import ClassifierConfig, build_classifier  # noqa: E402
+from perception.plane import fit_support_plane, plane_pixels  # noqa: E402
 from perception.inference import Estimator  # noqa: E402
 from perception.pose_net import PoseNetConfig, build_pose_net  # noqa: E402
 from perception.refiner import RefinerConfig, build_refiner  # noqa: E402
@@ -78,19 +80,24 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
     labels = np.zeros(rgb.shape[:2], dtype=np.int64)  # the 5 objects as the seg net's class map
     for o, m in masks:
         labels[m] = o
-    times: dict[str, list[float]] = {"seg": [], "cls": [], "pose": [], "refine": [], "icp": [], "total": []}
+    times: dict[str, list[float]] = {"seg": [], "plane": [], "cls": [], "pose": [], "refine": [], "icp": [],
+                                     "total": []}
     for i in range(warmup + repeats):
         t0 = time.perf_counter()
         est.segment(rgb)
+        t05 = time.perf_counter()
+        plane = fit_support_plane(depth, K, est.seed, est.plane_cfg)
+        plane_pixels(plane, depth, K, labels > 0, est.plane_cfg.mask_tol)
         t1 = time.perf_counter()
         if est.classifier is not None:
             est.classify(rgb, depth, K, labels)
         t15 = time.perf_counter()
-        dets = est.estimate(rgb, depth, K, masks)
+        dets = est.estimate(rgb, depth, K, masks, plane=plane)
         t2 = time.perf_counter()
         assert len(dets) == len(masks)
         if i >= warmup:
-            times["seg"].append(t1 - t0)
+            times["seg"].append(t05 - t0)
+            times["plane"].append(t1 - t05)
             times["cls"].append(t15 - t1)
             times["pose"].append(est.timings["pose"])
             times["refine"].append(est.timings["refine"])

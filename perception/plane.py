@@ -1,7 +1,7 @@
 """The supporting plane (table, bin floor) of an RGB-D frame: RANSAC on the depth image's points.
 
     sample 3 points, plane n . x + d = 0 through them; count inliers |n . x + d| < inlier_tol;
-    keep the plane with the most inliers, refit it to them by least squares (SVD)
+    keep the plane with the most inliers, refit it to them by least squares (smallest principal axis)
 
 n is oriented towards the camera (d > 0: the camera centre lies in front of the plane). Points are
 camera-frame metres. Used by the estimator to drop segmented pixels lying on the plane and to rule out
@@ -62,7 +62,7 @@ def fit_support_plane(depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: Plan
         return None
     inl = P[np.abs(P @ n[best] + d[best]) < cfg.inlier_tol]
     c = inl.mean(axis=0)
-    normal = np.linalg.svd(inl - c)[2][2]
+    normal = np.linalg.eigh((inl - c).T @ (inl - c))[1][:, 0]  # the least-variance direction
     plane = np.append(normal, -normal @ c)
     return plane if plane[3] > 0 else -plane
 
