@@ -85,7 +85,8 @@ class Estimator:
     ``models/`` hold the objects' meshes; with it every estimate is refined against the depth image by
     ICP from rotation hypotheses (``perception.icp``, settings ``icp``); None skips that step.
     support_plane: fit the frame's dominant plane (``perception.plane``); segmented pixels on it become
-    background and ICP hypotheses sunk into it lose. threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
+    background and ICP hypotheses sunk into it lose.
+    threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
     is deterministic). ``timings`` holds the seconds spent per stage in the last call and
     ``last_labels`` its class map (H, W).
     """

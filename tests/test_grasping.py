@@ -215,6 +215,7 @@ def test_rest_prior_levels_near_resting_estimates_only():
     assert abs(rest_on_table(cube, high)[2, 3] - high[2, 3]) < 1e-3
     assert np.allclose(rest_on_table(cube, T, RestConfig(enabled=False)), T)
     # a lying cylinder: its symmetry axis is made horizontal, whatever the spin about it
-    R_lying = axis_angle_R(np.array([1.0, 0.0, 0.0]), np.pi / 2 + np.radians(4)) @ axis_angle_R(np.array([0.0, 0.0, 1.0]), 1.0)
+    R_lying = (axis_angle_R(np.array([1.0, 0.0, 0.0]), np.pi / 2 + np.radians(4))
+               @ axis_angle_R(np.array([0.0, 0.0, 1.0]), 1.0))
     T_c = rest_on_table(cyl, make_T(R_lying, np.array([0.3, 0.0, 0.02])))
     assert abs(T_c[:3, :3][2, 2]) < 1e-9
