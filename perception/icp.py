@@ -10,12 +10,13 @@ rotations of the cube group, in the object frame) so that it can leave a wrong b
                             point m_j under (R_h, t_h); (R_h, t_h) <- Kabsch(m_j -> p_i)
     score_h = mean_i min(d_i, truncation) + violation_weight * v_h
 
-Hypotheses that differ by a symmetry of the object start the same fit, so only one of them is run
-(``distinct_rotations``).
 d_i: distance of observed point i to the model at the final pose; v_h: the share of model points that
 project onto valid depth pixels and lie more than ``violation_margin`` in front of the observed surface
 (the model would fill space the camera sees through), plus, given the supporting plane, the share of model
-points more than ``violation_margin`` beneath it (sunk into the table). The hypothesis with the lowest score wins.
+points more than ``violation_margin`` beneath it (sunk into the table). The hypothesis with the lowest score
+wins. Hypotheses that differ by a symmetry of the object start the same fit, so only one of them is run
+(``distinct_rotations``); given the plane, each also starts a second time moved along the plane's normal until
+the model rests on it (seen from above, an arch's top or a lying cylinder's side also fits 2 cm too deep).
 Points are camera-frame metres; K is the 3x3 intrinsic matrix.
 """
 
