@@ -30,6 +30,7 @@ from perception.icp import ICPConfig, distinct_rotations, refine_pose
 from perception.plane import PlaneConfig, fit_support_plane, plane_pixels
 from perception.refiner import refine
 from perception.seg_net import SegNetConfig
+from perception.split import ModelSurface, SplitConfig, unexplained_parts
 from perception.torch_geometry import make_transform, quat_to_rotmat
 from posegrasp import bop
 from posegrasp.errors import UserError
@@ -86,6 +87,9 @@ class Estimator:
     ICP from rotation hypotheses (``perception.icp``, settings ``icp``); None skips that step.
     support_plane: fit the frame's dominant plane (``perception.plane``); segmented pixels on it become
     background and ICP hypotheses sunk into it lose.
+    split: with ``models``, the part of a detection's mask its fitted model leaves unexplained becomes a
+    detection of its own (``perception.split``: touching blocks merged into one segment); ``rounds = 0``
+    turns it off.
     threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
     is deterministic). ``timings`` holds the seconds spent per stage in the last call and
     ``last_labels`` its class map (H, W).
@@ -93,7 +97,8 @@ class Estimator:
 
     def __init__(self, weights: str | Path, refine_iterations: int | None = None, min_valid_points: int = 50,
                  threads: int | None = None, seed: int = 0, classify: bool | None = None,
-                 models: str | Path | None = None, icp: ICPConfig | None = None, support_plane: bool = True):
+                 models: str | Path | None = None, icp: ICPConfig | None = None, support_plane: bool = True,
+                 split: SplitConfig | None = None):
         weights = Path(weights)
         if not weights.is_dir():
             raise UserError(f"weights directory {weights} does not exist")
@@ -121,8 +126,10 @@ class Estimator:
         self.seed = seed
         self.icp = icp or ICPConfig()
         self.support_plane, self.plane_cfg = support_plane, PlaneConfig()
+        self.split_cfg = split or SplitConfig()
         self.model_points: dict[int, np.ndarray] | None = None
         self.hypotheses: dict[int, np.ndarray] = {}
+        self.surfaces: dict[int, ModelSurface] = {}
         if models is not None:
             infos = bop.load_models_info(models)
             missing = [o for o in self.obj_ids if o not in infos]
@@ -133,7 +140,12 @@ class Estimator:
             self.hypotheses = {o: distinct_rotations(self.icp.rotations(), infos[o].symmetries_discrete,
                                                      [a for a, _ in infos[o].symmetries_continuous])
                                for o in self.obj_ids}
-        self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "pose": 0.0, "refine": 0.0, "icp": 0.0}
+            if self.split_cfg.rounds > 0:
+                self.surfaces = {o: ModelSurface(bop.sample_model_points(bop.load_model(models, o),
+                                                                          self.split_cfg.model_points, seed=o))
+                                 for o in self.obj_ids}
+        self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "pose": 0.0, "refine": 0.0, "icp": 0.0,
+                                          "split": 0.0}
         self.last_labels: np.ndarray | None = None
 
     @property
@@ -213,21 +225,27 @@ class Estimator:
         Returns the new class map and the per-pixel confidence (H, W) float32: the classifier's
         probability of the chosen class on re-labelled segments, 0 elsewhere. Segments without enough
         valid depth for a crop keep their label and get confidence 0."""
-        cfg = self.cls_cfg
         new, conf = labels.copy(), np.zeros(labels.shape, dtype=np.float32)
-        segs, crops = [], []
-        for _, m in segment_components(labels, 1):
-            x = prepare_cls_input(rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range)
-            if x is not None:
-                segs.append(m)
-                crops.append(normalize_cls_input(x))
-        if segs:
-            p = torch.softmax(self.classifier(torch.from_numpy(np.stack(crops))), dim=1)  # (S, K)
-            pmax, k = p.max(dim=1)
-            for m, kk, pp in zip(segs, k.tolist(), pmax.tolist()):
-                new[m] = cfg.obj_ids[kk]
-                conf[m] = pp
+        segs = [m for _, m in segment_components(labels, 1)]
+        for m, c in zip(segs, self._classify_masks(rgb, depth, K, segs)):
+            if c is not None:
+                new[m], conf[m] = c
         return new, conf
+
+    def _classify_masks(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray]
+                        ) -> list[tuple[int, float] | None]:
+        """(obj_id, probability) by the instance classifier for each mask (H, W) bool, in order; None where the
+        mask lacks the valid depth for a crop."""
+        cfg = self.cls_cfg
+        crops = [prepare_cls_input(rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range) for m in masks]
+        ok = [i for i, x in enumerate(crops) if x is not None]
+        out: list[tuple[int, float] | None] = [None] * len(masks)
+        if ok:
+            x = torch.from_numpy(np.stack([normalize_cls_input(crops[i]) for i in ok]))
+            pmax, k = torch.softmax(self.classifier(x), dim=1).max(dim=1)  # (S,)
+            for i, kk, pp in zip(ok, k.tolist(), pmax.tolist()):
+                out[i] = (cfg.obj_ids[kk], pp)
+        return out
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> list[Detection]:
         """Detect and estimate every known object in an RGB-D frame (depth in metres, 0 = invalid)."""
@@ -253,7 +271,51 @@ class Estimator:
                 s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
                 scores.append(float(s.mean()))
         self.timings.update(seg=time.perf_counter() - t0 - t_cls, cls=t_cls)
-        return self.estimate(rgb, depth, K, masks, scores, plane)
+        dets = self.estimate(rgb, depth, K, masks, scores, plane)
+        t2, stages = time.perf_counter(), {k: self.timings[k] for k in ("pose", "refine", "icp")}
+        if self.surfaces:
+            dets = self._split(rgb, depth, K, dets, prob, plane)
+        self.timings.update(stages, split=time.perf_counter() - t2)
+        return dets
+
+    def _split(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection], prob: np.ndarray,
+               plane: np.ndarray | None) -> list[Detection]:
+        """``perception.split``: each detection whose fitted model leaves a large part of its mask unexplained
+        is fitted again to the rest, and each such part is typed (``_part_type``) and fitted as a detection of
+        its own; ``split_cfg.rounds`` times. Updates ``last_labels``."""
+        cfg = self.split_cfg
+        for _ in range(cfg.rounds):
+            kept, masks, scores, parts = [], [], [], []
+            for d in dets:
+                explained = self.surfaces[d.obj_id].explained(d.T_cam_obj, d.mask, depth, K, cfg.tol)
+                ps = unexplained_parts(d.mask, explained, depth, cfg)
+                if not ps:
+                    kept.append(d)
+                    continue
+                masks.append((d.obj_id, d.mask & ~np.any(ps, axis=0)))
+                scores.append(d.score)
+                parts += ps
+            if not parts:
+                break
+            for p, (obj_id, p_cls) in zip(parts, self._part_types(rgb, depth, K, parts, prob)):
+                masks.append((obj_id, p))
+                scores.append(float((1.0 - prob[..., 0][p]).mean()) * p_cls)
+                self.last_labels[p] = obj_id
+            dets = kept + self.estimate(rgb, depth, K, masks, scores, plane)
+        return dets
+
+    def _part_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[np.ndarray],
+                    prob: np.ndarray) -> list[tuple[int, float]]:
+        """(obj_id, probability) of each part (H, W) bool: the instance classifier's, else (no classifier, or
+        no crop) the seg net's most probable object class (``prob`` (H, W, C)) over the part."""
+        by_cls = self._classify_masks(rgb, depth, K, parts) if self.classifier is not None else [None] * len(parts)
+        out = []
+        for p, c in zip(parts, by_cls):
+            if c is None:
+                mean = prob[p][:, 1:].mean(axis=0)  # (C - 1,) object classes
+                c = (int(mean.argmax()) + 1, float(mean.max()))
+            out.append(c)
+        return out
 
 
 def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -219,3 +219,33 @@ def test_rest_prior_levels_near_resting_estimates_only():
                @ axis_angle_R(np.array([0.0, 0.0, 1.0]), 1.0))
     T_c = rest_on_table(cyl, make_T(R_lying, np.array([0.3, 0.0, 0.02])))
     assert abs(T_c[:3, :3][2, 2]) < 1e-9
+
+
+def test_shipped_estimator_splits_a_mask_holding_two_blocks(look_frame):
+    """A detection fitted to block 1 whose mask also holds block 2 (two touching blocks segmented as one) is
+    split: block 1 is fitted again to its own pixels, block 2 becomes a detection of its own, typed by the
+    classifier and fitted by the pose net and ICP."""
+    from grasping.model_provider import SHIPPED_MODEL, _estimator
+    from perception.inference import Detection
+    from perception.plane import fit_support_plane
+
+    f = look_frame
+    est = _estimator(str(SHIPPED_MODEL))
+    cat = {b.obj_id: b for b in load_catalog().values()}
+    a, b = f.mask == 1, f.mask == 2
+    merged = Detection(int(f.obj_ids[0]), f.T_cam_obj[0], 1.0, a | b)
+    _, prob = est.segment(f.rgb)
+    est.last_labels = np.where(a | b, merged.obj_id, 0)
+    dets = est._split(f.rgb, f.depth, f.K, [merged], prob, fit_support_plane(f.depth, f.K))
+    assert len(dets) == 2
+    for k, m in ((1, a), (2, b)):
+        d = next(d for d in dets if (d.mask & m).sum() > 0.8 * m.sum())
+        assert (d.mask & ~m).sum() < 0.05 * m.sum()
+        assert d.obj_id == f.obj_ids[k - 1]
+        block = cat[d.obj_id]
+        pts = surface_points(block, 500)
+        est_pts, gt_pts = transform_points(d.T_cam_obj, pts), transform_points(f.T_cam_obj[k - 1], pts)
+        adds = np.linalg.norm(est_pts[:, None] - gt_pts[None], axis=2).min(axis=0).mean()
+        assert adds < 0.1 * block.diameter, (block.name, adds)
+    assert (est.last_labels[b] == f.obj_ids[1]).mean() > 0.9
+    assert len(est._split(f.rgb, f.depth, f.K, [Detection(merged.obj_id, f.T_cam_obj[0], 1.0, a)], prob, None)) == 1

@@ -1,0 +1,50 @@
+"""Splitting a mask by its fitted model: explained pixels, and the unexplained parts split off."""
+
+import numpy as np
+
+from perception.split import ModelSurface, SplitConfig, unexplained_parts
+
+K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
+
+
+def _square_face(side: float, n: int = 200) -> np.ndarray:
+    """Points (n * n, 3) of a square side x side in the object's z = 0 plane, centred on its origin (m)."""
+    g = np.linspace(-side / 2, side / 2, n)
+    x, y = np.meshgrid(g, g)
+    return np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+
+
+def _two_patches() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Depth (240, 320) m with a patch at 0.50 m and one at 0.52 m beside it (0 elsewhere: invalid), the two
+    patch masks and the pose of a 4 cm square facing the camera on the first patch."""
+    v, u = np.mgrid[0:240, 0:320]
+    a = (abs(u - 140) < 20) & (abs(v - 120) < 20)  # 40 px at 0.5 m: 4 cm, the square's size
+    b = (abs(u - 190) < 20) & (abs(v - 120) < 20)
+    depth = np.where(a, 0.50, np.where(b, 0.52, 0.0))
+    T = np.eye(4)
+    T[:3, 3] = [(140 - 160) * 0.5 / 500, 0.0, 0.5]  # the patch centre, back-projected
+    return depth, a, b, T
+
+
+def test_explained_pixels_are_those_on_the_fitted_surface():
+    depth, a, b, T = _two_patches()
+    surf = ModelSurface(_square_face(0.04))
+    e = surf.explained(T, a | b, depth, K, tol=0.004)
+    assert e[a].mean() > 0.95 and not e[b].any()  # b lies 2 cm behind the square's plane
+    T_far = T.copy()
+    T_far[2, 3] += 0.01
+    assert not surf.explained(T_far, a | b, depth, K, tol=0.004).any()  # 1 cm off: nothing explained
+    assert surf.explained(T_far, a | b, depth, K, tol=0.011)[a].mean() > 0.95
+
+
+def test_unexplained_parts_large_enough_are_split_off():
+    depth, a, b, T = _two_patches()
+    e = ModelSurface(_square_face(0.04)).explained(T, a | b, depth, K, tol=0.004)
+    parts = unexplained_parts(a | b, e, depth, SplitConfig())
+    assert len(parts) == 1 and (parts[0] == b).mean() > 0.999  # the 3x3 opening leaves the square's pixels
+    assert unexplained_parts(a | b, e, depth, SplitConfig(min_pixels=b.sum() + 1)) == []
+    assert unexplained_parts(a | b, e, depth, SplitConfig(min_share=0.6)) == []  # b is half of the mask
+    assert unexplained_parts(a, e, depth, SplitConfig()) == []  # a mask its model explains
+    speck = np.zeros_like(a)
+    speck[10:12, 10:12] = True
+    assert unexplained_parts(a | speck, e, np.where(speck, 0.3, depth), SplitConfig(min_pixels=1)) == []  # opened away
