@@ -27,7 +27,7 @@ from perception.crop import backproject
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
 from perception.icp import ICPConfig, distinct_rotations, refine_pose
-from perception.plane import PlaneConfig, fit_support_plane, plane_pixels
+from perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from perception.refiner import refine
 from perception.seg_net import SegNetConfig
 from perception.split import ModelSurface, SplitConfig, unexplained_parts
@@ -252,9 +252,9 @@ class Estimator:
         rgb, depth, K = _check_inputs(rgb, depth, K)
         t0 = time.perf_counter()
         labels, prob = self.segment(rgb)
-        plane = fit_support_plane(depth, K, self.seed, self.plane_cfg) if self.support_plane else None
-        if plane is not None and self.plane_cfg.mask_tol > 0:  # segmented pixels lying on the table
-            labels = np.where(plane_pixels(plane, depth, K, labels > 0, self.plane_cfg.mask_tol), 0, labels)
+        plane = None
+        if self.support_plane:  # segmented pixels lying on the table become background
+            labels, plane = clear_plane(labels, depth, K, self.seed, self.plane_cfg)
         t1 = time.perf_counter()
         conf, t_cls = None, 0.0
         if self.classifier is not None:
@@ -281,28 +281,47 @@ class Estimator:
     def _split(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection], prob: np.ndarray,
                plane: np.ndarray | None) -> list[Detection]:
         """``perception.split``: each detection whose fitted model leaves a large part of its mask unexplained
-        is fitted again to the rest, and each such part is typed (``_part_type``) and fitted as a detection of
-        its own; ``split_cfg.rounds`` times. Updates ``last_labels``."""
+        is fitted again to the rest, and each such part is typed (``_part_types``) and fitted as a detection of
+        its own; ``split_cfg.rounds`` times. A split is undone when a part and the rest are fitted as the same block
+        (``_same_block``): the part was a strip of it that the first fit missed. Updates ``last_labels``."""
         cfg = self.split_cfg
+        done: list[Detection] = []  # detections not to be tested again
         for _ in range(cfg.rounds):
-            kept, masks, scores, parts = [], [], [], []
+            groups, masks, scores, todo = [], [], [], []
             for d in dets:
                 explained = self.surfaces[d.obj_id].explained(d.T_cam_obj, d.mask, depth, K, cfg.tol)
                 ps = unexplained_parts(d.mask, explained, depth, cfg)
                 if not ps:
-                    kept.append(d)
+                    done.append(d)
                     continue
-                masks.append((d.obj_id, d.mask & ~np.any(ps, axis=0)))
-                scores.append(d.score)
-                parts += ps
-            if not parts:
-                break
-            for p, (obj_id, p_cls) in zip(parts, self._part_types(rgb, depth, K, parts, prob)):
-                masks.append((obj_id, p))
-                scores.append(float((1.0 - prob[..., 0][p]).mean()) * p_cls)
-                self.last_labels[p] = obj_id
-            dets = kept + self.estimate(rgb, depth, K, masks, scores, plane)
-        return dets
+                rest = d.mask & ~np.any(ps, axis=0)
+                types = self._part_types(rgb, depth, K, ps, prob)
+                groups.append((d, rest, ps, [o for o, _ in types]))
+                masks += [(d.obj_id, rest)] + [(o, p) for p, (o, _) in zip(ps, types)]
+                scores += [d.score] + [float((1.0 - prob[..., 0][p]).mean()) * pc for p, (_, pc) in zip(ps, types)]
+            if not groups:
+                return done
+            fitted = {id(f.mask): f for f in self.estimate(rgb, depth, K, masks, scores, plane)}
+            for d, rest, ps, types in groups:
+                new = [fitted[id(p)] for p in ps if id(p) in fitted]
+                first = [fitted[id(rest)]] if id(rest) in fitted else []
+                if any(self._same_block(n, f) for n in new for f in first):
+                    done.append(d)  # one block: keep the first fit, its mask whole
+                    continue
+                todo += new + first
+                for p, o in zip(ps, types):
+                    self.last_labels[p] = o
+            dets = todo
+        return done + dets
+
+    def _same_block(self, a: Detection, b: Detection) -> bool:
+        """Whether two fitted detections are one block twice: the same type, and the median distance of ``a``'s
+        model points (placed at its pose) to ``b``'s placed surface below ``split_cfg.same_block``."""
+        if a.obj_id != b.obj_id:
+            return False
+        pts = self.model_points[a.obj_id] @ a.T_cam_obj[:3, :3].T + a.T_cam_obj[:3, 3]  # camera frame
+        dist, _ = self.surfaces[b.obj_id].tree.query((pts - b.T_cam_obj[:3, 3]) @ b.T_cam_obj[:3, :3])
+        return float(np.median(dist)) < self.split_cfg.same_block
 
     def _part_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[np.ndarray],
                     prob: np.ndarray) -> list[tuple[int, float]]:

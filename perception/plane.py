@@ -67,6 +67,17 @@ def fit_support_plane(depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: Plan
     return plane if plane[3] > 0 else -plane
 
 
+def clear_plane(labels: np.ndarray, depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: PlaneConfig | None = None
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The class map ``labels`` (H, W) with its pixels within ``cfg.mask_tol`` of the frame's supporting plane set to
+    0 (background), and the plane (None, and ``labels`` unchanged, when the frame has none)."""
+    cfg = cfg or PlaneConfig()
+    plane = fit_support_plane(depth, K, seed, cfg)
+    if plane is not None and cfg.mask_tol > 0:
+        labels = np.where(plane_pixels(plane, depth, K, labels > 0, cfg.mask_tol), 0, labels)
+    return labels, plane
+
+
 def plane_pixels(plane: np.ndarray, depth: np.ndarray, K: np.ndarray, where: np.ndarray, tol: float) -> np.ndarray:
     """Bool (H, W): the pixels of ``where`` (bool (H, W)) with valid depth within ``tol`` (m) of the plane."""
     idx = np.flatnonzero(where & (depth > 0))

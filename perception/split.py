@@ -8,8 +8,9 @@ point of the mask is tested against the model at that pose:
 
 The mask's valid-depth pixels left unexplained, opened by a 3x3 kernel, form connected parts; a part of at
 least ``max(min_pixels, min_share x |mask|)`` pixels is another object: it becomes a segment of its own
-(classified and fitted like any other), and the first object is fitted again to the rest of its mask.
-Rounds repeat this on the new detections. Points are camera-frame metres; K is the 3x3 intrinsic matrix.
+(classified and fitted like any other), and the first object is fitted again to the rest of its mask, unless the
+two fits are the same block (same type, the part's model points within ``same_block`` of the rest's model surface,
+in the median: the part was a strip of the block, missed by a slightly wrong first fit), which undoes the split. Rounds repeat this on the new detections. Points are camera-frame metres; K is the 3x3 intrinsic matrix.
 """
 
 from __future__ import annotations
@@ -27,12 +28,14 @@ from perception.crop import backproject
 class SplitConfig:
     """tol (m): an observed point this close to the fitted model's surface is explained by it.
     min_pixels, min_share: an unexplained part must cover at least this many pixels and this share of the
-    mask to be split off. rounds: split passes (0 turns splitting off). model_points: surface points per
-    model for the distance test."""
+    mask to be split off. same_block (m): a part whose fitted model lies this close to the rest's (median distance
+    of its points to the rest's surface) is the same block, and the split is undone. rounds: split passes (0 turns
+    splitting off). model_points: surface points per model for the distance test."""
 
     tol: float = 0.004
     min_pixels: int = 150
     min_share: float = 0.1
+    same_block: float = 0.005
     rounds: int = 2
     model_points: int = 20000
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from perception.icp import ICPConfig, refine_pose
-from perception.plane import fit_support_plane, plane_pixels
+from perception.plane import clear_plane, fit_support_plane, plane_pixels
 
 K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
 
@@ -29,6 +29,12 @@ def test_ransac_finds_the_table_and_its_pixels():
     on = plane_pixels(plane, depth, K, np.ones(depth.shape, bool), 0.002)
     assert not on[box].any() and on[~box & (depth > 0)].all() and not on[:5].any()
     assert fit_support_plane(np.zeros((240, 320)), K) is None
+    labels = np.where(np.roll(box, 8, axis=1), 3, 0)  # a segment that bleeds 8 px onto the table
+    cleared, p = clear_plane(labels, depth, K)
+    np.testing.assert_array_equal(p, plane)
+    np.testing.assert_array_equal(cleared, np.where(box, labels, 0))
+    flat = np.zeros((240, 320))
+    assert clear_plane(labels, flat, K)[1] is None and clear_plane(labels, flat, K)[0] is labels
 
 
 def test_icp_scores_a_pose_sunk_into_the_table_worse():
