@@ -1,7 +1,8 @@
 """The learned two-stage network as a perception provider: ``--perception model[:RUN_OR_WEIGHTS]``.
 
 The hand camera's RGB-D frame goes through segmentation, instance classification, pose estimation and
-depth refinement against the catalogue's block models (``perception.inference.Estimator``); only the resulting ``T_cam_obj`` estimates reach the planner.
+depth refinement against the catalogue's block models, then merged segments split by the fitted models
+(``perception.inference.Estimator``); only the resulting ``T_cam_obj`` estimates reach the planner.
 Without an argument the shipped model in ``assets/perception/model`` is used.
 """
 

@@ -6,7 +6,9 @@
 
 Several blocks of one type are told apart as the connected components of their class mask. When the
 run has an instance classifier (``cls/``, ``perception.classifier``), every connected segment of the
-class map is re-labelled by it before the instances are formed.
+class map is re-labelled by it before the instances are formed. With block models (``models``) every
+estimate is refined against the depth image (``perception.icp``) and the parts of a mask its fitted model leaves
+unexplained become detections of their own (``perception.split``: touching blocks segmented as one).
 Works on real camera data as well as on simulated frames: it only needs RGB, depth in metres and
 the intrinsics. Objects whose mask has fewer valid depth pixels than ``min_valid_points`` are
 declared invalid and skipped, as in the paper.
