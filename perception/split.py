@@ -10,7 +10,8 @@ The mask's valid-depth pixels left unexplained, opened by a 3x3 kernel, form con
 least ``max(min_pixels, min_share x |mask|)`` pixels is another object: it becomes a segment of its own
 (classified and fitted like any other), and the first object is fitted again to the rest of its mask, unless the
 two fits are the same block (same type, the part's model points within ``same_block`` of the rest's model surface,
-in the median: the part was a strip of the block, missed by a slightly wrong first fit), which undoes the split. Rounds repeat this on the new detections. Points are camera-frame metres; K is the 3x3 intrinsic matrix.
+in the median: the part was a strip of the block, missed by a slightly wrong first fit), which undoes the split.
+Rounds repeat this on the new detections. Points are camera-frame metres; K is the 3x3 intrinsic matrix.
 """
 
 from __future__ import annotations
