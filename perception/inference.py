@@ -289,20 +289,24 @@ class Estimator:
         cfg = self.split_cfg
         done: list[Detection] = []  # detections not to be tested again
         for _ in range(cfg.rounds):
-            groups, masks, scores, todo = [], [], [], []
+            split: list[tuple[Detection, list[np.ndarray]]] = []
             for d in dets:
                 explained = self.surfaces[d.obj_id].explained(d.T_cam_obj, d.mask, depth, K, cfg.tol)
                 ps = unexplained_parts(d.mask, explained, depth, cfg)
-                if not ps:
+                if ps:
+                    split.append((d, ps))
+                else:
                     done.append(d)
-                    continue
+            if not split:
+                return done
+            all_types = iter(self._part_types(rgb, depth, K, [p for _, ps in split for p in ps], prob))  # one batch
+            groups, masks, scores, todo = [], [], [], []
+            for d, ps in split:
                 rest = d.mask & ~np.any(ps, axis=0)
-                types = self._part_types(rgb, depth, K, ps, prob)
+                types = [next(all_types) for _ in ps]
                 groups.append((d, rest, ps, [o for o, _ in types]))
                 masks += [(d.obj_id, rest)] + [(o, p) for p, (o, _) in zip(ps, types)]
                 scores += [d.score] + [float((1.0 - prob[..., 0][p]).mean()) * pc for p, (_, pc) in zip(ps, types)]
-            if not groups:
-                return done
             fitted = {id(f.mask): f for f in self.estimate(rgb, depth, K, masks, scores, plane)}
             for d, rest, ps, types in groups:
                 new = [fitted[id(p)] for p in ps if id(p) in fitted]
