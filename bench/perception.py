@@ -89,7 +89,7 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
     for o, m in masks:
         labels[m] = o
     times: dict[str, list[float]] = {"seg": [], "plane": [], "cls": [], "pose": [], "refine": [], "icp": [],
-                                     "split": [], "total": []}
+                                     "split": [], "guided": [], "total": []}
     for i in range(warmup + repeats):
         t0 = time.perf_counter()
         _, prob = est.segment(rgb)
@@ -105,6 +105,9 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
         t19, stages = time.perf_counter(), dict(est.timings)  # _split's own fits overwrite est.timings
         est.last_labels = labels.copy()
         est._split(rgb, depth, K, dets, prob, plane)
+        t195 = time.perf_counter()
+        est.last_labels = labels.copy()
+        est._snap_outlines(rgb, dets)
         t2 = time.perf_counter()
         if i >= warmup:
             times["seg"].append(t05 - t0)
@@ -112,7 +115,8 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
             times["cls"].append(t15 - t1)
             for k in ("pose", "refine", "icp"):
                 times[k].append(stages[k])
-            times["split"].append(t2 - t19)
+            times["split"].append(t195 - t19)
+            times["guided"].append(t2 - t195)
             times["total"].append(t2 - t0)
     return {k: {"median_ms": 1000 * statistics.median(v), "mean_ms": 1000 * statistics.fmean(v),
                 "min_ms": 1000 * min(v)} for k, v in times.items()}

@@ -43,6 +43,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--no-cls", action="store_true", help="ablation: no instance classifier (the paper's pipeline)")
     e.add_argument("--no-icp", action="store_true", help="ablation: no depth refinement (ICP from rotation hypotheses)")
     e.add_argument("--no-plane", action="store_true", help="ablation: no supporting-plane prior (mask cleanup, ICP)")
+    e.add_argument("--no-guided", action="store_true",
+                   help="ablation: class-map outlines not snapped to colour edges (guided filter)")
     e.add_argument("--no-split", action="store_true", help="ablation: merged segments not split by the fitted models")
     e.add_argument("--max-images", type=int, help="evaluate at most this many images")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -87,7 +89,8 @@ def run_eval(args: argparse.Namespace) -> int:
     cfg = override(cfg, split=args.split, max_images=args.max_images,
                    masks="gt" if args.gt_masks else None, refine_iterations=0 if args.no_refine else None,
                    classify=False if args.no_cls else None, icp=False if args.no_icp else None,
-                   plane=False if args.no_plane else None, split_merged=False if args.no_split else None)
+                   plane=False if args.no_plane else None,
+                   guided=False if args.no_guided else None, split_merged=False if args.no_split else None)
     out = args.out or args.weights / f"eval_{cfg.split}"
     report = evaluate(args.data, args.weights, out, cfg, progress=not args.no_progress)
     summary = {"out": str(out), "segmentation": (report["segmentation"] or {}).get("mIoU"),

@@ -30,6 +30,7 @@ from posegrasp import io as pio
 from posegrasp.errors import UserError
 from perception import metrics as M
 from perception.data import label_map, load_records
+from perception.guided import GuidedConfig
 from perception.inference import Detection, Estimator
 from perception.split import SplitConfig
 
@@ -43,7 +44,8 @@ class EvalConfig:
     masks, pose stage only). refine_iterations: -1 = as trained, 0 = no refinement. classify: re-label
     segments with the run's instance classifier when it has one (false: the paper's pipeline). icp: refine
     every estimate against the depth image (``perception.icp``, with the dataset's models). plane: use the
-    frame's supporting plane (``perception.plane``: segmented pixels on it dropped; an ICP prior). split_merged: split
+    frame's supporting plane (``perception.plane``: segmented pixels on it dropped; an ICP prior). guided: snap the
+    class map's outlines to the colour edges (``perception.guided``). split_merged: split
     off the parts of a mask its fitted model leaves unexplained (``perception.split``; needs icp).
     min_visib_fract: ground-truth instances less visible are not evaluated (BOP: 0.1).
     min_valid_points: the estimator's minimum valid-depth pixels per object. model_points: surface
@@ -55,6 +57,7 @@ class EvalConfig:
     classify: bool = True
     icp: bool = True
     plane: bool = True
+    guided: bool = True
     split_merged: bool = True
     min_visib_fract: float = 0.1
     min_valid_points: int = 50
@@ -144,7 +147,8 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
     est = Estimator(weights, refine_iterations=None if cfg.refine_iterations < 0 else cfg.refine_iterations,
                     min_valid_points=cfg.min_valid_points, threads=cfg.threads, seed=cfg.seed,
                     classify=None if cfg.classify else False, models=data if cfg.icp else None, support_plane=cfg.plane,
-                    split=SplitConfig(rounds=SplitConfig.rounds if cfg.split_merged else 0))
+                    split=SplitConfig(rounds=SplitConfig.rounds if cfg.split_merged else 0),
+                    guided=None if cfg.guided else GuidedConfig(radius=0))
     infos = bop.load_models_info(data)
     obj_ids = [o for o in est.obj_ids if o in infos]
     pts = {o: bop.sample_model_points(bop.load_model(data, o), cfg.model_points, seed=o) for o in obj_ids}
@@ -167,7 +171,7 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
             if cfg.masks == "pred":
                 dets = est(rgb, depth, K)
             else:
-                est.timings.update(seg=0.0, cls=0.0)  # no segmentation stage with ground-truth masks
+                est.timings.update(seg=0.0, cls=0.0, guided=0.0)  # no segmentation stage with ground-truth masks
                 dets = est.estimate(rgb, depth, K, gt_masks)
             total = time.perf_counter() - t0
             if cfg.masks == "pred":
@@ -188,7 +192,7 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
         "ablation": {"pam": pose_cfg.use_pam, "cam": pose_cfg.use_cam, "gfem": pose_cfg.use_gfem,
                      "refine_iterations": est.refine_iterations, "masks": cfg.masks,
                      "classifier": est.classifier is not None and cfg.masks == "pred", "icp": cfg.icp,
-                     "plane": cfg.plane, "split_merged": cfg.split_merged and cfg.icp},
+                     "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.icp},
         "segmentation": None,
         "overall": overall,
         "mean_over_objects": {k: _nanmean([per_object[o][k] for o in obj_ids if per_object[o]["n"]])

@@ -16,6 +16,7 @@ declared invalid and skipped, as in the paper.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,7 @@ from perception import checkpoint as ckpt_mod
 from perception.crop import backproject
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
+from perception.guided import GuidedConfig, refine_labels
 from perception.icp import ICPConfig, distinct_rotations, refine_pose
 from perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from perception.refiner import refine
@@ -91,7 +93,8 @@ class Estimator:
     background and ICP hypotheses sunk into it lose.
     split: with ``models``, the part of a detection's mask its fitted model leaves unexplained becomes a
     detection of its own (``perception.split``: touching blocks merged into one segment); ``rounds = 0``
-    turns it off.
+    turns it off. guided: once the poses are fitted, the class map's and the masks' outlines are snapped to the
+    colour image's edges (``perception.guided``); ``radius = 0`` turns it off.
     threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
     is deterministic). ``timings`` holds the seconds spent per stage in the last call and
     ``last_labels`` its class map (H, W).
@@ -100,7 +103,7 @@ class Estimator:
     def __init__(self, weights: str | Path, refine_iterations: int | None = None, min_valid_points: int = 50,
                  threads: int | None = None, seed: int = 0, classify: bool | None = None,
                  models: str | Path | None = None, icp: ICPConfig | None = None, support_plane: bool = True,
-                 split: SplitConfig | None = None):
+                 split: SplitConfig | None = None, guided: GuidedConfig | None = None):
         weights = Path(weights)
         if not weights.is_dir():
             raise UserError(f"weights directory {weights} does not exist")
@@ -129,6 +132,8 @@ class Estimator:
         self.icp = icp or ICPConfig()
         self.support_plane, self.plane_cfg = support_plane, PlaneConfig()
         self.split_cfg = split or SplitConfig()
+        self.guided_cfg = guided or GuidedConfig()
+        self.guided_cfg.validate()
         self.model_points: dict[int, np.ndarray] | None = None
         self.hypotheses: dict[int, np.ndarray] = {}
         self.surfaces: dict[int, ModelSurface] = {}
@@ -146,8 +151,8 @@ class Estimator:
                 self.surfaces = {o: ModelSurface(bop.sample_model_points(bop.load_model(models, o),
                                                                           self.split_cfg.model_points, seed=o))
                                  for o in self.obj_ids}
-        self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "pose": 0.0, "refine": 0.0, "icp": 0.0,
-                                          "split": 0.0}
+        self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "guided": 0.0, "pose": 0.0, "refine": 0.0,
+                                          "icp": 0.0, "split": 0.0}
         self.last_labels: np.ndarray | None = None
 
     @property
@@ -274,11 +279,26 @@ class Estimator:
                 scores.append(float(s.mean()))
         self.timings.update(seg=time.perf_counter() - t0 - t_cls, cls=t_cls)
         dets = self.estimate(rgb, depth, K, masks, scores, plane)
-        t2, stages = time.perf_counter(), {k: self.timings[k] for k in ("pose", "refine", "icp")}
+        t4, stages = time.perf_counter(), {k: self.timings[k] for k in ("pose", "refine", "icp")}
         if self.surfaces:
             dets = self._split(rgb, depth, K, dets, prob, plane)
-        self.timings.update(stages, split=time.perf_counter() - t2)
+        t5 = time.perf_counter()
+        if self.guided_cfg.radius > 0:
+            dets = self._snap_outlines(rgb, dets)
+        self.timings.update(stages, split=t5 - t4, guided=time.perf_counter() - t5 if self.guided_cfg.radius else 0.0)
         return dets
+
+    def _snap_outlines(self, rgb: np.ndarray, dets: list[Detection]) -> list[Detection]:
+        """``perception.guided``: the class map ``last_labels`` with its outlines snapped to the colour edges, and
+        each detection's mask likewise: the pixels of its type in the refined map within the filter's radius of
+        its mask; a pixel that several such masks reach stays with those that held it. The poses are the ones
+        fitted to the masks before (outlines shifted a few pixels onto a neighbour hurt the fits more than they
+        help)."""
+        r = self.guided_cfg.radius
+        labels = self.last_labels = refine_labels(self.last_labels, rgb, self.guided_cfg)
+        grown = [(labels == d.obj_id) & _dilate(d.mask, r) for d in dets]
+        claims = np.sum(grown, axis=0) if dets else None
+        return [dataclasses.replace(d, mask=g & ((claims == 1) | d.mask)) for d, g in zip(dets, grown)]
 
     def _split(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection], prob: np.ndarray,
                plane: np.ndarray | None) -> list[Detection]:
@@ -341,6 +361,17 @@ class Estimator:
                 c = (int(mean.argmax()) + 1, float(mean.max()))
             out.append(c)
         return out
+
+
+def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    """Mask (H, W) bool dilated by a disc of radius r px (computed on the mask's box widened by r)."""
+    out = np.zeros_like(mask)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size:
+        box = np.s_[max(0, rows[0] - r):rows[-1] + r + 1, max(0, cols[0] - r):cols[-1] + r + 1]
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        out[box] = cv2.dilate(mask[box].astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    return out
 
 
 def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

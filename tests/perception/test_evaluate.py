@@ -16,17 +16,18 @@ def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
     on_disk = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert on_disk["overall"]["n"] == rep["overall"]["n"] == 9
     assert 0 <= on_disk["segmentation"]["mIoU"] <= 100
-    assert set(rep["time_per_image_s"]) == {"seg", "cls", "pose", "refine", "icp", "split", "total"}
+    assert set(rep["time_per_image_s"]) == {"seg", "cls", "guided", "pose", "refine", "icp", "split", "total"}
     assert rep["ablation"]["refine_iterations"] == 2 and rep["ablation"]["classifier"]
     assert rep["time_per_image_s"]["cls"] > 0 and rep["ablation"]["icp"] and rep["ablation"]["plane"]
-    assert rep["ablation"]["split_merged"]
+    assert rep["ablation"]["split_merged"] and rep["ablation"]["guided"] and rep["time_per_image_s"]["guided"] > 0
 
 
 def test_evaluate_without_classifier(tiny_bop, tiny_run, tmp_path):
-    rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", EvalConfig(classify=False, icp=False, plane=False),
-                   progress=False)
+    rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev",
+                   EvalConfig(classify=False, icp=False, plane=False, guided=False), progress=False)
     assert not rep["ablation"]["classifier"] and rep["time_per_image_s"]["cls"] == 0.0
-    assert not rep["ablation"]["plane"] and not rep["ablation"]["split_merged"]
+    assert not rep["ablation"]["plane"] and not rep["ablation"]["split_merged"] and not rep["ablation"]["guided"]
+    assert rep["time_per_image_s"]["guided"] == 0.0
     assert not rep["ablation"]["icp"] and rep["time_per_image_s"]["icp"] == 0.0
     assert 0 <= rep["segmentation"]["mIoU"] <= 100
 
