@@ -14,7 +14,10 @@ d_i: distance of observed point i to the model at the final pose; v_h: the share
 project onto valid depth pixels and lie more than ``violation_margin`` in front of the observed surface
 (the model would fill space the camera sees through), plus, given the supporting plane, the share of model
 points more than ``violation_margin`` beneath it (sunk into the table). The hypothesis with the lowest score
-wins. Hypotheses that differ by a symmetry of the object start the same fit, so only one of them is run
+wins. The nearest model point is looked up in a voxel grid around the model (``NearestGrid``: the nearest point
+of every cell centre, computed once per model), so a step costs O(H N) instead of the O(H N M) of an exhaustive
+search; points beyond the grid take the nearest point of its closest cell (the score's distances stay exact).
+Hypotheses that differ by a symmetry of the object start the same fit, so only one of them is run
 (``distinct_rotations``); given the plane, each also starts a second time moved along the plane's normal until
 the model rests on it (seen from above, an arch's top or a lying cylinder's side also fits 2 cm too deep).
 Points are camera-frame metres; K is the 3x3 intrinsic matrix.
@@ -27,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 
 def cube_rotations() -> np.ndarray:
@@ -43,11 +47,13 @@ def cube_rotations() -> np.ndarray:
 
 @dataclass
 class ICPConfig:
-    """iterations: ICP steps per hypothesis. max_points: observed points used (random subset).
+    """iterations: ICP steps per hypothesis, the last ``exact_steps`` of them (at most) with an exhaustive search for
+    the nearest model points instead of the voxel grid. max_points: observed points used (random subset).
     truncation (m): per-point distance cap in the score. violation_margin (m) and violation_weight (m per
     unit share): the free-space term. hypotheses: "cube" (24 rotations) or "identity" (plain ICP)."""
 
     iterations: int = 12
+    exact_steps: int = 2
     max_points: int = 300
     truncation: float = 0.01
     violation_margin: float = 0.005
@@ -87,6 +93,31 @@ def distinct_rotations(Q: np.ndarray, discrete: list[np.ndarray], axes: list[np.
     return np.stack(kept)
 
 
+class NearestGrid:
+    """The nearest of the model points (M, 3) (object frame, m) to every cell centre of a voxel grid of side
+    ``cell`` (m) over the model's bounding box widened by ``margin`` (m): ``grid(points)`` gives the index of an
+    (approximately, within half a cell diagonal) nearest model point of each point (..., 3), object frame."""
+
+    def __init__(self, model: np.ndarray, cell: float = 0.002, margin: float = 0.02):
+        if cell <= 0 or margin < 0:
+            raise ValueError(f"NearestGrid needs cell > 0 and margin >= 0, got cell={cell}, margin={margin}")
+        model = np.asarray(model, dtype=np.float64)
+        self.lo = model.min(axis=0) - margin
+        self.shape = np.ceil((model.max(axis=0) + margin - self.lo) / cell).astype(int) + 1
+        self.cell = cell
+        centres = self.lo + np.stack(np.meshgrid(*[np.arange(n) for n in self.shape], indexing="ij"), -1) * cell
+        nearest = cKDTree(model).query(centres.reshape(-1, 3))[1]
+        self.index = torch.from_numpy(nearest.astype(np.int64))  # flat, C order over self.shape
+        self._lo = torch.from_numpy(self.lo).float()
+        self._max = torch.from_numpy(self.shape - 1)
+        self._strides = torch.tensor([self.shape[1] * self.shape[2], self.shape[2], 1])
+
+    def __call__(self, points: torch.Tensor) -> torch.Tensor:
+        ijk = torch.round((points - self._lo) / self.cell).long()
+        ijk = torch.minimum(ijk.clamp(min=0), self._max)
+        return self.index[(ijk * self._strides).sum(dim=-1)]
+
+
 def _kabsch(src: torch.Tensor, dst: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched least-squares rigid fit dst ~ R src + t: src, dst (H, N, 3) -> R (H, 3, 3), t (H, 3)."""
     cs, cd = src.mean(dim=1), dst.mean(dim=1)
@@ -99,14 +130,15 @@ def _kabsch(src: torch.Tensor, dst: torch.Tensor) -> tuple[torch.Tensor, torch.T
 
 
 def refine_pose(T_cam_obj: np.ndarray, model: np.ndarray, observed: np.ndarray, depth: np.ndarray, K: np.ndarray,
-                cfg: ICPConfig | None = None, rotations: np.ndarray | None = None, plane: np.ndarray | None = None
-                ) -> tuple[np.ndarray, float]:
+                cfg: ICPConfig | None = None, rotations: np.ndarray | None = None, plane: np.ndarray | None = None,
+                grid: NearestGrid | None = None) -> tuple[np.ndarray, float]:
     """The best-scoring ICP result over the hypotheses (see module docstring).
 
     T_cam_obj (4, 4) estimate; model (M, 3) surface points, object frame (m); observed (N, 3) camera-frame
     points of the object's mask (m); depth (H, W) m; rotations (H, 3, 3): the hypotheses, by default
     ``cfg.rotations()`` (``distinct_rotations`` of them for a symmetric object); plane (4,): the supporting
-    plane (``perception.plane``), or None. Returns (T_cam_obj refined, its score in m)."""
+    plane (``perception.plane``), or None; grid: the model's ``NearestGrid`` (built here when None). Returns
+    (T_cam_obj refined, its score in m)."""
     cfg = cfg or ICPConfig()
     Q = torch.from_numpy(cfg.rotations() if rotations is None else rotations).float()  # (H, 3, 3)
     m = torch.from_numpy(np.asarray(model, dtype=np.float32))
@@ -118,9 +150,12 @@ def refine_pose(T_cam_obj: np.ndarray, model: np.ndarray, observed: np.ndarray, 
     if pl is not None:  # each hypothesis also starts moved along the plane normal to rest on the plane
         lowest = ((m[None] @ R.transpose(1, 2) + t[:, None]) @ pl[:3] + pl[3]).min(dim=1).values  # (H,)
         R, t = torch.cat([R, R]), torch.cat([t, t - lowest[:, None] * pl[:3]])  # (2H, 3, 3), (2H, 3)
-    for _ in range(cfg.iterations):
-        mc = m[None] @ R.transpose(1, 2) + t[:, None]  # (H, M, 3)
-        nn = torch.cdist(p[None].expand(len(R), -1, -1), mc).argmin(dim=2)  # (H, N)
+    grid = grid or NearestGrid(model)
+    for k in range(cfg.iterations):
+        if k < cfg.iterations - cfg.exact_steps:
+            nn = grid((p[None] - t[:, None]) @ R)  # (H, N): observed points in each hypothesis' object frame
+        else:  # exhaustive search: exact matches for the last steps
+            nn = torch.cdist(p[None].expand(len(R), -1, -1), m[None] @ R.transpose(1, 2) + t[:, None]).argmin(dim=2)
         R, t = _kabsch(m[nn], p[None].expand(len(R), -1, -1))
     score = _score(R, t, m, p, dz, K, cfg, pl)
     best = int(score.argmin())

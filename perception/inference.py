@@ -30,7 +30,7 @@ from perception.crop import backproject
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
 from perception.guided import GuidedConfig, refine_labels
-from perception.icp import ICPConfig, distinct_rotations, refine_pose
+from perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_pose
 from perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from perception.refiner import refine
 from perception.seg_net import SegNetConfig
@@ -136,6 +136,7 @@ class Estimator:
         self.guided_cfg.validate()
         self.model_points: dict[int, np.ndarray] | None = None
         self.hypotheses: dict[int, np.ndarray] = {}
+        self.grids: dict[int, NearestGrid] = {}
         self.surfaces: dict[int, ModelSurface] = {}
         if models is not None:
             infos = bop.load_models_info(models)
@@ -147,6 +148,7 @@ class Estimator:
             self.hypotheses = {o: distinct_rotations(self.icp.rotations(), infos[o].symmetries_discrete,
                                                      [a for a, _ in infos[o].symmetries_continuous])
                                for o in self.obj_ids}
+            self.grids = {o: NearestGrid(self.model_points[o]) for o in self.obj_ids}
             if self.split_cfg.rounds > 0:
                 self.surfaces = {o: ModelSurface(bop.sample_model_points(bop.load_model(models, o),
                                                                           self.split_cfg.model_points, seed=o))
@@ -222,7 +224,8 @@ class Estimator:
             vs, us = vs[keep], us[keep]
         h, w = depth.shape
         pts = backproject(depth, K, (0, h, 0, w), vs * w + us)
-        return refine_pose(T, self.model_points[obj_id], pts, depth, K, self.icp, self.hypotheses[obj_id], plane)[0]
+        return refine_pose(T, self.model_points[obj_id], pts, depth, K, self.icp, self.hypotheses[obj_id], plane,
+                           self.grids[obj_id])[0]
 
     @torch.no_grad()
     def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray

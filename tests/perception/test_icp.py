@@ -2,7 +2,11 @@
 
 import numpy as np
 
-from perception.icp import ICPConfig, cube_rotations, distinct_rotations, refine_pose
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from perception.icp import ICPConfig, NearestGrid, cube_rotations, distinct_rotations, refine_pose
 from perception.metrics import rotation_error_sym_deg
 from posegrasp import bop
 from posegrasp.geometry import axis_angle_R, make_T
@@ -23,6 +27,22 @@ def test_distinct_rotations_drop_hypotheses_equal_under_symmetry():
     cyl = distinct_rotations(Q, half_turns[:1], [np.array([0.0, 0.0, 1.0])])
     assert len(cyl) == 3  # axis along x, y or z of the estimate
     assert np.allclose(cyl[0], np.eye(3))  # the estimate itself stays first
+
+
+def test_nearest_grid_matches_within_half_a_cell_diagonal():
+    """The grid's point is at most a cell diagonal farther than the exact nearest model point (the query and the
+    exact nearest point each lie within half a diagonal of the cell centre); most matches are exact."""
+    rng = np.random.default_rng(0)
+    model = rng.uniform(-1, 1, (500, 3)) * [0.03, 0.015, 0.01]
+    grid = NearestGrid(model, cell=0.002, margin=0.01)
+    q = rng.uniform(-0.06, 0.06, (4000, 3))  # inside and outside the grid (margin 1 cm)
+    d_grid = np.linalg.norm(q - model[grid(torch.from_numpy(q).float()).numpy()], axis=1)
+    d_true = cKDTree(model).query(q)[0]
+    inside = np.all(np.abs(q) < np.abs(model).max(axis=0) + 0.01, axis=1)
+    assert np.all(d_grid[inside] - d_true[inside] <= 0.002 * np.sqrt(3) + 1e-6)
+    assert np.mean(np.isclose(d_grid, d_true)) > 0.6  # most are exact
+    with pytest.raises(ValueError, match="cell > 0"):
+        NearestGrid(model, cell=0.0)
 
 
 def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
