@@ -16,7 +16,8 @@ project onto valid depth pixels and lie more than ``violation_margin`` in front 
 points more than ``violation_margin`` beneath it (sunk into the table). The hypothesis with the lowest score
 wins. The nearest model point is looked up in a voxel grid around the model (``NearestGrid``: the nearest point
 of every cell centre, computed once per model), so a step costs O(H N) instead of the O(H N M) of an exhaustive
-search; points beyond the grid take the nearest point of its closest cell (the score's distances stay exact).
+search; points beyond the grid take the nearest point of its closest cell. The last ``exact_steps`` steps search
+exhaustively, for the ``polish`` hypotheses that score best by the grid's distances only; the final score is exact.
 Hypotheses that differ by a symmetry of the object start the same fit, so only one of them is run
 (``distinct_rotations``); given the plane, each also starts a second time moved along the plane's normal until
 the model rests on it (seen from above, an arch's top or a lying cylinder's side also fits 2 cm too deep).
@@ -48,12 +49,14 @@ def cube_rotations() -> np.ndarray:
 @dataclass
 class ICPConfig:
     """iterations: ICP steps per hypothesis, the last ``exact_steps`` of them (at most) with an exhaustive search for
-    the nearest model points instead of the voxel grid. max_points: observed points used (random subset).
+    the nearest model points instead of the voxel grid, and only for the ``polish`` hypotheses (0: all) that score
+    best before them (with the grid's distances). max_points: observed points used (random subset).
     truncation (m): per-point distance cap in the score. violation_margin (m) and violation_weight (m per
     unit share): the free-space term. hypotheses: "cube" (24 rotations) or "identity" (plain ICP)."""
 
     iterations: int = 12
     exact_steps: int = 2
+    polish: int = 4
     max_points: int = 300
     truncation: float = 0.01
     violation_margin: float = 0.005
@@ -151,11 +154,14 @@ def refine_pose(T_cam_obj: np.ndarray, model: np.ndarray, observed: np.ndarray, 
         lowest = ((m[None] @ R.transpose(1, 2) + t[:, None]) @ pl[:3] + pl[3]).min(dim=1).values  # (H,)
         R, t = torch.cat([R, R]), torch.cat([t, t - lowest[:, None] * pl[:3]])  # (2H, 3, 3), (2H, 3)
     grid = grid or NearestGrid(model)
-    for k in range(cfg.iterations):
-        if k < cfg.iterations - cfg.exact_steps:
-            nn = grid((p[None] - t[:, None]) @ R)  # (H, N): observed points in each hypothesis' object frame
-        else:  # exhaustive search: exact matches for the last steps
-            nn = torch.cdist(p[None].expand(len(R), -1, -1), m[None] @ R.transpose(1, 2) + t[:, None]).argmin(dim=2)
+    exact = min(cfg.exact_steps, cfg.iterations)
+    for _ in range(cfg.iterations - exact):
+        R, t = _kabsch(m[grid((p[None] - t[:, None]) @ R)], p[None].expand(len(R), -1, -1))
+    if len(R) > cfg.polish > 0:  # only the best hypotheses by the grid's approximate score go on
+        keep = _score(R, t, m, p, dz, K, cfg, pl, grid).argsort()[:cfg.polish]
+        R, t = R[keep], t[keep]
+    for _ in range(exact):  # exhaustive search: exact matches for the last steps
+        nn = torch.cdist(p[None].expand(len(R), -1, -1), m[None] @ R.transpose(1, 2) + t[:, None]).argmin(dim=2)
         R, t = _kabsch(m[nn], p[None].expand(len(R), -1, -1))
     score = _score(R, t, m, p, dz, K, cfg, pl)
     best = int(score.argmin())
@@ -165,12 +171,17 @@ def refine_pose(T_cam_obj: np.ndarray, model: np.ndarray, observed: np.ndarray, 
 
 
 def _score(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, p: torch.Tensor, depth: torch.Tensor, K: np.ndarray,
-           cfg: ICPConfig, plane: torch.Tensor | None) -> torch.Tensor:
+           cfg: ICPConfig, plane: torch.Tensor | None, grid: NearestGrid | None = None) -> torch.Tensor:
     """Score (H,) of the poses (R (H, 3, 3), t (H, 3)): truncated fit of the observed points p (N, 3) to the
     model points m (M, 3) plus the weighted shares of model points in free space against ``depth`` (H, W)
-    and beneath the plane (4,) if given, m."""
+    and beneath the plane (4,) if given, m. With ``grid`` the fit's distances are to the grid's matches
+    (approximate, at most a cell diagonal long) instead of the exact nearest model points."""
     mc = m[None] @ R.transpose(1, 2) + t[:, None]  # (H, M, 3)
-    dist = torch.cdist(p[None].expand(len(R), -1, -1), mc).min(dim=2).values  # (H, N)
+    if grid is None:
+        dist = torch.cdist(p[None].expand(len(R), -1, -1), mc).min(dim=2).values  # (H, N)
+    else:
+        local = (p[None] - t[:, None]) @ R  # (H, N, 3), object frame
+        dist = (local - m[grid(local)]).norm(dim=2)
     fit = dist.clamp(max=cfg.truncation).mean(dim=1)
     z = mc[..., 2].clamp(min=1e-6)
     u = torch.round(mc[..., 0] * float(K[0, 0]) / z + float(K[0, 2])).long()

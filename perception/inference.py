@@ -194,11 +194,8 @@ class Estimator:
         choose = torch.from_numpy(np.stack([i[1] for i in items]))
         points = torch.from_numpy(np.stack([i[2] for i in items]))
         obj = torch.tensor([cfg.index_of(masks[k][0]) for k in kept])
-        q, t, c, emb = self.pose(img, points, choose, obj)
-        best = c.argmax(dim=1)
-        ar = torch.arange(len(kept))
-        T = make_transform(quat_to_rotmat(q[ar, best]), points[ar, best] + t[ar, best])  # (B, 4, 4)
-        conf = c[ar, best]
+        q, t, conf, best, emb = self.pose.predict(img, points, choose, obj)
+        T = make_transform(quat_to_rotmat(q), points[torch.arange(len(kept)), best] + t)  # (B, 4, 4)
         t1 = t2 = time.perf_counter()
         if self.refine_iterations > 0 and self.refiner is not None:
             T = refine(self.refiner, T, points, emb, obj, self.refine_iterations)

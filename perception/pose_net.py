@@ -258,10 +258,9 @@ class PoseNet(nn.Module):
         """Colour embedding of the chosen pixels: (B, 3, S, S), (B, N) -> (B, emb_dim, N)."""
         return gather_embedding(self.cnn(img), choose)
 
-    def forward(self, img: torch.Tensor, points: torch.Tensor, choose: torch.Tensor, obj: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Returns q (B, N, 4) unit, t offsets (B, N, 3) m, confidence (B, N), embedding (B, E, N)
-        (detached, for the refiner)."""
+    def features(self, img: torch.Tensor, points: torch.Tensor, choose: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The heads' per-point input (B, C_in, N) and the colour embedding (B, E, N)."""
         emb = self.embed(img, choose)  # (B, E, N)
         fused = self.feat(points.transpose(1, 2), emb)  # (B, C, N)
         parts = [fused]
@@ -271,12 +270,33 @@ class PoseNet(nn.Module):
             parts.append(self.cam(fused))
         if self.gfem is not None:
             parts.append(self.gfem(fused))
-        x = torch.cat(parts, dim=1)  # (B, C_in, N)
+        return torch.cat(parts, dim=1), emb  # (B, C_in, N)
+
+    def forward(self, img: torch.Tensor, points: torch.Tensor, choose: torch.Tensor, obj: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Returns q (B, N, 4) unit, t offsets (B, N, 3) m, confidence (B, N), embedding (B, E, N)
+        (detached, for the refiner)."""
+        x, emb = self.features(img, points, choose)
         q = select_object(self.head_r(x), obj, 4)
         q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         t = select_object(self.head_t(x), obj, 3)
         c = torch.sigmoid(select_object(self.head_c(x), obj, 1))[..., 0]
         return q, t, c, emb.detach()
+
+    def predict(self, img: torch.Tensor, points: torch.Tensor, choose: torch.Tensor, obj: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The most confident point's proposal (inference): the confidence head runs on every point, the rotation
+        and translation heads (per point, so the same numbers as ``forward``'s) on that point alone. Returns q
+        (B, 4) unit, t offset (B, 3) m, confidence (B,), the point's index (B,) and the embedding (B, E, N)."""
+        x, emb = self.features(img, points, choose)
+        c = torch.sigmoid(select_object(self.head_c(x), obj, 1))[..., 0]  # (B, N)
+        best = c.argmax(dim=1)
+        ar = torch.arange(len(best), device=x.device)
+        xb = x[ar, :, best][..., None]  # (B, C_in, 1)
+        q = select_object(self.head_r(xb), obj, 4)[:, 0]
+        q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        t = select_object(self.head_t(xb), obj, 3)[:, 0]
+        return q, t, c[ar, best], best, emb.detach()
 
 
 def build_pose_net(cfg: PoseNetConfig) -> PoseNet:

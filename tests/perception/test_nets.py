@@ -48,6 +48,13 @@ def test_pose_net_and_refiner_shapes(attention):
     torch.testing.assert_close(q.norm(dim=-1), torch.ones(B, N))
     assert float(c.detach().min()) > 0 and float(c.detach().max()) < 1
     assert (net.pam is None) != attention and (net.cam is None) != attention and (net.gfem is None) != attention
+    with torch.no_grad():  # inference: the most confident point's proposal, its heads run on that point alone
+        q1, t1, c1, best, _ = net.eval().predict(img, pts, choose, obj)
+        q, t, c, _ = net(img, pts, choose, obj)
+    ar = torch.arange(B)
+    torch.testing.assert_close(best, c.argmax(dim=1))
+    for a, b in ((q1, q[ar, best]), (t1, t[ar, best]), (c1, c[ar, best])):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
     rcfg = RefinerConfig(obj_ids=cfg.obj_ids, symmetric=cfg.symmetric)
     ref = build_refiner(rcfg)
     dq, dt = ref(pts, emb, obj)
