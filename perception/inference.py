@@ -9,6 +9,8 @@ run has an instance classifier (``cls/``, ``perception.classifier``), every conn
 class map is re-labelled by it before the instances are formed. With block models (``models``) every
 estimate is refined against the depth image (``perception.icp``) and the parts of a mask its fitted model leaves
 unexplained become detections of their own (``perception.split``: touching blocks segmented as one).
+Last, the outlines of the class map and of the detections' masks are snapped to the colour image's edges
+(``perception.guided``); the poses stay those fitted to the masks before.
 Works on real camera data as well as on simulated frames: it only needs RGB, depth in metres and
 the intrinsics. Objects whose mask has fewer valid depth pixels than ``min_valid_points`` are
 declared invalid and skipped, as in the paper.
