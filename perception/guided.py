@@ -81,24 +81,29 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, sub
     return np.einsum("hwcj,hwj->hwc", mA.reshape(H, W, C, 3), guide) + mB.reshape(H, W, C)
 
 
+def padded_box(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """The rows and columns of the box around the nonzero pixels of ``mask`` (H, W), widened by ``margin`` px and
+    clipped to the image; None for an empty mask."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return None
+    return (slice(max(0, rows[0] - margin), rows[-1] + margin + 1),
+            slice(max(0, cols[0] - margin), cols[-1] + margin + 1))
+
+
 def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None = None) -> np.ndarray:
     """Class map (H, W) int (0 = background) with its outlines snapped to the colour edges of ``rgb``
     (H, W, 3) uint8 by the guided filter of every class's indicator image. Only the box around the labelled
     pixels, widened by twice the radius, can change."""
     cfg = cfg or GuidedConfig()
     cfg.validate()
-    rows, cols = np.nonzero(labels.any(axis=1))[0], np.nonzero(labels.any(axis=0))[0]
-    if cfg.radius == 0 or rows.size == 0:
+    box = padded_box(labels, 2 * cfg.radius)
+    if cfg.radius == 0 or box is None:
         return labels
-    h, w = labels.shape
-    m = 2 * cfg.radius
-    r0, r1 = max(0, rows[0] - m), min(h, rows[-1] + m + 1)
-    c0, c1 = max(0, cols[0] - m), min(w, cols[-1] + m + 1)
-    box = labels[r0:r1, c0:c1]
-    classes = np.unique(box)
-    onehot = (box[..., None] == classes).astype(np.float32)  # (h', w', C)
-    guide = rgb[r0:r1, c0:c1].astype(np.float32) / 255.0
+    classes = np.unique(labels[box])
+    onehot = (labels[box][..., None] == classes).astype(np.float32)  # (h', w', C)
+    guide = rgb[box].astype(np.float32) / 255.0
     q = guided_filter(guide, onehot, cfg.radius, cfg.eps, cfg.subsample)
     out = labels.copy()
-    out[r0:r1, c0:c1] = classes[q.argmax(axis=-1)]
+    out[box] = classes[q.argmax(axis=-1)]
     return out

@@ -31,7 +31,7 @@ from perception import checkpoint as ckpt_mod
 from perception.crop import backproject
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
-from perception.guided import GuidedConfig, refine_labels
+from perception.guided import GuidedConfig, padded_box, refine_labels
 from perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_pose
 from perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from perception.refiner import refine
@@ -284,10 +284,11 @@ class Estimator:
         t4, stages = time.perf_counter(), {k: self.timings[k] for k in ("pose", "refine", "icp")}
         if self.surfaces:
             dets = self._split(rgb, depth, K, dets, prob, plane)
-        t5 = time.perf_counter()
+        t5, t_guided = time.perf_counter(), 0.0
         if self.guided_cfg.radius > 0:
             dets = self._snap_outlines(rgb, dets)
-        self.timings.update(stages, split=t5 - t4, guided=time.perf_counter() - t5 if self.guided_cfg.radius else 0.0)
+            t_guided = time.perf_counter() - t5
+        self.timings.update(stages, split=t5 - t4, guided=t_guided)
         return dets
 
     def _snap_outlines(self, rgb: np.ndarray, dets: list[Detection]) -> list[Detection]:
@@ -368,9 +369,8 @@ class Estimator:
 def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
     """Mask (H, W) bool dilated by a disc of radius r px (computed on the mask's box widened by r)."""
     out = np.zeros_like(mask)
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if rows.size:
-        box = np.s_[max(0, rows[0] - r):rows[-1] + r + 1, max(0, cols[0] - r):cols[-1] + r + 1]
+    box = padded_box(mask, r)
+    if box is not None:
         disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         out[box] = cv2.dilate(mask[box].astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
     return out
