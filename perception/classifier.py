@@ -9,8 +9,9 @@ relative to the segment (``perception.data.prepare_cls_input``).
 
     x (B, 6, S, S) -> [conv-BN-ReLU x2, max-pool] per width -> global average -> linear -> (B, K) logits
 
-K = len(obj_ids); logit k is object ``obj_ids[k]``. ``Estimator(..., classify=False)`` and
-``posegrasp eval --no-cls`` give the paper's pipeline without it.
+K = len(obj_ids); logit k is object ``obj_ids[k]``. Id 0 among them is "not a block" (the seg net's background
+id): segments it wins are dropped, which removes distractors the seg net took for blocks.
+``Estimator(..., classify=False)`` and ``posegrasp eval --no-cls`` give the paper's pipeline without it.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ IN_CHANNELS = 6  # RGB (normalised), mask, relative depth, valid depth
 
 @dataclass
 class ClassifierConfig:
-    """obj_ids: the objects (set from the dataset). widths: channels of the conv stages (a 2x max-pool
+    """obj_ids: the objects (set from the dataset; 0 = not a block). widths: channels of the conv stages (a 2x max-pool
     between stages). crop_size: input side (px). crop_side: the crop's side (m) at the segment's
     median depth. depth_range: relative depths are clipped to +-this (m) and scaled to [-1, 1]."""
 

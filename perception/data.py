@@ -238,13 +238,17 @@ class ClsDataset(Dataset):
 
     One sample per annotated visible instance (its ground-truth mask) and, when ``segmenter`` is given
     (a function RGB -> class map, e.g. a trained segmentation net), one per connected segment of the
-    predicted class map labelled with the ground-truth object covering most of it (segments mostly on
-    background are skipped): the classifier then learns on the fragments it will see at run time.
+    predicted class map labelled with the ground-truth object covering most of it: the classifier then
+    learns on the fragments it will see at run time. Segments mostly on background are skipped, unless 0
+    ("not a block") is in ``obj_ids``: then those with at most ``BACKGROUND_MAX_FG`` of their pixels on
+    objects are its samples.
     Crops are computed once, at construction. Augmentation (seeded by index and key): a random
     permutation of the colour channels (block colours carry no class information), brightness and
     contrast, a rotation by a multiple of 90 degrees and a mirror flip (the blocks' shapes are
     mirror-symmetric).
     """
+
+    BACKGROUND_MAX_FG = 0.2
 
     def __init__(self, root: str | Path, split: str, obj_ids: list[int], size: int, side: float,
                  depth_range: float, cfg: DataConfig | None = None, augment: bool = False, seed: int = 0,
@@ -264,8 +268,9 @@ class ClsDataset(Dataset):
             if segmenter is not None:
                 gt = label_map(rec, rgb.shape[:2])
                 for _, m in segment_components(segmenter(rgb), self.cfg.min_points):
-                    major = int(np.bincount(gt[m]).argmax())
-                    if major in self.obj_ids:
+                    g = gt[m]
+                    major = int(np.bincount(g).argmax())
+                    if major in self.obj_ids and (major > 0 or (g > 0).mean() <= self.BACKGROUND_MAX_FG):
                         masks.append((major, m))
             for obj_id, m in masks:
                 x = prepare_cls_input(rgb, depth, K, m, size, side, depth_range)

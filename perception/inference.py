@@ -232,8 +232,9 @@ class Estimator:
         """Re-label every connected segment of the class map (H, W) with the instance classifier.
 
         Returns the new class map and the per-pixel confidence (H, W) float32: the classifier's
-        probability of the chosen class on re-labelled segments, 0 elsewhere. Segments without enough
-        valid depth for a crop keep their label and get confidence 0."""
+        probability of the chosen class on re-labelled segments, 0 elsewhere. Segments it calls "not a
+        block" (id 0, when it has that class) become background. Segments without enough valid depth for
+        a crop keep their label and get confidence 0."""
         new, conf = labels.copy(), np.zeros(labels.shape, dtype=np.float32)
         segs = [m for _, m in segment_components(labels, 1)]
         for m, c in zip(segs, self._classify_masks(rgb, depth, K, segs)):
@@ -354,8 +355,9 @@ class Estimator:
 
     def _part_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[np.ndarray],
                     prob: np.ndarray) -> list[tuple[int, float]]:
-        """(obj_id, probability) of each part (H, W) bool: the instance classifier's, else (no classifier, or
-        no crop) the seg net's most probable object class (``prob`` (H, W, C)) over the part."""
+        """(obj_id, probability) of each part (H, W) bool: the instance classifier's (0: not a block, so the part
+        is not fitted and becomes background), else (no classifier, or no crop) the seg net's most probable
+        object class (``prob`` (H, W, C)) over the part."""
         by_cls = self._classify_masks(rgb, depth, K, parts) if self.classifier is not None else [None] * len(parts)
         out = []
         for p, c in zip(parts, by_cls):

@@ -117,7 +117,9 @@ class RefineTrainConfig(StageConfig):
 class ClsTrainConfig(StageConfig):
     """Instance classifier training (``perception.classifier``). ``obj_ids`` empty = every object of
     models_info. ``use_seg``: also learn on the segments that the run's ``seg/`` net predicts on the
-    training images (when the run has one), labelled by the ground truth. The learning rate rises
+    training images (when the run has one), labelled by the ground truth. ``background``: also learn a
+    class 0, "not a block", from those segments that lie mostly on background (needs ``use_seg`` and the
+    run's ``seg/``); the estimator drops the segments it wins. The learning rate rises
     linearly over the first ``warmup`` of the steps, then follows a cosine to 0."""
 
     model: ClassifierConfig = field(default_factory=ClassifierConfig)
@@ -129,6 +131,7 @@ class ClsTrainConfig(StageConfig):
     weight_decay: float = 1e-4
     warmup: float = 0.1
     use_seg: bool = True
+    background: bool = False
 
 
 # ---------------------------------------------------------------------------- shared machinery
@@ -578,6 +581,11 @@ def train_cls(data: str | Path, out: str | Path, cfg: ClsTrainConfig | None = No
     cfg = _resumed_cfg(ClsTrainConfig, prior, cfg or ClsTrainConfig(), {"steps": steps, "seed": seed})
     _setup(cfg)
     infos, obj_ids = _objects(data, cfg.obj_ids)
+    has_seg = cfg.use_seg and ckpt_mod.exists(run.out / "seg")
+    if cfg.background and not has_seg:
+        raise UserError(f"[cls] background = true learns from the seg net's segments: train seg into {run.out} "
+                        "first (and keep use_seg = true), or set background = false")
+    obj_ids = [0] * cfg.background + obj_ids
     model_cfg = dataclasses.replace(cfg.model, obj_ids=obj_ids)
     cfg = dataclasses.replace(cfg, model=model_cfg)
     model = build_classifier(model_cfg)
@@ -586,7 +594,7 @@ def train_cls(data: str | Path, out: str | Path, cfg: ClsTrainConfig | None = No
     if prior is not None:
         state = _restore(run, prior, model, opt)
     segmenter = None
-    if cfg.use_seg and ckpt_mod.exists(run.out / "seg"):
+    if has_seg:
         seg = Segmenter.load(run.out / "seg")
 
         def segmenter(rgb: np.ndarray) -> np.ndarray:

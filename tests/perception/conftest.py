@@ -145,6 +145,12 @@ def tiny_cls_config():
                           log_every=1, checkpoint_every=10, eval_every=0)
 
 
+@pytest.fixture(name="tiny_cls_config")
+def tiny_cls_config_fixture():
+    """``tiny_cls_config()`` as a fixture."""
+    return tiny_cls_config()
+
+
 @pytest.fixture(name="tiny_configs")
 def tiny_configs_fixture():
     """``tiny_configs()`` as a fixture: (seg, pose, refine) training configs."""

@@ -99,3 +99,34 @@ def test_cls_samples_from_gt_and_from_segments(tiny_bop):
     a, b, c = both.get(3, key=7), both.get(3, key=7), both.get(3, key=8)
     assert a["image"].shape == (6, 32, 32) and torch.equal(a["image"], b["image"])
     assert not torch.equal(a["image"], c["image"]) and a["label"] == both.get(3)["label"]
+
+
+
+def test_cls_background_samples_are_segments_mostly_off_the_objects(tiny_bop):
+    from perception.data import ClsDataset, label_map, load_records
+
+    by_rgb = {r.load_rgb().tobytes(): r for r in load_records(tiny_bop, "train")}
+    placed = []
+
+    def with_blobs(rgb):
+        """The ground truth plus two 10x10 segments over an object's edge (the tiny set has no depth off the
+        objects): one with 10-20 of its pixels on the object (a background sample), one with 30-45 (left out)."""
+        gt = label_map(by_rgb[rgb.tobytes()], rgb.shape[:2])
+        lab, taken = gt.copy(), np.zeros(gt.shape, bool)
+        for lo, hi in ((10, 20), (30, 45)):
+            for y in range(1, gt.shape[0] - 11, 3):
+                x = next((x for x in range(1, gt.shape[1] - 11, 3) if lo <= (gt[y:y + 10, x:x + 10] > 0).sum() <= hi
+                          and not taken[y - 1:y + 11, x - 1:x + 11].any()), None)
+                free = set(range(1, 4)) - set(np.unique(gt[y - 1:y + 11, x - 1:x + 11]).tolist()) if x else ()
+                if free:  # a class of its own among its neighbours: its own segment
+                    lab[y:y + 10, x:x + 10], taken[y:y + 10, x:x + 10] = min(free), True
+                    placed.append(lo)
+                    break
+        return lab
+
+    kw = dict(size=32, side=0.16, depth_range=0.05)
+    plain = ClsDataset(tiny_bop, "train", [1, 2, 3], **kw, segmenter=with_blobs)
+    n_off = placed.count(10)
+    with_bg = ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=with_blobs)
+    assert n_off >= 4 and placed.count(30) >= 4
+    assert len(with_bg) == len(plain) + n_off and int((with_bg.labels == 0).sum()) == n_off

@@ -1,12 +1,19 @@
 """Evaluation and inference run end to end on the tiny dataset."""
 
+import dataclasses
 import json
+import shutil
 
 import numpy as np
+import pytest
+import torch
 
+from perception.data import label_map
 from perception.evaluate import EvalConfig, evaluate
 from perception.inference import Detection, Estimator
+from perception.train import train_cls
 from posegrasp import bop
+from posegrasp.errors import UserError
 
 
 def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
@@ -67,3 +74,24 @@ def test_estimator_api(tiny_bop, tiny_run):
     holes = depth.copy()
     holes[masks[0][1]] = 0.0
     assert [d.obj_id for d in est.estimate(rgb, holes, K, masks)] == [2, 3]
+
+
+def test_segments_the_classifier_calls_not_a_block_are_dropped(tiny_bop, tiny_run, tiny_cls_config, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run / "pose", run / "pose")
+    cfg = dataclasses.replace(tiny_cls_config, background=True)
+    with pytest.raises(UserError, match="background = true"):
+        train_cls(tiny_bop, run, cfg, steps=2, progress=False)  # no seg/ net whose segments it learns from
+    shutil.copytree(tiny_run / "seg", run / "seg")
+    train_cls(tiny_bop, run, cfg, steps=2, progress=False)
+    est = Estimator(run)
+    assert est.cls_cfg.obj_ids == [0, 1, 2, 3]
+    rec = next(bop.iter_scene_images(tiny_bop, "test"))
+    rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
+    labels = label_map(rec, depth.shape)  # the ground truth as the class map (the tiny seg net finds little)
+    with torch.no_grad():
+        est.classifier.fc.bias[0] = 1e4  # every segment is "not a block"
+    new, _ = est.classify(rgb, depth, K, labels)
+    assert labels.any() and not new.any()
+    parts = [labels == o for o in (1, 2, 3)]
+    assert [o for o, _ in est._part_types(rgb, depth, K, parts, np.zeros((*depth.shape, 4)))] == [0, 0, 0]
