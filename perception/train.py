@@ -585,7 +585,7 @@ def train_cls(data: str | Path, out: str | Path, cfg: ClsTrainConfig | None = No
     if cfg.background and not has_seg:
         raise UserError(f"[cls] background = true learns from the seg net's segments: train seg into {run.out} "
                         "first (and keep use_seg = true), or set background = false")
-    obj_ids = [0] * cfg.background + obj_ids
+    obj_ids = ([0] if cfg.background else []) + obj_ids  # 0: "not a block"
     model_cfg = dataclasses.replace(cfg.model, obj_ids=obj_ids)
     cfg = dataclasses.replace(cfg, model=model_cfg)
     model = build_classifier(model_cfg)

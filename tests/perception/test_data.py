@@ -101,7 +101,6 @@ def test_cls_samples_from_gt_and_from_segments(tiny_bop):
     assert not torch.equal(a["image"], c["image"]) and a["label"] == both.get(3)["label"]
 
 
-
 def test_cls_background_samples_are_segments_mostly_off_the_objects(tiny_bop):
     from perception.data import ClsDataset, label_map, load_records
 
