@@ -104,10 +104,10 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
         assert len(dets) == len(masks)
         t19, stages = time.perf_counter(), dict(est.timings)  # _split's own fits overwrite est.timings
         est.last_labels = labels.copy()
-        est._split(rgb, depth, K, dets, prob, plane)
+        est.split_merged(rgb, depth, K, dets, prob, plane)
         t195 = time.perf_counter()
         est.last_labels = labels.copy()
-        est._snap_outlines(rgb, dets)
+        est.snap_outlines(rgb, dets)
         t2 = time.perf_counter()
         if i >= warmup:
             times["seg"].append(t05 - t0)

@@ -63,7 +63,20 @@ class ICPConfig:
     violation_weight: float = 0.01
     hypotheses: str = "cube"
 
+    def validate(self) -> None:
+        """Raise ValueError on an unusable configuration."""
+        self.rotations()
+        if min(self.iterations, self.exact_steps, self.polish) < 0:
+            raise ValueError(f"ICP iterations ({self.iterations}), exact_steps ({self.exact_steps}) and polish "
+                             f"({self.polish}) must be >= 0")
+        if self.max_points < 3:
+            raise ValueError(f"ICP max_points must be >= 3 (a rigid fit needs 3 points), got {self.max_points}")
+        if self.truncation <= 0 or self.violation_margin < 0 or self.violation_weight < 0:
+            raise ValueError(f"ICP truncation ({self.truncation}) must be positive, violation_margin "
+                             f"({self.violation_margin}) and violation_weight ({self.violation_weight}) >= 0")
+
     def rotations(self) -> np.ndarray:
+        """The starting rotations Q (H, 3, 3), object frame."""
         if self.hypotheses == "cube":
             return cube_rotations()
         if self.hypotheses == "identity":

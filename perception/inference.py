@@ -132,6 +132,7 @@ class Estimator:
         self.min_valid_points = min_valid_points
         self.seed = seed
         self.icp = icp or ICPConfig()
+        self.icp.validate()
         self.support_plane, self.plane_cfg = support_plane, PlaneConfig()
         self.split_cfg = split or SplitConfig()
         self.guided_cfg = guided or GuidedConfig()
@@ -284,15 +285,15 @@ class Estimator:
         dets = self.estimate(rgb, depth, K, masks, scores, plane)
         t4, stages = time.perf_counter(), {k: self.timings[k] for k in ("pose", "refine", "icp")}
         if self.surfaces:
-            dets = self._split(rgb, depth, K, dets, prob, plane)
+            dets = self.split_merged(rgb, depth, K, dets, prob, plane)
         t5, t_guided = time.perf_counter(), 0.0
         if self.guided_cfg.radius > 0:
-            dets = self._snap_outlines(rgb, dets)
+            dets = self.snap_outlines(rgb, dets)
             t_guided = time.perf_counter() - t5
         self.timings.update(stages, split=t5 - t4, guided=t_guided)
         return dets
 
-    def _snap_outlines(self, rgb: np.ndarray, dets: list[Detection]) -> list[Detection]:
+    def snap_outlines(self, rgb: np.ndarray, dets: list[Detection]) -> list[Detection]:
         """``perception.guided``: the class map ``last_labels`` with its outlines snapped to the colour edges, and
         each detection's mask likewise: the pixels of its type in the refined map within the filter's radius of
         its mask; a pixel that several such masks reach stays with those that held it. The poses are the ones
@@ -304,8 +305,8 @@ class Estimator:
         claims = np.sum(grown, axis=0) if dets else None
         return [dataclasses.replace(d, mask=g & ((claims == 1) | d.mask)) for d, g in zip(dets, grown)]
 
-    def _split(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection], prob: np.ndarray,
-               plane: np.ndarray | None) -> list[Detection]:
+    def split_merged(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection],
+                     prob: np.ndarray, plane: np.ndarray | None) -> list[Detection]:
         """``perception.split``: each detection whose fitted model leaves a large part of its mask unexplained
         is fitted again to the rest, and each such part is typed (``_part_types``) and fitted as a detection of
         its own; ``split_cfg.rounds`` times. A split is undone when a part and the rest are fitted as the same block

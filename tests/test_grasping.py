@@ -245,7 +245,7 @@ def test_shipped_estimator_splits_a_mask_holding_two_blocks(look_frame):
     merged = Detection(int(f.obj_ids[0]), f.T_cam_obj[0], 1.0, a | b)
     _, prob = est.segment(f.rgb)
     est.last_labels = np.where(a | b, merged.obj_id, 0)
-    dets = est._split(f.rgb, f.depth, f.K, [merged], prob, fit_support_plane(f.depth, f.K))
+    dets = est.split_merged(f.rgb, f.depth, f.K, [merged], prob, fit_support_plane(f.depth, f.K))
     assert len(dets) == 2
     for k, m in ((1, a), (2, b)):
         d = next(d for d in dets if (d.mask & m).sum() > 0.8 * m.sum())
@@ -257,4 +257,5 @@ def test_shipped_estimator_splits_a_mask_holding_two_blocks(look_frame):
         adds = np.linalg.norm(est_pts[:, None] - gt_pts[None], axis=2).min(axis=0).mean()
         assert adds < 0.1 * block.diameter, (block.name, adds)
     assert (est.last_labels[b] == f.obj_ids[1]).mean() > 0.9
-    assert len(est._split(f.rgb, f.depth, f.K, [Detection(merged.obj_id, f.T_cam_obj[0], 1.0, a)], prob, None)) == 1
+    whole = Detection(merged.obj_id, f.T_cam_obj[0], 1.0, a)
+    assert len(est.split_merged(f.rgb, f.depth, f.K, [whole], prob, None)) == 1

@@ -29,6 +29,16 @@ def test_distinct_rotations_drop_hypotheses_equal_under_symmetry():
     assert np.allclose(cyl[0], np.eye(3))  # the estimate itself stays first
 
 
+@pytest.mark.parametrize("bad, message", [(dict(polish=-1), "polish .-1. must be >= 0"),
+                                          (dict(max_points=2), "max_points must be >= 3 .*got 2"),
+                                          (dict(truncation=0.0), "truncation .0.0. must be positive"),
+                                          (dict(hypotheses="sphere"), "'cube' or 'identity', got 'sphere'")])
+def test_icp_config_names_the_bad_value(bad, message):
+    ICPConfig().validate()
+    with pytest.raises(ValueError, match=message):
+        ICPConfig(**bad).validate()
+
+
 def test_nearest_grid_matches_within_half_a_cell_diagonal():
     """The grid's point is at most a cell diagonal farther than the exact nearest model point (the query and the
     exact nearest point each lie within half a diagonal of the cell centre); most matches are exact."""
