@@ -98,7 +98,7 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
         plane_pixels(plane, depth, K, labels > 0, est.plane_cfg.mask_tol)
         t1 = time.perf_counter()
         if est.classifier is not None:
-            est.classify(rgb, depth, K, labels)
+            est.classify(rgb, depth, K, labels, plane)
         t15 = time.perf_counter()
         dets = est.estimate(rgb, depth, K, masks, plane=plane)
         assert len(dets) == len(masks)

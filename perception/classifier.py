@@ -7,7 +7,12 @@ class map from a crop of fixed metric size (``crop_side`` metres at the segment'
 pixels have the same size in metres at any distance) with RGB, the segment's mask and the depth
 relative to the segment (``perception.data.prepare_cls_input``).
 
-    x (B, 6, S, S) -> [conv-BN-ReLU x2, max-pool] per width -> global average -> linear -> (B, K) logits
+    x (B, 6 or 7, S, S) -> [conv-BN-ReLU x2, max-pool] per width -> global average -> linear -> (B, K) logits
+
+With ``height_range`` > 0 the crop has a 7th channel: the height above the supporting plane (table), which tells
+apart blocks that look alike from above but not from the side (an arch and a 2x4 brick, a lying prism and an
+L-block, a 2x2 brick and a cube) whatever the camera's tilt; the relative depth alone mixes heights with the
+tilt's ramp.
 
 K = len(obj_ids); logit k is object ``obj_ids[k]``. Id 0 among them is "not a block" (the seg net's background
 id): segments it wins are dropped, which removes distractors the seg net took for blocks.
@@ -23,20 +28,27 @@ from torch import nn
 
 from perception.seg_net import ConvBNReLU
 
-IN_CHANNELS = 6  # RGB (normalised), mask, relative depth, valid depth
+IN_CHANNELS = 6  # RGB (normalised), mask, relative depth, valid depth (+ height above the plane, optional)
 
 
 @dataclass
 class ClassifierConfig:
     """obj_ids: the objects (set from the dataset; 0 = not a block). widths: channels of the conv stages (a 2x max-pool
     between stages). crop_size: input side (px). crop_side: the crop's side (m) at the segment's
-    median depth. depth_range: relative depths are clipped to +-this (m) and scaled to [-1, 1]."""
+    median depth. depth_range: relative depths are clipped to +-this (m) and scaled to [-1, 1]. height_range: > 0
+    adds the height above the supporting plane as a channel, clipped to [0, this] (m) and scaled to [0, 1]."""
 
     obj_ids: list[int] = field(default_factory=lambda: [1, 2, 3])
     widths: tuple[int, ...] = (16, 32, 64, 128)
     crop_size: int = 64
     crop_side: float = 0.16
     depth_range: float = 0.05
+    height_range: float = 0.0
+
+    @property
+    def in_channels(self) -> int:
+        """Channels of the crop (``perception.data.prepare_cls_input``)."""
+        return IN_CHANNELS + (self.height_range > 0)
 
     def validate(self) -> None:
         """Raise ValueError on an unusable configuration."""
@@ -48,17 +60,19 @@ class ClassifierConfig:
             raise ValueError(f"crop_size {self.crop_size} is too small for {len(self.widths)} pooled stages")
         if self.crop_side <= 0 or self.depth_range <= 0:
             raise ValueError(f"crop_side ({self.crop_side}) and depth_range ({self.depth_range}) must be positive")
+        if self.height_range < 0:
+            raise ValueError(f"height_range must be >= 0 m (0: no height channel), got {self.height_range}")
 
 
 class CropClassifier(nn.Module):
-    """A small VGG-style CNN over metric crops: (B, 6, S, S) -> (B, K) logits."""
+    """A small VGG-style CNN over metric crops: (B, C, S, S) -> (B, K) logits."""
 
     def __init__(self, cfg: ClassifierConfig):
         super().__init__()
         cfg.validate()
         self.cfg = cfg
         layers: list[nn.Module] = []
-        cin = IN_CHANNELS
+        cin = cfg.in_channels
         for i, w in enumerate(cfg.widths):
             if i:
                 layers.append(nn.MaxPool2d(2))  # (B, C, S / 2^i, S / 2^i)

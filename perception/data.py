@@ -18,6 +18,7 @@ from torch.utils.data import Dataset
 from posegrasp import bop
 from posegrasp.errors import UserError
 from perception.crop import backproject, crop_box, remap_choose, sample_choose
+from perception.plane import fit_support_plane
 
 RGB_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 RGB_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
@@ -186,12 +187,16 @@ def prepare_pose_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: 
 
 
 def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray, size: int,
-                      side: float, depth_range: float, min_valid: int = 10) -> np.ndarray | None:
+                      side: float, depth_range: float, min_valid: int = 10, height_range: float = 0.0,
+                      plane: np.ndarray | None = None) -> np.ndarray | None:
     """Fixed-metric-size crop of one segment for the instance classifier (``perception.classifier``).
 
     The square of ``side`` metres at the segment's median depth z, centred on the mask's centroid, is
     resampled to size x size px (scale s = size z / (side f_x)). Channels (6, S, S) float32: RGB in [0, 1],
     the mask, (depth - z) / depth_range clipped to [-1, 1] (0 where invalid), and the valid-depth flag.
+    With ``height_range`` > 0 a 7th channel holds each pixel's height above the supporting ``plane``
+    (``perception.plane``; n . X + d for the back-projected point X), clipped to [0, height_range] m and scaled to
+    [0, 1]; 0 where the depth is invalid or there is no plane (None).
     RGB is not normalised here (``normalize_cls_input`` does it after augmentation). None when the
     mask has fewer than ``min_valid`` pixels with valid depth.
     """
@@ -207,12 +212,22 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     d_c = cv2.warpAffine(depth.astype(np.float32), A, (size, size), flags=cv2.INTER_NEAREST)
     ok = d_c > 0
     rel = np.where(ok, np.clip((d_c - z) / depth_range, -1.0, 1.0), 0.0)
-    return np.concatenate([rgb_c.transpose(2, 0, 1) / np.float32(255.0), mask_c[None], rel[None], ok[None]]
-                          ).astype(np.float32)
+    channels = [rgb_c.transpose(2, 0, 1) / np.float32(255.0), mask_c[None], rel[None], ok[None]]
+    if height_range > 0:
+        height = np.zeros((size, size), dtype=np.float32)
+        if plane is not None:  # crop pixel (x, y) samples image pixel ((x, y) - A[:, 2]) / s
+            u = (np.arange(size, dtype=np.float32) - A[0, 2]) / s
+            v = (np.arange(size, dtype=np.float32) - A[1, 2]) / s
+            X = (u[None, :] - K[0, 2]) / K[0, 0] * d_c
+            Y = (v[:, None] - K[1, 2]) / K[1, 1] * d_c
+            h = X * plane[0] + Y * plane[1] + d_c * plane[2] + plane[3]
+            height = np.where(ok, np.clip(h / height_range, 0.0, 1.0), 0.0)
+        channels.append(height[None])
+    return np.concatenate(channels).astype(np.float32)
 
 
 def normalize_cls_input(x: np.ndarray) -> np.ndarray:
-    """``prepare_cls_input``'s (6, S, S) with the RGB channels ImageNet-normalised."""
+    """``prepare_cls_input``'s (C, S, S) with the RGB channels ImageNet-normalised."""
     x = x.astype(np.float32, copy=True)
     x[:3] = (x[:3] - RGB_MEAN[:, None, None]) / RGB_STD[:, None, None]
     return x
@@ -234,14 +249,15 @@ def segment_components(labels: np.ndarray, min_pixels: int) -> list[tuple[int, n
 
 
 class ClsDataset(Dataset):
-    """Instance classifier samples: ``{"image": (6, S, S) float32, "label": index into obj_ids}``.
+    """Instance classifier samples: ``{"image": (C, S, S) float32, "label": index into obj_ids}``.
 
     One sample per annotated visible instance (its ground-truth mask) and, when ``segmenter`` is given
     (a function RGB -> class map, e.g. a trained segmentation net), one per connected segment of the
     predicted class map labelled with the ground-truth object covering most of it: the classifier then
     learns on the fragments it will see at run time. Segments mostly on background are skipped, unless 0
     ("not a block") is in ``obj_ids``: then those with at most ``BACKGROUND_MAX_FG`` of their pixels on
-    objects are its samples.
+    objects are its samples. ``height_range`` > 0: crops with the height channel, above each image's supporting
+    plane (``perception.plane``, fitted with the default settings and seed 0, as the estimator does).
     Crops are computed once, at construction. Augmentation (seeded by index and key): a random
     permutation of the colour channels (block colours carry no class information), brightness and
     contrast, a rotation by a multiple of 90 degrees and a mirror flip (the blocks' shapes are
@@ -252,7 +268,7 @@ class ClsDataset(Dataset):
 
     def __init__(self, root: str | Path, split: str, obj_ids: list[int], size: int, side: float,
                  depth_range: float, cfg: DataConfig | None = None, augment: bool = False, seed: int = 0,
-                 segmenter=None, progress: bool = False):
+                 segmenter=None, progress: bool = False, height_range: float = 0.0):
         from rich.progress import track
 
         self.cfg = cfg or DataConfig()
@@ -272,14 +288,16 @@ class ClsDataset(Dataset):
                     major = int(np.bincount(g).argmax())
                     if major in self.obj_ids and (major > 0 or (g > 0).mean() <= self.BACKGROUND_MAX_FG):
                         masks.append((major, m))
+            plane = fit_support_plane(depth, K) if height_range > 0 else None
             for obj_id, m in masks:
-                x = prepare_cls_input(rgb, depth, K, m, size, side, depth_range)
+                x = prepare_cls_input(rgb, depth, K, m, size, side, depth_range, height_range=height_range,
+                                      plane=plane)
                 if x is not None:
                     crops.append(x.astype(np.float16))
                     labels.append(self.obj_ids.index(obj_id))
         if not crops:
             raise UserError(f"no usable object instance in {Path(root) / split} for the classifier")
-        self.crops = np.stack(crops)  # (N, 6, S, S) float16
+        self.crops = np.stack(crops)  # (N, C, S, S) float16
         self.labels = np.array(labels, dtype=np.int64)
 
     def __len__(self) -> int:

@@ -228,9 +228,10 @@ class Estimator:
                            self.grids[obj_id])[0]
 
     @torch.no_grad()
-    def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Re-label every connected segment of the class map (H, W) with the instance classifier.
+    def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray,
+                 plane: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Re-label every connected segment of the class map (H, W) with the instance classifier (plane: the
+        supporting plane, for a classifier with the height channel; fitted here when None).
 
         Returns the new class map and the per-pixel confidence (H, W) float32: the classifier's
         probability of the chosen class on re-labelled segments, 0 elsewhere. Segments it calls "not a
@@ -238,17 +239,20 @@ class Estimator:
         a crop keep their label and get confidence 0."""
         new, conf = labels.copy(), np.zeros(labels.shape, dtype=np.float32)
         segs = [m for _, m in segment_components(labels, 1)]
-        for m, c in zip(segs, self._classify_masks(rgb, depth, K, segs)):
+        for m, c in zip(segs, self._classify_masks(rgb, depth, K, segs, plane)):
             if c is not None:
                 new[m], conf[m] = c
         return new, conf
 
-    def _classify_masks(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray]
-                        ) -> list[tuple[int, float] | None]:
+    def _classify_masks(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
+                        plane: np.ndarray | None) -> list[tuple[int, float] | None]:
         """(obj_id, probability) by the instance classifier for each mask (H, W) bool, in order; None where the
-        mask lacks the valid depth for a crop."""
+        mask lacks the valid depth for a crop. plane: for the height channel (fitted here when None)."""
         cfg = self.cls_cfg
-        crops = [prepare_cls_input(rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range) for m in masks]
+        if cfg.height_range > 0 and plane is None:
+            plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
+        crops = [prepare_cls_input(rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range,
+                                   height_range=cfg.height_range, plane=plane) for m in masks]
         ok = [i for i, x in enumerate(crops) if x is not None]
         out: list[tuple[int, float] | None] = [None] * len(masks)
         if ok:
@@ -269,7 +273,7 @@ class Estimator:
         t1 = time.perf_counter()
         conf, t_cls = None, 0.0
         if self.classifier is not None:
-            labels, conf = self.classify(rgb, depth, K, labels)
+            labels, conf = self.classify(rgb, depth, K, labels, plane)
             t_cls = time.perf_counter() - t1
         self.last_labels = labels
         masks, scores = [], []
@@ -324,7 +328,7 @@ class Estimator:
                     done.append(d)
             if not split:
                 return done
-            all_types = iter(self._part_types(rgb, depth, K, [p for _, ps in split for p in ps], prob))  # one batch
+            all_types = iter(self._part_types(rgb, depth, K, [p for _, ps in split for p in ps], prob, plane))
             groups, masks, scores, todo = [], [], [], []
             for d, ps in split:
                 rest = d.mask & ~np.any(ps, axis=0)
@@ -355,11 +359,12 @@ class Estimator:
         return float(np.median(dist)) < self.split_cfg.same_block
 
     def _part_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[np.ndarray],
-                    prob: np.ndarray) -> list[tuple[int, float]]:
+                    prob: np.ndarray, plane: np.ndarray | None) -> list[tuple[int, float]]:
         """(obj_id, probability) of each part (H, W) bool: the instance classifier's (0: not a block, so the part
         is not fitted and becomes background), else (no classifier, or no crop) the seg net's most probable
-        object class (``prob`` (H, W, C)) over the part."""
-        by_cls = self._classify_masks(rgb, depth, K, parts) if self.classifier is not None else [None] * len(parts)
+        object class (``prob`` (H, W, C)) over the part. All parts go through the classifier as one batch."""
+        by_cls = ([None] * len(parts) if self.classifier is None else
+                  self._classify_masks(rgb, depth, K, parts, plane))
         out = []
         for p, c in zip(parts, by_cls):
             if c is None:

@@ -603,7 +603,7 @@ def train_cls(data: str | Path, out: str | Path, cfg: ClsTrainConfig | None = No
 
     def dataset(split: str, augment: bool) -> ClsDataset:
         return ClsDataset(data, split, obj_ids, *crop, cfg.data, augment=augment, seed=cfg.seed,
-                          segmenter=segmenter, progress=progress)
+                          segmenter=segmenter, progress=progress, height_range=model_cfg.height_range)
 
     ds = dataset(train_split(data, cfg.train_split), True)
     val = dataset(cfg.val_split, False) if _split_exists(data, cfg.val_split) else None

@@ -94,4 +94,24 @@ def test_segments_the_classifier_calls_not_a_block_are_dropped(tiny_bop, tiny_ru
     new, _ = est.classify(rgb, depth, K, labels)
     assert labels.any() and not new.any()
     parts = [labels == o for o in (1, 2, 3)]
-    assert [o for o, _ in est._part_types(rgb, depth, K, parts, np.zeros((*depth.shape, 4)))] == [0, 0, 0]
+    assert [o for o, _ in est._part_types(rgb, depth, K, parts, np.zeros((*depth.shape, 4)), None)] == [0, 0, 0]
+
+
+def test_classifier_with_the_height_channel(tiny_bop, tiny_run, tiny_cls_config, tmp_path):
+    """A classifier trained on crops with the height above the plane: its 7-channel crops reach it through the
+    estimator's classify and split paths, and a checkpoint without the setting loads as 6 channels."""
+    run = tmp_path / "run"
+    for stage in ("seg", "pose"):
+        shutil.copytree(tiny_run / stage, run / stage)
+    model = dataclasses.replace(tiny_cls_config.model, height_range=0.06)
+    train_cls(tiny_bop, run, dataclasses.replace(tiny_cls_config, model=model), steps=2, progress=False)
+    est = Estimator(run)
+    assert est.cls_cfg.height_range == 0.06 and est.classifier.features[0][0].in_channels == 7
+    assert Estimator(tiny_run).classifier.features[0][0].in_channels == 6
+    rec = next(bop.iter_scene_images(tiny_bop, "test"))
+    rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
+    labels = label_map(rec, depth.shape)
+    new, conf = est.classify(rgb, depth, K, labels)
+    assert np.array_equal(new == 0, labels == 0) and conf.max() > 0
+    parts = [labels == o for o in (1, 2, 3)]
+    assert len(est._part_types(rgb, depth, K, parts, np.zeros((*depth.shape, 4)), None)) == 3
