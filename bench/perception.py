@@ -97,7 +97,7 @@ def bench(weights: Path, repeats: int, warmup: int) -> dict[str, dict[str, float
         plane = fit_support_plane(depth, K, est.seed, est.plane_cfg)
         plane_pixels(plane, depth, K, labels > 0, est.plane_cfg.mask_tol)
         t1 = time.perf_counter()
-        if est.classifier is not None:
+        if est.classifiers:
             est.classify(rgb, depth, K, labels, plane)
         t15 = time.perf_counter()
         dets = est.estimate(rgb, depth, K, masks, plane=plane)

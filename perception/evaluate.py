@@ -191,7 +191,7 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
         "config": asdict(cfg),
         "ablation": {"pam": pose_cfg.use_pam, "cam": pose_cfg.use_cam, "gfem": pose_cfg.use_gfem,
                      "refine_iterations": est.refine_iterations, "masks": cfg.masks,
-                     "classifier": est.classifier is not None and cfg.masks == "pred", "icp": cfg.icp,
+                     "classifier": bool(est.classifiers) and cfg.masks == "pred", "icp": cfg.icp,
                      "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.icp},
         "segmentation": None,
         "overall": overall,

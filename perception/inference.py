@@ -5,8 +5,9 @@
         det.obj_id, det.T_cam_obj, det.score, det.mask
 
 Several blocks of one type are told apart as the connected components of their class mask. When the
-run has an instance classifier (``cls/``, ``perception.classifier``), every connected segment of the
-class map is re-labelled by it before the instances are formed. With block models (``models``) every
+run has an instance classifier (``cls/``, ``perception.classifier``; with further ensemble members ``cls_<name>/``,
+whose class probabilities are averaged), every connected segment of the class map is re-labelled by it before the
+instances are formed. With block models (``models``) every
 estimate is refined against the depth image (``perception.icp``) and the parts of a mask its fitted model leaves
 unexplained become detections of their own (``perception.split``: touching blocks segmented as one).
 Last, the outlines of the class map and of the detections' masks are snapped to the colour image's edges
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 
 from perception import checkpoint as ckpt_mod
+from perception.classifier import ClassifierConfig
 from perception.crop import backproject
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
@@ -87,7 +89,8 @@ class Estimator:
 
     refine_iterations: None = the refiner's configured count (0 when there is no refiner);
     0 disables refinement (ablation). classify: None = re-label segments with the run's ``cls/``
-    classifier when it has one; False = never (ablation: the paper's pipeline); True = required.
+    classifier (and its ensemble members ``cls_<name>/``) when it has one; False = never (ablation: the paper's
+    pipeline); True = required.
     min_valid_points: minimum valid-depth pixels per object. models: a BOP dataset root whose
     ``models/`` hold the objects' meshes; with it every estimate is refined against the depth image by
     ICP from rotation hypotheses (``perception.icp``, settings ``icp``); None skips that step.
@@ -120,9 +123,10 @@ class Estimator:
             if list(self.refiner_cfg.obj_ids) != list(self.pose_cfg.obj_ids) or \
                     self.refiner_cfg.emb_dim != self.pose_cfg.emb_dim:
                 raise UserError(f"refiner in {weights / 'refine'} was trained for another pose net")
-        self.classifier, self.cls_cfg = None, None
+        self.classifiers: list[torch.nn.Module] = []
+        self.cls_cfg: ClassifierConfig | None = None  # the crop settings of the members
         if classify is not False and (weights / "cls").exists():
-            self.classifier, self.cls_cfg, _ = ckpt_mod.load_model(weights / "cls", "cls")
+            self.classifiers, self.cls_cfg = _load_classifiers(weights)
         elif classify:
             raise UserError(f"{weights} has no cls/ checkpoint: train one with 'posegrasp train cls'")
         default_iters = self.refiner_cfg.iterations if self.refiner_cfg is not None else 0
@@ -256,8 +260,9 @@ class Estimator:
         ok = [i for i, x in enumerate(crops) if x is not None]
         out: list[tuple[int, float] | None] = [None] * len(masks)
         if ok:
-            x = torch.from_numpy(np.stack([normalize_cls_input(crops[i]) for i in ok]))
-            pmax, k = torch.softmax(self.classifier(x), dim=1).max(dim=1)  # (S,)
+            x = torch.from_numpy(np.stack([normalize_cls_input(crops[i]) for i in ok]))  # (S, C, size, size)
+            prob = torch.stack([torch.softmax(m(x[:, :m.cfg.in_channels]), dim=1) for m in self.classifiers])
+            pmax, k = prob.mean(dim=0).max(dim=1)  # (S,)
             for i, kk, pp in zip(ok, k.tolist(), pmax.tolist()):
                 out[i] = (cfg.obj_ids[kk], pp)
         return out
@@ -272,7 +277,7 @@ class Estimator:
             labels, plane = clear_plane(labels, depth, K, self.seed, self.plane_cfg)
         t1 = time.perf_counter()
         conf, t_cls = None, 0.0
-        if self.classifier is not None:
+        if self.classifiers:
             labels, conf = self.classify(rgb, depth, K, labels, plane)
             t_cls = time.perf_counter() - t1
         self.last_labels = labels
@@ -363,7 +368,7 @@ class Estimator:
         """(obj_id, probability) of each part (H, W) bool: the instance classifier's (0: not a block, so the part
         is not fitted and becomes background), else (no classifier, or no crop) the seg net's most probable
         object class (``prob`` (H, W, C)) over the part. All parts go through the classifier as one batch."""
-        by_cls = ([None] * len(parts) if self.classifier is None else
+        by_cls = ([None] * len(parts) if not self.classifiers else
                   self._classify_masks(rgb, depth, K, parts, plane))
         out = []
         for p, c in zip(parts, by_cls):
@@ -372,6 +377,27 @@ class Estimator:
                 c = (int(mean.argmax()) + 1, float(mean.max()))
             out.append(c)
         return out
+
+
+def _load_classifiers(weights: Path) -> tuple[list[torch.nn.Module], ClassifierConfig]:
+    """The run's instance classifier ``cls/`` and the further members of its ensemble, ``cls_<name>/`` (by name), and
+    the crop settings they share: the same objects and crop geometry; members with the height channel share its
+    range, and those without read the crop's first 6 channels."""
+    dirs = [weights / "cls"] + sorted(p for p in weights.glob("cls_*") if p.is_dir())
+    models, cfgs = [], []
+    for d in dirs:
+        model, cfg, _ = ckpt_mod.load_model(d, "cls")
+        models.append(model)
+        cfgs.append(cfg)
+    key = [(list(c.obj_ids), c.crop_size, c.crop_side, c.depth_range) for c in cfgs]
+    for d, k in zip(dirs[1:], key[1:]):
+        if k != key[0]:
+            raise UserError(f"classifier {d} differs from {dirs[0]} in its objects or crop settings ({k} vs {key[0]}): "
+                            "an ensemble's members must share them")
+    heights = sorted({c.height_range for c in cfgs if c.height_range > 0})
+    if len(heights) > 1:
+        raise UserError(f"the classifiers in {weights} use height ranges {heights}: an ensemble's members share one")
+    return models, dataclasses.replace(cfgs[0], height_range=heights[0] if heights else 0.0)
 
 
 def _dilate(mask: np.ndarray, r: int) -> np.ndarray:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from perception.data import label_map
+from perception.data import label_map, normalize_cls_input, prepare_cls_input
 from perception.evaluate import EvalConfig, evaluate
 from perception.inference import Detection, Estimator
 from perception.train import train_cls
@@ -55,7 +55,7 @@ def test_estimator_api(tiny_bop, tiny_run):
     est = Estimator(tiny_run)
     dets = est(rgb, depth, K)
     assert isinstance(dets, list) and all(isinstance(d, Detection) for d in dets)
-    assert est.classifier is not None and Estimator(tiny_run, classify=False).classifier is None
+    assert len(est.classifiers) == 1 and Estimator(tiny_run, classify=False).classifiers == []
     # every connected segment of the class map gets one label from the classifier
     labels, _ = est.segment(rgb)
     new, conf = est.classify(rgb, depth, K, labels)
@@ -90,24 +90,25 @@ def test_segments_the_classifier_calls_not_a_block_are_dropped(tiny_bop, tiny_ru
     rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
     labels = label_map(rec, depth.shape)  # the ground truth as the class map (the tiny seg net finds little)
     with torch.no_grad():
-        est.classifier.fc.bias[0] = 1e4  # every segment is "not a block"
+        est.classifiers[0].fc.bias[0] = 1e4  # every segment is "not a block"
     new, _ = est.classify(rgb, depth, K, labels)
     assert labels.any() and not new.any()
     parts = [labels == o for o in (1, 2, 3)]
     assert [o for o, _ in est._part_types(rgb, depth, K, parts, np.zeros((*depth.shape, 4)), None)] == [0, 0, 0]
 
 
-def test_classifier_with_the_height_channel(tiny_bop, tiny_run, tiny_cls_config, tmp_path):
+def test_classifier_with_the_height_channel_and_an_ensemble(tiny_bop, tiny_run, tiny_cls_config, tmp_path):
     """A classifier trained on crops with the height above the plane: its 7-channel crops reach it through the
-    estimator's classify and split paths, and a checkpoint without the setting loads as 6 channels."""
+    estimator's classify and split paths, and a checkpoint without the setting loads as 6 channels; both as the
+    members of an ensemble (``cls/``, ``cls_<name>/``), which must share their crop settings."""
     run = tmp_path / "run"
     for stage in ("seg", "pose"):
         shutil.copytree(tiny_run / stage, run / stage)
     model = dataclasses.replace(tiny_cls_config.model, height_range=0.06)
     train_cls(tiny_bop, run, dataclasses.replace(tiny_cls_config, model=model), steps=2, progress=False)
     est = Estimator(run)
-    assert est.cls_cfg.height_range == 0.06 and est.classifier.features[0][0].in_channels == 7
-    assert Estimator(tiny_run).classifier.features[0][0].in_channels == 6
+    assert est.cls_cfg.height_range == 0.06 and est.classifiers[0].features[0][0].in_channels == 7
+    assert Estimator(tiny_run).classifiers[0].features[0][0].in_channels == 6
     rec = next(bop.iter_scene_images(tiny_bop, "test"))
     rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
     labels = label_map(rec, depth.shape)
@@ -115,3 +116,19 @@ def test_classifier_with_the_height_channel(tiny_bop, tiny_run, tiny_cls_config,
     assert np.array_equal(new == 0, labels == 0) and conf.max() > 0
     parts = [labels == o for o in (1, 2, 3)]
     assert len(est._part_types(rgb, depth, K, parts, np.zeros((*depth.shape, 4)), None)) == 3
+    # with the 6-channel classifier as a second member, the class probabilities are the members' mean
+    shutil.copytree(tiny_run / "cls", run / "cls_plain")
+    ens, cfg = Estimator(run), est.cls_cfg
+    assert [m.features[0][0].in_channels for m in ens.classifiers] == [7, 6]
+    x = torch.from_numpy(np.stack([normalize_cls_input(prepare_cls_input(
+        rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range, height_range=0.06)) for m in parts]))
+    with torch.no_grad():
+        p = (torch.softmax(ens.classifiers[0](x), 1) + torch.softmax(ens.classifiers[1](x[:, :6]), 1)) / 2
+    got = ens._classify_masks(rgb, depth, K, parts, None)
+    assert [o for o, _ in got] == [cfg.obj_ids[k] for k in p.argmax(1)]
+    np.testing.assert_allclose([pp for _, pp in got], p.max(1).values, rtol=1e-5)
+    meta = json.loads((run / "cls_plain" / "config.json").read_text())
+    meta["model"]["crop_size"] = 64
+    (run / "cls_plain" / "config.json").write_text(json.dumps(meta))
+    with pytest.raises(UserError, match="cls_plain differs from .* crop settings"):
+        Estimator(run)
