@@ -259,6 +259,14 @@ def _loop(run: _Run, total: int, start: int, step_fn: Callable[[int], dict[str, 
     return last
 
 
+def _build(stage: str, build: Callable[[Any], torch.nn.Module], model_cfg: Any) -> torch.nn.Module:
+    """``build(model_cfg)``, with an unusable ``[stage.model]`` setting (its ``validate()``) as a one-line UserError."""
+    try:
+        return build(model_cfg)
+    except ValueError as e:
+        raise UserError(f"[{stage}.model] {e}") from None
+
+
 def _setup(cfg: Any) -> None:
     torch.set_num_threads(max(1, int(cfg.threads)))
     torch.manual_seed(cfg.seed)
@@ -328,7 +336,7 @@ def train_seg(data: str | Path, out: str | Path, cfg: SegTrainConfig | None = No
     infos = bop.load_models_info(data)
     model_cfg = dataclasses.replace(cfg.model, num_classes=max(infos) + 1)
     cfg = dataclasses.replace(cfg, model=model_cfg)
-    model = build_seg_net(model_cfg)
+    model = _build("seg", build_seg_net, model_cfg)
     if cfg.optimizer not in ("sgd", "adam"):
         raise UserError(f"seg optimizer {cfg.optimizer!r} is not 'sgd' or 'adam'")
     opt = (torch.optim.SGD(model.parameters(), lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
@@ -459,7 +467,7 @@ def train_pose(data: str | Path, out: str | Path, cfg: PoseTrainConfig | None = 
     infos, obj_ids = _objects(data, cfg.obj_ids)
     model_cfg = dataclasses.replace(cfg.model, obj_ids=obj_ids, symmetric=[infos[o].symmetric for o in obj_ids])
     cfg = dataclasses.replace(cfg, model=model_cfg)
-    model = build_pose_net(model_cfg)
+    model = _build("pose", build_pose_net, model_cfg)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr, "w": cfg.w, "decayed": False, "refine_ready": False,
                              "best_val_dis": None}
@@ -522,7 +530,7 @@ def train_refine(data: str | Path, out: str | Path, cfg: RefineTrainConfig | Non
     model_cfg = dataclasses.replace(cfg.model, obj_ids=list(pose_cfg.obj_ids), symmetric=list(pose_cfg.symmetric),
                                     emb_dim=pose_cfg.emb_dim)
     cfg = dataclasses.replace(cfg, model=model_cfg)
-    model = build_refiner(model_cfg)
+    model = _build("refine", build_refiner, model_cfg)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr, "best_val_dis": None}
     if prior is not None:
@@ -588,7 +596,7 @@ def train_cls(data: str | Path, out: str | Path, cfg: ClsTrainConfig | None = No
     obj_ids = ([0] if cfg.background else []) + obj_ids  # 0: "not a block"
     model_cfg = dataclasses.replace(cfg.model, obj_ids=obj_ids)
     cfg = dataclasses.replace(cfg, model=model_cfg)
-    model = build_classifier(model_cfg)
+    model = _build("cls", build_classifier, model_cfg)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr}
     if prior is not None:

@@ -73,6 +73,16 @@ def test_cls_training_lowers_loss(tiny_bop, tiny_run):
     assert len((tiny_run / "cls_metrics.csv").read_text().splitlines()) == 61
 
 
+def test_unusable_model_setting_is_a_one_line_error(tiny_bop, tiny_cls_config, tmp_path):
+    from perception.train import train_cls
+    from posegrasp.errors import UserError
+
+    bad = dataclasses.replace(tiny_cls_config, model=dataclasses.replace(tiny_cls_config.model, height_range=-0.1))
+    with pytest.raises(UserError, match=r"\[cls.model\] height_range must be >= 0 m .*got -0.1"):
+        train_cls(tiny_bop, tmp_path / "run", bad, steps=1, progress=False)
+    assert not (tmp_path / "run" / "cls").exists()
+
+
 def test_cls_lr_schedule():
     from perception.train import ClsTrainConfig, cls_lr
 
