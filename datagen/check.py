@@ -334,7 +334,7 @@ def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: floa
 
     The search stops after ``max_problems`` problems; ``progress`` shows a bar over scenes.
     """
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from posegrasp.progress import track
 
     root = Path(root)
     if not root.is_dir():
@@ -355,13 +355,11 @@ def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: floa
     if shape is None:
         return c.report
     scenes = [bop.scene_dir(root, s, sid) for s in splits for sid in bop.list_scenes(root, s)]
-    with Progress(TextColumn("checking"), BarColumn(), MofNCompleteColumn(), TextColumn("scenes"),
-                  TimeRemainingColumn(), transient=True, disable=not progress) as bar:
-        for sd in bar.track(scenes):
-            if c.full:
-                c.report.stopped_early = True
-                break
-            c.scene(sd, shape, max_images)
+    for sd in track(scenes, "checking scenes", enabled=progress):
+        if c.full:
+            c.report.stopped_early = True
+            break
+        c.scene(sd, shape, max_images)
     return c.report
 
 

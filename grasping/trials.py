@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from grasping.calibration import load_hand_eye
@@ -29,6 +29,7 @@ from grasping.stats import rate_row, summarise
 from posegrasp.errors import UserError
 from posegrasp.executor import make_executor
 from posegrasp.io import atomic_write, dumps_json, write_bytes, write_json
+from posegrasp.progress import progress
 
 EPISODES, TIMINGS, SUMMARY, CAMPAIGN = "episodes.jsonl", "timings.jsonl", "summary.json", "campaign.json"
 #: Noise levels (translation m, rotation deg) of ``--sweep-noise``.
@@ -93,7 +94,7 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     todo = [EpisodeTask(seed, i, perception, cfg, T) for i in range(episodes) if i not in done]
     t0 = time.perf_counter()
     if todo:
-        with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, Progress(
+        with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, progress(
                 TextColumn("[bold]trials[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
                 TimeRemainingColumn(), console=console, transient=True) as bar:
             task = bar.add_task(f"{perception}", total=episodes, completed=len(done))

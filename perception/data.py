@@ -269,7 +269,7 @@ class ClsDataset(Dataset):
     def __init__(self, root: str | Path, split: str, obj_ids: list[int], size: int, side: float,
                  depth_range: float, cfg: DataConfig | None = None, augment: bool = False, seed: int = 0,
                  segmenter=None, progress: bool = False, height_range: float = 0.0):
-        from rich.progress import track
+        from posegrasp.progress import track
 
         self.cfg = cfg or DataConfig()
         self.obj_ids = list(obj_ids)
@@ -277,7 +277,7 @@ class ClsDataset(Dataset):
         self.seed = seed
         crops, labels = [], []
         records = load_records(root, split)
-        for rec in track(records, description=f"crops {split}", disable=not progress):
+        for rec in track(records, f"crops {split}", enabled=progress):
             rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
             masks = [(inst.obj_id, rec.load_mask(inst.gt_index)) for inst in rec.instances
                      if inst.obj_id in self.obj_ids and usable(inst, self.cfg)]

@@ -138,7 +138,7 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
              progress: bool = True) -> dict[str, Any]:
     """Evaluate the run ``weights`` on split ``cfg.split`` of BOP dataset ``data``; write reports in
     ``out``; return the metrics dict (also in ``out/metrics.json``)."""
-    from rich.progress import Progress
+    from posegrasp.progress import track
 
     cfg = cfg or EvalConfig()
     if cfg.masks not in ("pred", "gt"):
@@ -160,28 +160,25 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
     rows: list[dict[str, Any]] = []
     results: list[bop.PoseResult] = []
     times: dict[str, list[float]] = {k: [] for k in (*est.timings, "total")}
-    with Progress(disable=not progress) as bar:
-        task = bar.add_task(f"eval {cfg.split}", total=len(records))
-        for rec in records:
-            rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
-            gts = [g for g in rec.instances if g.obj_id in obj_ids
-                   and (g.info is None or g.info.visib_fract >= cfg.min_visib_fract)]
-            gt_masks = [(g.obj_id, rec.load_mask(g.gt_index)) for g in gts] if cfg.masks == "gt" else []
-            t0 = time.perf_counter()
-            if cfg.masks == "pred":
-                dets = est(rgb, depth, K)
-            else:
-                est.timings.update(seg=0.0, cls=0.0, guided=0.0)  # no segmentation stage with ground-truth masks
-                dets = est.estimate(rgb, depth, K, gt_masks)
-            total = time.perf_counter() - t0
-            if cfg.masks == "pred":
-                conf += M.confusion_matrix(est.last_labels, label_map(rec, rgb.shape[:2]), nc)
-            for k, v in est.timings.items():
-                times[k].append(v)
-            times["total"].append(total)
-            rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
-            results.extend(bop.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total) for d in dets)
-            bar.advance(task)
+    for rec in track(records, f"eval {cfg.split}", enabled=progress):
+        rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
+        gts = [g for g in rec.instances if g.obj_id in obj_ids
+               and (g.info is None or g.info.visib_fract >= cfg.min_visib_fract)]
+        gt_masks = [(g.obj_id, rec.load_mask(g.gt_index)) for g in gts] if cfg.masks == "gt" else []
+        t0 = time.perf_counter()
+        if cfg.masks == "pred":
+            dets = est(rgb, depth, K)
+        else:
+            est.timings.update(seg=0.0, cls=0.0, guided=0.0)  # no segmentation stage with ground-truth masks
+            dets = est.estimate(rgb, depth, K, gt_masks)
+        total = time.perf_counter() - t0
+        if cfg.masks == "pred":
+            conf += M.confusion_matrix(est.last_labels, label_map(rec, rgb.shape[:2]), nc)
+        for k, v in est.timings.items():
+            times[k].append(v)
+        times["total"].append(total)
+        rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
+        results.extend(bop.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total) for d in dets)
 
     per_object = {o: _summary([r for r in rows if r["obj_id"] == o], infos[o].diameter) for o in obj_ids}
     overall = _summary(rows, None)

@@ -33,6 +33,7 @@ GRIPPER_SITE = "pinchsite"
 _COLLIDE = dict(contype=1, conaffinity=1)
 _VISUAL = dict(contype=0, conaffinity=0, group=1)
 _COLLISION_GROUP = 3
+PARKING_Y, PARKING_GAP = 2.0, 0.25  # m: block k waits at (0, PARKING_Y + k PARKING_GAP, 0.5) until placed
 
 
 @dataclass(frozen=True)
@@ -54,7 +55,9 @@ def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance) -> None:
     """A free body ``block_k``: the visual mesh (exactly the PLY model) and the collision primitives."""
     b = inst.block
     mesh = root.asset.add("mesh", name=f"block_{k}_mesh", vertex=b.vertices.ravel(), face=b.faces.ravel())
-    body = root.worldbody.add("body", name=f"block_{k}")
+    # parked apart, off the table, until placed: blocks compiled on top of each other and the arm overflow
+    # the constraint solver's memory at the first forward pass (a scene of large hulls needed 1470 contacts)
+    body = root.worldbody.add("body", name=f"block_{k}", pos=(0.0, PARKING_Y + PARKING_GAP * k, 0.5))
     body.add("freejoint", name=f"block_{k}_joint")
     body.add("geom", name=f"block_{k}_visual", type="mesh", mesh=mesh, rgba=inst.rgba, mass=b.mass, **_VISUAL)
     for j, prim in enumerate(b.collision):

@@ -133,3 +133,18 @@ def test_shipped_toml_equals_defaults():
     from sim.config import load_workcell_config
 
     assert load_workcell_config() == WorkcellConfig()
+
+
+def test_unplaced_blocks_touch_nothing():
+    """Blocks wait apart, off the table, until placed: compiled all at the origin, 8 large hulls overlapping each
+    other and the arm overflowed MuJoCo's constraint memory at the first forward pass (a datagen scene did)."""
+    from posegrasp.catalog import load_catalog
+    from sim.workcell import BlockInstance, Workcell
+
+    cat = load_catalog()
+    big = max(cat.values(), key=lambda b: b.diameter)
+    wc = Workcell(WorkcellConfig(), [BlockInstance(big, (0.8, 0.2, 0.2, 1.0))] * 8)
+    block_geoms = set(np.flatnonzero(np.isin(wc.model.geom_bodyid, wc.block_body)))
+    touching = {int(g) for c in wc.data.contact[:wc.data.ncon] for g in (c.geom1, c.geom2)}
+    assert not touching & block_geoms
+    assert np.all(wc.block_poses()[:, 0, 3] == 0.0) and len({float(y) for y in wc.block_poses()[:, 1, 3]}) == 8
