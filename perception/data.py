@@ -297,7 +297,7 @@ class ClsDataset(Dataset):
                     labels.append(self.obj_ids.index(obj_id))
         if not crops:
             raise UserError(f"no usable object instance in {Path(root) / split} for the classifier")
-        self.crops = np.stack(crops)  # (N, C, S, S) float16
+        self.crops = crops  # N arrays (C, S, S) float16; not stacked, which would double the peak memory
         self.labels = np.array(labels, dtype=np.int64)
 
     def __len__(self) -> int:
