@@ -96,7 +96,7 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     if todo:
         with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, progress(
                 TextColumn("[bold]trials[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
-                TimeRemainingColumn(), console=console, transient=True) as bar:
+                TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=True) as bar:
             task = bar.add_task(f"{perception}", total=episodes, completed=len(done))
             ok = sum(r["outcome"] == "success" for r in done.values())
             for _, rec in make_executor(workers).imap(run_episode, todo):
