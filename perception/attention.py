@@ -25,12 +25,14 @@ class PAM(nn.Module):
         self.value = nn.Conv1d(channels, channels, 1)
         self.gamma = nn.Parameter(torch.zeros(1))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def attention(self, x: torch.Tensor) -> torch.Tensor:
+        """M (B, N, N), rows sum to 1."""
         q = self.query(x)  # (B, C', N)
         k = self.key(x)  # (B, C', N)
-        attn = torch.softmax(torch.bmm(q.transpose(1, 2), k), dim=-1)  # (B, N, N), rows sum to 1
-        v = self.value(x)  # (B, C, N)
-        out = torch.bmm(v, attn.transpose(1, 2))  # (B, C, N)
+        return torch.softmax(torch.bmm(q.transpose(1, 2), k), dim=-1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = torch.bmm(self.value(x), self.attention(x).transpose(1, 2))  # (B, C, N)
         return self.gamma * out + x
 
 
@@ -42,12 +44,13 @@ class CAM(nn.Module):
         super().__init__()
         self.gamma = nn.Parameter(torch.zeros(1))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def attention(self, x: torch.Tensor) -> torch.Tensor:
+        """A (B, C, C)."""
         energy = torch.bmm(x, x.transpose(1, 2))  # (B, C, C)
-        energy = energy.amax(dim=-1, keepdim=True) - energy
-        attn = torch.softmax(energy, dim=-1)
-        out = torch.bmm(attn, x)  # (B, C, N)
-        return self.gamma * out + x
+        return torch.softmax(energy.amax(dim=-1, keepdim=True) - energy, dim=-1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.gamma * torch.bmm(self.attention(x), x) + x  # (B, C, N)
 
 
 class GFEM(nn.Module):
@@ -58,6 +61,9 @@ class GFEM(nn.Module):
         super().__init__()
         self.conv = nn.Conv1d(channels, out_channels, 1)
 
+    def pooled(self, x: torch.Tensor) -> torch.Tensor:
+        """The global feature (B, out_channels, 1)."""
+        return torch.relu(self.conv(x)).mean(dim=2, keepdim=True)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        g = torch.relu(self.conv(x)).mean(dim=2, keepdim=True)  # (B, C_out, 1)
-        return g.expand(-1, -1, x.shape[2])
+        return self.pooled(x).expand(-1, -1, x.shape[2])

@@ -204,9 +204,10 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     if int(valid.sum()) < min_valid:
         return None
     z = float(np.median(depth[valid]))
-    vs, us = np.nonzero(mask)
+    mom = cv2.moments(mask.view(np.uint8), binaryImage=True)  # the centroid, ~5x faster than np.nonzero's means
     s = size * z / (side * float(K[0, 0]))
-    A = np.array([[s, 0.0, size / 2 - s * us.mean()], [0.0, s, size / 2 - s * vs.mean()]], dtype=np.float32)
+    A = np.array([[s, 0.0, size / 2 - s * mom["m10"] / mom["m00"]], [0.0, s, size / 2 - s * mom["m01"] / mom["m00"]]],
+                 dtype=np.float32)
     rgb_c = cv2.warpAffine(rgb, A, (size, size), flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
     mask_c = cv2.warpAffine(mask.astype(np.uint8), A, (size, size), flags=cv2.INTER_NEAREST)
     d_c = cv2.warpAffine(depth.astype(np.float32), A, (size, size), flags=cv2.INTER_NEAREST)
@@ -244,8 +245,9 @@ def instance_masks(class_mask: np.ndarray, min_pixels: int) -> list[np.ndarray]:
 
 
 def segment_components(labels: np.ndarray, min_pixels: int) -> list[tuple[int, np.ndarray]]:
-    """(class, mask) of the ``instance_masks`` of every non-background class of a class map (H, W)."""
-    return [(int(c), m) for c in np.unique(labels) if c != 0 for m in instance_masks(labels == c, min_pixels)]
+    """(class, mask) of the ``instance_masks`` of every non-background class of a class map (H, W), ints >= 0."""
+    present = np.flatnonzero(np.bincount(labels.ravel()))  # the classes in the map (np.unique sorts: ~10x slower)
+    return [(int(c), m) for c in present if c != 0 for m in instance_masks(labels == c, min_pixels)]
 
 
 class ClsDataset(Dataset):

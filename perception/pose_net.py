@@ -248,7 +248,8 @@ class PoseNet(nn.Module):
         self.pam = PAM(c, cfg.pam_reduction) if cfg.use_pam else None
         self.cam = CAM() if cfg.use_cam else None
         self.gfem = GFEM(c, cfg.gfem_channels) if cfg.use_gfem else None
-        cin = c + c * cfg.use_pam + c * cfg.use_cam + cfg.gfem_channels * cfg.use_gfem
+        self._part_widths = (c, c * cfg.use_pam, c * cfg.use_cam, cfg.gfem_channels * cfg.use_gfem)
+        cin = sum(self._part_widths)
         k = cfg.num_objects
         self.head_r = PointHead(cin, cfg.head_widths, 4 * k)
         self.head_t = PointHead(cin, cfg.head_widths, 3 * k)
@@ -285,14 +286,49 @@ class PoseNet(nn.Module):
 
     def predict(self, img: torch.Tensor, points: torch.Tensor, choose: torch.Tensor, obj: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The most confident point's proposal (inference): the confidence head runs on every point, the rotation
-        and translation heads (per point, so the same numbers as ``forward``'s) on that point alone. Returns q
-        (B, 4) unit, t offset (B, 3) m, confidence (B,), the point's index (B,) and the embedding (B, E, N)."""
-        x, emb = self.features(img, points, choose)
-        c = torch.sigmoid(select_object(self.head_c(x), obj, 1))[..., 0]  # (B, N)
+        """The most confident point's proposal (inference). Returns q (B, 4) unit, t offset (B, 3) m, confidence (B,),
+        the point's index (B,) and the embedding (B, E, N): ``forward``'s numbers at that point (up to float rounding)
+        for about half the multiply-adds.
+
+        Only the confidence head runs on every point, and its first conv W = [W_f W_p W_c W_g] is linear in the
+        features [F; PAM(F); CAM(F); GFEM(F)] (F: the fused C x N). With PAM(F) = g_p (W_v F + b_v 1^T) M^T + F, whose
+        M has rows summing to 1, and CAM(F) = g_c A F + F:
+
+            W x = (W_f + W_p + W_c + g_c W_c A) F + g_p ((W_p W_v) F) M^T + g_p W_p b_v 1^T + W_g GFEM(F)
+
+        so PAM's and CAM's C x N outputs are never formed. The rotation and translation heads then run on the best
+        point's features alone."""
+        emb = self.embed(img, choose)  # (B, E, N)
+        f = self.feat(points.transpose(1, 2), emb)  # (B, C, N)
+        M = self.pam.attention(f) if self.pam is not None else None  # (B, N, N)
+        A = self.cam.attention(f) if self.cam is not None else None  # (B, C, C)
+        g = self.gfem.pooled(f) if self.gfem is not None else None  # (B, G, 1)
+        first, *rest = self.head_c
+        W_f, W_p, W_c, W_g = first.weight[:, :, 0].split(self._part_widths, dim=1)  # (O, part width) each
+        W, y = W_f.expand(len(f), -1, -1), first.bias[:, None]  # (B, O, C), (O, 1)
+        if M is not None:
+            W_pv, b_pv = W_p @ self.pam.value.weight[:, :, 0], W_p @ self.pam.value.bias  # (O, C), (O,)
+            W = W + W_p
+            y = y + self.pam.gamma * (torch.bmm(W_pv @ f, M.transpose(1, 2)) + b_pv[:, None])
+        if A is not None:
+            W = W + W_c + self.cam.gamma * (W_c @ A)
+        if g is not None:
+            y = y + W_g @ g
+        y = torch.bmm(W, f) + y  # (B, O, N): the first conv's output
+        for layer in rest:
+            y = layer(y)
+        c = torch.sigmoid(select_object(y, obj, 1))[..., 0]  # (B, N)
         best = c.argmax(dim=1)
-        ar = torch.arange(len(best), device=x.device)
-        xb = x[ar, :, best][..., None]  # (B, C_in, 1)
+        ar = torch.arange(len(best), device=f.device)
+        fb = f[ar, :, best][..., None]  # (B, C, 1)
+        xb = [fb]
+        if M is not None:  # PAM at the best point b: g_p (W_v (F m_b) + b_v) + f_b, m_b = row b of M
+            xb.append(self.pam.gamma * self.pam.value(torch.bmm(f, M[ar, best][..., None])) + fb)
+        if A is not None:
+            xb.append(self.cam.gamma * torch.bmm(A, fb) + fb)
+        if g is not None:
+            xb.append(g)
+        xb = torch.cat(xb, dim=1)  # (B, C_in, 1)
         q = select_object(self.head_r(xb), obj, 4)[:, 0]
         q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         t = select_object(self.head_t(xb), obj, 3)[:, 0]

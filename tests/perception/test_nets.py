@@ -1,12 +1,14 @@
 """Output shapes of the segmentation net, the pose net (with and without attention), the refiner and the
 instance classifier."""
 
+import copy
 import dataclasses
 
 import pytest
 import torch
 
 from perception.classifier import ClassifierConfig, build_classifier
+from perception.inference import for_inference
 from perception.pose_net import PoseNetConfig, build_pose_net
 from perception.refiner import RefinerConfig, build_refiner, refine
 from perception.seg_net import SegNetConfig, build_seg_net, seg_loss
@@ -49,6 +51,9 @@ def test_pose_net_and_refiner_shapes(attention):
     assert float(c.detach().min()) > 0 and float(c.detach().max()) < 1
     assert (net.pam is None) != attention and (net.cam is None) != attention and (net.gfem is None) != attention
     with torch.no_grad():  # inference: the most confident point's proposal, its heads run on that point alone
+        if attention:  # gamma 0 would leave PAM's and CAM's terms out of the comparison
+            net.pam.gamma.fill_(0.7)
+            net.cam.gamma.fill_(-0.3)
         q1, t1, c1, best, _ = net.eval().predict(img, pts, choose, obj)
         q, t, c, _ = net(img, pts, choose, obj)
     ar = torch.arange(B)
@@ -92,3 +97,15 @@ def test_classifier_shapes_and_validation():
         build_classifier(ClassifierConfig(widths=(8, 8, 8, 8, 8, 8, 8), crop_size=32))
     with pytest.raises(ValueError, match="obj_ids"):
         build_classifier(ClassifierConfig(obj_ids=[]))
+
+
+def test_channels_last_inference_keeps_the_outputs():
+    net = build_seg_net(SegNetConfig(num_classes=3, width=0.125, input_size=(64, 96))).eval()
+    x = torch.randn(2, 3, 64, 96)  # NCHW input: the weights' layout decides the convolutions'
+    with torch.no_grad():
+        ref = net(x)
+        fast = for_inference(copy.deepcopy(net))
+        out = fast(x)
+    w = fast.encoder.stages[0][0][0].weight  # (8, 3, 3, 3)
+    assert w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous() and not fast.training
+    torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-4)
