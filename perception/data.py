@@ -7,6 +7,7 @@ passes the global sample counter as the key, so a resumed run sees exactly the s
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import torch
 from torch.utils.data import Dataset
 
 from posegrasp import bop
+from posegrasp import io as pio
 from posegrasp.errors import UserError
 from perception.crop import backproject, crop_box, remap_choose, sample_choose
 from perception.plane import fit_support_plane
@@ -260,25 +262,47 @@ class ClsDataset(Dataset):
     ("not a block") is in ``obj_ids``: then those with at most ``BACKGROUND_MAX_FG`` of their pixels on
     objects are its samples. ``height_range`` > 0: crops with the height channel, above each image's supporting
     plane (``perception.plane``, fitted with the default settings and seed 0, as the estimator does).
-    Crops are computed once, at construction. Augmentation (seeded by index and key): a random
+    Crops are computed once, at construction; with ``cache`` (a ``.npy`` path) they are also written there, with a
+    ``.json`` beside it holding their labels and what they were computed from (dataset, split, crop settings, the
+    objects and ``segmenter_id``, which must name the segmenter, e.g. a hash of its weights), and a later
+    construction with the same key reads them back as a memory map instead (a resumed training run starts at once).
+    Augmentation (seeded by index and key): a random
     permutation of the colour channels (block colours carry no class information), brightness and
     contrast, a rotation by a multiple of 90 degrees and a mirror flip (the blocks' shapes are
     mirror-symmetric).
     """
 
     BACKGROUND_MAX_FG = 0.2
+    CACHE_VERSION = 1
 
     def __init__(self, root: str | Path, split: str, obj_ids: list[int], size: int, side: float,
                  depth_range: float, cfg: DataConfig | None = None, augment: bool = False, seed: int = 0,
-                 segmenter=None, progress: bool = False, height_range: float = 0.0):
-        from posegrasp.progress import track
-
+                 segmenter=None, progress: bool = False, height_range: float = 0.0, cache: str | Path | None = None,
+                 segmenter_id: str = ""):
         self.cfg = cfg or DataConfig()
         self.obj_ids = list(obj_ids)
         self.augment = augment and self.cfg.augment
         self.seed = seed
-        crops, labels = [], []
         records = load_records(root, split)
+        key = {"version": self.CACHE_VERSION, "root": str(Path(root).resolve()), "split": split,
+               "images": len(records), "obj_ids": self.obj_ids, "crop": [size, side, depth_range, height_range],
+               "selection": [self.cfg.min_visib_fract, self.cfg.min_points, self.BACKGROUND_MAX_FG],
+               "segmenter": segmenter_id if segmenter is not None else None}
+        cached = _read_crop_cache(Path(cache), key) if cache is not None else None
+        if cached is None:
+            crops, labels = self._crops(records, split, segmenter, (size, side, depth_range, height_range), progress)
+            if not crops:
+                raise UserError(f"no usable object instance in {Path(root) / split} for the classifier")
+            cached = _write_crop_cache(Path(cache), key, crops, labels) if cache is not None else (crops, labels)
+        self.crops = cached[0]  # (C, S, S) float16 each: a list, or a read-only memory map of the cache
+        self.labels = np.asarray(cached[1], dtype=np.int64)
+
+    def _crops(self, records: list, split: str, segmenter, crop: tuple[int, float, float, float], progress: bool
+               ) -> tuple[list[np.ndarray], list[int]]:
+        """The crops (C, S, S) float16, in a list (stacking them would double the peak memory), and their labels."""
+        from posegrasp.progress import track
+
+        crops, labels = [], []
         for rec in track(records, f"crops {split}", enabled=progress):
             rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
             masks = [(inst.obj_id, rec.load_mask(inst.gt_index)) for inst in rec.instances
@@ -290,17 +314,13 @@ class ClsDataset(Dataset):
                     major = int(np.bincount(g).argmax())
                     if major in self.obj_ids and (major > 0 or (g > 0).mean() <= self.BACKGROUND_MAX_FG):
                         masks.append((major, m))
-            plane = fit_support_plane(depth, K) if height_range > 0 else None
+            plane = fit_support_plane(depth, K) if crop[3] > 0 else None
             for obj_id, m in masks:
-                x = prepare_cls_input(rgb, depth, K, m, size, side, depth_range, height_range=height_range,
-                                      plane=plane)
+                x = prepare_cls_input(rgb, depth, K, m, *crop[:3], height_range=crop[3], plane=plane)
                 if x is not None:
                     crops.append(x.astype(np.float16))
                     labels.append(self.obj_ids.index(obj_id))
-        if not crops:
-            raise UserError(f"no usable object instance in {Path(root) / split} for the classifier")
-        self.crops = crops  # N arrays (C, S, S) float16; not stacked, which would double the peak memory
-        self.labels = np.array(labels, dtype=np.int64)
+        return crops, labels
 
     def __len__(self) -> int:
         return len(self.labels)
@@ -322,6 +342,36 @@ class ClsDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor | int]:
         return self.get(index)
+
+
+def _read_crop_cache(path: Path, key: dict) -> tuple[np.ndarray, list[int]] | None:
+    """``ClsDataset``'s cached crops (N, C, S, S) float16 (a read-only memory map) and labels, or None when ``path``
+    does not hold crops computed for ``key``."""
+    meta = path.with_suffix(".json")
+    if not (meta.exists() and path.exists()):
+        return None
+    info = json.loads(meta.read_text())
+    if info.get("key") != json.loads(json.dumps(key)):
+        return None
+    crops = np.load(path, mmap_mode="r")
+    return (crops, info["labels"]) if len(crops) == len(info["labels"]) else None
+
+
+def _write_crop_cache(path: Path, key: dict, crops: list[np.ndarray], labels: list[int]
+                      ) -> tuple[np.ndarray, list[int]]:
+    """Write ``crops`` to ``path`` (one array, filled crop by crop) and the labels and ``key`` beside it, each file
+    atomically, the ``.json`` last; returns them as ``_read_crop_cache`` does."""
+    def fill(tmp: Path) -> None:
+        out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(len(crops), *crops[0].shape))
+        for i, x in enumerate(crops):
+            out[i] = x
+        out.flush()
+        del out
+
+    path.with_suffix(".json").unlink(missing_ok=True)  # the old key must not outlive its crops
+    pio.atomic_write(path, fill)
+    pio.write_json(path.with_suffix(".json"), {"key": key, "labels": labels}, indent=None)
+    return np.load(path, mmap_mode="r"), labels
 
 
 class PoseDataset(Dataset):

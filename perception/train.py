@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import hashlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -602,17 +603,19 @@ def train_cls(data: str | Path, out: str | Path, cfg: ClsTrainConfig | None = No
     state: dict[str, Any] = {"step": 0, "lr": cfg.lr}
     if prior is not None:
         state = _restore(run, prior, model, opt)
-    segmenter = None
+    segmenter, seg_id = None, ""
     if has_seg:
         seg = Segmenter.load(run.out / "seg")
+        seg_id = hashlib.sha256((run.out / "seg" / "model.safetensors").read_bytes()).hexdigest()
 
         def segmenter(rgb: np.ndarray) -> np.ndarray:
             return seg(rgb)[0]
     crop = (model_cfg.crop_size, model_cfg.crop_side, model_cfg.depth_range)
 
-    def dataset(split: str, augment: bool) -> ClsDataset:
+    def dataset(split: str, augment: bool) -> ClsDataset:  # crops cached in the run: a resume starts at once
         return ClsDataset(data, split, obj_ids, *crop, cfg.data, augment=augment, seed=cfg.seed,
-                          segmenter=segmenter, progress=progress, height_range=model_cfg.height_range)
+                          segmenter=segmenter, progress=progress, height_range=model_cfg.height_range,
+                          cache=run.out / "cache" / f"cls_crops_{split}.npy", segmenter_id=seg_id)
 
     ds = dataset(train_split(data, cfg.train_split), True)
     val = dataset(cfg.val_split, False) if _split_exists(data, cfg.val_split) else None

@@ -130,6 +130,33 @@ def test_cls_samples_from_gt_and_from_segments(tiny_bop):
     assert not torch.equal(a["image"], c["image"]) and a["label"] == both.get(3)["label"]
 
 
+def test_cls_crops_are_cached_for_the_same_segmenter_and_settings(tiny_bop, tmp_path):
+    from perception.data import ClsDataset, label_map, load_records
+
+    by_rgb = {r.load_rgb().tobytes(): r for r in load_records(tiny_bop, "train")}
+    calls = []
+
+    def perfect(rgb):
+        calls.append(1)
+        return label_map(by_rgb[rgb.tobytes()], rgb.shape[:2])
+
+    def unusable(rgb):
+        raise AssertionError("the segmenter ran although its crops are cached")
+
+    kw = dict(size=32, side=0.16, depth_range=0.05, cache=tmp_path / "c" / "crops.npy")
+    first = ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=perfect, segmenter_id="a")
+    assert len(calls) == len(by_rgb) and sorted(p.name for p in (tmp_path / "c").iterdir()) == ["crops.json",
+                                                                                                 "crops.npy"]
+    again = ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="a", augment=True)
+    assert np.array_equal(np.asarray(again.crops), np.stack(first.crops)) and np.array_equal(again.labels, first.labels)
+    assert torch.equal(again.get(2)["image"], first.get(2)["image"])
+    with pytest.raises(AssertionError, match="cached"):  # another segmenter: computed anew
+        ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="b")
+    with pytest.raises(AssertionError, match="cached"):  # other crop settings: computed anew
+        ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **{**kw, "side": 0.2}, segmenter=unusable, segmenter_id="a")
+    assert len(ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="a")) == len(first)
+
+
 def test_cls_background_samples_are_segments_mostly_off_the_objects(tiny_bop):
     from perception.data import ClsDataset, label_map, load_records
 
