@@ -34,7 +34,7 @@ from perception.crop import backproject
 from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
 from perception.guided import GuidedConfig, padded_box, refine_labels
-from perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_pose
+from perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
 from perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from perception.refiner import refine
 from perception.seg_net import SegNetConfig
@@ -208,29 +208,30 @@ class Estimator:
         if self.refine_iterations > 0 and self.refiner is not None:
             T = refine(self.refiner, T, points, emb, obj, self.refine_iterations)
             t2 = time.perf_counter()
-        out = []
-        for j, k in enumerate(kept):
-            ms = 1.0 if mask_scores is None else mask_scores[k]
-            T_j = T[j].double().numpy()
-            if self.model_points is not None:
-                T_j = self._depth_refine(T_j, masks[k], depth, K, rng, plane)
-            out.append(Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, score=float(ms * float(conf[j])),
-                                 mask=masks[k][1]))
+        poses = [T[j].double().numpy() for j in range(len(kept))]
+        if self.model_points is not None:
+            poses = self._depth_refine(poses, [masks[k] for k in kept], depth, K, rng, plane)
+        out = [Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, mask=masks[k][1],
+                         score=float((1.0 if mask_scores is None else mask_scores[k]) * float(conf[j])))
+               for j, (k, T_j) in enumerate(zip(kept, poses))]
         self.timings.update(pose=t1 - t0, refine=t2 - t1, icp=time.perf_counter() - t2)
         return out
 
-    def _depth_refine(self, T: np.ndarray, mask: tuple[int, np.ndarray], depth: np.ndarray, K: np.ndarray,
-                      rng: np.random.Generator, plane: np.ndarray | None) -> np.ndarray:
-        """``perception.icp.refine_pose`` on (up to ``icp.max_points`` of) the mask's valid depth points."""
-        obj_id, m = mask
-        vs, us = np.nonzero(m & (depth > 0))
-        if vs.size > self.icp.max_points:
-            keep = np.sort(rng.choice(vs.size, self.icp.max_points, replace=False))
-            vs, us = vs[keep], us[keep]
+    def _depth_refine(self, poses: list[np.ndarray], masks: list[tuple[int, np.ndarray]], depth: np.ndarray,
+                      K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None) -> list[np.ndarray]:
+        """``perception.icp.refine_poses`` of the estimates (4x4 each) on (up to ``icp.max_points`` of) their masks'
+        valid depth points (obj_id, (H, W) bool each)."""
         h, w = depth.shape
-        pts = backproject(depth, K, (0, h, 0, w), vs * w + us)
-        return refine_pose(T, self.model_points[obj_id], pts, depth, K, self.icp, self.hypotheses[obj_id], plane,
-                           self.grids[obj_id])[0]
+        observed = []
+        for _, m in masks:
+            vs, us = np.nonzero(m & (depth > 0))
+            if vs.size > self.icp.max_points:
+                keep = np.sort(rng.choice(vs.size, self.icp.max_points, replace=False))
+                vs, us = vs[keep], us[keep]
+            observed.append(backproject(depth, K, (0, h, 0, w), vs * w + us))
+        ids = [o for o, _ in masks]
+        return [T for T, _ in refine_poses(poses, [self.model_points[o] for o in ids], observed, depth, K, self.icp,
+                                           [self.hypotheses[o] for o in ids], plane, [self.grids[o] for o in ids])]
 
     @torch.no_grad()
     def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray,

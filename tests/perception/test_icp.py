@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from perception.icp import ICPConfig, NearestGrid, cube_rotations, distinct_rotations, refine_pose
+from perception.icp import ICPConfig, NearestGrid, cube_rotations, distinct_rotations, refine_pose, refine_poses
 from perception.metrics import rotation_error_sym_deg
 from posegrasp import bop
 from posegrasp.geometry import axis_angle_R, make_T
@@ -83,3 +83,29 @@ def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
         stuck += err(T1) > 45.0
     # measured: 7 of 8 recovered with the 24 hypotheses, 7 of 8 with the 6; plain ICP stays turned in 8 of 8
     assert fixed >= 2 * 0.75 * len(recs) and stuck >= 0.75 * len(recs)
+
+
+def test_objects_refined_together_as_each_alone(tiny_bop):
+    """``refine_poses`` batches the objects of a frame (models and point sets of different sizes, padded): each result
+    is ``refine_pose``'s for that object alone, with and without the supporting plane."""
+    rec = next(iter(bop.iter_scene_images(tiny_bop, "train")))
+    depth, K = rec.load_depth(), rec.camera.K
+    infos = bop.load_models_info(tiny_bop)
+    args = []
+    for k, g in enumerate(rec.instances):
+        model = bop.sample_model_points(bop.load_model(tiny_bop, g.obj_id), 300 + 100 * k, seed=k)
+        vs, us = np.nonzero(rec.load_mask(g.gt_index) & (depth > 0))
+        z = depth[vs, us].astype(np.float64)
+        obs = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)[::3 + k]
+        T_est = g.T_cam_obj @ make_T(axis_angle_R(np.array([0.0, 0.0, 1.0]), 0.3), np.array([0.004, 0.0, 0.0]))
+        args.append((T_est, model, obs, distinct_rotations(cube_rotations(), infos[g.obj_id].symmetries_discrete, [])))
+    assert len(args) >= 2 and len({len(a[1]) for a in args}) == len(args) and len({len(a[2]) for a in args}) > 1
+    cfg = ICPConfig(polish=2)
+    for plane in (None, np.array([0.0, 0.0, -1.0, float(depth[depth > 0].max()) + 0.01])):
+        together = refine_poses(*[list(x) for x in zip(*[a[:3] for a in args])], depth, K, cfg, [a[3] for a in args],
+                                plane)
+        for (T, s), (T_est, model, obs, Q) in zip(together, args):
+            T1, s1 = refine_pose(T_est, model, obs, depth, K, cfg, Q, plane)
+            np.testing.assert_allclose(T, T1, atol=1e-4)
+            assert s == pytest.approx(s1, abs=1e-5)
+    assert refine_poses([], [], [], depth, K) == []
