@@ -302,6 +302,7 @@ class ClsDataset(Dataset):
         """The crops (C, S, S) float16, in a list (stacking them would double the peak memory), and their labels."""
         from posegrasp.progress import track
 
+        size, side, depth_range, height_range = crop
         crops, labels = [], []
         for rec in track(records, f"crops {split}", enabled=progress):
             rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
@@ -314,9 +315,10 @@ class ClsDataset(Dataset):
                     major = int(np.bincount(g).argmax())
                     if major in self.obj_ids and (major > 0 or (g > 0).mean() <= self.BACKGROUND_MAX_FG):
                         masks.append((major, m))
-            plane = fit_support_plane(depth, K) if crop[3] > 0 else None
+            plane = fit_support_plane(depth, K) if height_range > 0 else None
             for obj_id, m in masks:
-                x = prepare_cls_input(rgb, depth, K, m, *crop[:3], height_range=crop[3], plane=plane)
+                x = prepare_cls_input(rgb, depth, K, m, size, side, depth_range, height_range=height_range,
+                                      plane=plane)
                 if x is not None:
                     crops.append(x.astype(np.float16))
                     labels.append(self.obj_ids.index(obj_id))
