@@ -7,6 +7,7 @@ passes the global sample counter as the key, so a resumed run sees exactly the s
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -264,12 +265,11 @@ class ClsDataset(Dataset):
     plane (``perception.plane``, fitted with the default settings and seed 0, as the estimator does).
     Crops are computed once, at construction; with ``cache`` (a ``.npy`` path) they are also written there, with a
     ``.json`` beside it holding their labels and what they were computed from (dataset, split, crop settings, the
-    objects and ``segmenter_id``, which must name the segmenter, e.g. a hash of its weights), and a later
-    construction with the same key reads them back as a memory map instead (a resumed training run starts at once).
-    Augmentation (seeded by index and key): a random
-    permutation of the colour channels (block colours carry no class information), brightness and
-    contrast, a rotation by a multiple of 90 degrees and a mirror flip (the blocks' shapes are
-    mirror-symmetric).
+    objects, a hash of the annotations and ``segmenter_id``, which must name the segmenter, e.g. a hash of its
+    weights), and a later construction with the same key reads them back as a memory map instead (a resumed training
+    run starts at once). Augmentation (seeded by index and key): a random permutation of the colour channels (block
+    colours carry no class information), brightness and contrast, a rotation by a multiple of 90 degrees and a mirror
+    flip (the blocks' shapes are mirror-symmetric).
     """
 
     BACKGROUND_MAX_FG = 0.2
@@ -285,7 +285,8 @@ class ClsDataset(Dataset):
         self.seed = seed
         records = load_records(root, split)
         key = {"version": self.CACHE_VERSION, "root": str(Path(root).resolve()), "split": split,
-               "images": len(records), "obj_ids": self.obj_ids, "crop": [size, side, depth_range, height_range],
+               "images": len(records), "annotations": _fingerprint(records),
+               "obj_ids": self.obj_ids, "crop": [size, side, depth_range, height_range],
                "selection": [self.cfg.min_visib_fract, self.cfg.min_points, self.BACKGROUND_MAX_FG],
                "segmenter": segmenter_id if segmenter is not None else None}
         cached = _read_crop_cache(Path(cache), key) if cache is not None else None
@@ -344,6 +345,16 @@ class ClsDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor | int]:
         return self.get(index)
+
+
+def _fingerprint(records: list[bop.ImageRecord]) -> str:
+    """sha256 of the records' ids, cameras and annotated poses: a dataset generated anew in the same place differs."""
+    h = hashlib.sha256()
+    for r in records:
+        h.update(np.array([r.scene_id, r.im_id], dtype=np.int64).tobytes() + np.asarray(r.camera.K, float).tobytes())
+        for g in r.instances:
+            h.update(np.int64(g.obj_id).tobytes() + np.asarray(g.T_cam_obj, float).tobytes())
+    return h.hexdigest()
 
 
 def _read_crop_cache(path: Path, key: dict) -> tuple[np.ndarray, list[int]] | None:

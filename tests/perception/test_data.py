@@ -1,5 +1,8 @@
 """Datasets over the tiny BOP dataset: geometry consistency, determinism, augmentation, skipping."""
 
+import json
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -131,22 +134,17 @@ def test_cls_samples_from_gt_and_from_segments(tiny_bop):
 
 
 def test_cls_crops_are_cached_for_the_same_segmenter_and_settings(tiny_bop, tmp_path):
-    from perception.data import ClsDataset, label_map, load_records
+    from perception.data import ClsDataset
 
-    by_rgb = {r.load_rgb().tobytes(): r for r in load_records(tiny_bop, "train")}
     calls = []
-
-    def perfect(rgb):
-        calls.append(1)
-        return label_map(by_rgb[rgb.tobytes()], rgb.shape[:2])
+    perfect = ground_truth_segmenter(tiny_bop, calls)
 
     def unusable(rgb):
         raise AssertionError("the segmenter ran although its crops are cached")
 
     kw = dict(size=32, side=0.16, depth_range=0.05, cache=tmp_path / "c" / "crops.npy")
     first = ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=perfect, segmenter_id="a")
-    assert len(calls) == len(by_rgb) and sorted(p.name for p in (tmp_path / "c").iterdir()) == ["crops.json",
-                                                                                                 "crops.npy"]
+    assert len(calls) == 8 and sorted(p.name for p in (tmp_path / "c").iterdir()) == ["crops.json", "crops.npy"]
     again = ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="a", augment=True)
     assert np.array_equal(np.asarray(again.crops), np.stack(first.crops)) and np.array_equal(again.labels, first.labels)
     assert torch.equal(again.get(2)["image"], first.get(2)["image"])
@@ -155,6 +153,26 @@ def test_cls_crops_are_cached_for_the_same_segmenter_and_settings(tiny_bop, tmp_
     with pytest.raises(AssertionError, match="cached"):  # other crop settings: computed anew
         ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **{**kw, "side": 0.2}, segmenter=unusable, segmenter_id="a")
     assert len(ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="a")) == len(first)
+    ds = shutil.copytree(tiny_bop, tmp_path / "ds")  # a dataset generated anew in the same place: computed anew
+    ClsDataset(ds, "train", [0, 1, 2, 3], **kw, segmenter=ground_truth_segmenter(ds, calls), segmenter_id="a")
+    gt_file = ds / "train" / "000000" / "scene_gt.json"
+    gt = json.loads(gt_file.read_text())
+    gt["0"][0]["cam_t_m2c"][0] += 1.0  # mm
+    gt_file.write_text(json.dumps(gt))
+    with pytest.raises(AssertionError, match="cached"):
+        ClsDataset(ds, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="a")
+
+
+def ground_truth_segmenter(root, calls):
+    """A segmenter returning the ground truth of the dataset at ``root`` (calls counted in ``calls``)."""
+    from perception.data import label_map, load_records
+
+    by_rgb = {r.load_rgb().tobytes(): r for r in load_records(root, "train")}
+
+    def seg(rgb):
+        calls.append(1)
+        return label_map(by_rgb[rgb.tobytes()], rgb.shape[:2])
+    return seg
 
 
 def test_cls_background_samples_are_segments_mostly_off_the_objects(tiny_bop):
