@@ -130,7 +130,7 @@ class NearestGrid:
 
 class _Grids:
     """Several objects' ``NearestGrid``s as one lookup: model o's points start at row o x ``stride`` of the stacked
-    models, and ``grids(points, obj)`` maps points (H, N, 3), each row in the frame of object obj[h], to rows of them."""
+    models, and ``grids(points, obj)`` maps points (H, N, 3), row h in the frame of object obj[h], to rows of them."""
 
     def __init__(self, grids: list[NearestGrid], stride: int):
         self.index = torch.cat([g.index + o * stride for o, g in enumerate(grids)])
@@ -214,7 +214,7 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     po, wo = p[obj], w[obj]  # (H, N, 3), (H, N)
     for _ in range(cfg.iterations - exact):
         R, t = _kabsch(rows[grids((po - t[:, None]) @ R, obj)], po, wo)
-    if cfg.polish > 0:  # only each object's best hypotheses by the grid's approximate score go on
+    if 0 < cfg.polish < int(torch.bincount(obj).max()):  # only each object's best hypotheses by the grid's score go on
         score = _score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids)
         keep = torch.cat([i[score[i].argsort()[:cfg.polish]] for i in (torch.nonzero(obj == o)[:, 0]
                                                                         for o in range(len(estimates)))])
