@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from perception.crop import backproject
+from perception.guided import padded_box
 
 
 @dataclass
@@ -51,12 +52,14 @@ class ModelSurface:
                   tol: float) -> np.ndarray:
         """Bool (H, W): the pixels of ``mask`` with valid depth (m) whose point lies within ``tol`` (m) of the
         surface placed at ``T_cam_obj`` (4x4, camera frame)."""
-        h, w = depth.shape
-        idx = np.flatnonzero(mask & (depth > 0))
-        P = backproject(depth, K, (0, h, 0, w), idx)
-        dist, _ = self.tree.query((P - T_cam_obj[:3, 3]) @ T_cam_obj[:3, :3], distance_upper_bound=tol)
         out = np.zeros(depth.shape, dtype=bool)
-        out.flat[idx[dist < tol]] = True
+        box = padded_box(mask, 0)
+        if box is None:
+            return out
+        idx = np.flatnonzero(mask[box] & (depth[box] > 0))  # flat indices into the mask's box
+        P = backproject(depth, K, (box[0].start, box[0].stop, box[1].start, box[1].stop), idx)
+        dist, _ = self.tree.query((P - T_cam_obj[:3, 3]) @ T_cam_obj[:3, :3], distance_upper_bound=tol)
+        out[box].flat[idx[dist < tol]] = True
         return out
 
 
@@ -64,8 +67,16 @@ def unexplained_parts(mask: np.ndarray, explained: np.ndarray, depth: np.ndarray
                       ) -> list[np.ndarray]:
     """The parts (bool (H, W) each) of ``mask`` that its fitted model leaves unexplained and that are large
     enough to be another object (see module docstring)."""
-    rest = (mask & (depth > 0) & ~explained).astype(np.uint8)
+    box = padded_box(mask, 1)  # the opening's and the components' results are the same in it as in the image
+    if box is None:
+        return []
+    rest = (mask[box] & (depth[box] > 0) & ~explained[box]).astype(np.uint8)
     rest = cv2.morphologyEx(rest, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     n, comp, stats, _ = cv2.connectedComponentsWithStats(rest, connectivity=8)
     least = max(cfg.min_pixels, cfg.min_share * int(mask.sum()))
-    return [comp == i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= least]
+    parts = []
+    for i in range(1, n):
+        if stats[i, cv2.CC_STAT_AREA] >= least:
+            parts.append(np.zeros_like(mask))
+            parts[-1][box] = comp == i
+    return parts

@@ -48,3 +48,24 @@ def test_unexplained_parts_large_enough_are_split_off():
     speck = np.zeros_like(a)
     speck[10:12, 10:12] = True
     assert unexplained_parts(a | speck, e, np.where(speck, 0.3, depth), SplitConfig(min_pixels=1)) == []  # opened away
+
+
+def test_parts_at_the_image_border_are_the_whole_images():
+    """The test runs in the mask's box (widened by a pixel): its parts, at the image's border and at the box's edge,
+    are those the opening and the connected components give on the whole image."""
+    import cv2
+
+    depth = np.full((240, 320), 0.5)
+    mask = np.zeros((240, 320), dtype=bool)
+    mask[0:60, 250:320] = True  # at the top and right borders
+    unexplained = np.zeros_like(mask)
+    unexplained[0:20, 295:320] = True  # in the corner
+    unexplained[40:60, 260:280] = True  # at the box's bottom edge
+    unexplained[5:30, 250:252] = True  # at its left edge, 2 px wide: the opening removes it
+    unexplained[30:33, 280:300] = True  # a strip 3 px wide, which the opening keeps
+    explained = mask & ~unexplained
+    rest = cv2.morphologyEx(unexplained.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n, comp = cv2.connectedComponents(rest, connectivity=8)
+    parts = unexplained_parts(mask, explained, depth, SplitConfig(min_pixels=1, min_share=0.0))
+    assert len(parts) == n - 1 == 3
+    assert all((p == (comp == i)).all() for i, p in enumerate(parts, start=1))
