@@ -47,9 +47,21 @@ def _box(x: np.ndarray, r: int) -> np.ndarray:
 
 
 def _shrink(x: np.ndarray, s: int) -> np.ndarray:
-    """Means of the s x s blocks of x (H, W, C) (trailing rows and columns that fill no block dropped)."""
+    """Means of the s x s blocks of x (H, W, C) float32 (trailing rows and columns that fill no block dropped)."""
     h, w = x.shape[0] // s, x.shape[1] // s
-    return x[:h * s, :w * s].reshape(h, s, w, s, -1).mean(axis=(1, 3))
+    out = cv2.resize(x[:h * s, :w * s], (w, h), interpolation=cv2.INTER_AREA)  # an integer factor: block means
+    return out.reshape(h, w, x.shape[2])  # OpenCV drops a single channel axis
+
+
+def _inv_sym3(S: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric 3x3 matrices S (..., 3, 3) by their cofactors (He et al.'s own code does the same; ~10x
+    faster than np.linalg.inv on many small matrices), computed in float64."""
+    S = S.astype(np.float64)
+    a, b, c, d, e, f = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2], S[..., 1, 1], S[..., 1, 2], S[..., 2, 2]
+    co = [d * f - e * e, c * e - b * f, b * e - c * d, a * f - c * c, b * c - a * e, a * d - b * b]
+    det = a * co[0] + b * co[1] + c * co[2]
+    A, B, C, D, E, F = co
+    return (np.stack([A, B, C, B, D, E, C, E, F], axis=-1) / det[..., None]).reshape(S.shape)
 
 
 def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, subsample: int = 1) -> np.ndarray:
@@ -67,7 +79,7 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, sub
     for a in range(3):
         for b in range(a, 3):
             S[..., a, b] = S[..., b, a] = _box(I[..., a] * I[..., b], r) - mI[..., a] * mI[..., b]
-    inv = np.linalg.inv(S + np.float32(eps) * np.eye(3, dtype=np.float32))  # (h, w, 3, 3)
+    inv = _inv_sym3(S + np.float32(eps) * np.eye(3, dtype=np.float32)).astype(np.float32)  # (h, w, 3, 3)
     mp = _box(ps, r).reshape(small + (C,))
     cov = np.stack([_box(I[..., a:a + 1] * ps, r).reshape(small + (C,)) for a in range(3)], axis=-1)
     cov -= mI[:, :, None, :] * mp[..., None]  # (h, w, C, 3)
