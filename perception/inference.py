@@ -312,9 +312,17 @@ class Estimator:
         help)."""
         r = self.guided_cfg.radius
         labels = self.last_labels = refine_labels(self.last_labels, rgb, self.guided_cfg)
-        grown = [(labels == d.obj_id) & _dilate(d.mask, r) for d in dets]
-        claims = np.sum(grown, axis=0) if dets else None
-        return [dataclasses.replace(d, mask=g & ((claims == 1) | d.mask)) for d, g in zip(dets, grown)]
+        boxes = [padded_box(d.mask, r) for d in dets]  # each grown mask lies in its mask's box widened by r
+        grown = [(labels[b] == d.obj_id) & _dilate(d.mask[b], r) for d, b in zip(dets, boxes)]
+        claims = np.zeros(labels.shape, dtype=np.uint8)
+        for b, g in zip(boxes, grown):
+            claims[b] += g
+        out = []
+        for d, b, g in zip(dets, boxes, grown):
+            mask = np.zeros_like(d.mask)
+            mask[b] = g & ((claims[b] == 1) | d.mask[b])
+            out.append(dataclasses.replace(d, mask=mask))
+        return out
 
     def split_merged(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection],
                      prob: np.ndarray, plane: np.ndarray | None) -> list[Detection]:
@@ -409,13 +417,9 @@ def _load_classifiers(weights: Path) -> tuple[list[torch.nn.Module], ClassifierC
 
 
 def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
-    """Mask (H, W) bool dilated by a disc of radius r px (computed on the mask's box widened by r)."""
-    out = np.zeros_like(mask)
-    box = padded_box(mask, r)
-    if box is not None:
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        out[box] = cv2.dilate(mask[box].astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    return out
+    """Mask (h, w) bool dilated by a disc of radius r px (nothing beyond its border)."""
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(mask.view(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
 
 
 def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
