@@ -31,7 +31,7 @@ import torch
 from perception import checkpoint as ckpt_mod
 from perception.classifier import ClassifierConfig
 from perception.crop import backproject
-from perception.data import (instance_masks, normalize_cls_input, normalize_rgb, prepare_cls_input,
+from perception.data import (normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
 from perception.guided import GuidedConfig, padded_box, refine_labels
 from perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
@@ -284,14 +284,13 @@ class Estimator:
             t_cls = time.perf_counter() - t1
         self.last_labels = labels
         masks, scores = [], []
-        for obj_id in self.obj_ids:
-            if obj_id >= prob.shape[-1]:
+        for obj_id, m in segment_components(labels, self.min_valid_points):
+            if obj_id not in self.obj_ids or obj_id >= prob.shape[-1]:
                 continue
-            for m in instance_masks(labels == obj_id, self.min_valid_points):
-                masks.append((obj_id, m))
-                # foreground probability x the classifier's confidence, or the seg net's class probability
-                s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
-                scores.append(float(s.mean()))
+            masks.append((obj_id, m))
+            # foreground probability x the classifier's confidence, or the seg net's class probability
+            s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
+            scores.append(float(s.mean()))
         self.timings.update(seg=time.perf_counter() - t0 - t_cls, cls=t_cls)
         dets = self.estimate(rgb, depth, K, masks, scores, plane)
         t4, stages = time.perf_counter(), {k: self.timings[k] for k in ("pose", "refine", "icp")}

@@ -14,3 +14,27 @@ def test_instance_masks_split_separated_blocks_of_one_type():
     assert not np.any(inst[0] & inst[1])
     m[15:20, 10:35] = True  # a bridge joins them: one instance
     assert len(instance_masks(m, min_pixels=50)) == 1
+
+
+def test_segment_components_are_each_classes_instances_in_raster_order():
+    """Found region by region (in each foreground region's box), the components are each class's ``instance_masks``:
+    by class, then by the raster position of their first pixel; a region that fills its box, regions whose boxes
+    overlap and a class in several regions included."""
+    import numpy as np
+
+    from perception.data import instance_masks, segment_components
+
+    labels = np.zeros((40, 60), np.int64)
+    labels[2:6, 50:54] = 3  # a region that fills its box
+    labels[10:30, 5:10] = 2  # an L-shaped region of classes 2 and 5
+    labels[25:30, 5:25] = 5
+    labels[12:18, 15:22] = 5  # a region inside the L's box, apart from it ...
+    labels[14:16, 16:18] = 2  # ... holding a class-2 island
+    labels[0, 0] = 3  # one pixel at the corner
+    found = segment_components(labels, 1)
+    expected = [(c, m) for c in (2, 3, 5) for m in instance_masks(labels == c, 1)]
+    first = [int(np.flatnonzero(m.ravel())[0]) for _, m in expected]
+    expected = [e for _, e in sorted(zip(first, expected), key=lambda x: (x[1][0], x[0]))]
+    assert [c for c, _ in found] == [c for c, _ in expected] == [2, 2, 3, 3, 5, 5]
+    assert all((a == b).all() for (_, a), (_, b) in zip(found, expected))
+    assert [c for c, _ in segment_components(labels, 17)] == [2, 5, 5]  # the island, the 16-px region, the pixel: out
