@@ -203,17 +203,21 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     RGB is not normalised here (``normalize_cls_input`` does it after augmentation). None when the
     mask has fewer than ``min_valid`` pixels with valid depth.
     """
-    valid = mask & (depth > 0)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return None
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))  # the mask's box: the statistics need no more
+    valid = mask[box] & (depth[box] > 0)
     if int(valid.sum()) < min_valid:
         return None
-    z = float(np.median(depth[valid]))
-    mom = cv2.moments(mask.view(np.uint8), binaryImage=True)  # the centroid, ~5x faster than np.nonzero's means
+    z = float(np.median(depth[box][valid]))
+    mom = cv2.moments(mask[box].view(np.uint8), binaryImage=True)  # the centroid, ~5x faster than np.nonzero's means
+    cx, cy = cols[0] + mom["m10"] / mom["m00"], rows[0] + mom["m01"] / mom["m00"]
     s = size * z / (side * float(K[0, 0]))
-    A = np.array([[s, 0.0, size / 2 - s * mom["m10"] / mom["m00"]], [0.0, s, size / 2 - s * mom["m01"] / mom["m00"]]],
-                 dtype=np.float32)
+    A = np.array([[s, 0.0, size / 2 - s * cx], [0.0, s, size / 2 - s * cy]], dtype=np.float32)
     rgb_c = cv2.warpAffine(rgb, A, (size, size), flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
-    mask_c = cv2.warpAffine(mask.astype(np.uint8), A, (size, size), flags=cv2.INTER_NEAREST)
-    d_c = cv2.warpAffine(depth.astype(np.float32), A, (size, size), flags=cv2.INTER_NEAREST)
+    mask_c = cv2.warpAffine(mask.view(np.uint8), A, (size, size), flags=cv2.INTER_NEAREST)
+    d_c = cv2.warpAffine(depth.astype(np.float32, copy=False), A, (size, size), flags=cv2.INTER_NEAREST)
     ok = d_c > 0
     rel = np.where(ok, np.clip((d_c - z) / depth_range, -1.0, 1.0), 0.0)
     channels = [rgb_c.transpose(2, 0, 1) / np.float32(255.0), mask_c[None], rel[None], ok[None]]
