@@ -27,6 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from perception import checkpoint as ckpt_mod
 from perception.classifier import ClassifierConfig
@@ -389,9 +390,27 @@ class Estimator:
 
 
 def for_inference(model: torch.nn.Module) -> torch.nn.Module:
-    """``model`` itself, in eval mode and with its 2D convolutions' weights channels-last: their outputs stay the same
-    (to float rounding; inputs may stay NCHW) and come ~35 % faster on a CPU (oneDNN's native layout)."""
-    return model.eval().to(memory_format=torch.channels_last)
+    """``model`` itself, in eval mode, its BatchNorms folded into their convolutions (``fold_batch_norms``) and its 2D
+    convolutions' weights channels-last: the outputs stay the same (to float rounding; inputs may stay NCHW) and come
+    ~35 % faster on a CPU (oneDNN's native layout), a classifier's on a frame's 19 crops another ~35 % faster without
+    the BatchNorms. For inference only: the model no longer trains or loads a checkpoint as it did."""
+    fold_batch_norms(model.eval())
+    return model.to(memory_format=torch.channels_last)
+
+
+def fold_batch_norms(model: torch.nn.Module) -> None:
+    """Each BatchNorm2d of ``model`` (in eval mode) folded into the Conv2d whose output it normalises and replaced by an
+    identity: W' = W g / s, b' = (b - mu) g / s + beta per output channel (g, beta: its affine weights; mu, s^2: its
+    running mean and variance + eps). The pairs are a Conv2d followed by a BatchNorm2d in an ``nn.Sequential`` and
+    those a module names in its ``conv_bn_pairs`` (attribute names: (conv, bn), ...)."""
+    for m in list(model.modules()):
+        pairs = list(getattr(m, "conv_bn_pairs", ()))
+        if isinstance(m, torch.nn.Sequential):
+            pairs += [(str(i), str(i + 1)) for i in range(len(m) - 1)
+                      if isinstance(m[i], torch.nn.Conv2d) and isinstance(m[i + 1], torch.nn.BatchNorm2d)]
+        for conv, bn in pairs:
+            setattr(m, conv, fuse_conv_bn_eval(getattr(m, conv), getattr(m, bn)))
+            setattr(m, bn, torch.nn.Identity())
 
 
 def _load_classifiers(weights: Path) -> tuple[list[torch.nn.Module], ClassifierConfig]:

@@ -76,6 +76,8 @@ class PoseNetConfig:
 class BasicBlock(nn.Module):
     """ResNet basic block (two 3x3 convs) with optional stride and dilation."""
 
+    conv_bn_pairs = (("conv1", "bn1"), ("conv2", "bn2"))  # for ``perception.inference.fold_batch_norms``
+
     def __init__(self, cin: int, cout: int, stride: int = 1, dilation: int = 1):
         super().__init__()
         self.conv1 = nn.Conv2d(cin, cout, 3, stride, padding=dilation, dilation=dilation, bias=False)

@@ -99,13 +99,33 @@ def test_classifier_shapes_and_validation():
         build_classifier(ClassifierConfig(obj_ids=[]))
 
 
-def test_channels_last_inference_keeps_the_outputs():
-    net = build_seg_net(SegNetConfig(num_classes=3, width=0.125, input_size=(64, 96))).eval()
+def _trained_batch_norms(net: torch.nn.Module) -> torch.nn.Module:
+    """``net`` in eval mode with random BatchNorm statistics and affine weights, as training leaves them."""
+    g = torch.Generator().manual_seed(0)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            for x, lo, hi in ((m.running_mean, -0.5, 0.5), (m.running_var, 0.2, 3.0), (m.weight.data, 0.5, 2.0),
+                              (m.bias.data, -0.5, 0.5)):
+                x.copy_(torch.rand(x.shape, generator=g) * (hi - lo) + lo)
+    return net.eval()
+
+
+def test_inference_form_keeps_the_outputs():
+    """``for_inference``: BatchNorms folded into the convolutions, weights channels-last; the same outputs."""
+    seg = _trained_batch_norms(build_seg_net(SegNetConfig(num_classes=3, width=0.125, input_size=(64, 96))))
+    cls = _trained_batch_norms(build_classifier(ClassifierConfig(obj_ids=[1, 2, 3], widths=(8, 16))))
+    pcfg = PoseNetConfig(obj_ids=[1, 2], symmetric=[False, True], num_points=64, crop_size=32, backbone_width=8)
+    pose = _trained_batch_norms(build_pose_net(pcfg))
+    pose_in = (torch.randn(2, 3, 32, 32), torch.randn(2, 64, 3) * 0.02 + torch.tensor([0.0, 0.0, 0.5]),
+               torch.randint(0, 32 * 32, (2, 64)), torch.tensor([0, 1]))
     x = torch.randn(2, 3, 64, 96)  # NCHW input: the weights' layout decides the convolutions'
+    crops = torch.randn(5, 6, 32, 32)
     with torch.no_grad():
-        ref = net(x)
-        fast = for_inference(copy.deepcopy(net))
-        out = fast(x)
-    w = fast.encoder.stages[0][0][0].weight  # (8, 3, 3, 3)
-    assert w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous() and not fast.training
+        ref = seg(x), cls(crops), pose.predict(*pose_in)[:3]
+        seg_f, cls_f, pose_f = (for_inference(copy.deepcopy(n)) for n in (seg, cls, pose))
+        out = seg_f(x), cls_f(crops), pose_f.predict(*pose_in)[:3]
+    w = seg_f.encoder.stages[0][0][0].weight  # (8, 3, 3, 3)
+    assert w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous() and not seg_f.training
+    for net in (seg_f, cls_f, pose_f):
+        assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
     torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-4)
