@@ -19,13 +19,22 @@ def _round_side(side: int) -> int:
     return side
 
 
+def padded_box(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """The rows and columns of the box around the nonzero pixels of ``mask`` (H, W), widened by ``margin`` px and
+    clipped to the image; None for an empty mask."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return None
+    return (slice(max(0, int(rows[0]) - margin), int(rows[-1]) + margin + 1),
+            slice(max(0, int(cols[0]) - margin), int(cols[-1]) + margin + 1))
+
+
 def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
     """Tight (rmin, rmax, cmin, cmax) of a non-empty boolean mask, max exclusive."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
+    box = padded_box(mask, 0)
+    if box is None:
         raise ValueError("empty mask has no bounding box")
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    return box[0].start, box[0].stop, box[1].start, box[1].stop
 
 
 def crop_box(mask: np.ndarray) -> tuple[int, int, int, int]:

@@ -20,7 +20,7 @@ from torch.utils.data import Dataset
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
-from perception.crop import backproject, crop_box, remap_choose, sample_choose
+from perception.crop import backproject, crop_box, padded_box, remap_choose, sample_choose
 from perception.plane import fit_support_plane
 
 RGB_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
@@ -203,16 +203,15 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     RGB is not normalised here (``normalize_cls_input`` does it after augmentation). None when the
     mask has fewer than ``min_valid`` pixels with valid depth.
     """
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
+    box = padded_box(mask, 0)  # the mask's box: its statistics need no more
+    if box is None:
         return None
-    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))  # the mask's box: the statistics need no more
     valid = mask[box] & (depth[box] > 0)
     if int(valid.sum()) < min_valid:
         return None
     z = float(np.median(depth[box][valid]))
     mom = cv2.moments(mask[box].view(np.uint8), binaryImage=True)  # the centroid, ~5x faster than np.nonzero's means
-    cx, cy = cols[0] + mom["m10"] / mom["m00"], rows[0] + mom["m01"] / mom["m00"]
+    cx, cy = box[1].start + mom["m10"] / mom["m00"], box[0].start + mom["m01"] / mom["m00"]
     s = size * z / (side * float(K[0, 0]))
     A = np.array([[s, 0.0, size / 2 - s * cx], [0.0, s, size / 2 - s * cy]], dtype=np.float32)
     rgb_c = cv2.warpAffine(rgb, A, (size, size), flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
@@ -241,20 +240,12 @@ def normalize_cls_input(x: np.ndarray) -> np.ndarray:
     return x
 
 
-def instance_masks(class_mask: np.ndarray, min_pixels: int) -> list[np.ndarray]:
-    """Split one class's mask into instances: its 8-connected components of at least ``min_pixels`` pixels.
-
-    The segmentation net is semantic (one class per block type), while a scene may hold several blocks of
-    a type; separated blocks become separate instances, touching ones stay merged.
-    """
-    n, comp, stats, _ = cv2.connectedComponentsWithStats(class_mask.astype(np.uint8), connectivity=8)
-    return [comp == i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_pixels]
-
-
 def segment_components(labels: np.ndarray, min_pixels: int) -> list[tuple[int, np.ndarray]]:
-    """(class, mask) of the ``instance_masks`` of every non-background class of a class map (H, W), ints >= 0, in that
-    order: by class, then by the raster position of each component's first pixel. A class's components are found
-    in the box of each connected foreground region in turn (each lies in one), not in the whole image."""
+    """(class, mask) of the 8-connected components of at least ``min_pixels`` pixels of every non-background class of a
+    class map (H, W), ints >= 0, in that order: by class, then by the raster position of each component's first pixel.
+    The segmentation net is semantic (one class per block type), while a scene may hold several blocks of a type:
+    separated blocks become separate components, touching ones stay merged. A class's components are found in the box
+    of each connected foreground region in turn (each lies in one), not in the whole image."""
     W = labels.shape[1]
     n, regions, stats, _ = cv2.connectedComponentsWithStats((labels > 0).view(np.uint8), connectivity=8)
     found = []  # (class, raster index of the first pixel, mask)

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from perception.crop import padded_box
+
 
 @dataclass
 class GuidedConfig:
@@ -91,16 +93,6 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, sub
         mA = cv2.resize(mA, (W, H), interpolation=cv2.INTER_LINEAR)
         mB = cv2.resize(mB, (W, H), interpolation=cv2.INTER_LINEAR)
     return np.einsum("hwcj,hwj->hwc", mA.reshape(H, W, C, 3), guide) + mB.reshape(H, W, C)
-
-
-def padded_box(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
-    """The rows and columns of the box around the nonzero pixels of ``mask`` (H, W), widened by ``margin`` px and
-    clipped to the image; None for an empty mask."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
-        return None
-    return (slice(max(0, rows[0] - margin), rows[-1] + margin + 1),
-            slice(max(0, cols[0] - margin), cols[-1] + margin + 1))
 
 
 def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None = None) -> np.ndarray:

@@ -31,10 +31,10 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from perception import checkpoint as ckpt_mod
 from perception.classifier import ClassifierConfig
-from perception.crop import backproject
+from perception.crop import backproject, padded_box
 from perception.data import (normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
-from perception.guided import GuidedConfig, padded_box, refine_labels
+from perception.guided import GuidedConfig, refine_labels
 from perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
 from perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from perception.refiner import refine

@@ -22,8 +22,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from perception.crop import backproject
-from perception.guided import padded_box
+from perception.crop import backproject, padded_box
 
 
 @dataclass

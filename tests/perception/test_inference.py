@@ -1,28 +1,29 @@
 
 
-def test_instance_masks_split_separated_blocks_of_one_type():
+def test_segment_components_split_separated_blocks_of_one_type():
     import numpy as np
 
-    from perception.data import instance_masks
+    from perception.data import segment_components
 
-    m = np.zeros((40, 60), bool)
-    m[5:15, 5:15] = True  # block A
-    m[20:30, 30:45] = True  # block B of the same type
-    m[38:40, 0:2] = True  # 4-pixel speck: dropped
-    inst = instance_masks(m, min_pixels=50)
+    m = np.zeros((40, 60), np.int64)
+    m[5:15, 5:15] = 4  # block A
+    m[20:30, 30:45] = 4  # block B of the same type
+    m[38:40, 0:2] = 4  # 4-pixel speck: dropped
+    inst = [c for o, c in segment_components(m, min_pixels=50) if o == 4]
     assert sorted(int(i.sum()) for i in inst) == [100, 150]
     assert not np.any(inst[0] & inst[1])
-    m[15:20, 10:35] = True  # a bridge joins them: one instance
-    assert len(instance_masks(m, min_pixels=50)) == 1
+    m[15:20, 10:35] = 4  # a bridge joins them: one instance
+    assert len(segment_components(m, min_pixels=50)) == 1
 
 
 def test_segment_components_are_each_classes_instances_in_raster_order():
-    """Found region by region (in each foreground region's box), the components are each class's ``instance_masks``:
-    by class, then by the raster position of their first pixel; a region that fills its box, regions whose boxes
-    overlap and a class in several regions included."""
+    """Found region by region (in each foreground region's box), the components are each class's 8-connected components
+    in the whole image: by class, then by the raster position of their first pixel; a region that fills its box,
+    regions whose boxes overlap and a class in several regions included."""
+    import cv2
     import numpy as np
 
-    from perception.data import instance_masks, segment_components
+    from perception.data import segment_components
 
     labels = np.zeros((40, 60), np.int64)
     labels[2:6, 50:54] = 3  # a region that fills its box
@@ -32,7 +33,9 @@ def test_segment_components_are_each_classes_instances_in_raster_order():
     labels[14:16, 16:18] = 2  # ... holding a class-2 island
     labels[0, 0] = 3  # one pixel at the corner
     found = segment_components(labels, 1)
-    expected = [(c, m) for c in (2, 3, 5) for m in instance_masks(labels == c, 1)]
+    expected = [(c, comp == i) for c in (2, 3, 5)
+                for n, comp in [cv2.connectedComponents((labels == c).astype(np.uint8), connectivity=8)]
+                for i in range(1, n)]
     first = [int(np.flatnonzero(m.ravel())[0]) for _, m in expected]
     expected = [e for _, e in sorted(zip(first, expected), key=lambda x: (x[1][0], x[0]))]
     assert [c for c, _ in found] == [c for c, _ in expected] == [2, 2, 3, 3, 5, 5]
