@@ -173,12 +173,14 @@ def prepare_pose_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: 
     Returns (image (3, S, S) float32 normalised, choose (N,) int64 into the S x S crop, points (N, 3)
     float32 camera frame, m), or None when the mask has no pixel with valid depth.
     """
-    valid = mask & (depth > 0)
-    if not valid.any():
+    if not mask.any():
         return None
     box = crop_box(mask)
     rmin, rmax, cmin, cmax = box
-    choose = sample_choose(valid[rmin:rmax, cmin:cmax], num_points, rng)
+    valid = mask[rmin:rmax, cmin:cmax] & (depth[rmin:rmax, cmin:cmax] > 0)  # the crop holds the whole mask
+    if not valid.any():
+        return None
+    choose = sample_choose(valid, num_points, rng)
     pts = backproject(depth, K, box, choose)
     if depth_noise > 0:
         z = pts[:, 2]

@@ -31,7 +31,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from perception import checkpoint as ckpt_mod
 from perception.classifier import ClassifierConfig
-from perception.crop import backproject, padded_box
+from perception.crop import backproject, mask_bbox, padded_box
 from perception.data import (normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
 from perception.guided import GuidedConfig, refine_labels
@@ -189,7 +189,9 @@ class Estimator:
         cfg = self.pose_cfg
         items, kept = [], []
         for k, (obj_id, mask) in enumerate(masks):
-            if obj_id not in cfg.obj_ids or int((mask & (depth > 0)).sum()) < self.min_valid_points:
+            box = padded_box(mask, 0)
+            if obj_id not in cfg.obj_ids or box is None or \
+                    int((mask[box] & (depth[box] > 0)).sum()) < self.min_valid_points:
                 continue
             prep = prepare_pose_input(rgb, depth, K, mask, cfg.num_points, cfg.crop_size, rng)
             if prep is None:
@@ -222,14 +224,13 @@ class Estimator:
                       K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None) -> list[np.ndarray]:
         """``perception.icp.refine_poses`` of the estimates (4x4 each) on (up to ``icp.max_points`` of) their masks'
         valid depth points (obj_id, (H, W) bool each)."""
-        h, w = depth.shape
         observed = []
-        for _, m in masks:
-            vs, us = np.nonzero(m & (depth > 0))
-            if vs.size > self.icp.max_points:
-                keep = np.sort(rng.choice(vs.size, self.icp.max_points, replace=False))
-                vs, us = vs[keep], us[keep]
-            observed.append(backproject(depth, K, (0, h, 0, w), vs * w + us))
+        for _, m in masks:  # (each mask has valid depth: ``estimate`` keeps no other)
+            r0, r1, c0, c1 = box = mask_bbox(m)
+            idx = np.flatnonzero(m[r0:r1, c0:c1] & (depth[r0:r1, c0:c1] > 0))  # raster order, as in the image
+            if idx.size > self.icp.max_points:
+                idx = idx[np.sort(rng.choice(idx.size, self.icp.max_points, replace=False))]
+            observed.append(backproject(depth, K, box, idx))
         ids = [o for o, _ in masks]
         return [T for T, _ in refine_poses(poses, [self.model_points[o] for o in ids], observed, depth, K, self.icp,
                                            [self.hypotheses[o] for o in ids], plane, [self.grids[o] for o in ids])]
