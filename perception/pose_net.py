@@ -206,10 +206,14 @@ class DenseFusionFeat(PointFusion):
     def __init__(self, emb_dim: int, point_widths: tuple[int, int], global_widths: tuple[int, int]):
         super().__init__(emb_dim, point_widths, global_widths, 2 * point_widths[1])
 
-    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+    def parts(self, x: torch.Tensor, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The per-point channels (B, 2 p1 + 2 p2, N) and the global feature (B, g2, 1)."""
         feat1, feat2 = self.levels(x, emb)
-        g = self.global_convs(feat2).mean(dim=2, keepdim=True).expand(-1, -1, x.shape[2])  # (B, g2, N)
-        return torch.cat([feat1, feat2, g], dim=1)
+        return torch.cat([feat1, feat2], dim=1), self.global_convs(feat2).mean(dim=2, keepdim=True)
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        f, g = self.parts(x, emb)
+        return torch.cat([f, g.expand(-1, -1, x.shape[2])], dim=1)
 
 
 class PointHead(nn.Sequential):
@@ -290,7 +294,7 @@ class PoseNet(nn.Module):
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The most confident point's proposal (inference). Returns q (B, 4) unit, t offset (B, 3) m, confidence (B,),
         the point's index (B,) and the embedding (B, E, N): ``forward``'s numbers at that point (up to float rounding)
-        for about half the multiply-adds.
+        for about a third of the multiply-adds.
 
         Only the confidence head runs on every point, and its first conv W = [W_f W_p W_c W_g] is linear in the
         features [F; PAM(F); CAM(F); GFEM(F)] (F: the fused C x N). With PAM(F) = g_p (W_v F + b_v 1^T) M^T + F, whose
@@ -298,34 +302,52 @@ class PoseNet(nn.Module):
 
             W x = (W_f + W_p + W_c + g_c W_c A) F + g_p ((W_p W_v) F) M^T + g_p W_p b_v 1^T + W_g GFEM(F)
 
-        so PAM's and CAM's C x N outputs are never formed. The rotation and translation heads then run on the best
-        point's features alone."""
+        so PAM's and CAM's C x N outputs are never formed. F = [F_v; g 1^T] stacks the per-point channels F_v
+        (2 p1 + 2 p2) on the global feature g (g2), the same at every point, so every product with F is taken as
+        P F = P_v F_v + (P_g g) 1^T, and CAM's energy F F^T = [[F_v F_v^T, s g^T], [g s^T, N g g^T]] with
+        s = F_v 1. The rotation and translation heads then run on the best point's features alone."""
         emb = self.embed(img, choose)  # (B, E, N)
-        f = self.feat(points.transpose(1, 2), emb)  # (B, C, N)
-        M = self.pam.attention(f) if self.pam is not None else None  # (B, N, N)
-        A = self.cam.attention(f) if self.cam is not None else None  # (B, C, C)
-        g = self.gfem.pooled(f) if self.gfem is not None else None  # (B, G, 1)
+        fv, gf = self.feat.parts(points.transpose(1, 2), emb)  # (B, Cv, N), (B, G2, 1)
+        cv, n = fv.shape[1], fv.shape[2]
+
+        def apply(w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # (O, C), (O,) -> w [F_v; g 1^T] + b 1^T
+            return torch.baddbmm(w[:, cv:] @ gf + b[:, None], w[:, :cv].expand(len(fv), -1, -1), fv)  # (B, O, N)
+
+        M = A = g = None
+        if self.pam is not None:  # M (B, N, N), rows sum to 1
+            q = apply(self.pam.query.weight[:, :, 0], self.pam.query.bias)  # (B, C', N)
+            k = apply(self.pam.key.weight[:, :, 0], self.pam.key.bias)  # (B, C', N)
+            M = torch.softmax(torch.bmm(q.transpose(1, 2), k), dim=-1)
+        if self.cam is not None:  # A (B, C, C)
+            s = fv.sum(dim=2, keepdim=True)  # (B, Cv, 1)
+            energy = torch.cat([torch.cat([torch.bmm(fv, fv.transpose(1, 2)), s @ gf.transpose(1, 2)], dim=2),
+                                torch.cat([gf @ s.transpose(1, 2), n * (gf @ gf.transpose(1, 2))], dim=2)], dim=1)
+            A = torch.softmax(energy.amax(dim=-1, keepdim=True) - energy, dim=-1)
+        if self.gfem is not None:  # (B, G, 1)
+            g = torch.relu(apply(self.gfem.conv.weight[:, :, 0], self.gfem.conv.bias)).mean(dim=2, keepdim=True)
         first, *rest = self.head_c
         W_f, W_p, W_c, W_g = first.weight[:, :, 0].split(self._part_widths, dim=1)  # (O, part width) each
-        W, y = W_f.expand(len(f), -1, -1), first.bias[:, None]  # (B, O, C), (O, 1)
+        W = W_f + (W_p if M is not None else 0) + (W_c if A is not None else 0)  # (O, C)
+        Wv, yg = W[:, :cv].expand(len(fv), -1, -1), W[:, cv:] @ gf + first.bias[:, None]  # (B, O, Cv), (B, O, 1)
+        if A is not None:  # + g_c W_c A F
+            Wv = Wv + self.cam.gamma * (W_c @ A[:, :, :cv])
+            yg = yg + self.cam.gamma * (W_c @ (A[:, :, cv:] @ gf))
+        if g is not None:
+            yg = yg + W_g @ g
+        y = torch.baddbmm(yg, Wv, fv)  # (B, O, N): the first conv's output, PAM's term aside
         if M is not None:
             W_pv, b_pv = W_p @ self.pam.value.weight[:, :, 0], W_p @ self.pam.value.bias  # (O, C), (O,)
-            W = W + W_p
-            y = y + self.pam.gamma * (torch.bmm(W_pv @ f, M.transpose(1, 2)) + b_pv[:, None])
-        if A is not None:
-            W = W + W_c + self.cam.gamma * (W_c @ A)
-        if g is not None:
-            y = y + W_g @ g
-        y = torch.bmm(W, f) + y  # (B, O, N): the first conv's output
+            y = y + self.pam.gamma * torch.bmm(apply(W_pv, b_pv), M.transpose(1, 2))
         for layer in rest:
             y = layer(y)
         c = torch.sigmoid(select_object(y, obj, 1))[..., 0]  # (B, N)
         best = c.argmax(dim=1)
-        ar = torch.arange(len(best), device=f.device)
-        fb = f[ar, :, best][..., None]  # (B, C, 1)
+        ar = torch.arange(len(best), device=fv.device)
+        fb = torch.cat([fv[ar, :, best][..., None], gf], dim=1)  # (B, C, 1)
         xb = [fb]
         if M is not None:  # PAM at the best point b: g_p (W_v (F m_b) + b_v) + f_b, m_b = row b of M
-            xb.append(self.pam.gamma * self.pam.value(torch.bmm(f, M[ar, best][..., None])) + fb)
+            fm = torch.cat([torch.bmm(fv, M[ar, best][..., None]), gf], dim=1)  # F m_b (B, C, 1)
+            xb.append(self.pam.gamma * self.pam.value(fm) + fb)
         if A is not None:
             xb.append(self.cam.gamma * torch.bmm(A, fb) + fb)
         if g is not None:

@@ -55,6 +55,29 @@ def test_nearest_grid_matches_within_half_a_cell_diagonal():
         NearestGrid(model, cell=0.0)
 
 
+def test_grids_posed_and_exact_lookups():
+    """Two objects' grids as one lookup: camera-frame points under poses (R, t) find the cells their object-frame
+    points find (but for the odd point on a cell boundary), and ``exact`` gives each point's true nearest model
+    point, its row within its own model."""
+    from perception.icp import _Grids
+
+    rng = np.random.default_rng(1)
+    models = [rng.uniform(-1, 1, (500, 3)) * [0.03, 0.015, 0.01], rng.uniform(-1, 1, (300, 3)) * 0.02]
+    grids = _Grids([NearestGrid(m) for m in models], 500)
+    obj = torch.tensor([0, 1, 1, 0])
+    R = torch.from_numpy(np.stack([axis_angle_R(v / np.linalg.norm(v), a) for v, a in
+                                   zip(rng.normal(size=(4, 3)), rng.uniform(0, np.pi, 4))])).float()
+    t = torch.tensor([[0.0, 0.0, 0.4], [0.05, -0.02, 0.5], [0.0, 0.1, 0.3], [0.02, 0.0, 0.45]])
+    local = torch.from_numpy(rng.uniform(-0.04, 0.04, (4, 200, 3))).float()  # object frame
+    p = local @ R.transpose(1, 2) + t[:, None]  # camera frame
+    assert (grids.posed(p, R, t, obj) == grids(local, obj)).float().mean() > 0.99
+    dist, idx = grids.exact(local, obj)
+    for h, o in enumerate(obj.tolist()):
+        d_true, i_true = cKDTree(models[o]).query(local[h].numpy())
+        assert np.array_equal(idx[h].numpy(), i_true)
+        np.testing.assert_allclose(dist[h].numpy(), d_true, rtol=1e-5)
+
+
 def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
     """The tiny set's 60 x 30 x 20 mm box (obj 3), its estimate turned 90 deg about its z axis (not one of
     its symmetries, but ADD-S barely sees it) and shifted 4 mm: the hypotheses find the true pose back."""
