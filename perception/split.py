@@ -42,10 +42,33 @@ class SplitConfig:
 
 
 class ModelSurface:
-    """Distance from an object's surface, from dense surface points (object frame, m)."""
+    """Distance from an object's surface, from dense surface points (object frame, m).
 
-    def __init__(self, points: np.ndarray):
-        self.tree = cKDTree(np.asarray(points, dtype=np.float64))
+    ``explained`` first looks each point up in a voxel grid (side ``cell``) of the distance d(c) from every cell
+    centre c to the surface: a point p in the cell lies within half the cell diagonal h of c, so
+    |d(p) - d(c)| <= h, and the test d(p) < tol is settled without a search when d(c) + h < tol or d(c) - h >= tol.
+    Only points in the cells between (and none outside the grid, which covers the model's bounding box widened by
+    tol: all farther) are searched in a k-d tree. The result is exactly the k-d tree's on every point."""
+
+    def __init__(self, points: np.ndarray, cell: float = 0.002):
+        if cell <= 0:
+            raise ValueError(f"ModelSurface needs cell > 0, got {cell}")
+        self.points = np.asarray(points, dtype=np.float64)
+        self.tree = cKDTree(self.points)
+        self.cell = cell
+        self._grids: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # tol -> (grid origin (3,), cell states)
+
+    def _grid(self, tol: float) -> tuple[np.ndarray, np.ndarray]:
+        """Origin (3,) and states (I, J, K) int8 of the grid for ``tol``: 1 every point of the cell is within tol,
+        0 none is, -1 search."""
+        if tol not in self._grids:
+            lo = self.points.min(axis=0) - tol
+            shape = np.ceil((self.points.max(axis=0) + tol - lo) / self.cell).astype(int)
+            centres = lo + (np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1) + 0.5) * self.cell
+            d = self.tree.query(centres.reshape(-1, 3))[0].reshape(shape)
+            h, eps = self.cell * np.sqrt(3) / 2, 1e-9  # eps: float rounding never settles a point wrongly
+            self._grids[tol] = lo, np.where(d + h < tol - eps, 1, np.where(d - h >= tol + eps, 0, -1)).astype(np.int8)
+        return self._grids[tol]
 
     def explained(self, T_cam_obj: np.ndarray, mask: np.ndarray, depth: np.ndarray, K: np.ndarray,
                   tol: float) -> np.ndarray:
@@ -57,8 +80,15 @@ class ModelSurface:
             return out
         idx = np.flatnonzero(mask[box] & (depth[box] > 0))  # flat indices into the mask's box
         P = backproject(depth, K, (box[0].start, box[0].stop, box[1].start, box[1].stop), idx)
-        dist, _ = self.tree.query((P - T_cam_obj[:3, 3]) @ T_cam_obj[:3, :3], distance_upper_bound=tol)
-        out[box].flat[idx[dist < tol]] = True
+        local = (P - T_cam_obj[:3, 3]) @ T_cam_obj[:3, :3]  # object frame
+        lo, states = self._grid(tol)
+        ijk = np.floor((local - lo) / self.cell).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < states.shape), axis=1)
+        state = np.zeros(len(idx), dtype=np.int8)  # outside the grid: farther than tol
+        state[inside] = states[tuple(ijk[inside].T)]
+        search = np.flatnonzero(state < 0)
+        state[search] = self.tree.query(local[search], distance_upper_bound=tol)[0] < tol
+        out[box].flat[idx[state > 0]] = True
         return out
 
 

@@ -37,6 +37,31 @@ def test_explained_pixels_are_those_on_the_fitted_surface():
     assert surf.explained(T_far, a | b, depth, K, tol=0.011)[a].mean() > 0.95
 
 
+def test_explained_is_the_k_d_trees_answer_on_every_pixel():
+    """The grid settles most points without a search and never differently from the k-d tree: a box model at a
+    tilted pose against a depth image of points near it (within 1 cm, straddling every tolerance) and far off."""
+    from posegrasp.geometry import axis_angle_R, make_T
+
+    rng = np.random.default_rng(0)
+    half = np.array([0.03, 0.015, 0.01])
+    model = rng.uniform(-1, 1, (20000, 3)) * half
+    face = rng.integers(0, 3, 20000)  # each point on one of the box's faces
+    model[np.arange(20000), face] = np.sign(rng.normal(size=20000)) * half[face]
+    surf = ModelSurface(model)
+    T = make_T(axis_angle_R(np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5]), 0.7), np.array([0, 0, 0.5]))
+    depth = 0.5 + rng.uniform(-0.04, 0.04, (240, 320))
+    depth[rng.random((240, 320)) < 0.1] = 0.0  # invalid pixels
+    mask = np.ones((240, 320), dtype=bool)
+    for tol in (0.001, 0.004, 0.0075):
+        e = surf.explained(T, mask, depth, K, tol)
+        v, u = np.nonzero(depth > 0)
+        z = depth[v, u]
+        P = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+        d = surf.tree.query((P - T[:3, 3]) @ T[:3, :3])[0]
+        assert np.array_equal(e[v, u], d < tol) and not e[depth == 0].any()
+        assert 0.001 < (d < tol).mean() < 0.9
+
+
 def test_unexplained_parts_large_enough_are_split_off():
     depth, a, b, T = _two_patches()
     e = ModelSurface(_square_face(0.04)).explained(T, a | b, depth, K, tol=0.004)
