@@ -20,13 +20,16 @@ declared invalid and skipped, as in the paper.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
+from threadpoolctl import ThreadpoolController
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from perception import checkpoint as ckpt_mod
@@ -43,6 +46,28 @@ from perception.split import ModelSurface, SplitConfig, unexplained_parts
 from perception.torch_geometry import make_transform, quat_to_rotmat
 from posegrasp import bop
 from posegrasp.errors import UserError
+
+
+_BLAS: ThreadpoolController | None = None
+
+
+def one_blas_thread():
+    """A context in which numpy's BLAS (OpenBLAS) runs on one thread. The pipeline's numpy products are small, but
+    past ~2.6e5 multiply-adds OpenBLAS splits them over its threads, which then spin-wait for more work and take the
+    cores from torch's next stage: on 2 cores a classifier after the supporting plane's fit ran 2x slower."""
+    global _BLAS
+    if _BLAS is None:
+        _BLAS = ThreadpoolController()
+    return _BLAS.limit(limits=1, user_api="blas")
+
+
+def _with_one_blas_thread(method: Callable) -> Callable:
+    """``method`` run in ``one_blas_thread()``."""
+    @functools.wraps(method)
+    def wrapper(*args, **kwargs):
+        with one_blas_thread():
+            return method(*args, **kwargs)
+    return wrapper
 
 
 @dataclass
@@ -175,6 +200,7 @@ class Estimator:
         """Class map and class probabilities of an RGB image (see ``Segmenter``)."""
         return self.segmenter(rgb)
 
+    @_with_one_blas_thread
     @torch.no_grad()
     def estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
                  mask_scores: list[float] | None = None, plane: np.ndarray | None = None) -> list[Detection]:
@@ -235,6 +261,7 @@ class Estimator:
         return [T for T, _ in refine_poses(poses, [self.model_points[o] for o in ids], observed, depth, K, self.icp,
                                            [self.hypotheses[o] for o in ids], plane, [self.grids[o] for o in ids])]
 
+    @_with_one_blas_thread
     @torch.no_grad()
     def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray,
                  plane: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -271,6 +298,7 @@ class Estimator:
                 out[i] = (cfg.obj_ids[kk], pp)
         return out
 
+    @_with_one_blas_thread
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> list[Detection]:
         """Detect and estimate every known object in an RGB-D frame (depth in metres, 0 = invalid)."""
         rgb, depth, K = _check_inputs(rgb, depth, K)
@@ -305,6 +333,7 @@ class Estimator:
         self.timings.update(stages, split=t5 - t4, guided=t_guided)
         return dets
 
+    @_with_one_blas_thread
     def snap_outlines(self, rgb: np.ndarray, dets: list[Detection]) -> list[Detection]:
         """``perception.guided``: the class map ``last_labels`` with its outlines snapped to the colour edges, and
         each detection's mask likewise: the pixels of its type in the refined map within the filter's radius of
@@ -325,6 +354,7 @@ class Estimator:
             out.append(dataclasses.replace(d, mask=mask))
         return out
 
+    @_with_one_blas_thread
     def split_merged(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection],
                      prob: np.ndarray, plane: np.ndarray | None) -> list[Detection]:
         """``perception.split``: each detection whose fitted model leaves a large part of its mask unexplained

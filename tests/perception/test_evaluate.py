@@ -76,6 +76,25 @@ def test_estimator_api(tiny_bop, tiny_run):
     assert [d.obj_id for d in est.estimate(rgb, holes, K, masks)] == [2, 3]
 
 
+def test_estimator_runs_numpy_blas_on_one_thread(tiny_bop, tiny_run, monkeypatch):
+    """Inside the estimator's methods numpy's BLAS has one thread (its spinning threads would slow torch down);
+    outside, the process's setting is left as it was."""
+    from threadpoolctl import threadpool_info
+
+    import perception.inference as inference
+
+    def blas_threads() -> set[int]:
+        return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    rec = next(bop.iter_scene_images(tiny_bop, "test"))
+    est = Estimator(tiny_run)
+    before, seen = blas_threads(), []
+    real = inference.clear_plane
+    monkeypatch.setattr(inference, "clear_plane", lambda *a, **k: (seen.append(blas_threads()), real(*a, **k))[1])
+    est(rec.load_rgb(), rec.load_depth(), rec.camera.K)
+    assert seen == [{1}] and blas_threads() == before
+
+
 def test_segments_the_classifier_calls_not_a_block_are_dropped(tiny_bop, tiny_run, tiny_cls_config, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(tiny_run / "pose", run / "pose")
