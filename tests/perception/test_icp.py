@@ -70,7 +70,7 @@ def test_grids_posed_and_exact_lookups():
     t = torch.tensor([[0.0, 0.0, 0.4], [0.05, -0.02, 0.5], [0.0, 0.1, 0.3], [0.02, 0.0, 0.45]])
     local = torch.from_numpy(rng.uniform(-0.04, 0.04, (4, 200, 3))).float()  # object frame
     p = local @ R.transpose(1, 2) + t[:, None]  # camera frame
-    assert (grids.posed(p, R, t, obj) == grids(local, obj)).float().mean() > 0.99
+    assert (grids.posed(p.transpose(1, 2), R, t, obj) == grids(local, obj)).float().mean() > 0.99
     dist, idx = grids.exact(local, obj)
     for h, o in enumerate(obj.tolist()):
         d_true, i_true = cKDTree(models[o]).query(local[h].numpy())
