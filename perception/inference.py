@@ -123,8 +123,8 @@ class Estimator:
     support_plane: fit the frame's dominant plane (``perception.plane``); segmented pixels on it become
     background and ICP hypotheses sunk into it lose.
     split: with ``models``, the part of a detection's mask its fitted model leaves unexplained becomes a
-    detection of its own (``perception.split``: touching blocks merged into one segment); ``rounds = 0``
-    turns it off. guided: once the poses are fitted, the class map's and the masks' outlines are snapped to the
+    detection of its own (``perception.split``: touching blocks merged into one segment), and then two fits of one
+    block are one detection (``drop_duplicates``); ``rounds = 0`` turns both off. guided: once the poses are fitted, the class map's and the masks' outlines are snapped to the
     colour image's edges (``perception.guided``); ``radius = 0`` turns it off.
     threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
     is deterministic). ``timings`` holds the seconds spent per stage in the last call and
@@ -326,6 +326,7 @@ class Estimator:
         t4, stages = time.perf_counter(), {k: self.timings[k] for k in ("pose", "refine", "icp")}
         if self.surfaces:
             dets = self.split_merged(rgb, depth, K, dets, prob, plane)
+            dets = self.drop_duplicates(dets)
         t5, t_guided = time.perf_counter(), 0.0
         if self.guided_cfg.radius > 0:
             dets = self.snap_outlines(rgb, dets)
@@ -394,6 +395,20 @@ class Estimator:
                     self.last_labels[p] = o
             dets = todo
         return done + dets
+
+    def drop_duplicates(self, dets: list[Detection]) -> list[Detection]:
+        """``dets`` without those fitted where a detection of the same type with a larger mask sits: their centres
+        closer than ``split_cfg.duplicate`` x the block's smallest side, which two blocks cannot be (one block
+        seen as two segments, or split in two)."""
+        if self.split_cfg.duplicate <= 0:
+            return dets
+        kept: list[Detection] = []
+        for d in sorted(dets, key=lambda d: -int(d.mask.sum())):
+            side = float(np.ptp(self.model_points[d.obj_id], axis=0).min())
+            if all(k.obj_id != d.obj_id or np.linalg.norm(k.T_cam_obj[:3, 3] - d.T_cam_obj[:3, 3]) >=
+                   self.split_cfg.duplicate * side for k in kept):
+                kept.append(d)
+        return [d for d in dets if any(d is k for k in kept)]
 
     def _same_block(self, a: Detection, b: Detection) -> bool:
         """Whether two fitted detections are one block twice: the same type, and the median distance of ``a``'s

@@ -31,7 +31,9 @@ class SplitConfig:
     min_pixels, min_share: an unexplained part must cover at least this many pixels and this share of the
     mask to be split off. same_block (m): a part whose fitted model lies this close to the rest's (median distance
     of its points to the rest's surface) is the same block, and the split is undone. rounds: split passes (0 turns
-    splitting off). model_points: surface points per model for the distance test."""
+    splitting off). model_points: surface points per model for the distance test. duplicate: two detections of one type
+    whose centres lie closer than this share of the block's smallest side are one block; the one with the smaller mask
+    is dropped (0: never)."""
 
     tol: float = 0.004
     min_pixels: int = 150
@@ -39,6 +41,7 @@ class SplitConfig:
     same_block: float = 0.005
     rounds: int = 2
     model_points: int = 20000
+    duplicate: float = 0.5
 
 
 class ModelSurface:

@@ -76,6 +76,30 @@ def test_estimator_api(tiny_bop, tiny_run):
     assert [d.obj_id for d in est.estimate(rgb, holes, K, masks)] == [2, 3]
 
 
+def test_duplicates_of_one_block_are_dropped(tiny_bop, tiny_run):
+    """Two detections of one type whose centres are closer than half the block's smallest side are one block: the one
+    with the smaller mask goes; detections of another type, or farther apart, stay."""
+    from perception.split import SplitConfig
+
+    est = Estimator(tiny_run, models=tiny_bop)
+    side = float(np.ptp(est.model_points[1], axis=0).min())
+
+    def det(obj_id: int, x: float, pixels: int) -> Detection:
+        T = np.eye(4)
+        T[:3, 3] = [x, 0.0, 0.5]
+        mask = np.zeros((40, 40), dtype=bool)
+        mask.flat[:pixels] = True
+        return Detection(obj_id=obj_id, T_cam_obj=T, score=0.5, mask=mask)
+
+    small, large = det(1, 0.0, 100), det(1, 0.45 * side, 300)
+    others = [det(2, 0.0, 50), det(1, -0.6 * side, 10)]  # another type; the same type farther off
+    dets = [small, *others, large]
+    kept = est.drop_duplicates(dets)
+    assert len(kept) == 3 and kept[0] is others[0] and kept[2] is large  # the order is kept
+    assert not any(d is small for d in kept)
+    assert len(Estimator(tiny_run, models=tiny_bop, split=SplitConfig(duplicate=0.0)).drop_duplicates(dets)) == 4
+
+
 def test_estimator_runs_numpy_blas_on_one_thread(tiny_bop, tiny_run, monkeypatch):
     """Inside the estimator's methods numpy's BLAS has one thread (its spinning threads would slow torch down);
     outside, the process's setting is left as it was."""
