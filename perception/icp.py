@@ -176,9 +176,10 @@ class _Grids:
 
 class _Kabsch:
     """Batched weighted least-squares rigid fits dst ~ R src + t to fixed targets dst (H, N, 3) with weights w (H, N)
-    >= 0 (0: a padding point); ``fit(src)`` (H, 3, N) (any strides) -> R (H, 3, 3), t (H, 3). With the weights normalised to sum
-    to 1 and the targets' weighted centroid c_d, the cross-covariance is sum_i w_i (s_i - c_s)(d_i - c_d)^T =
-    S^T (w (D - c_d)), since the centred targets' weighted sum is 0; the right factor is computed once."""
+    >= 0 (0: a padding point); ``fit(src)`` (H, 3, N) (any strides) -> R (H, 3, 3), t (H, 3). With the weights
+    normalised to sum to 1 and the targets' weighted centroid c_d, the cross-covariance is
+    sum_i w_i (s_i - c_s)(d_i - c_d)^T = S^T (w (D - c_d)), since the centred targets' weighted sum is 0; the right
+    factor is computed once."""
 
     def __init__(self, dst: torch.Tensor, w: torch.Tensor):
         self.w = (w / w.sum(dim=1, keepdim=True))[:, None, :]  # (H, 1, N)

@@ -19,6 +19,7 @@ declared invalid and skipped, as in the paper.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import time
@@ -51,7 +52,7 @@ from posegrasp.errors import UserError
 _BLAS: ThreadpoolController | None = None
 
 
-def one_blas_thread():
+def one_blas_thread() -> contextlib.AbstractContextManager:
     """A context in which numpy's BLAS (OpenBLAS) runs on one thread. The pipeline's numpy products are small, but
     past ~2.6e5 multiply-adds OpenBLAS splits them over its threads, which then spin-wait for more work and take the
     cores from torch's next stage: on 2 cores a classifier after the supporting plane's fit ran 2x slower."""
@@ -124,8 +125,9 @@ class Estimator:
     background and ICP hypotheses sunk into it lose.
     split: with ``models``, the part of a detection's mask its fitted model leaves unexplained becomes a
     detection of its own (``perception.split``: touching blocks merged into one segment), and then two fits of one
-    block are one detection (``drop_duplicates``); ``rounds = 0`` turns both off. guided: once the poses are fitted, the class map's and the masks' outlines are snapped to the
-    colour image's edges (``perception.guided``); ``radius = 0`` turns it off.
+    block are one detection (``drop_duplicates``); ``rounds = 0`` turns both off. guided: once the poses are
+    fitted, the class map's and the masks' outlines are snapped to the colour image's edges (``perception.guided``);
+    ``radius = 0`` turns it off.
     threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call
     is deterministic). ``timings`` holds the seconds spent per stage in the last call and
     ``last_labels`` its class map (H, W).
