@@ -402,7 +402,7 @@ class Estimator:
         """``dets`` without those fitted where a detection of the same type with a larger mask sits: their centres
         closer than ``split_cfg.duplicate`` x the block's smallest side, which two blocks cannot be (one block
         seen as two segments, or split in two)."""
-        if self.split_cfg.duplicate <= 0:
+        if self.split_cfg.duplicate <= 0 or self.model_points is None:  # (the blocks' sizes come with the models)
             return dets
         kept: list[Detection] = []
         for d in sorted(dets, key=lambda d: -int(d.mask.sum())):
