@@ -257,7 +257,8 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     columns = m.reshape(-1, 3).T.contiguous()  # (3, O M): the stacked models, as ``grids`` indexes them
     w = p_ok.float()
     exact = min(cfg.exact_steps, cfg.iterations)
-    po, fit = p[obj].transpose(1, 2).contiguous(), _Kabsch(p[obj], w[obj])  # (H, 3, N)
+    po = p[obj]  # (H, N, 3)
+    po, fit = po.transpose(1, 2).contiguous(), _Kabsch(po, w[obj])  # (H, 3, N)
     for _ in range(cfg.iterations - exact):
         R, t = fit.fit(_columns(columns, grids.posed(po, R, t, obj)))
     if 0 < cfg.polish < int(torch.bincount(obj).max()):  # only each object's best hypotheses by the grid's score go on
@@ -265,7 +266,8 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
         keep = torch.cat([i[score[i].argsort()[:cfg.polish]] for i in (torch.nonzero(obj == o)[:, 0]
                                                                         for o in range(len(estimates)))])
         R, t, obj = R[keep], t[keep], obj[keep]
-    po, mo, fit = p[obj], m[obj], _Kabsch(p[obj], w[obj])
+    po, mo = p[obj], m[obj]
+    fit = _Kabsch(po, w[obj])
     for _ in range(exact):  # exact matches for the last steps (a k-d tree of each model's real points)
         nn = grids.exact((po - t[:, None]) @ R, obj)[1]  # (H, N)
         R, t = fit.fit(mo[torch.arange(len(obj))[:, None], nn].transpose(1, 2))
