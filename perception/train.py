@@ -315,11 +315,14 @@ def _restore(run: _Run, prior: dict[str, Any], model: torch.nn.Module, opt: torc
 
 
 def _init_from(model: torch.nn.Module, model_cfg: Any, src: Path, stage: str) -> None:
-    """Load the weights of the ``stage`` checkpoint at ``src`` (or ``src/stage``) into ``model``."""
+    """Load the weights of the ``stage`` checkpoint at ``src`` (or ``src/stage``) into ``model``. A seg net may have been
+    trained at another input size (it is fully convolutional: fine-tuning adapts it to the new one)."""
     ckpt = src / stage if (src / stage).is_dir() else src
     if not ckpt_mod.exists(ckpt):
         raise UserError(f"init weights {src} hold no {stage} checkpoint: name a run or its {stage}/ folder")
     src_model, src_cfg, _ = ckpt_mod.load_model(ckpt, stage)
+    if stage == "seg":
+        src_cfg = dataclasses.replace(src_cfg, input_size=model_cfg.input_size)
     if src_cfg != model_cfg:
         raise UserError(f"init weights {ckpt} were trained with another {stage} model config than this run's: "
                         f"use the same [{stage}.model] settings and dataset objects")

@@ -134,6 +134,10 @@ def test_seg_fine_tunes_from_init_weights(tiny_bop, tiny_run, tiny_configs, tmp_
     # one small step from the trained weights stays near them; one from scratch does not
     assert ds_loss(tmp_path / "ft") < 1.2 * ds_loss(tiny_run) < ds_loss(tmp_path / "scratch")
     assert checkpoint.read_config(tmp_path / "ft" / "seg")["train"]["init"] == str(tiny_run)
+    h, w = seg.model.input_size  # another input size: the same weights, adapted
+    small = dataclasses.replace(seg, init=str(tiny_run), model=dataclasses.replace(seg.model, input_size=(h - 32, w)))
+    train_seg(tiny_bop, tmp_path / "small", small, steps=1, progress=False)
+    assert checkpoint.read_config(tmp_path / "small" / "seg")["model"]["input_size"] == [h - 32, w]
     wide = dataclasses.replace(seg, init=str(tiny_run), model=dataclasses.replace(seg.model, width=0.25))
     with pytest.raises(UserError, match="another seg model config"):
         train_seg(tiny_bop, tmp_path / "bad", wide, steps=1, progress=False)
