@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         weights = args.weights or make_default_run(Path(tmp))
         est = Estimator(weights)
         cfg = {"seg_input_size": list(est.seg_cfg.input_size), "seg_width": est.seg_cfg.width,
-               "num_points": est.pose_points, "crop_size": est.pose_cfg.crop_size,
+               "num_points": est.pose_points, "crop_size": est.pose_crop,
                "backbone_width": est.pose_cfg.backbone_width,
                "attention": [est.pose_cfg.use_pam, est.pose_cfg.use_cam, est.pose_cfg.use_gfem],
                "refine_iterations": est.refiner_cfg.iterations if est.refiner_cfg else 0}
