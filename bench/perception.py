@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         weights = args.weights or make_default_run(Path(tmp))
-        est = Estimator(weights)
+        est = Estimator(weights, models=ASSETS / "blocks")  # as bench() runs it
         cfg = {"seg_input_size": list(est.seg_cfg.input_size), "seg_width": est.seg_cfg.width,
                "num_points": est.pose_points, "crop_size": est.pose_crop,
                "backbone_width": est.pose_cfg.backbone_width,

@@ -70,7 +70,7 @@ def test_estimator_api(tiny_bop, tiny_run):
         assert 0 <= d.score <= 1 and d.mask.shape == depth.shape
     again = est.estimate(rgb, depth, K, masks)
     assert np.array_equal(again[0].T_cam_obj, dets[0].T_cam_obj)  # deterministic
-    # the pose net sees pose_points points per object and pose_crop px crops (as trained with None)
+    # the pose net sees pose_points points per object and pose_crop px crops (None: as trained, smaller with ICP)
     seen = []
     for n, s in ((7, 24), (None, None)):
         e = Estimator(tiny_run, pose_points=n, pose_crop=s)
@@ -78,10 +78,11 @@ def test_estimator_api(tiny_bop, tiny_run):
         e.pose.cnn.register_forward_hook(lambda m, x, y: seen.append(y.shape[-1]))
         e.estimate(rgb, depth, K, masks)
     assert seen == [24, 7, est.pose_cfg.crop_size, est.pose_cfg.num_points]
-    assert (est.pose_points, est.pose_crop) == (250, 48)
-    with pytest.raises(UserError, match="pose_crop a multiple of 8 px .None: as trained., got 0 and 48"):
+    refined = Estimator(tiny_run, models=tiny_bop)
+    assert (refined.pose_points, refined.pose_crop) == (250, 48) != (est.pose_cfg.num_points, est.pose_cfg.crop_size)
+    with pytest.raises(UserError, match="pose_crop a multiple of 8 px, got 0 and None"):
         Estimator(tiny_run, pose_points=0)
-    with pytest.raises(UserError, match="got 250 and 20"):
+    with pytest.raises(UserError, match="got None and 20"):
         Estimator(tiny_run, pose_crop=20)
     # an object whose mask has too few valid depth pixels is skipped
     holes = depth.copy()
