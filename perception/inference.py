@@ -175,8 +175,8 @@ class Estimator:
         self.pose_points = points if pose_points is None else pose_points
         self.pose_crop = crop if pose_crop is None else pose_crop
         if self.pose_points < 1 or self.pose_crop < 8 or self.pose_crop % 8:
-            raise UserError(f"pose_points must be >= 1 and pose_crop a multiple of 8 px, got {pose_points} and "
-                            f"{pose_crop}")
+            raise UserError(f"pose_points must be >= 1 and pose_crop a multiple of 8 px, got {self.pose_points} and "
+                            f"{self.pose_crop}")
         self.seed = seed
         self.icp = icp or ICPConfig()
         self.icp.validate()
