@@ -15,6 +15,7 @@ inside the box around the labelled pixels.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -49,7 +50,10 @@ def _box(x: np.ndarray, r: int) -> np.ndarray:
 
 
 def _shrink(x: np.ndarray, s: int) -> np.ndarray:
-    """Means of the s x s blocks of x (H, W, C) float32 (trailing rows and columns that fill no block dropped)."""
+    """Means of the s x s blocks of x (H, W, C) float32 (trailing rows and columns that fill no block dropped); x itself
+    for s = 1."""
+    if s == 1:
+        return x
     h, w = x.shape[0] // s, x.shape[1] // s
     out = cv2.resize(x[:h * s, :w * s], (w, h), interpolation=cv2.INTER_AREA)  # an integer factor: block means
     return out.reshape(h, w, x.shape[2])  # OpenCV drops a single channel axis
@@ -66,16 +70,10 @@ def _inv_sym3(S: np.ndarray) -> np.ndarray:
     return (np.stack([A, B, C, B, D, E, C, E, F], axis=-1) / det[..., None]).reshape(S.shape)
 
 
-def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, subsample: int = 1) -> np.ndarray:
-    """The guided filter of ``p`` (H, W, C) float32 by ``guide`` (H, W, 3) float32 in [0, 1]: (H, W, C) float32
-    (see the module docstring); coefficients computed at 1/subsample resolution."""
-    H, W, C = p.shape
-    if min(H, W) < 2 * subsample:
-        subsample = 1
-    small = (H // subsample, W // subsample)
-    I = _shrink(guide, subsample) if subsample > 1 else guide
-    ps = _shrink(p, subsample) if subsample > 1 else p
-    r = max(1, round(radius / subsample))
+def _coefficients(I: np.ndarray, ps: np.ndarray, r: int, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """The window-averaged coefficients of the filter of ``ps`` (h, w, C) by ``I`` (h, w, 3), windows of radius r:
+    mean a (C, 3, h, w) and mean b (C, h, w), float32, one plane per class and guide channel."""
+    small, C = ps.shape[:2], ps.shape[2]
     mI = _box(I, r)  # (h, w, 3)
     S = np.empty(small + (3, 3), dtype=np.float32)
     for a in range(3):
@@ -87,16 +85,38 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, sub
     cov -= mI[:, :, None, :] * mp[..., None]  # (h, w, C, 3)
     A = np.matmul(cov, inv)  # (h, w, C, 3): inv is symmetric, so row a_c = cov_c inv
     B = mp - np.einsum("hwcj,hwj->hwc", A, mI)
-    mA = _box(A.reshape(small + (3 * C,)), r)
+    mA = _box(A.reshape(small + (3 * C,)), r).reshape(small + (C, 3))
     mB = _box(B, r).reshape(small + (C,))
-    if subsample > 1:
-        mA = cv2.resize(mA, (W, H), interpolation=cv2.INTER_LINEAR)
-        mB = cv2.resize(mB, (W, H), interpolation=cv2.INTER_LINEAR)
-    mA = mA.reshape(H, W, C, 3)
-    q = mA[..., 0] * guide[..., :1]  # (H, W, C): a . I + b, one guide channel at a time (einsum is 4x slower)
-    q += mA[..., 1] * guide[..., 1:2]
-    q += mA[..., 2] * guide[..., 2:]
-    return q + mB.reshape(H, W, C)
+    return np.ascontiguousarray(mA.transpose(2, 3, 0, 1)), np.ascontiguousarray(mB.transpose(2, 0, 1))
+
+
+def _filtered(guide: np.ndarray, ps: np.ndarray, radius: int, eps: float, subsample: int) -> Iterator[np.ndarray]:
+    """The filter's output q_c (H, W) float32 for each class c in turn: ``ps`` (h, w, C) is the input shrunk by
+    ``subsample`` (``_shrink``), ``guide`` (H, W, 3) the full-resolution guide. The coefficients' planes are upsampled
+    one at a time, and q_c = a_c . I + b_c computed on contiguous planes (~4x faster than channels last)."""
+    H, W = guide.shape[:2]
+    I = _shrink(guide, subsample)
+    mA, mB = _coefficients(I, ps, max(1, round(radius / subsample)), eps)
+    up = (lambda x: cv2.resize(x, (W, H), interpolation=cv2.INTER_LINEAR)) if subsample > 1 else (lambda x: x)
+    g = [np.ascontiguousarray(guide[..., j]) for j in range(3)]
+    for a, b in zip(mA, mB):
+        q = up(a[0]) * g[0]
+        q += up(a[1]) * g[1]
+        q += up(a[2]) * g[2]
+        q += up(b)
+        yield q
+
+
+def _subsample(shape: tuple[int, ...], subsample: int) -> int:
+    """The factor the coefficients of an (H, W) image are computed at: 1 for images under two blocks high or wide."""
+    return 1 if min(shape[:2]) < 2 * subsample else subsample
+
+
+def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, subsample: int = 1) -> np.ndarray:
+    """The guided filter of ``p`` (H, W, C) float32 by ``guide`` (H, W, 3) float32 in [0, 1]: (H, W, C) float32
+    (see the module docstring); coefficients computed at 1/subsample resolution."""
+    s = _subsample(p.shape, subsample)
+    return np.stack(list(_filtered(guide, _shrink(p, s), radius, eps, s)), axis=-1)
 
 
 def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None = None) -> np.ndarray:
@@ -108,10 +128,19 @@ def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None 
     box = padded_box(labels, 2 * cfg.radius)
     if cfg.radius == 0 or box is None:
         return labels
-    classes = np.flatnonzero(np.bincount(labels[box].ravel()))  # the classes present (labels >= 0)
-    onehot = (labels[box][..., None] == classes).astype(np.float32)  # (h', w', C)
-    guide = rgb[box].astype(np.float32) / 255.0
-    q = guided_filter(guide, onehot, cfg.radius, cfg.eps, cfg.subsample)
+    lab = labels[box]
+    classes = np.flatnonzero(np.bincount(lab.ravel()))  # the classes present (labels >= 0)
+    s = _subsample(lab.shape, cfg.subsample)
+    ps = np.concatenate([_shrink((lab == c).astype(np.float32)[..., None], s) for c in classes], axis=-1)  # (h, w, C)
+    guide = rgb[box].astype(np.float32)
+    guide /= 255.0
+    best, pick = None, np.zeros(lab.shape, dtype=np.intp)  # running maximum of q_c and its class
+    for c, q in zip(classes, _filtered(guide, ps, cfg.radius, cfg.eps, s)):
+        if best is None:
+            best, pick[:] = q, c
+            continue
+        pick[q > best] = c
+        np.maximum(best, q, out=best)
     out = labels.copy()
-    out[box] = classes[q.argmax(axis=-1)]
+    out[box] = pick
     return out

@@ -101,17 +101,20 @@ class Segmenter:
     def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Class map (H, W) int64 (0 background, else obj_id) and class probabilities (H, W, C)
         float32: softmax at the net's input size, bilinearly resized to the image (OpenCV, channels
-        last, which is ~5x faster on a CPU than arg-maxing upsampled logits in torch)."""
+        last, which is ~5x faster on a CPU than arg-maxing upsampled logits in torch); the class map is their
+        arg-max (``upsampled_argmax``)."""
         h, w = rgb.shape[:2]
         ih, iw = self.cfg.input_size
         x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
         logits = self.model(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
-        prob = np.ascontiguousarray(torch.softmax(logits[0], dim=0).permute(1, 2, 0).numpy())  # (ih, iw, C)
-        if (h, w) != (ih, iw):
-            prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
-            if prob.ndim == 2:  # OpenCV drops a single channel axis
-                prob = prob[..., None]
-        return prob.argmax(axis=-1).astype(np.int64), prob
+        small = torch.softmax(logits[0], dim=0)  # (C, ih, iw)
+        prob = np.ascontiguousarray(small.permute(1, 2, 0).numpy())  # (ih, iw, C)
+        if (h, w) == (ih, iw):
+            return argmax_planes(small.numpy()).astype(np.int64), prob
+        prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
+        if prob.ndim == 2:  # OpenCV drops a single channel axis
+            prob = prob[..., None]
+        return upsampled_argmax(small.numpy(), prob), prob
 
 
 class Estimator:
@@ -449,6 +452,37 @@ class Estimator:
                 c = (int(mean.argmax()) + 1, float(mean.max()))
             out.append(c)
         return out
+
+
+def argmax_planes(x: np.ndarray) -> np.ndarray:
+    """Index of the largest of the C planes of ``x`` (C, h, w) at every pixel, the first one on ties: (h, w) uint16, as
+    ``x.argmax(axis=0)`` (a running maximum over the planes; ~4x faster than numpy's and ~20x faster than torch's
+    arg-max across the planes)."""
+    if x.shape[0] > np.iinfo(np.uint16).max:
+        raise ValueError(f"argmax_planes takes at most 65535 planes, got {x.shape[0]}")
+    best, idx = x[0].copy(), np.zeros(x.shape[1:], dtype=np.uint16)
+    for c in range(1, x.shape[0]):
+        idx[x[c] > best] = c
+        np.maximum(best, x[c], out=best)
+    return idx
+
+
+def upsampled_argmax(small: np.ndarray, prob: np.ndarray) -> np.ndarray:
+    """``prob.argmax(axis=-1)`` as int64 (H, W), where ``prob`` (H, W, C) is ``small`` (C, h, w) resized bilinearly by
+    OpenCV (``INTER_LINEAR``, half-pixel centres). A pixel's value is a convex combination of ``small`` at the (up to)
+    2 x 2 source pixels around x_s = (x + 1/2) w / W - 1/2 (likewise y), all within one pixel of the nearest, round(x_s).
+    Where ``small``'s arg-max is one class c over that nearest pixel's 3 x 3 neighbourhood, p_c >= p_k at each source
+    pixel, so also in their combination: the arg-max is c. So the class map is the nearest-neighbour upsampling of
+    ``small``'s, and only the pixels near its class boundaries (a few per cent of a frame) are arg-maxed in ``prob``: the same map
+    (to float rounding) ~3x faster."""
+    lab = argmax_planes(small)  # (h, w)
+    disc = np.ones((3, 3), dtype=np.uint8)
+    mixed = (cv2.dilate(lab, disc) != cv2.erode(lab, disc)).view(np.uint8)  # neighbourhoods of more than one class
+    H, W = prob.shape[:2]
+    out = cv2.resize(lab, (W, H), interpolation=cv2.INTER_NEAREST_EXACT)  # source pixel round(x_s), round(y_s)
+    near = np.nonzero(cv2.resize(mixed, (W, H), interpolation=cv2.INTER_NEAREST_EXACT))
+    out[near] = prob[near].argmax(axis=-1)
+    return out.astype(np.int64)
 
 
 def for_inference(model: torch.nn.Module) -> torch.nn.Module:

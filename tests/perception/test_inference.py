@@ -41,3 +41,33 @@ def test_segment_components_are_each_classes_instances_in_raster_order():
     assert [c for c, _ in found] == [c for c, _ in expected] == [2, 2, 3, 3, 5, 5]
     assert all((a == b).all() for (_, a), (_, b) in zip(found, expected))
     assert [c for c, _ in segment_components(labels, 17)] == [2, 5, 5]  # the island, the 16-px region, the pixel: out
+
+
+def test_argmax_planes_is_numpys_argmax_first_on_ties():
+    import numpy as np
+
+    from perception.inference import argmax_planes
+
+    x = np.random.default_rng(0).integers(0, 4, (7, 30, 40)).astype(np.float32)  # many ties
+    assert argmax_planes(x).dtype == np.uint16
+    np.testing.assert_array_equal(argmax_planes(x), x.argmax(axis=0))
+
+
+def test_upsampled_argmax_is_the_argmax_of_the_resized_probabilities():
+    """Smooth class probabilities with boundaries, resized up (by 2 and by odd factors) and down: the class map
+    from the low-resolution arg-max and the exact one near its boundaries is the full arg-max."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from perception.inference import upsampled_argmax
+
+    logits = cv2.GaussianBlur(np.random.default_rng(1).normal(0, 4, (48, 64, 6)).astype(np.float32), (9, 9), 3)
+    small = torch.softmax(torch.from_numpy(logits), dim=-1).numpy()  # (h, w, C)
+    planes = np.ascontiguousarray(small.transpose(2, 0, 1))
+    for W, H in [(128, 96), (150, 101), (64, 48), (40, 30)]:
+        prob = cv2.resize(small, (W, H), interpolation=cv2.INTER_LINEAR)
+        out = upsampled_argmax(planes, prob)
+        assert out.dtype == np.int64 and out.shape == (H, W)
+        assert len(np.unique(out)) > 2
+        np.testing.assert_array_equal(out, prob.argmax(axis=-1))
