@@ -14,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy import ndimage
 import torch
 from torch.utils.data import Dataset
 
@@ -56,9 +57,13 @@ class DataConfig:
 
 
 def normalize_rgb(rgb: np.ndarray) -> np.ndarray:
-    """uint8 (H, W, 3) RGB -> float32 (3, H, W), ImageNet mean/std normalised."""
-    x = (rgb.astype(np.float32) / 255.0 - RGB_MEAN) / RGB_STD
-    return np.ascontiguousarray(x.transpose(2, 0, 1))
+    """uint8 (H, W, 3) RGB -> float32 (3, H, W), ImageNet mean/std normalised (in place on the planes: ~10x faster than
+    on the channels-last image, the same numbers)."""
+    x = rgb.transpose(2, 0, 1).astype(np.float32, order="C")
+    x /= 255.0
+    x -= RGB_MEAN[:, None, None]
+    x /= RGB_STD[:, None, None]
+    return x
 
 
 def color_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float, hue: float) -> np.ndarray:
@@ -249,11 +254,10 @@ def segment_components(labels: np.ndarray, min_pixels: int) -> list[tuple[int, n
     separated blocks become separate components, touching ones stay merged. A class's components are found in the box
     of each connected foreground region in turn (each lies in one), not in the whole image."""
     W = labels.shape[1]
-    n, regions, stats, _ = cv2.connectedComponentsWithStats((labels > 0).view(np.uint8), connectivity=8)
+    _, regions = cv2.connectedComponents((labels > 0).view(np.uint8), connectivity=8)
     found = []  # (class, raster index of the first pixel, mask)
-    for k in range(1, n):
-        x, y, w, h = stats[k, :4]
-        box = (slice(y, y + h), slice(x, x + w))
+    for k, box in enumerate(ndimage.find_objects(regions), start=1):  # boxes: ~2x faster than OpenCV's stats
+        y, x = box[0].start, box[1].start
         lab = np.where(regions[box] == k, labels[box], 0)  # another region may reach into the box
         for c in np.flatnonzero(np.bincount(lab.ravel())):  # the region's classes (and 0, unless it fills its box)
             if c == 0:
