@@ -45,7 +45,7 @@ class GuidedConfig:
 
 
 def _box(x: np.ndarray, r: int) -> np.ndarray:
-    """Mean over the (2r + 1)^2 window of every pixel (channels last), reflected at the border."""
+    """Mean over the (2r + 1)^2 window of every pixel (of a plane, or channels last), reflected at the border."""
     return cv2.boxFilter(x, -1, (2 * r + 1, 2 * r + 1), normalize=True, borderType=cv2.BORDER_REFLECT)
 
 
@@ -59,35 +59,39 @@ def _shrink(x: np.ndarray, s: int) -> np.ndarray:
     return out.reshape(h, w, x.shape[2])  # OpenCV drops a single channel axis
 
 
-def _inv_sym3(S: np.ndarray) -> np.ndarray:
-    """Inverses of symmetric 3x3 matrices S (..., 3, 3) by their cofactors (He et al.'s own code does the same; ~10x
-    faster than np.linalg.inv on many small matrices), computed in float64."""
-    S = S.astype(np.float64)
-    a, b, c, d, e, f = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2], S[..., 1, 1], S[..., 1, 2], S[..., 2, 2]
+def _inv_sym3(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, e: np.ndarray, f: np.ndarray
+              ) -> list[np.ndarray]:
+    """Inverses of the symmetric 3x3 matrices [[a, b, c], [b, d, e], [c, e, f]] given as planes (h, w), by their
+    cofactors (He et al.'s own code does the same; ~10x faster than np.linalg.inv on many small matrices), computed in
+    float64: the planes of the inverses' entries (0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2), float32."""
+    a, b, c, d, e, f = (x.astype(np.float64) for x in (a, b, c, d, e, f))
     co = [d * f - e * e, c * e - b * f, b * e - c * d, a * f - c * c, b * c - a * e, a * d - b * b]
     det = a * co[0] + b * co[1] + c * co[2]
-    A, B, C, D, E, F = co
-    return (np.stack([A, B, C, B, D, E, C, E, F], axis=-1) / det[..., None]).reshape(S.shape)
+    return [(x / det).astype(np.float32) for x in co]
 
 
-def _coefficients(I: np.ndarray, ps: np.ndarray, r: int, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """The window-averaged coefficients of the filter of ``ps`` (h, w, C) by ``I`` (h, w, 3), windows of radius r:
-    mean a (C, 3, h, w) and mean b (C, h, w), float32, one plane per class and guide channel."""
-    small, C = ps.shape[:2], ps.shape[2]
-    mI = _box(I, r)  # (h, w, 3)
-    S = np.empty(small + (3, 3), dtype=np.float32)
-    for a in range(3):
-        for b in range(a, 3):
-            S[..., a, b] = S[..., b, a] = _box(I[..., a] * I[..., b], r) - mI[..., a] * mI[..., b]
-    inv = _inv_sym3(S + np.float32(eps) * np.eye(3, dtype=np.float32)).astype(np.float32)  # (h, w, 3, 3)
-    mp = _box(ps, r).reshape(small + (C,))
-    cov = np.stack([_box(I[..., a:a + 1] * ps, r).reshape(small + (C,)) for a in range(3)], axis=-1)
-    cov -= mI[:, :, None, :] * mp[..., None]  # (h, w, C, 3)
-    A = np.matmul(cov, inv)  # (h, w, C, 3): inv is symmetric, so row a_c = cov_c inv
-    B = mp - np.einsum("hwcj,hwj->hwc", A, mI)
-    mA = _box(A.reshape(small + (3 * C,)), r).reshape(small + (C, 3))
-    mB = _box(B, r).reshape(small + (C,))
-    return np.ascontiguousarray(mA.transpose(2, 3, 0, 1)), np.ascontiguousarray(mB.transpose(2, 0, 1))
+def _coefficients(I: list[np.ndarray], ps: list[np.ndarray], r: int, eps: float
+                  ) -> tuple[list[list[np.ndarray]], list[np.ndarray]]:
+    """The window-averaged coefficients of the filter of the class planes ``ps`` (C of them, (h, w) float32) by the
+    guide's 3 planes ``I``, windows of radius r: mean a (C lists of 3 planes) and mean b (C planes). Plane by plane:
+    OpenCV's box filter and numpy's arithmetic are several times faster on contiguous planes than on (h, w, 3, 3)
+    stacks of small matrices."""
+    mI = [_box(x, r) for x in I]
+    S = {(i, j): _box(I[i] * I[j], r) - mI[i] * mI[j] for i in range(3) for j in range(i, 3)}  # covariance of I
+    for i in range(3):
+        S[i, i] += np.float32(eps)
+    inv = dict(zip([(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)],
+                   _inv_sym3(S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2])))
+    inv.update({(j, i): inv[i, j] for i, j in list(inv)})
+    mA, mB = [], []
+    for p in ps:
+        mp = _box(p, r)
+        cov = [_box(I[k] * p, r) - mI[k] * mp for k in range(3)]  # cov(I_k, p)
+        A = [cov[0] * inv[0, j] + cov[1] * inv[1, j] + cov[2] * inv[2, j] for j in range(3)]  # a = cov inv
+        B = mp - (A[0] * mI[0] + A[1] * mI[1] + A[2] * mI[2])
+        mA.append([_box(x, r) for x in A])
+        mB.append(_box(B, r))
+    return mA, mB
 
 
 def _filtered(guide: np.ndarray, ps: np.ndarray, radius: int, eps: float, subsample: int) -> Iterator[np.ndarray]:
@@ -96,9 +100,10 @@ def _filtered(guide: np.ndarray, ps: np.ndarray, radius: int, eps: float, subsam
     one at a time, and q_c = a_c . I + b_c computed on contiguous planes (~4x faster than channels last)."""
     H, W = guide.shape[:2]
     I = _shrink(guide, subsample)
-    mA, mB = _coefficients(I, ps, max(1, round(radius / subsample)), eps)
+    planes = lambda x: [np.ascontiguousarray(x[..., k]) for k in range(x.shape[-1])]  # noqa: E731
+    mA, mB = _coefficients(planes(I), planes(ps), max(1, round(radius / subsample)), eps)
     up = (lambda x: cv2.resize(x, (W, H), interpolation=cv2.INTER_LINEAR)) if subsample > 1 else (lambda x: x)
-    g = [np.ascontiguousarray(guide[..., j]) for j in range(3)]
+    g = planes(guide)
     for a, b in zip(mA, mB):
         q = up(a[0]) * g[0]
         q += up(a[1]) * g[1]
