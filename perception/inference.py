@@ -473,8 +473,8 @@ def upsampled_argmax(small: np.ndarray, prob: np.ndarray) -> np.ndarray:
     2 x 2 source pixels around x_s = (x + 1/2) w / W - 1/2 (likewise y), all within one pixel of the nearest,
     round(x_s). Where ``small``'s arg-max is one class c over that nearest pixel's 3 x 3 neighbourhood, p_c >= p_k at
     each source pixel, so also in their combination: the arg-max is c. So the class map is the nearest-neighbour
-    upsampling of ``small``'s, and only the pixels near its class boundaries (a few per cent of a frame) are arg-maxed in ``prob``:
-    the same map (to float rounding) ~3x faster."""
+    upsampling of ``small``'s, and only the pixels near its class boundaries (a few per cent of a frame) are arg-maxed
+    in ``prob``: the same map (to float rounding) ~3x faster."""
     lab = argmax_planes(small)  # (h, w)
     disc = np.ones((3, 3), dtype=np.uint8)
     mixed = (cv2.dilate(lab, disc) != cv2.erode(lab, disc)).view(np.uint8)  # neighbourhoods of more than one class
