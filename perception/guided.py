@@ -94,12 +94,13 @@ def _coefficients(I: list[np.ndarray], ps: list[np.ndarray], r: int, eps: float
     return mA, mB
 
 
-def _filtered(guide: np.ndarray, ps: np.ndarray, radius: int, eps: float, subsample: int) -> Iterator[np.ndarray]:
-    """The filter's output q_c (H, W) float32 for each class c in turn: ``ps`` (h, w, C) is the input shrunk by
+def _filtered(guide: np.ndarray, ps: list[np.ndarray], radius: int, eps: float, subsample: int
+              ) -> Iterator[np.ndarray]:
+    """The filter's output q_c (H, W) float32 for each class c in turn: ``ps`` are the input's planes (h, w) shrunk by
     ``subsample`` (``_shrink``), ``guide`` (H, W, 3) the full-resolution guide. The coefficients' planes are upsampled
     one at a time, and q_c = a_c . I + b_c computed on contiguous planes (~4x faster than channels last)."""
     H, W = guide.shape[:2]
-    mA, mB = _coefficients(_planes(_shrink(guide, subsample)), _planes(ps), max(1, round(radius / subsample)), eps)
+    mA, mB = _coefficients(_planes(_shrink(guide, subsample)), ps, max(1, round(radius / subsample)), eps)
     up = (lambda x: cv2.resize(x, (W, H), interpolation=cv2.INTER_LINEAR)) if subsample > 1 else (lambda x: x)
     g = _planes(guide)
     for a, b in zip(mA, mB):
@@ -124,7 +125,7 @@ def guided_filter(guide: np.ndarray, p: np.ndarray, radius: int, eps: float, sub
     """The guided filter of ``p`` (H, W, C) float32 by ``guide`` (H, W, 3) float32 in [0, 1]: (H, W, C) float32
     (see the module docstring); coefficients computed at 1/subsample resolution."""
     s = _subsample(p.shape, subsample)
-    return np.stack(list(_filtered(guide, _shrink(p, s), radius, eps, s)), axis=-1)
+    return np.stack(list(_filtered(guide, _planes(_shrink(p, s)), radius, eps, s)), axis=-1)
 
 
 def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None = None) -> np.ndarray:
@@ -139,7 +140,7 @@ def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None 
     lab = labels[box]
     classes = np.flatnonzero(np.bincount(lab.ravel()))  # the classes present (labels >= 0)
     s = _subsample(lab.shape, cfg.subsample)
-    ps = np.concatenate([_shrink((lab == c).astype(np.float32)[..., None], s) for c in classes], axis=-1)  # (h, w, C)
+    ps = [_shrink((lab == c).astype(np.float32)[..., None], s)[..., 0] for c in classes]  # the classes' planes
     guide = rgb[box].astype(np.float32)
     guide /= 255.0
     best, pick = None, np.zeros(lab.shape, dtype=np.intp)  # running maximum of q_c and its class
