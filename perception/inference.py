@@ -38,7 +38,7 @@ from perception.classifier import ClassifierConfig
 from perception.crop import backproject, mask_bbox, padded_box
 from perception.data import (normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
-from perception.guided import GuidedConfig, refine_labels
+from perception.guided import GuidedConfig, argmax_planes, refine_labels
 from perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
 from perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from perception.refiner import refine
@@ -452,19 +452,6 @@ class Estimator:
                 c = (int(mean.argmax()) + 1, float(mean.max()))
             out.append(c)
         return out
-
-
-def argmax_planes(x: np.ndarray) -> np.ndarray:
-    """Index of the largest of the C planes of ``x`` (C, h, w) at every pixel, the first one on ties: (h, w) uint16, as
-    ``x.argmax(axis=0)`` (a running maximum over the planes; ~4x faster than numpy's and ~20x faster than torch's
-    arg-max across the planes)."""
-    if x.shape[0] > np.iinfo(np.uint16).max:
-        raise ValueError(f"argmax_planes takes at most 65535 planes, got {x.shape[0]}")
-    best, idx = x[0].copy(), np.zeros(x.shape[1:], dtype=np.uint16)
-    for c in range(1, x.shape[0]):
-        idx[x[c] > best] = c
-        np.maximum(best, x[c], out=best)
-    return idx
 
 
 def upsampled_argmax(small: np.ndarray, prob: np.ndarray) -> np.ndarray:
