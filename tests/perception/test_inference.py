@@ -46,7 +46,7 @@ def test_segment_components_are_each_classes_instances_in_raster_order():
 def test_argmax_planes_is_numpys_argmax_first_on_ties():
     import numpy as np
 
-    from perception.inference import argmax_planes
+    from perception.guided import argmax_planes
 
     x = np.random.default_rng(0).integers(0, 4, (7, 30, 40)).astype(np.float32)  # many ties
     assert argmax_planes(x).dtype == np.uint16
