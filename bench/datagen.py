@@ -22,13 +22,11 @@ from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-# this script is named like the ``datagen`` package: import the package, not the script
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-from datagen.cli import parse_blocks  # noqa: E402
-from datagen.config import DatagenConfig  # noqa: E402
-from datagen.generate import generate_dataset  # noqa: E402
-from sim.cli import parse_resolution  # noqa: E402
+from posegrasp.datagen.cli import parse_blocks
+from posegrasp.datagen.config import DatagenConfig
+from posegrasp.datagen.generate import generate_dataset
+from posegrasp.sim.cli import parse_resolution
 
 
 def _cpu_seconds() -> float:

@@ -33,16 +33,15 @@ import torch
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from perception import checkpoint  # noqa: E402
-from posegrasp import ASSETS  # noqa: E402
-from perception.classifier import ClassifierConfig, build_classifier  # noqa: E402
-from perception.plane import fit_support_plane, plane_pixels  # noqa: E402
-from perception.inference import Estimator, one_blas_thread  # noqa: E402
-from perception.pose_net import PoseNetConfig, build_pose_net  # noqa: E402
-from perception.refiner import RefinerConfig, build_refiner  # noqa: E402
-from perception.seg_net import SegNetConfig, build_seg_net  # noqa: E402
+from posegrasp.perception import checkpoint
+from posegrasp import ASSETS
+from posegrasp.perception.classifier import ClassifierConfig, build_classifier
+from posegrasp.perception.plane import fit_support_plane, plane_pixels
+from posegrasp.perception.inference import Estimator, one_blas_thread
+from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
+from posegrasp.perception.refiner import RefinerConfig, build_refiner
+from posegrasp.perception.seg_net import SegNetConfig, build_seg_net
 
 OBJ_IDS = [1, 2, 3, 4, 5, 6, 7, 8]
 
@@ -64,9 +63,9 @@ def make_default_run(root: Path) -> Path:
 def sim_frame(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[tuple[int, np.ndarray]]]:
     """A real 640x480 hand-camera frame of the workcell (scene ``seed``, 5 blocks, all in view, at the look
     pose): RGB, depth (m), K and the 5 blocks' (obj_id, visible mask)."""
-    from sim.camera import CameraRenderer
-    from sim.scene import make_scene
-    from sim.workcell import HAND_CAMERA
+    from posegrasp.sim.camera import CameraRenderer
+    from posegrasp.sim.scene import make_scene
+    from posegrasp.sim.workcell import HAND_CAMERA
 
     wc = make_scene(seed, 5).workcell
     wc.drive_arm(wc.look_q)

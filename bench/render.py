@@ -13,9 +13,9 @@ import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from sim.camera import CameraRenderer  # noqa: E402
-from sim.scene import make_scene  # noqa: E402
-from sim.workcell import HAND_CAMERA  # noqa: E402
+from posegrasp.sim.camera import CameraRenderer  # noqa: E402
+from posegrasp.sim.scene import make_scene  # noqa: E402
+from posegrasp.sim.workcell import HAND_CAMERA  # noqa: E402
 
 
 def rate(fn, min_time: float = 1.0) -> float:

@@ -17,14 +17,11 @@ from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-# bench/perception.py would shadow the perception package (in the workers too): import from the repo root.
-_ROOT = Path(__file__).resolve().parents[1]
-sys.path[:] = [str(_ROOT)] + [p for p in sys.path if Path(p or ".").resolve() != _ROOT / "bench"]
 
-from rich.console import Console  # noqa: E402
+from rich.console import Console
 
-from grasping.config import TrialConfig  # noqa: E402
-from grasping.trials import TIMINGS, read_records, run_trials  # noqa: E402
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.trials import TIMINGS, read_records, run_trials
 
 
 def main(episodes: int = 60, workers: int = 2) -> dict:

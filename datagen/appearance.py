@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 from dm_control import mjcf
 
-from datagen.config import ColourConfig, DatagenConfig, LightConfig, TextureConfig
-from datagen.distractors import Distractor, add_distractors, sample_distractors
+from posegrasp.datagen.config import ColourConfig, DatagenConfig, LightConfig, TextureConfig
+from posegrasp.datagen.distractors import Distractor, add_distractors, sample_distractors
 
 
 @dataclass(frozen=True)

@@ -55,9 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def load_config(args: argparse.Namespace):
     """The generation settings: TOML file (or defaults), overridden by the command-line flags."""
-    from datagen.config import load_datagen_config, validate
+    from posegrasp.datagen.config import load_datagen_config, validate
     from posegrasp.config import override
-    from sim.cli import parse_resolution
+    from posegrasp.sim.cli import parse_resolution
 
     cfg = load_datagen_config(args.config)
     if args.resolution:
@@ -70,9 +70,9 @@ def load_config(args: argparse.Namespace):
 
 
 def run_datagen(args: argparse.Namespace) -> int:
-    from datagen.generate import generate_dataset
-    from datagen.scene import check_capacity
-    from sim.cli import writable_dir
+    from posegrasp.datagen.generate import generate_dataset
+    from posegrasp.datagen.scene import check_capacity
+    from posegrasp.sim.cli import writable_dir
 
     cfg = load_config(args)
     check_capacity(cfg)
@@ -92,7 +92,7 @@ def run_datagen(args: argparse.Namespace) -> int:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    from datagen.check import check_dataset, print_report
+    from posegrasp.datagen.check import check_dataset, print_report
 
     report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images, progress=True)
     print_report(report, args.dir)
@@ -102,8 +102,8 @@ def run_check(args: argparse.Namespace) -> int:
 def run_show(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from datagen.check import find_splits
-    from datagen.show import show_image
+    from posegrasp.datagen.check import find_splits
+    from posegrasp.datagen.show import show_image
     from posegrasp.io import write_jpg, write_png
 
     root = Path(args.dir)

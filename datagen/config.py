@@ -14,8 +14,8 @@ from pathlib import Path
 
 from posegrasp.config import load_toml
 from posegrasp.errors import UserError
-from sim.config import WorkcellConfig
-from sim.scene import PALETTE
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.scene import PALETTE
 
 
 @dataclass(frozen=True)

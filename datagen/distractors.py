@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 from dm_control import mjcf
 
-from datagen.config import DistractorConfig
+from posegrasp.datagen.config import DistractorConfig
 from posegrasp.geometry import R_to_quat, axis_angle_R
-from sim.config import AreaConfig
+from posegrasp.sim.config import AreaConfig
 
 KINDS = ("box", "cylinder", "sphere", "capsule")
 

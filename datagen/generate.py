@@ -18,18 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from datagen.config import DatagenConfig, validate
-from datagen.noise import noisy_depth, noisy_rgb
-from datagen.render import LabelRenderer
-from datagen.scene import build_scene, check_capacity
-from datagen.views import ViewStats, visit_views
-from datagen.writer import COMPLETE_FILE, SceneWriter, prepare_root
+from posegrasp.datagen.config import DatagenConfig, validate
+from posegrasp.datagen.noise import noisy_depth, noisy_rgb
+from posegrasp.datagen.render import LabelRenderer
+from posegrasp.datagen.scene import build_scene, check_capacity
+from posegrasp.datagen.views import ViewStats, visit_views
+from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, prepare_root
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
 from posegrasp.executor import make_executor
-from sim.camera import intrinsics
-from sim.workcell import HAND_CAMERA
+from posegrasp.sim.camera import intrinsics
+from posegrasp.sim.workcell import HAND_CAMERA
 
 SPLITS = ("train_pbr", "test")
 SETTINGS_FILE = "datagen_config.json"

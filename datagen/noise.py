@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from datagen.config import DepthNoiseConfig, RgbNoiseConfig
+from posegrasp.datagen.config import DepthNoiseConfig, RgbNoiseConfig
 
 
 def projector_shadow(depth: np.ndarray, fx: float, baseline: float, tol_px: float = 0.5) -> np.ndarray:

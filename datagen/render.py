@@ -15,8 +15,8 @@ import mujoco
 import numpy as np
 
 from posegrasp.geometry import invert, transform_points
-from sim.camera import Frame, intrinsics
-from sim.workcell import Workcell
+from posegrasp.sim.camera import Frame, intrinsics
+from posegrasp.sim.workcell import Workcell
 
 _SEG_FLAGS = (mujoco.mjtRndFlag.mjRND_SEGMENT, mujoco.mjtRndFlag.mjRND_IDCOLOR)
 

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from datagen.appearance import Look, light_tint, sample_look
-from datagen.config import DatagenConfig
+from posegrasp.datagen.appearance import Look, light_tint, sample_look
+from posegrasp.datagen.config import DatagenConfig
 from posegrasp.catalog import BlockType
 from posegrasp.errors import UserError
-from sim.scene import SceneConfig, area_capacity, choose_types, drop_and_settle, randomise_lights
-from sim.workcell import BlockInstance, Workcell
+from posegrasp.sim.scene import SceneConfig, area_capacity, choose_types, drop_and_settle, randomise_lights
+from posegrasp.sim.workcell import BlockInstance, Workcell
 
 
 @dataclass

@@ -9,9 +9,9 @@ from typing import Iterator
 
 import numpy as np
 
-from datagen.config import ViewConfig
+from posegrasp.datagen.config import ViewConfig
 from posegrasp.geometry import axis_angle_R, look_at_R, make_T, rotation_angle
-from sim.workcell import Workcell
+from posegrasp.sim.workcell import Workcell
 
 
 @dataclass

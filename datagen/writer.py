@@ -25,7 +25,7 @@ from posegrasp import ASSETS, bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
 from posegrasp.geometry import invert
-from sim.camera import Frame
+from posegrasp.sim.camera import Frame
 
 COMPLETE_FILE = "scene_gt_info.json"
 SOURCE_MODELS = ASSETS / "blocks" / "models"

@@ -24,9 +24,9 @@ from dm_control import mjcf
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, invert, look_at_R, make_T, rotation_angle
 from posegrasp.io import write_json
-from sim.camera import CameraRenderer
-from sim.config import WorkcellConfig
-from sim.workcell import HAND_CAMERA, Workcell, build_mjcf, compile_mjcf
+from posegrasp.sim.camera import CameraRenderer
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.workcell import HAND_CAMERA, Workcell, build_mjcf, compile_mjcf
 
 
 @dataclass(frozen=True)

@@ -33,9 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_trials_cmd(args: argparse.Namespace) -> int:
-    from grasping.config import load_trial_config
-    from grasping.trials import run_trials, sweep_noise
-    from sim.cli import writable_dir
+    from posegrasp.grasping.config import load_trial_config
+    from posegrasp.grasping.trials import run_trials, sweep_noise
+    from posegrasp.sim.cli import writable_dir
 
     cfg = load_trial_config(args.config)
     out = writable_dir(args.out)
@@ -48,8 +48,8 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
 
 
 def run_calibrate_cmd(args: argparse.Namespace) -> int:
-    from grasping.calibration import CalibrationConfig, calibrate, save_hand_eye
-    from sim.config import load_workcell_config
+    from posegrasp.grasping.calibration import CalibrationConfig, calibrate, save_hand_eye
+    from posegrasp.sim.config import load_workcell_config
 
     if args.poses < 3:
         raise UserError(f"--poses must be at least 3 (10 or more for an accurate result), got {args.poses}")

@@ -17,8 +17,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from grasping.stats import rate_row
-from grasping.trials import EPISODES, read_records
+from posegrasp.grasping.stats import rate_row
+from posegrasp.grasping.trials import EPISODES, read_records
 from posegrasp.errors import UserError
 from posegrasp.io import write_json
 

@@ -10,9 +10,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp import ASSETS
-from grasping.support import RestConfig
+from posegrasp.grasping.support import RestConfig
 from posegrasp.config import load_toml
-from sim.scene import SceneConfig
+from posegrasp.sim.scene import SceneConfig
 
 #: The shipped hand-eye calibration (``posegrasp calibrate``), used by the trials.
 HAND_EYE_JSON = ASSETS / "calibration" / "hand_eye.json"

@@ -16,10 +16,10 @@ import mink
 import mujoco
 import numpy as np
 
-from grasping.config import ControlConfig
+from posegrasp.grasping.config import ControlConfig
 from posegrasp.geometry import make_T, rotation_angle
-from sim.config import WorkcellConfig
-from sim.workcell import GRIPPER_SITE, Workcell
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.workcell import GRIPPER_SITE, Workcell
 
 _SITE = f"jaco_arm/jaco_hand/{GRIPPER_SITE}"
 #: Robot bodies kept away from the table by the collision-avoidance limit (the base links never reach it).

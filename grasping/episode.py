@@ -15,17 +15,17 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from grasping.config import TrialConfig
-from grasping.controller import ArmController, SimulationError, robot_workcell
-from grasping.grasps import Grasp, plan_grasps, surface_points
-from grasping.perception import Estimate, make_provider
-from grasping.render import EpisodeCamera
-from grasping.support import rest_on_table
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.controller import ArmController, SimulationError, robot_workcell
+from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
+from posegrasp.grasping.perception import Estimate, make_provider
+from posegrasp.grasping.render import EpisodeCamera
+from posegrasp.grasping.support import rest_on_table
 from posegrasp.catalog import BlockType, load_catalog
 from posegrasp.geometry import invert, make_T, rotation_angle, transform_points
-from sim.camera import Frame
-from sim.scene import make_scene
-from sim.workcell import HAND_CAMERA, Workcell
+from posegrasp.sim.camera import Frame
+from posegrasp.sim.scene import make_scene
+from posegrasp.sim.workcell import HAND_CAMERA, Workcell
 
 #: Failure reasons, in the order the summary lists them.
 FAILURES = ("no detection", "pose error", "unreachable", "collision", "slip", "drop", "misplaced", "timeout",
@@ -102,7 +102,7 @@ def _hand_block_distance(wc: Workcell, k: int, ctl: ArmController, dmax: float) 
 
 def pose_errors(block: BlockType, T_est: np.ndarray, T_gt: np.ndarray) -> dict[str, float]:
     """Translation (m), rotation (deg), ADD and ADD-S (m) of an estimate; ``err`` is ADD-S for symmetric blocks."""
-    from perception.metrics import add, adds, rotation_error_deg, translation_error
+    from posegrasp.perception.metrics import add, adds, rotation_error_deg, translation_error
 
     pts = surface_points(block, 500)
     a = add(T_est[:3, :3], T_est[:3, 3], T_gt[:3, :3], T_gt[:3, 3], pts)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from grasping.config import GraspConfig
+from posegrasp.grasping.config import GraspConfig
 from posegrasp.catalog import BlockType, sample_surface, symmetry_transforms
 from posegrasp.geometry import make_T, transform_points
 

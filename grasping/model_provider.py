@@ -12,10 +12,10 @@ import functools
 from dataclasses import dataclass
 from pathlib import Path
 
-from grasping.perception import Estimate, register, visible_enough
+from posegrasp.grasping.perception import Estimate, register, visible_enough
 from posegrasp import ASSETS
 from posegrasp.errors import UserError
-from sim.camera import Frame
+from posegrasp.sim.camera import Frame
 
 #: The shipped weights (seg/, pose/ and optionally refine/ checkpoints: safetensors + JSON).
 SHIPPED_MODEL = ASSETS / "perception" / "model"
@@ -23,7 +23,7 @@ SHIPPED_MODEL = ASSETS / "perception" / "model"
 
 @functools.lru_cache(maxsize=2)
 def _estimator(weights: str):
-    from perception.inference import Estimator
+    from posegrasp.perception.inference import Estimator
 
     return Estimator(weights, threads=1, models=ASSETS / "blocks")  # the catalogue's meshes, for ICP
 

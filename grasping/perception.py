@@ -19,7 +19,7 @@ import numpy as np
 
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T
-from sim.camera import Frame
+from posegrasp.sim.camera import Frame
 
 
 @dataclass(frozen=True)
@@ -118,7 +118,7 @@ def make_provider(spec: str) -> Provider:
     """A provider from ``name[:ARGS]`` (``oracle``, ``noisy-oracle:0.005,5``, ``model:RUN``)."""
     name, _, args = spec.partition(":")
     if name == "model":
-        import grasping.model_provider  # noqa: F401  (registers itself; imports torch only when asked for)
+        import posegrasp.grasping.model_provider  # noqa: F401  (registers itself; imports torch only when asked for)
     if name not in PROVIDERS:
         raise UserError(f"unknown perception {spec!r}; choose one of: {', '.join(sorted(PROVIDERS))}")
     return PROVIDERS[name](args or None)

@@ -11,8 +11,8 @@ from __future__ import annotations
 import mujoco
 from mujoco.rendering.classic import gl_context
 
-from sim.camera import CameraRenderer, intrinsics
-from sim.config import CameraConfig, RenderConfig
+from posegrasp.sim.camera import CameraRenderer, intrinsics
+from posegrasp.sim.config import CameraConfig, RenderConfig
 
 _CONTEXT: list = []  # the process's GL context, made on first use and never freed
 

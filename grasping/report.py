@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp.errors import UserError
-from sim.camera import Frame
+from posegrasp.sim.camera import Frame
 
 REPORT = "report.html"
 #: Outline colours (RGB) of the model at the true and at the estimated pose.
@@ -43,7 +43,7 @@ class Look:
 
 
 def _trial_config(campaign: dict):
-    from grasping.config import TrialConfig
+    from posegrasp.grasping.config import TrialConfig
     from posegrasp.config import from_dict
 
     return from_dict(TrialConfig, campaign["config"], where="campaign.json config")
@@ -51,11 +51,11 @@ def _trial_config(campaign: dict):
 
 def resimulate_look(run_dir: Path, rec: dict) -> Look | None:
     """Episode ``rec`` re-simulated from its seeds up to the look capture; None if it never got there."""
-    from grasping.episode import EpisodeTask, capture_look, drive_to_look, episode_draws, episode_workcell
-    from grasping.perception import make_provider
-    from grasping.render import EpisodeCamera
-    from grasping.trials import CAMPAIGN
-    from sim.workcell import OVERVIEW_CAMERA
+    from posegrasp.grasping.episode import EpisodeTask, capture_look, drive_to_look, episode_draws, episode_workcell
+    from posegrasp.grasping.perception import make_provider
+    from posegrasp.grasping.render import EpisodeCamera
+    from posegrasp.grasping.trials import CAMPAIGN
+    from posegrasp.sim.workcell import OVERVIEW_CAMERA
 
     campaign = json.loads((run_dir / CAMPAIGN).read_text())
     T = tuple(tuple(float(v) for v in row) for row in campaign["T_gripper_cam"])
@@ -75,7 +75,7 @@ def resimulate_look(run_dir: Path, rec: dict) -> Look | None:
     ests = provider.estimate(frame, percept_seed)
     labels = frame.mask
     if task.perception.startswith("model"):
-        from grasping.model_provider import _estimator
+        from posegrasp.grasping.model_provider import _estimator
 
         labels = _estimator(provider.weights).last_labels
     cam = EpisodeCamera(wc, OVERVIEW_CAMERA, wc.cfg.overview_camera, wc.cfg.render)
@@ -153,7 +153,7 @@ def error_plot(records: list[dict]) -> str | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from grasping.stats import wilson
+    from posegrasp.grasping.stats import wilson
 
     pts = [(1000 * r["pose_error"]["err"], r["outcome"] == "success") for r in records if r.get("pose_error")]
     if not pts:
@@ -239,9 +239,9 @@ document.title='images decoded: '+n+'/'+im.length;});</script>"""
 def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
     """Write ``run_dir/report.html`` from its ``episodes.jsonl``, ``summary.json`` and ``campaign.json``;
     ``samples`` episodes get Fig. 9-10 style frames, ``strip`` episodes an overview snapshot. Returns the path."""
-    from grasping.episode import FAILURES
-    from grasping.stats import summarise
-    from grasping.trials import CAMPAIGN, EPISODES, SUMMARY, read_records
+    from posegrasp.grasping.episode import FAILURES
+    from posegrasp.grasping.stats import summarise
+    from posegrasp.grasping.trials import CAMPAIGN, EPISODES, SUMMARY, read_records
     from posegrasp.io import atomic_write
 
     run_dir = Path(run_dir)

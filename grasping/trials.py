@@ -21,11 +21,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from grasping.calibration import load_hand_eye
-from grasping.config import TrialConfig
-from grasping.episode import FAILURES, EpisodeTask, run_episode
-from grasping.perception import make_provider
-from grasping.stats import rate_row, summarise
+from posegrasp.grasping.calibration import load_hand_eye
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.episode import FAILURES, EpisodeTask, run_episode
+from posegrasp.grasping.perception import make_provider
+from posegrasp.grasping.stats import rate_row, summarise
 from posegrasp.errors import UserError
 from posegrasp.executor import make_executor
 from posegrasp.io import atomic_write, dumps_json, write_bytes, write_json
@@ -118,7 +118,7 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                          "episodes_per_min": 60 * len(todo) / elapsed if todo and elapsed > 0 else None})
     write_json(out / SUMMARY, summary)
     print_summary(summary, console)
-    from grasping.report import write_report  # here: the report module imports this one
+    from posegrasp.grasping.report import write_report  # here: the report module imports this one
 
     console.print(f"report -> {write_report(out)}")
     return summary

@@ -30,10 +30,10 @@ from torch import nn
 from posegrasp import io as pio
 from posegrasp.config import from_dict
 from posegrasp.errors import UserError
-from perception.classifier import ClassifierConfig, build_classifier
-from perception.pose_net import PoseNetConfig, build_pose_net
-from perception.refiner import RefinerConfig, build_refiner
-from perception.seg_net import SegNetConfig, build_seg_net
+from posegrasp.perception.classifier import ClassifierConfig, build_classifier
+from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
+from posegrasp.perception.refiner import RefinerConfig, build_refiner
+from posegrasp.perception.seg_net import SegNetConfig, build_seg_net
 
 FORMAT = "posegrasp-perception"
 VERSION = 1

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from perception.seg_net import ConvBNReLU
+from posegrasp.perception.seg_net import ConvBNReLU
 
 IN_CHANNELS = 6  # RGB (normalised), mask, relative depth, valid depth (+ height above the plane, optional)
 

@@ -62,7 +62,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp train``."""
-    from perception import train as T
+    from posegrasp.perception import train as T
 
     cls, fn = {"seg": (T.SegTrainConfig, T.train_seg), "pose": (T.PoseTrainConfig, T.train_pose),
                "refine": (T.RefineTrainConfig, T.train_refine), "cls": (T.ClsTrainConfig, T.train_cls)}[args.stage]
@@ -83,7 +83,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def run_eval(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp eval``."""
-    from perception.evaluate import EvalConfig, evaluate
+    from posegrasp.perception.evaluate import EvalConfig, evaluate
 
     cfg = load_toml(EvalConfig, args.config, section="eval")
     cfg = override(cfg, split=args.split, max_images=args.max_images,
@@ -102,7 +102,7 @@ def run_eval(args: argparse.Namespace) -> int:
 
 def run_perturb(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp perturb``."""
-    from perception.checkpoint import STAGES, perturb_run
+    from posegrasp.perception.checkpoint import STAGES, perturb_run
 
     stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
     bad = [s for s in stages if s not in STAGES]

@@ -21,8 +21,8 @@ from torch.utils.data import Dataset
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
-from perception.crop import backproject, crop_box, padded_box, remap_choose, sample_choose
-from perception.plane import fit_support_plane
+from posegrasp.perception.crop import backproject, crop_box, padded_box, remap_choose, sample_choose
+from posegrasp.perception.plane import fit_support_plane
 
 RGB_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 RGB_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)

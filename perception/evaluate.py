@@ -28,11 +28,11 @@ import numpy as np
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
-from perception import metrics as M
-from perception.data import label_map, load_records
-from perception.guided import GuidedConfig
-from perception.inference import Detection, Estimator
-from perception.split import SplitConfig
+from posegrasp.perception import metrics as M
+from posegrasp.perception.data import label_map, load_records
+from posegrasp.perception.guided import GuidedConfig
+from posegrasp.perception.inference import Detection, Estimator
+from posegrasp.perception.split import SplitConfig
 
 RE_THRESHOLDS = np.linspace(0.0, 30.0, 61)  # degrees
 TE_THRESHOLDS = np.linspace(0.0, 0.05, 51)  # metres

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from perception.crop import padded_box
+from posegrasp.perception.crop import padded_box
 
 
 @dataclass

@@ -33,18 +33,18 @@ import torch
 from threadpoolctl import ThreadpoolController
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from perception import checkpoint as ckpt_mod
-from perception.classifier import ClassifierConfig
-from perception.crop import backproject, mask_bbox, padded_box
-from perception.data import (normalize_cls_input, normalize_rgb, prepare_cls_input,
+from posegrasp.perception import checkpoint as ckpt_mod
+from posegrasp.perception.classifier import ClassifierConfig
+from posegrasp.perception.crop import backproject, mask_bbox, padded_box
+from posegrasp.perception.data import (normalize_cls_input, normalize_rgb, prepare_cls_input,
                              prepare_pose_input, segment_components)
-from perception.guided import GuidedConfig, argmax_planes, refine_labels
-from perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
-from perception.plane import PlaneConfig, clear_plane, fit_support_plane
-from perception.refiner import refine
-from perception.seg_net import SegNetConfig
-from perception.split import ModelSurface, SplitConfig, unexplained_parts
-from perception.torch_geometry import make_transform, quat_to_rotmat
+from posegrasp.perception.guided import GuidedConfig, argmax_planes, refine_labels
+from posegrasp.perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
+from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
+from posegrasp.perception.refiner import refine
+from posegrasp.perception.seg_net import SegNetConfig
+from posegrasp.perception.split import ModelSurface, SplitConfig, unexplained_parts
+from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 from posegrasp import bop
 from posegrasp.errors import UserError
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from perception.torch_geometry import make_transform, quat_to_rotmat
+from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 
 
 def point_distances(pred: torch.Tensor, target: torch.Tensor, symmetric: torch.Tensor,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.crop import backproject
+from posegrasp.perception.crop import backproject
 
 
 @dataclass

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from perception.attention import CAM, GFEM, PAM
+from posegrasp.perception.attention import CAM, GFEM, PAM
 
 
 @dataclass

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from perception.pose_net import PointFusion
-from perception.torch_geometry import make_transform, quat_to_rotmat
+from posegrasp.perception.pose_net import PointFusion
+from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 
 
 @dataclass

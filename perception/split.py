@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from perception.crop import backproject, padded_box
+from posegrasp.perception.crop import backproject, padded_box
 
 
 @dataclass

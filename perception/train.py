@@ -29,14 +29,14 @@ import torch
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
-from perception import checkpoint as ckpt_mod
-from perception.classifier import ClassifierConfig, build_classifier
-from perception.data import ClsDataset, DataConfig, ObjectModels, PoseDataset, SegDataset, collate
-from perception.losses import pose_loss, refine_loss
-from perception.metrics import confusion_matrix, segmentation_scores
-from perception.pose_net import PoseNetConfig, build_pose_net
-from perception.refiner import RefinerConfig, build_refiner
-from perception.seg_net import SegNetConfig, build_seg_net, seg_loss
+from posegrasp.perception import checkpoint as ckpt_mod
+from posegrasp.perception.classifier import ClassifierConfig, build_classifier
+from posegrasp.perception.data import ClsDataset, DataConfig, ObjectModels, PoseDataset, SegDataset, collate
+from posegrasp.perception.losses import pose_loss, refine_loss
+from posegrasp.perception.metrics import confusion_matrix, segmentation_scores
+from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
+from posegrasp.perception.refiner import RefinerConfig, build_refiner
+from posegrasp.perception.seg_net import SegNetConfig, build_seg_net, seg_loss
 
 
 @dataclass
@@ -587,7 +587,7 @@ def train_cls(data: str | Path, out: str | Path, cfg: ClsTrainConfig | None = No
               seed: int | None = None, resume: bool = False, progress: bool = True) -> dict[str, float]:
     """Train the instance classifier on ``data`` (with the segments of ``out/seg`` when present and
     ``cfg.use_seg``); checkpoints in ``out/cls``."""
-    from perception.inference import Segmenter
+    from posegrasp.perception.inference import Segmenter
 
     data, run = Path(data), _Run(Path(out), "cls", resume)
     prior = run.prepare()

@@ -2,7 +2,9 @@
 
 from pathlib import Path
 
+from posegrasp import assets as _assets
+
 __version__ = "0.1.0"
 
-#: Repository assets (block catalogue, scene settings, shipped weights).
-ASSETS = Path(__file__).resolve().parents[1] / "assets"
+#: The shipped assets (block catalogue, scene settings, calibration, weights), installed inside the package.
+ASSETS = Path(_assets.__file__).resolve().parent

@@ -35,12 +35,12 @@ def workers_arg(text: str) -> int | str:
 
 #: Modules that register subcommands, in the order they appear in ``--help``.
 COMMAND_MODULES = (
-    "sim.cli",
-    "datagen.cli",
-    "perception.cli",
-    "grasping.cli",
-    "grasping.compare",
-    "grasping.report",
+    "posegrasp.sim.cli",
+    "posegrasp.datagen.cli",
+    "posegrasp.perception.cli",
+    "posegrasp.grasping.cli",
+    "posegrasp.grasping.compare",
+    "posegrasp.grasping.report",
 )
 
 

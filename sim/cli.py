@@ -48,10 +48,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run_scene(args: argparse.Namespace) -> int:
     from posegrasp.io import write_json, write_png
-    from sim.config import load_workcell_config
-    from sim.scene import SceneConfig, make_scene
-    from sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA
-    from sim.camera import CameraRenderer
+    from posegrasp.sim.config import load_workcell_config
+    from posegrasp.sim.scene import SceneConfig, make_scene
+    from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA
+    from posegrasp.sim.camera import CameraRenderer
 
     wcfg = load_workcell_config(args.config)
     if args.resolution:

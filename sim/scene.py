@@ -14,8 +14,8 @@ import numpy as np
 from posegrasp.catalog import BlockType, load_catalog
 from posegrasp.errors import UserError
 from posegrasp.geometry import make_T, quat_to_R
-from sim.config import WorkcellConfig
-from sim.workcell import BlockInstance, Workcell
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.workcell import BlockInstance, Workcell
 
 #: Block colours (RGB): saturated toy colours and dull, nearly textureless greys and browns.
 PALETTE: tuple[tuple[float, float, float], ...] = (

@@ -19,9 +19,9 @@ from dm_control.entities.manipulators.kinova import JacoArm, JacoHand
 from posegrasp.catalog import BlockType
 from posegrasp.errors import UserError
 from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
-from sim.camera import T_CV_MJ, rpy_deg_to_R
-from sim.config import WorkcellConfig
-from sim.ik import ArmIK
+from posegrasp.sim.camera import T_CV_MJ, rpy_deg_to_R
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.ik import ArmIK
 
 ARM_JOINTS = tuple(f"joint_{i}" for i in range(1, 7))
 FINGER_JOINTS = ("finger_1", "finger_2", "finger_3")

@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from grasping.calibration import (BoardConfig, BoardWorkcell, CalibrationConfig, calibrate, detect_board,
+from posegrasp.grasping.calibration import (BoardConfig, BoardWorkcell, CalibrationConfig, calibrate, detect_board,
                                   load_hand_eye, make_board, park_martin)
-from grasping.config import HAND_EYE_JSON
+from posegrasp.grasping.config import HAND_EYE_JSON
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, invert, make_T, rotation_angle
-from sim.camera import CameraRenderer
-from sim.config import WorkcellConfig
-from sim.workcell import HAND_CAMERA, Workcell
+from posegrasp.sim.camera import CameraRenderer
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.workcell import HAND_CAMERA, Workcell
 
 
 @pytest.fixture(scope="module")

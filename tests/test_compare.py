@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from grasping.compare import compare_runs, is_worse, mcnemar_exact
-from grasping.stats import wilson
+from posegrasp.grasping.compare import compare_runs, is_worse, mcnemar_exact
+from posegrasp.grasping.stats import wilson
 
 
 def test_mcnemar_exact_hand_computed():

@@ -20,9 +20,9 @@ import trimesh
 from matplotlib.path import Path as PolyPath
 from scipy.spatial import ConvexHull
 
-from datagen.check import check_dataset
-from datagen.config import load_datagen_config
-from datagen.generate import STATS_FILE, generate_dataset, is_complete
+from posegrasp.datagen.check import check_dataset
+from posegrasp.datagen.config import load_datagen_config
+from posegrasp.datagen.generate import STATS_FILE, generate_dataset, is_complete
 from posegrasp import bop
 from posegrasp.geometry import invert, transform_points
 from posegrasp.io import read_image
@@ -309,11 +309,11 @@ def test_bad_arguments_exit_code_from_the_shell(tmp_path):
 def test_distractors_occlude_but_are_never_labelled():
     import dataclasses
 
-    from datagen.config import DatagenConfig, DistractorConfig
-    from datagen.render import LabelRenderer
-    from datagen.scene import build_scene
+    from posegrasp.datagen.config import DatagenConfig, DistractorConfig
+    from posegrasp.datagen.render import LabelRenderer
+    from posegrasp.datagen.scene import build_scene
     from posegrasp.geometry import look_at_R, make_T
-    from sim.workcell import HAND_CAMERA
+    from posegrasp.sim.workcell import HAND_CAMERA
 
     cfg = DatagenConfig(blocks=(4, 4), distractors=DistractorConfig(count=(3, 3)))
     wc = build_scene(cfg, np.random.default_rng(2)).workcell

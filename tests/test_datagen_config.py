@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-import datagen
-from datagen.config import DatagenConfig, load_datagen_config
+import posegrasp.datagen as datagen
+from posegrasp.datagen.config import DatagenConfig, load_datagen_config
 from posegrasp.errors import UserError
 
 SHIPPED = Path(datagen.__file__).parent / "datagen.toml"

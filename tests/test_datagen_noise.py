@@ -6,9 +6,9 @@ import dataclasses
 
 import numpy as np
 
-from datagen.config import DepthNoiseConfig, RgbNoiseConfig
-from datagen.noise import noisy_depth, noisy_rgb, projector_shadow
-from sim.camera import intrinsics
+from posegrasp.datagen.config import DepthNoiseConfig, RgbNoiseConfig
+from posegrasp.datagen.noise import noisy_depth, noisy_rgb, projector_shadow
+from posegrasp.sim.camera import intrinsics
 
 H, W = 240, 320
 K = intrinsics(W, H, 55.0)

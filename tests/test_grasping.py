@@ -6,18 +6,18 @@ import mujoco
 import numpy as np
 import pytest
 
-from grasping.config import ControlConfig, GraspConfig
-from grasping.controller import ArmController, finger_angle_for_opening
-from grasping.grasps import object_candidates, plan_grasps, squeeze_axes, surface_points
-from grasping.support import RestConfig, rest_on_table
-from grasping.perception import NoisyOracleProvider, OracleProvider, make_provider, visible_enough
+from posegrasp.grasping.config import ControlConfig, GraspConfig
+from posegrasp.grasping.controller import ArmController, finger_angle_for_opening
+from posegrasp.grasping.grasps import object_candidates, plan_grasps, squeeze_axes, surface_points
+from posegrasp.grasping.support import RestConfig, rest_on_table
+from posegrasp.grasping.perception import NoisyOracleProvider, OracleProvider, make_provider, visible_enough
 from posegrasp.catalog import load_catalog, symmetry_transforms
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T, rotation_angle, transform_points
-from sim.camera import CameraRenderer, Frame
-from sim.config import WorkcellConfig
-from sim.scene import make_scene
-from sim.workcell import HAND_CAMERA, Workcell
+from posegrasp.sim.camera import CameraRenderer, Frame
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.scene import make_scene
+from posegrasp.sim.workcell import HAND_CAMERA, Workcell
 
 DOWN = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # gripper z down, x along -y
 
@@ -129,7 +129,7 @@ def test_oracle_reports_only_visible_blocks(look_frame):
 
 
 def test_model_provider_drops_slivers_like_the_oracle(look_frame):
-    from grasping.model_provider import SHIPPED_MODEL, ModelProvider, _estimator
+    from posegrasp.grasping.model_provider import SHIPPED_MODEL, ModelProvider, _estimator
 
     assert visible_enough(150, (480, 640), 150) and not visible_enough(149, (480, 640), 150)
     assert visible_enough(38, (240, 320), 150) and not visible_enough(37, (240, 320), 150)
@@ -144,10 +144,10 @@ def test_model_provider_drops_slivers_like_the_oracle(look_frame):
 def test_shipped_estimator_drops_segmented_table_pixels(look_frame):
     """The plane step clears the seg net's bleed onto the table before classification; the outline snapping after
     the fits may label pixels within the plane's tolerance again, but they are the blocks' own bottom edges."""
-    from grasping.model_provider import SHIPPED_MODEL, _estimator
-    from perception.guided import GuidedConfig
-    from perception.inference import Estimator
-    from perception.plane import fit_support_plane, plane_pixels
+    from posegrasp.grasping.model_provider import SHIPPED_MODEL, _estimator
+    from posegrasp.perception.guided import GuidedConfig
+    from posegrasp.perception.inference import Estimator
+    from posegrasp.perception.plane import fit_support_plane, plane_pixels
 
     f = look_frame
     plane = fit_support_plane(f.depth, f.K)
@@ -192,7 +192,7 @@ def test_bad_provider_specs(spec):
 
 
 def test_episode_camera_matches_camera_renderer_across_scenes():
-    from grasping.render import EpisodeCamera
+    from posegrasp.grasping.render import EpisodeCamera
 
     for seed in (1, 2):
         wc = make_scene(seed, 3).workcell
@@ -234,9 +234,9 @@ def test_shipped_estimator_splits_a_mask_holding_two_blocks(look_frame):
     """A detection fitted to block 1 whose mask also holds block 2 (two touching blocks segmented as one) is
     split: block 1 is fitted again to its own pixels, block 2 becomes a detection of its own, typed by the
     classifier and fitted by the pose net and ICP."""
-    from grasping.model_provider import SHIPPED_MODEL, _estimator
-    from perception.inference import Detection
-    from perception.plane import fit_support_plane
+    from posegrasp.grasping.model_provider import SHIPPED_MODEL, _estimator
+    from posegrasp.perception.inference import Detection
+    from posegrasp.perception.plane import fit_support_plane
 
     f = look_frame
     est = _estimator(str(SHIPPED_MODEL))

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from grasping.config import TrialConfig
-from grasping.report import REPORT, register, resimulate_look, write_report
-from grasping.trials import EPISODES, run_trials
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.report import REPORT, register, resimulate_look, write_report
+from posegrasp.grasping.trials import EPISODES, run_trials
 from posegrasp.errors import UserError
 
 CHROMIUM = Path("/usr/bin/chromium")

@@ -9,9 +9,9 @@ import sys
 
 import pytest
 
-from grasping.config import TrialConfig
-from grasping.stats import wilson
-from grasping.trials import EPISODES, run_trials
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.stats import wilson
+from posegrasp.grasping.trials import EPISODES, run_trials
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,10 @@ import pytest
 import trimesh
 
 from posegrasp.geometry import invert, rotation_angle
-from sim.camera import CameraRenderer, Frame
-from sim.config import WorkcellConfig
-from sim.scene import SceneConfig, make_scene
-from sim.workcell import HAND_CAMERA
+from posegrasp.sim.camera import CameraRenderer, Frame
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.scene import SceneConfig, make_scene
+from posegrasp.sim.workcell import HAND_CAMERA
 
 
 def capture_at_look(seed: int, n_blocks: int = 5, width: int = 640, height: int = 480) -> tuple[Frame, object]:
@@ -66,7 +66,7 @@ def test_depth_lies_on_model_surface(look_frame):
 
 def pyrender_silhouettes(frame: Frame, scene, width: int, height: int) -> list[np.ndarray]:
     """Each block rendered alone by pyrender from its PLY-equivalent mesh at the ground-truth pose."""
-    from grasping.report import silhouette
+    from posegrasp.grasping.report import silhouette
 
     return [silhouette(inst.block, frame.T_cam_obj[k], frame.K, width, height) for k, inst in enumerate(scene.blocks)]
 
@@ -120,8 +120,8 @@ def test_hand_camera_sees_whole_pick_area(look_frame):
 
 
 def test_camera_mount_matches_config():
-    from sim.workcell import Workcell
-    from sim.camera import rpy_deg_to_R
+    from posegrasp.sim.workcell import Workcell
+    from posegrasp.sim.camera import rpy_deg_to_R
 
     cfg = WorkcellConfig()
     T = Workcell(cfg).T_gripper_cam()
@@ -130,7 +130,7 @@ def test_camera_mount_matches_config():
 
 
 def test_shipped_toml_equals_defaults():
-    from sim.config import load_workcell_config
+    from posegrasp.sim.config import load_workcell_config
 
     assert load_workcell_config() == WorkcellConfig()
 
@@ -139,7 +139,7 @@ def test_unplaced_blocks_touch_nothing():
     """Blocks wait apart, off the table, until placed: compiled all at the origin, 8 large hulls overlapping each
     other and the arm overflowed MuJoCo's constraint memory at the first forward pass (a datagen scene did)."""
     from posegrasp.catalog import load_catalog
-    from sim.workcell import BlockInstance, Workcell
+    from posegrasp.sim.workcell import BlockInstance, Workcell
 
     cat = load_catalog()
     big = max(cat.values(), key=lambda b: b.diameter)

@@ -118,11 +118,11 @@ def tiny_bop(tmp_path_factory) -> Path:
 
 def tiny_configs():
     """Small, fast training configs for the tiny dataset (CPU, a few seconds each)."""
-    from perception.data import DataConfig
-    from perception.pose_net import PoseNetConfig
-    from perception.refiner import RefinerConfig
-    from perception.seg_net import SegNetConfig
-    from perception.train import PoseTrainConfig, RefineTrainConfig, SegTrainConfig
+    from posegrasp.perception.data import DataConfig
+    from posegrasp.perception.pose_net import PoseNetConfig
+    from posegrasp.perception.refiner import RefinerConfig
+    from posegrasp.perception.seg_net import SegNetConfig
+    from posegrasp.perception.train import PoseTrainConfig, RefineTrainConfig, SegTrainConfig
 
     data = DataConfig(num_model_points=200, model_pool=1000)
     seg = SegTrainConfig(model=SegNetConfig(width=0.125, input_size=(96, 128)), data=data, batch_size=2, lr=0.05,
@@ -138,8 +138,8 @@ def tiny_configs():
 
 def tiny_cls_config():
     """A small instance classifier training config for the tiny dataset."""
-    from perception.classifier import ClassifierConfig
-    from perception.train import ClsTrainConfig
+    from posegrasp.perception.classifier import ClassifierConfig
+    from posegrasp.perception.train import ClsTrainConfig
 
     return ClsTrainConfig(model=ClassifierConfig(widths=(8, 16), crop_size=32), batch_size=16, lr=1e-2,
                           log_every=1, checkpoint_every=10, eval_every=0)
@@ -160,7 +160,7 @@ def tiny_configs_fixture():
 @pytest.fixture(scope="session")
 def tiny_run(tiny_bop, tmp_path_factory) -> Path:
     """A run directory with seg/, pose/, refine/ and cls/ trained for a few steps on the tiny dataset."""
-    from perception.train import train_cls, train_pose, train_refine, train_seg
+    from posegrasp.perception.train import train_cls, train_pose, train_refine, train_seg
 
     out = tmp_path_factory.mktemp("tiny_run")
     seg, pose, refine = tiny_configs()

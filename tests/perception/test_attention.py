@@ -2,7 +2,7 @@
 
 import torch
 
-from perception.attention import CAM, GFEM, PAM
+from posegrasp.perception.attention import CAM, GFEM, PAM
 
 torch.set_num_threads(1)
 

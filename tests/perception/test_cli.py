@@ -6,7 +6,7 @@ import tomllib
 
 import pytest
 
-from perception import cli
+from posegrasp.perception import cli
 from posegrasp import ASSETS
 from posegrasp.config import load_toml
 from posegrasp.errors import UserError
@@ -63,7 +63,7 @@ def test_perturb_rejects_bad_input(tiny_run, tmp_path, argv, message):
 
 @pytest.mark.parametrize("path", sorted((ASSETS / "perception").glob("*.toml")), ids=lambda p: p.name)
 def test_shipped_training_configs_load(path):
-    from perception import train as T
+    from posegrasp.perception import train as T
 
     sections = tomllib.loads(path.read_text())
     classes = {"seg": T.SegTrainConfig, "pose": T.PoseTrainConfig, "refine": T.RefineTrainConfig,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from perception.crop import backproject, crop_box, remap_choose, sample_choose
+from posegrasp.perception.crop import backproject, crop_box, remap_choose, sample_choose
 
 
 def _mask(r0, r1, c0, c1, shape=(480, 640)):

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from perception.data import DataConfig, PoseDataset, SegDataset, collate
-from perception.metrics import nearest_distances
+from posegrasp.perception.data import DataConfig, PoseDataset, SegDataset, collate
+from posegrasp.perception.metrics import nearest_distances
 
 
 def test_pose_samples_are_consistent(tiny_bop):
@@ -67,7 +67,7 @@ def test_seg_samples(tiny_bop):
 
 
 def test_cls_crop_has_a_fixed_metric_size():
-    from perception.data import prepare_cls_input
+    from posegrasp.perception.data import prepare_cls_input
 
     K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
     for z in (0.3, 0.6):  # a 0.08 m square face, fronto-parallel, at two distances
@@ -89,8 +89,8 @@ def test_cls_crop_has_a_fixed_metric_size():
 def test_cls_crop_height_channel_is_the_height_above_the_plane():
     """A 3 cm plateau on a table seen by a camera tilted 35 deg: the relative depth ramps across the plateau, its
     height above the plane does not; the plane the crop uses is the one RANSAC finds in the depth image."""
-    from perception.data import prepare_cls_input
-    from perception.plane import fit_support_plane
+    from posegrasp.perception.data import prepare_cls_input
+    from posegrasp.perception.plane import fit_support_plane
 
     K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
     a = np.radians(35.0)
@@ -116,7 +116,7 @@ def test_cls_crop_height_channel_is_the_height_above_the_plane():
 
 
 def test_cls_samples_from_gt_and_from_segments(tiny_bop):
-    from perception.data import ClsDataset, label_map, load_records
+    from posegrasp.perception.data import ClsDataset, label_map, load_records
 
     kw = dict(size=32, side=0.16, depth_range=0.05)
     gt_only = ClsDataset(tiny_bop, "train", [1, 2, 3], **kw, segmenter=lambda rgb: np.zeros(rgb.shape[:2], int))
@@ -134,7 +134,7 @@ def test_cls_samples_from_gt_and_from_segments(tiny_bop):
 
 
 def test_cls_crops_are_cached_for_the_same_segmenter_and_settings(tiny_bop, tmp_path):
-    from perception.data import ClsDataset
+    from posegrasp.perception.data import ClsDataset
 
     calls = []
     perfect = ground_truth_segmenter(tiny_bop, calls)
@@ -165,7 +165,7 @@ def test_cls_crops_are_cached_for_the_same_segmenter_and_settings(tiny_bop, tmp_
 
 def ground_truth_segmenter(root, calls):
     """A segmenter returning the ground truth of the dataset at ``root`` (calls counted in ``calls``)."""
-    from perception.data import label_map, load_records
+    from posegrasp.perception.data import label_map, load_records
 
     by_rgb = {r.load_rgb().tobytes(): r for r in load_records(root, "train")}
 
@@ -176,7 +176,7 @@ def ground_truth_segmenter(root, calls):
 
 
 def test_cls_background_samples_are_segments_mostly_off_the_objects(tiny_bop):
-    from perception.data import ClsDataset, label_map, load_records
+    from posegrasp.perception.data import ClsDataset, label_map, load_records
 
     by_rgb = {r.load_rgb().tobytes(): r for r in load_records(tiny_bop, "train")}
     placed = []

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from perception.data import label_map, normalize_cls_input, prepare_cls_input
-from perception.evaluate import EvalConfig, evaluate
-from perception.inference import Detection, Estimator
-from perception.train import train_cls
+from posegrasp.perception.data import label_map, normalize_cls_input, prepare_cls_input
+from posegrasp.perception.evaluate import EvalConfig, evaluate
+from posegrasp.perception.inference import Detection, Estimator
+from posegrasp.perception.train import train_cls
 from posegrasp import bop
 from posegrasp.errors import UserError
 
@@ -93,7 +93,7 @@ def test_estimator_api(tiny_bop, tiny_run):
 def test_duplicates_of_one_block_are_dropped(tiny_bop, tiny_run):
     """Two detections of one type whose centres are closer than half the block's smallest side are one block: the one
     with the smaller mask goes; detections of another type, or farther apart, stay."""
-    from perception.split import SplitConfig
+    from posegrasp.perception.split import SplitConfig
 
     est = Estimator(tiny_run, models=tiny_bop)
     side = float(np.ptp(est.model_points[1], axis=0).min())
@@ -119,7 +119,7 @@ def test_estimator_runs_numpy_blas_on_one_thread(tiny_bop, tiny_run, monkeypatch
     outside, the process's setting is left as it was."""
     from threadpoolctl import threadpool_info
 
-    import perception.inference as inference
+    import posegrasp.perception.inference as inference
 
     def blas_threads() -> set[int]:
         return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}

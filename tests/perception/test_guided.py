@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from perception.guided import GuidedConfig, guided_filter, refine_labels
+from posegrasp.perception.guided import GuidedConfig, guided_filter, refine_labels
 
 
 def _textured_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

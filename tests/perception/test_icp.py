@@ -6,8 +6,8 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from perception.icp import ICPConfig, NearestGrid, cube_rotations, distinct_rotations, refine_pose, refine_poses
-from perception.metrics import rotation_error_sym_deg
+from posegrasp.perception.icp import ICPConfig, NearestGrid, cube_rotations, distinct_rotations, refine_pose, refine_poses
+from posegrasp.perception.metrics import rotation_error_sym_deg
 from posegrasp import bop
 from posegrasp.geometry import axis_angle_R, make_T
 
@@ -59,7 +59,7 @@ def test_grids_posed_and_exact_lookups():
     """Two objects' grids as one lookup: camera-frame points under poses (R, t) find the cells their object-frame
     points find (but for the odd point on a cell boundary), and ``exact`` gives each point's true nearest model
     point, its row within its own model."""
-    from perception.icp import _Grids
+    from posegrasp.perception.icp import _Grids
 
     rng = np.random.default_rng(1)
     models = [rng.uniform(-1, 1, (500, 3)) * [0.03, 0.015, 0.01], rng.uniform(-1, 1, (300, 3)) * 0.02]

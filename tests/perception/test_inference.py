@@ -3,7 +3,7 @@
 def test_segment_components_split_separated_blocks_of_one_type():
     import numpy as np
 
-    from perception.data import segment_components
+    from posegrasp.perception.data import segment_components
 
     m = np.zeros((40, 60), np.int64)
     m[5:15, 5:15] = 4  # block A
@@ -23,7 +23,7 @@ def test_segment_components_are_each_classes_instances_in_raster_order():
     import cv2
     import numpy as np
 
-    from perception.data import segment_components
+    from posegrasp.perception.data import segment_components
 
     labels = np.zeros((40, 60), np.int64)
     labels[2:6, 50:54] = 3  # a region that fills its box
@@ -46,7 +46,7 @@ def test_segment_components_are_each_classes_instances_in_raster_order():
 def test_argmax_planes_is_numpys_argmax_first_on_ties():
     import numpy as np
 
-    from perception.guided import argmax_planes
+    from posegrasp.perception.guided import argmax_planes
 
     x = np.random.default_rng(0).integers(0, 4, (7, 30, 40)).astype(np.float32)  # many ties
     assert argmax_planes(x).dtype == np.uint16
@@ -60,7 +60,7 @@ def test_upsampled_argmax_is_the_argmax_of_the_resized_probabilities():
     import numpy as np
     import torch
 
-    from perception.inference import upsampled_argmax
+    from posegrasp.perception.inference import upsampled_argmax
 
     logits = cv2.GaussianBlur(np.random.default_rng(1).normal(0, 4, (48, 64, 6)).astype(np.float32), (9, 9), 3)
     small = torch.softmax(torch.from_numpy(logits), dim=-1).numpy()  # (h, w, C)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from perception import metrics
-from perception.losses import point_distances, pose_loss, refine_loss
-from perception.torch_geometry import quat_to_rotmat
+from posegrasp.perception import metrics
+from posegrasp.perception.losses import point_distances, pose_loss, refine_loss
+from posegrasp.perception.torch_geometry import quat_to_rotmat
 from posegrasp.geometry import quat_to_R
 
 torch.set_num_threads(1)
@@ -74,7 +74,7 @@ def test_symmetric_loss_ignores_symmetry():
 
 
 def test_min_symmetry_loss_is_zero_at_every_symmetric_pose_and_not_at_a_near_symmetry():
-    from perception.losses import min_symmetry_targets
+    from posegrasp.perception.losses import min_symmetry_targets
 
     # a 60 x 30 x 20 mm box; its true symmetries: 180 deg about z (and x, y); a 90 deg turn about z is not one
     g = torch.Generator().manual_seed(0)

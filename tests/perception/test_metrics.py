@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from perception import metrics as m
+from posegrasp.perception import metrics as m
 from posegrasp.geometry import axis_angle_R, quat_to_R
 
 

@@ -7,11 +7,11 @@ import dataclasses
 import pytest
 import torch
 
-from perception.classifier import ClassifierConfig, build_classifier
-from perception.inference import for_inference
-from perception.pose_net import PoseNetConfig, build_pose_net
-from perception.refiner import RefinerConfig, build_refiner, refine
-from perception.seg_net import SegNetConfig, build_seg_net, seg_loss
+from posegrasp.perception.classifier import ClassifierConfig, build_classifier
+from posegrasp.perception.inference import for_inference
+from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
+from posegrasp.perception.refiner import RefinerConfig, build_refiner, refine
+from posegrasp.perception.seg_net import SegNetConfig, build_seg_net, seg_loss
 
 torch.set_num_threads(2)
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from perception.icp import ICPConfig, refine_pose
-from perception.plane import clear_plane, fit_support_plane, plane_pixels
+from posegrasp.perception.icp import ICPConfig, refine_pose
+from posegrasp.perception.plane import clear_plane, fit_support_plane, plane_pixels
 
 K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from perception.split import ModelSurface, SplitConfig, unexplained_parts
+from posegrasp.perception.split import ModelSurface, SplitConfig, unexplained_parts
 
 K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
 

@@ -5,8 +5,8 @@ import shutil
 
 import pytest
 
-from perception import checkpoint
-from perception.inference import Estimator
+from posegrasp.perception import checkpoint
+from posegrasp.perception.inference import Estimator
 from posegrasp.errors import UserError
 
 
