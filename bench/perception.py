@@ -37,10 +37,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 from posegrasp.perception import checkpoint
 from posegrasp import ASSETS
 from posegrasp.perception.classifier import ClassifierConfig, build_classifier
+from posegrasp.perception.estimator import Estimator, EstimatorConfig
 from posegrasp.perception.plane import fit_support_plane, plane_pixels
-from posegrasp.perception.inference import Estimator, one_blas_thread
 from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
 from posegrasp.perception.refiner import RefinerConfig, build_refiner
+from posegrasp.perception.runtime import one_blas_thread
 from posegrasp.perception.seg_net import SegNetConfig, build_seg_net
 
 OBJ_IDS = [1, 2, 3, 4, 5, 6, 7, 8]
@@ -80,8 +81,6 @@ def sim_frame(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[t
 
 def bench(est: Estimator, repeats: int, warmup: int) -> dict[str, dict[str, float]]:
     """Stage timings of ``est`` (built with the catalogue's meshes, for the depth refinement) on ``sim_frame()``."""
-    if est.refine_iterations == 0 and est.refiner is not None:
-        est.refine_iterations = est.refiner_cfg.iterations
     rgb, depth, K, masks = sim_frame()
     masks = [(o, m) for o, m in masks if o in est.obj_ids]
     labels = np.zeros(rgb.shape[:2], dtype=np.int64)  # the 5 blocks' true class map as the seg net's
@@ -96,17 +95,15 @@ def bench(est: Estimator, repeats: int, warmup: int) -> dict[str, dict[str, floa
         plane = fit_support_plane(depth, K, est.seed, est.plane_cfg)
         plane_pixels(plane, depth, K, labels > 0, est.plane_cfg.mask_tol)
         t1 = time.perf_counter()
-        if est.classifiers:
+        if est.classifier is not None:
             est.classify(rgb, depth, K, labels, plane)
         t15 = time.perf_counter()
-        dets = est.estimate(rgb, depth, K, masks, plane=plane)
+        dets, stages = est.estimate(rgb, depth, K, masks, plane=plane)
         assert len(dets) == len(masks)
-        t19, stages = time.perf_counter(), dict(est.timings)  # _split's own fits overwrite est.timings
-        est.last_labels = labels.copy()
-        est.split_merged(rgb, depth, K, dets, prob, plane)
+        t19 = time.perf_counter()
+        est.split_merged(rgb, depth, K, dets, prob, plane, labels)
         t195 = time.perf_counter()
-        est.last_labels = labels.copy()
-        est.snap_outlines(rgb, dets)
+        est.snap_outlines(rgb, labels, dets)
         t2 = time.perf_counter()
         if i >= warmup:
             times["seg"].append(t05 - t0)
@@ -132,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         weights = args.weights or make_default_run(Path(tmp))
-        est = Estimator(weights, models=ASSETS / "blocks")  # the catalogue's meshes, for the depth refinement
+        est = Estimator(weights, EstimatorConfig(models=ASSETS / "blocks"))  # the catalogue's meshes, for the ICP
         cfg = {"seg_input_size": list(est.seg_cfg.input_size), "seg_width": est.seg_cfg.width,
                "num_points": est.pose_points, "crop_size": est.pose_crop,
                "backbone_width": est.pose_cfg.backbone_width,

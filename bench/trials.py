@@ -21,7 +21,8 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 from rich.console import Console
 
 from posegrasp.grasping.config import TrialConfig
-from posegrasp.grasping.trials import TIMINGS, read_records, run_trials
+from posegrasp.grasping.runfolder import TIMINGS, read_records
+from posegrasp.grasping.trials import run_trials
 
 
 def main(episodes: int = 60, workers: int = 2) -> dict:

@@ -1,1 +1,1 @@
-"""Synthetic RGB-D datasets in BOP format from the simulated workcell (``posegrasp datagen``, ``posegrasp dataset``)."""
+"""Synthetic RGB-D datasets in BOP format from the simulated workcell (``posegrasp datagen``)."""

@@ -1,4 +1,4 @@
-"""``posegrasp datagen`` (write a synthetic BOP dataset) and ``posegrasp dataset check|show`` (inspect one)."""
+"""``posegrasp datagen``: write a synthetic BOP dataset (``posegrasp dataset check|show`` inspect it)."""
 
 from __future__ import annotations
 
@@ -36,22 +36,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_datagen)
 
-    d = sub.add_parser("dataset", help="check or draw a BOP dataset")
-    dsub = d.add_subparsers(dest="dataset_command", required=True, parser_class=type(d))
-    c = dsub.add_parser("check", help="validate a BOP dataset and print a summary (exit 1 when invalid)")
-    c.add_argument("dir", help="dataset root (holding models/, camera.json and split folders)")
-    c.add_argument("--split", default=None, help="only this split (default: every split found)")
-    c.add_argument("--depth-tol-mm", type=float, default=5.0, help="max median depth-to-model distance (mm)")
-    c.add_argument("--max-images", type=positive_int("--max-images"), default=None, help="check at most N images per scene")
-    c.set_defaults(run=run_check)
-    s = dsub.add_parser("show", help="draw one image with masks, 3D boxes and axes next to its depth")
-    s.add_argument("dir", help="dataset root")
-    s.add_argument("--scene", type=int, required=True, help="scene id")
-    s.add_argument("--im", type=int, required=True, help="image id")
-    s.add_argument("--out", required=True, help="output image (.png, or .jpg)")
-    s.add_argument("--split", default=None, help="split (default: the only one present)")
-    s.set_defaults(run=run_show)
-
 
 def load_config(args: argparse.Namespace):
     """The generation settings: TOML file (or defaults), overridden by the command-line flags."""
@@ -88,37 +72,4 @@ def run_datagen(args: argparse.Namespace) -> int:
               f"({fps:.1f} frames/s) -> {out}/{args.split}")
     print(f"dataset: {s['images']} images, {s['instances']} instances; viewpoints: {v['candidates']} drawn, "
           f"{v['out_of_reach']} out of reach, {v['unreachable']} failed IK, {v['blocked']} not reached")
-    return 0
-
-
-def run_check(args: argparse.Namespace) -> int:
-    from posegrasp.datagen.check import check_dataset, print_report
-
-    report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images, progress=True)
-    print_report(report, args.dir)
-    return 0 if report.ok else 1
-
-
-def run_show(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from posegrasp.datagen.check import find_splits
-    from posegrasp.datagen.show import show_image
-    from posegrasp.io import write_jpg, write_png
-
-    root = Path(args.dir)
-    if not root.is_dir():
-        raise UserError(f"dataset folder {root} does not exist")
-    split = args.split
-    if split is None:
-        splits = find_splits(root)
-        if len(splits) != 1:
-            raise UserError(f"{root} has splits {splits or 'none'}; choose one with --split")
-        split = splits[0]
-    panel = show_image(root, split, args.scene, args.im)
-    try:
-        (write_jpg if Path(args.out).suffix.lower() in (".jpg", ".jpeg") else write_png)(args.out, panel)
-    except OSError as e:
-        raise UserError(f"cannot write {args.out}: {e.strerror or e}") from None
-    print(f"scene {args.scene} image {args.im} -> {args.out}")
     return 0

@@ -3,30 +3,21 @@
 Two MuJoCo render passes per frame (colour; segmentation with the depth buffer read alongside), then each
 block rendered alone for its amodal mask, in a viewport cropped to its projected bounding box with the
 frustum cropped to match, so the pixels are exactly those of a full-image render of the block alone, at a
-fraction of the cost. One GL context per process is reused across scenes (each scene only gets a new
-``MjrContext`` for its model).
+fraction of the cost. It draws in the process's GL context (``sim.gl``): each scene only gets new
+``MjrContext``s for its model.
 """
 
 from __future__ import annotations
-
-import functools
 
 import mujoco
 import numpy as np
 
 from posegrasp.geometry import invert, transform_points
+from posegrasp.sim import gl
 from posegrasp.sim.camera import Frame, intrinsics
 from posegrasp.sim.workcell import Workcell
 
 _SEG_FLAGS = (mujoco.mjtRndFlag.mjRND_SEGMENT, mujoco.mjtRndFlag.mjRND_IDCOLOR)
-
-
-@functools.lru_cache(maxsize=1)
-def _gl_context() -> "mujoco.GLContext":
-    """This process's GL context (EGL/OSMesa per ``MUJOCO_GL``), created once and kept alive."""
-    ctx = mujoco.GLContext(64, 64)  # offscreen rendering goes to MuJoCo's own framebuffer object
-    ctx.make_current()
-    return ctx
 
 
 class LabelRenderer:
@@ -39,13 +30,11 @@ class LabelRenderer:
     def __init__(self, workcell: Workcell, camera: str, width: int, height: int, fovy_deg: float,
                  near: float, far: float, shadows: bool = False, reflections: bool = False, msaa: int = 4):
         m = workcell.model
-        if width > m.vis.global_.offwidth or height > m.vis.global_.offheight:
-            raise ValueError(f"{width}x{height} exceeds the model's offscreen buffer "
-                             f"{m.vis.global_.offwidth}x{m.vis.global_.offheight}")
+        gl.check_offscreen_size(m, width, height)
         self.wc, self.camera = workcell, camera
         self.width, self.height, self.near, self.far = width, height, near, far
         self.K = intrinsics(width, height, fovy_deg)
-        _gl_context().make_current()
+        gl.make_current()
         # two GL resource sets: multisampled (anti-aliased) for colour, single-sampled for labels and depth
         self.con_rgb, self.con = self._context(m, msaa), self._context(m, 0)
         self.con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
@@ -80,14 +69,14 @@ class LabelRenderer:
     def close(self) -> None:
         """Free this model's GL resources (the process's GL context stays)."""
         if self.con is not None:
-            _gl_context().make_current()
+            gl.make_current()
             self.con.free()
             self.con_rgb.free()
             self.con = self.con_rgb = None
 
     # -- passes ----------------------------------------------------------------------------------------
     def _update(self, option: mujoco.MjvOption) -> None:
-        _gl_context().make_current()  # another renderer in this process may have switched contexts
+        gl.make_current()  # another library (pyrender) may have switched contexts
         mujoco.mjv_updateScene(self.wc.model, self.wc.data, option, None, self.cam,
                                mujoco.mjtCatBit.mjCAT_ALL.value, self.scene)
 
@@ -95,7 +84,7 @@ class LabelRenderer:
         """Segmentation colours on/off, and the matching resources bound (single-sampled for labels)."""
         for f in _SEG_FLAGS:
             self.scene.flags[f] = on
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.con if on else self.con_rgb)
+        gl.bind_offscreen(self.con if on else self.con_rgb)
 
     def _metric_depth(self, raw: np.ndarray) -> np.ndarray:
         """Reversed-Z depth buffer -> metres along the optical axis (as ``mujoco.Renderer`` does)."""

@@ -3,22 +3,20 @@
 Per scene: ``rgb/`` (jpg or png), ``depth/`` (uint16 png, value x depth_scale = mm), optional ``depth_clean/``,
 ``mask/`` (amodal) and ``mask_visib/`` (0/255 png per annotation), then ``scene_camera.json``,
 ``scene_gt.json``, ``scene_datagen.json`` (what generation did) and, last, ``scene_gt_info.json``: a scene
-is complete exactly when that file exists.
+is complete exactly when that file exists. The bytes of every file come from ``posegrasp.bop``.
 
 Image files are renamed into place without a per-file fsync (a killed process still never leaves a partial
-file); one ``os.sync()`` before the JSON files (written with ``posegrasp.io``, fsynced) makes sure a scene
-marked complete has all its images on disk even after a power cut. Per-file fsyncs cost 10-40 ms a frame.
+file); one ``os.sync()`` before the JSON files (fsynced) makes sure a scene marked complete has all its
+images on disk even after a power cut. Per-file fsyncs cost 10-40 ms a frame.
 """
 
 from __future__ import annotations
 
 import functools
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from posegrasp import ASSETS, bop
@@ -29,37 +27,11 @@ from posegrasp.sim.camera import Frame
 
 COMPLETE_FILE = "scene_gt_info.json"
 SOURCE_MODELS = ASSETS / "blocks" / "models"
-#: PNG settings, the fastest (and smallest) measured for each kind: unfiltered rows for noisy depth, plus
-#: run-length deflate for masks; sub-filtered rows for colour images.
-_PNG_NONE = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
-_PNG_MASK = [*_PNG_NONE, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
-_PNG_SUB = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
 
 
-def encode(ext: str, img: np.ndarray, params: list[int]) -> bytes:
-    """Encode an image (RGB channel order for colour) to PNG/JPEG bytes."""
-    ok, buf = cv2.imencode(ext, np.ascontiguousarray(img[..., ::-1] if img.ndim == 3 else img), params)
-    if not ok:
-        raise OSError(f"could not encode {ext} image")
-    return buf.tobytes()
-
-
-def encode_mask(mask: np.ndarray) -> bytes:
-    """A boolean mask as a 0/255 8-bit PNG."""
-    return encode(".png", np.asarray(mask, bool).view(np.uint8) * np.uint8(255), _PNG_MASK)
-
-
-def put(path: Path, data: bytes) -> None:
-    """Write ``data`` under a temporary name beside ``path``, then rename it into place (no fsync)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+def _put(path: Path, data: bytes) -> None:
+    """Write an image file atomically, without fsync (``SceneWriter.finish`` syncs once per scene)."""
+    pio.write_bytes(path, data, fsync=False)
 
 
 def write_if_changed(path: Path, data: bytes) -> None:
@@ -86,20 +58,6 @@ def prepare_root(root: Path, camera: bop.Camera) -> None:
     bop.write_camera(root, camera)
 
 
-def gt_info(amodal: np.ndarray, visib: np.ndarray, depth: np.ndarray, box: tuple[int, int, int, int] | None) -> bop.GTInfo:
-    """``scene_gt_info`` entry of one object, computed inside its box [x0, x1) x [y0, y1) when the masks fit."""
-    if box is None:
-        return bop.gt_info_from_masks(amodal, visib, depth) if visib.any() else bop.GTInfo()
-    x0, y0, x1, y1 = box
-    sl = np.s_[y0:y1, x0:x1]
-    if np.count_nonzero(visib[sl]) != np.count_nonzero(visib):
-        return bop.gt_info_from_masks(amodal, visib, depth)
-    info = bop.gt_info_from_masks(amodal[sl], visib[sl], depth[sl])
-    shift = lambda b: (b[0] + x0, b[1] + y0, b[2], b[3]) if b[2] > 0 else b  # noqa: E731
-    info.bbox_obj, info.bbox_visib = shift(info.bbox_obj), shift(info.bbox_visib)
-    return info
-
-
 class SceneWriter:
     """Accumulates one scene's frames and labels and writes them into ``<root>/<split>/<scene>/``."""
 
@@ -115,24 +73,20 @@ class SceneWriter:
         """Write image ``im_id``: ``rgb`` and ``depth`` (m) as measured, masks and labels from ``frame``
         (``frame.extra``: ``amodal`` masks and their pixel ``boxes``)."""
         d = self.dir
-        if self.rgb_ext == "jpg":
-            data = encode(".jpg", rgb, [cv2.IMWRITE_JPEG_QUALITY, self.jpg_quality])
-        else:
-            data = encode(".png", rgb, _PNG_SUB)
-        put(bop.image_path(d, "rgb", im_id, self.rgb_ext), data)
-        put(bop.image_path(d, "depth", im_id), encode(".png", bop.depth_to_png(depth, self.depth_scale), _PNG_NONE))
+        _put(bop.image_path(d, "rgb", im_id, self.rgb_ext), bop.encode_rgb(rgb, self.rgb_ext, self.jpg_quality))
+        _put(bop.image_path(d, "depth", im_id), bop.encode_depth(depth, self.depth_scale))
         if clean_depth:
             (d / "depth_clean").mkdir(exist_ok=True)
-            put(bop.image_path(d, "depth_clean", im_id),
-                encode(".png", bop.depth_to_png(frame.depth, self.depth_scale), _PNG_NONE))
+            _put(bop.image_path(d, "depth_clean", im_id), bop.encode_depth(frame.depth, self.depth_scale))
         gts, infos = [], []
         for i, (oid, T) in enumerate(zip(frame.obj_ids, frame.T_cam_obj)):
             amodal, box, visib = frame.extra["amodal"][i], frame.extra["boxes"][i], frame.mask == i + 1
-            info = gt_info(amodal, visib, depth, box)
-            full_png = encode_mask(amodal) if info.px_count_all else self._empty_mask(amodal.shape)
+            # no box: the block is not in front of the camera, its masks are empty
+            info = bop.gt_info_from_masks(amodal, visib, depth, box) if box is not None or visib.any() else bop.GTInfo()
+            full_png = bop.encode_mask(amodal) if info.px_count_all else self._empty_mask(amodal.shape)
             same = info.px_count_visib == info.px_count_all and np.array_equal(visib, amodal)  # fully visible
-            put(bop.mask_path(d, im_id, i, visible=False), full_png)
-            put(bop.mask_path(d, im_id, i, visible=True), full_png if same else encode_mask(visib))
+            _put(bop.mask_path(d, im_id, i, visible=False), full_png)
+            _put(bop.mask_path(d, im_id, i, visible=True), full_png if same else bop.encode_mask(visib))
             gts.append((int(oid), T))
             infos.append(info)
         self.gt[im_id], self.infos[im_id] = gts, infos
@@ -142,7 +96,7 @@ class SceneWriter:
     @staticmethod
     @functools.lru_cache(maxsize=4)
     def _empty_mask(shape: tuple[int, int]) -> bytes:
-        return encode_mask(np.zeros(shape, bool))
+        return bop.encode_mask(np.zeros(shape, bool))
 
     def finish(self, extra: dict[str, Any]) -> None:
         """Flush the images to disk, then write the JSON files, ``scene_gt_info.json`` last (scene complete)."""

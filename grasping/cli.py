@@ -22,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="trial settings TOML (grasping.config.TrialConfig layout)")
     p.add_argument("--sweep-noise", action="store_true",
                    help="run noisy-oracle campaigns at increasing noise and plot success against pose error")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_trials_cmd)
 
     c = sub.add_parser("calibrate", help="hand-eye calibration of the hand camera with a ChArUco board")
@@ -40,10 +41,10 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
     cfg = load_trial_config(args.config)
     out = writable_dir(args.out)
     if args.sweep_noise:
-        sweep_noise(out, args.episodes, args.seed, args.workers, cfg)
+        sweep_noise(out, args.episodes, args.seed, args.workers, cfg, progress=not args.no_progress)
         print(f"noise sweep -> {out / 'sweep.png'}")
     else:
-        run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg)
+        run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg, progress=not args.no_progress)
     return 0
 
 

@@ -17,9 +17,9 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from posegrasp.grasping.stats import rate_row
-from posegrasp.grasping.trials import EPISODES, read_records
 from posegrasp.errors import UserError
+from posegrasp.grasping.runfolder import EPISODES, read_records
+from posegrasp.grasping.stats import rate_row
 from posegrasp.io import write_json
 
 

@@ -37,6 +37,9 @@ class ControlConfig:
     finger_speed: float = 4.0  # finger closing velocity command (rad/s)
     release_speed: float = 0.6  # finger opening speed when releasing a block (rad/s)
     max_speed: float = 50.0  # any joint faster than this (rad/s or m/s) is a simulation error
+    look_tol: float = 0.01  # the arm has reached the look pose when every joint is within this (rad) ...
+    look_timeout: float = 4.0  # ... within this time, else the episode times out
+    look_gain: float = 10.0  # P gain (1/s) of the joint drive to the look pose
 
 
 @dataclass(frozen=True)
@@ -51,7 +54,12 @@ class GraspConfig:
     max_tilt_deg: float = 50.0  # candidate approach directions within this angle of straight down
     clearance_min: float = 0.004  # neighbours' surfaces at least this far from the finger box (m)
     reach_tol: float = 0.004  # IK position residual (m) accepted as reachable
+    grasps_per_block: int = 4  # the best this many grasps of each estimated block compete ...
+    detection_weight: float = 0.2  # ... ranked by grasp score + this x the estimate's confidence ...
+    ik_checks: int = 8  # ... and the best this many are checked for reachability, in rank order
+    neighbour_points: int = 300  # surface points per neighbouring estimate for the clearance check
     pregrasp_height: float = 0.08  # approach starts this far above the grasp (m)
+    finger_margin: float = 0.03  # the fingers pre-shape, and open on release, this much wider than the grasp (m)
     approach_speed: float = 0.25  # peak speed of the approach and of the place descent (m/s)
     carry_speed: float = 0.5  # peak speed while carrying (m/s; the joint speed limits usually bind first)
     release_time: float = 0.6  # the fingers open for at most this long before the retreat (s)
@@ -59,8 +67,10 @@ class GraspConfig:
     lift_height: float = 0.10  # the block's bottom is lifted to this height (m)
     place_gap: float = 0.004  # the block is brought this far above the place pad (m), then lowered ...
     place_press: float = 0.003  # ... until it touches, at most this far into the pad (m), and released
+    place_descent_speed: float = 0.03  # peak speed of that last descent until the block touches (m/s)
     place_approach: float = 0.03  # the carry ends this far above the place pose; the last part is slow (m)
     retreat_height: float = 0.055  # after releasing, the fingertips rise this far above the block's top (m)
+    fingertip_depth: float = 0.012  # the fingertips reach this far below the pinch point (m)
     place_jitter: float = 0.02  # random offset of the place target from the pad centre (m)
 
 
@@ -73,8 +83,10 @@ class ScoringConfig:
     place_tol: float = 0.025  # place success: block within this xy distance of its target ...
     hand_away: float = 0.05  # ... the hand at least this far from it ...
     rest_speed: tuple[float, float] = (0.01, 0.2)  # ... and the block at rest (m/s, rad/s)
+    rest_periods: int = 3  # the block is at rest after this many control periods in a row below rest_speed
     rest_timeout: float = 1.5  # time allowed for the block to come to rest after release
     pose_error_frac: float = 0.1  # a failed grasp counts as "pose error" if ADD(-S) > frac x diameter
+    pose_error_points: int = 500  # surface points of the block model for ADD and ADD-S
     min_visible_px: int = 150  # oracle: blocks with fewer mask pixels are not detected (640x480)
 
 

@@ -1,10 +1,12 @@
-"""One grasp-and-place episode: scene, look, perceive, plan, pick, carry, place, score.
+"""One grasp-and-place episode: scene, look, perceive, plan, pick, lift and carry, place, settle and score.
 
 Episode ``i`` of a campaign with seed ``S`` draws everything random (block count, scene, perception noise,
 place target) from ``SeedSequence([S, i])`` only, so its record never depends on the worker count.
 The planner sees the blocks only through the perception provider's ``T_cam_obj`` estimates, mapped to
 the world with the measured forward kinematics and the CALIBRATED camera mount:
 ``T_world_obj = T_world_gripper(q) @ T_gripper_cam @ T_cam_obj`` (the paper's T = T1 x T2).
+Each phase is a function that fills in the episode's ``EpisodeRecord`` (``grasping.record``) and raises
+``_Failure`` with the reason when the episode cannot go on.
 """
 
 from __future__ import annotations
@@ -15,22 +17,21 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from posegrasp.grasping.config import TrialConfig
+from posegrasp.catalog import BlockType, load_catalog
+from posegrasp.geometry import transform_points
+from posegrasp.grasping.config import ControlConfig, ScoringConfig, TrialConfig
 from posegrasp.grasping.controller import ArmController, SimulationError, robot_workcell
 from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
-from posegrasp.grasping.perception import Estimate, make_provider
-from posegrasp.grasping.render import EpisodeCamera
+from posegrasp.grasping.perception import Estimate
+from posegrasp.grasping.provider_registry import make_provider
+from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, FalseTarget, PoseError, Target
 from posegrasp.grasping.support import rest_on_table
-from posegrasp.catalog import BlockType, load_catalog
-from posegrasp.geometry import invert, make_T, rotation_angle, transform_points
-from posegrasp.sim.camera import Frame
+from posegrasp.sim.camera import CameraRenderer, Frame
 from posegrasp.sim.scene import make_scene
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell
 
-#: Failure reasons, in the order the summary lists them.
-FAILURES = ("no detection", "pose error", "unreachable", "collision", "slip", "drop", "misplaced", "timeout",
-            "simulation error")
 _PAD_TOP = 0.003  # height of the place pad's surface (m)
+_EPS = 1e-9  # slack for sums of control periods and capped distances compared with their thresholds
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,36 @@ class _Failure(Exception):
         self.reason = reason
 
 
+@dataclass
+class _Episode:
+    """A running episode: its task, settled workcell, arm controller, record and phase log."""
+
+    task: EpisodeTask
+    wc: Workcell
+    ctl: ArmController
+    rec: EpisodeRecord
+    log: _Log
+
+    @property
+    def cfg(self) -> TrialConfig:
+        return self.task.cfg
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """The chosen grasp on scene block ``k`` (1-based) and that block's estimated, levelled ``T_world_obj``."""
+
+    k: int
+    block: BlockType
+    grasp: Grasp
+    T_world_obj: np.ndarray
+
+    def height_range(self) -> tuple[float, float]:
+        """Bottom and top (world z, m) of the block at its estimated pose."""
+        z = transform_points(self.T_world_obj, self.block.vertices)[:, 2]
+        return float(z.min()), float(z.max())
+
+
 def _block_bottom(wc: Workcell, k: int) -> float:
     """Lowest point (m) of scene block ``k`` in the world."""
     b = wc.blocks[k - 1].block
@@ -100,16 +131,17 @@ def _hand_block_distance(wc: Workcell, k: int, ctl: ArmController, dmax: float) 
     return float(best)
 
 
-def pose_errors(block: BlockType, T_est: np.ndarray, T_gt: np.ndarray) -> dict[str, float]:
-    """Translation (m), rotation (deg), ADD and ADD-S (m) of an estimate; ``err`` is ADD-S for symmetric blocks."""
+def pose_errors(block: BlockType, T_est: np.ndarray, T_gt: np.ndarray, n_points: int = 500) -> PoseError:
+    """Translation (m), rotation (deg), ADD and ADD-S (m, over ``n_points`` surface samples) of an estimate
+    ``T_est`` against ``T_gt`` (both world_obj); ``err`` is ADD-S for symmetric blocks, else ADD."""
     from posegrasp.perception.metrics import add, adds, rotation_error_deg, translation_error
 
-    pts = surface_points(block, 500)
+    pts = surface_points(block, n_points)
     a = add(T_est[:3, :3], T_est[:3, 3], T_gt[:3, :3], T_gt[:3, 3], pts)
     s = adds(T_est[:3, :3], T_est[:3, 3], T_gt[:3, :3], T_gt[:3, 3], pts)
     symmetric = bool(block.symmetries_discrete or block.symmetries_continuous)
-    return {"te": translation_error(T_est[:3, 3], T_gt[:3, 3]), "re_deg": rotation_error_deg(T_est[:3, :3], T_gt[:3, :3]),
-            "add": a, "adds": s, "metric": "ADD-S" if symmetric else "ADD", "err": s if symmetric else a}
+    return PoseError(translation_error(T_est[:3, 3], T_gt[:3, 3]), rotation_error_deg(T_est[:3, :3], T_gt[:3, :3]),
+                     a, s, "ADD-S" if symmetric else "ADD", s if symmetric else a)
 
 
 def _match(wc: Workcell, T_world_obj: np.ndarray) -> int:
@@ -129,24 +161,25 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
             yaw_now: float) -> tuple[int, Grasp, np.ndarray] | None:
     """Target estimate index, its best reachable grasp and estimated ``T_world_obj`` (levelled by
     ``rest_on_table``); None if none is feasible."""
+    g_cfg = cfg.grasp
     cat = {b.obj_id: b for b in load_catalog().values()}
     poses = [rest_on_table(cat[e.obj_id], T_world_cam @ e.T_cam_obj, cfg.rest) for e in ests]
-    clouds = [transform_points(T, surface_points(cat[e.obj_id], 300)) for e, T in zip(ests, poses)]
+    clouds = [transform_points(T, surface_points(cat[e.obj_id], g_cfg.neighbour_points)) for e, T in zip(ests, poses)]
     options = []
     for j, (e, T) in enumerate(zip(ests, poses)):
         others = [c for i, c in enumerate(clouds) if i != j]
         nb = np.concatenate(others) if others else np.zeros((0, 3))
-        for g in plan_grasps(cat[e.obj_id], T, nb, cfg.grasp, yaw_now)[:4]:
-            options.append((g.score + 0.2 * e.score, j, g))
+        for g in plan_grasps(cat[e.obj_id], T, nb, g_cfg, yaw_now)[:g_cfg.grasps_per_block]:
+            options.append((g.score + g_cfg.detection_weight * e.score, j, g))
     options.sort(key=lambda o: -o[0])
     ik = robot_workcell(wc.cfg)
-    for _, j, g in options[:8]:
+    for _, j, g in options[:g_cfg.ik_checks]:
         pre = g.T_world_gripper.copy()
-        pre[2, 3] += cfg.grasp.pregrasp_height
+        pre[2, 3] += g_cfg.pregrasp_height
         q, dp, _ = ik.solve_gripper_ik(pre, wc.arm_q)
-        if dp < cfg.grasp.reach_tol:
+        if dp < g_cfg.reach_tol:
             q, dp, _ = ik.solve_gripper_ik(g.T_world_gripper, q)
-        if dp < cfg.grasp.reach_tol:
+        if dp < g_cfg.reach_tol:
             return j, g, poses[j]
     return None
 
@@ -172,65 +205,54 @@ def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workce
     return wc
 
 
-def drive_to_look(wc: Workcell) -> bool:
+def drive_to_look(wc: Workcell, cfg: ControlConfig) -> bool:
     """Drive the arm to the look pose; False if it does not get there."""
-    return wc.drive_arm(_look_q(wc), tol=0.01, timeout=4.0, gain=10.0)
+    return wc.drive_arm(_look_q(wc), tol=cfg.look_tol, timeout=cfg.look_timeout, gain=cfg.look_gain)
 
 
 def capture_look(wc: Workcell) -> Frame:
     """The hand camera's frame (RGB-D, mask, ground truth) at the arm's current pose."""
-    cam = EpisodeCamera(wc, HAND_CAMERA, wc.cfg.hand_camera, wc.cfg.render)
+    cam = CameraRenderer.from_config(wc, HAND_CAMERA, wc.cfg.hand_camera, wc.cfg.render)
     frame = cam.capture()
     cam.close()
     return frame
 
 
-def run_episode(task: EpisodeTask) -> dict:
-    """Run one episode; returns its JSON-ready record (deterministic), with the wall-clock and CPU
-    timings of its phases (which vary run to run) under ``"_wall"``."""
+def run_episode(task: EpisodeTask) -> tuple[EpisodeRecord, EpisodeTimings]:
+    """Run one episode; returns its record (deterministic) and the wall-clock and CPU timings of its phases
+    (which vary run to run)."""
     cfg = task.cfg
     n_blocks, scene_seed, percept_seed, place_offset = episode_draws(task)
-    rec: dict = {"episode": task.index, "seed": task.seed, "scene_seed": scene_seed, "n_blocks": n_blocks,
-                 "perception": task.perception, "blocks": [], "target": None, "outcome": "failure", "failure": None,
-                 "grasped": False, "placed": False, "pose_error": None, "place_error": None, "detected": 0}
+    rec = EpisodeRecord(task.index, task.seed, scene_seed, n_blocks, task.perception)
     log = _Log()
     log.start(None)
-    ctl: ArmController | None = None
     try:
         wc = episode_workcell(cfg, scene_seed, n_blocks)
-        rec["blocks"] = [inst.block.name for inst in wc.blocks]
+        rec.blocks = [inst.block.name for inst in wc.blocks]
         log.stop("scene", None)
         ctl = ArmController(wc, cfg.control, _look_q(wc))
-        _execute(task, wc, ctl, rec, log, percept_seed, place_offset)
+        _execute(_Episode(task, wc, ctl, rec, log), percept_seed, place_offset)
     except _Failure as f:
-        rec["failure"] = f.reason
+        rec.failure = f.reason
     except SimulationError:
-        rec["failure"] = "simulation error"
+        rec.failure = "simulation error"
     except RuntimeError as e:  # a scene that never settles
         if "did not come to rest" not in str(e):
             raise
-        rec["failure"] = "simulation error"
-    if rec["failure"] is None:
-        rec["outcome"] = "success"
-    elif rec["failure"] not in ("no detection", "simulation error") and rec["pose_error"]:
-        if rec["pose_error"]["err"] > cfg.scoring.pose_error_frac * rec["target"]["diameter"]:
-            rec["failure"] = "pose error"
-    rec["sim_time"] = round(sum(log.sim.values()), 3)
-    rec["phases"] = log.sim
-    rec["_wall"] = {"wall_s": log.wall, "cpu_s": log.cpu}
-    return _rounded(rec)
+        rec.failure = "simulation error"
+    _judge(rec, cfg.scoring)
+    rec.sim_time = round(sum(log.sim.values()), 3)
+    rec.phases = log.sim
+    return rec, EpisodeTimings(task.index, log.wall, log.cpu)
 
 
-def _rounded(obj):
-    if isinstance(obj, float):
-        return round(obj, 6)
-    if isinstance(obj, dict):
-        return {k: _rounded(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_rounded(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return _rounded(obj.item())
-    return obj
+def _judge(rec: EpisodeRecord, s_cfg: ScoringConfig) -> None:
+    """Set the outcome; a failure after a grasp attempt on an estimate too far off counts as "pose error"."""
+    if rec.failure is None:
+        rec.outcome = "success"
+    elif rec.failure not in ("no detection", "simulation error") and rec.pose_error:
+        if rec.pose_error.err > s_cfg.pose_error_frac * rec.target.diameter:
+            rec.failure = "pose error"
 
 
 def _look_q(wc: Workcell) -> np.ndarray:
@@ -238,112 +260,161 @@ def _look_q(wc: Workcell) -> np.ndarray:
     return robot_workcell(wc.cfg).look_q
 
 
-def _execute(task: EpisodeTask, wc: Workcell, ctl: ArmController, rec: dict, log: _Log, percept_seed: int,
-             place_offset: np.ndarray) -> None:
-    cfg, g_cfg, s_cfg = task.cfg, task.cfg.grasp, task.cfg.scoring
-    # -- look and perceive ---------------------------------------------------------------------------
-    if not drive_to_look(wc):
+def _execute(ep: _Episode, percept_seed: int, place_offset: np.ndarray) -> None:
+    """The episode's phases after the scene, in order; raises ``_Failure`` at the first that fails."""
+    ests = _look_and_perceive(ep, percept_seed)
+    plan = _plan(ep, ests)
+    _pick(ep, plan)
+    target_xy = np.asarray(ep.wc.cfg.place_area.center) + place_offset
+    T_place = _lift_and_carry(ep, plan, target_xy)
+    _place(ep, plan, T_place)
+    _settle_and_score(ep, plan.k, target_xy)
+
+
+def _look_and_perceive(ep: _Episode, percept_seed: int) -> list[Estimate]:
+    """Drive to the look pose, capture the hand camera and ask the provider for pose estimates."""
+    if not drive_to_look(ep.wc, ep.cfg.control):
         raise _Failure("timeout")
-    ctl.check_stable()
-    ctl.target = wc.gripper_pose()
-    log.stop("look", ctl)
-    frame = capture_look(wc)
-    ests = make_provider(task.perception).estimate(frame, percept_seed)
-    rec["detected"] = len(ests)
-    log.stop("perceive", ctl)
+    ep.ctl.check_stable()
+    ep.ctl.target = ep.wc.gripper_pose()
+    ep.log.stop("look", ep.ctl)
+    frame = capture_look(ep.wc)
+    ests = make_provider(ep.task.perception).estimate(frame, percept_seed)
+    ep.rec.detected = len(ests)
+    ep.log.stop("perceive", ep.ctl)
     if not ests:
         raise _Failure("no detection")
-    T_world_cam = wc.gripper_pose() @ np.asarray(task.T_gripper_cam)
-    choice = _choose(wc, cfg, ests, T_world_cam, _yaw(ctl.target))
-    log.stop("plan", ctl)
+    return ests
+
+
+def _plan(ep: _Episode, ests: list[Estimate]) -> _Plan:
+    """Choose the target and its grasp; record the target and its estimate's pose error."""
+    T_world_cam = ep.wc.gripper_pose() @ np.asarray(ep.task.T_gripper_cam)
+    choice = _choose(ep.wc, ep.cfg, ests, T_world_cam, _yaw(ep.ctl.target))
+    ep.log.stop("plan", ep.ctl)
     if choice is None:
         raise _Failure("unreachable")
     j, grasp, T_world_obj_est = choice
-    k = _match(wc, T_world_obj_est)
+    k = _match(ep.wc, T_world_obj_est)
     if k == 0:  # the chosen estimate is no block of the scene (a false detection)
-        rec["target"] = {"instance": 0, "obj_id": ests[j].obj_id}
+        ep.rec.target = FalseTarget(0, ests[j].obj_id)
         raise _Failure("pose error")
-    block = wc.blocks[k - 1].block
-    rec["target"] = {"instance": k, "type": block.name, "class_ok": block.obj_id == ests[j].obj_id,
-                     "diameter": block.diameter, "grasp_width": grasp.width,
-                     "clearance": grasp.clearance, "support": grasp.support, "tilt_deg": grasp.tilt_deg}
-    rec["pose_error"] = pose_errors(block, T_world_obj_est, wc.block_poses()[k - 1])
-    # -- pick ---------------------------------------------------------------------------------------
-    T_grasp = grasp.T_world_gripper
+    block = ep.wc.blocks[k - 1].block
+    ep.rec.target = Target(k, block.name, block.obj_id == ests[j].obj_id, block.diameter, grasp.width,
+                           grasp.clearance, grasp.support, grasp.tilt_deg)
+    ep.rec.pose_error = pose_errors(block, T_world_obj_est, ep.wc.block_poses()[k - 1],
+                                    ep.cfg.scoring.pose_error_points)
+    return _Plan(k, block, grasp, T_world_obj_est)
+
+
+def _pick(ep: _Episode, plan: _Plan) -> None:
+    """Pre-shape the fingers, move above the grasp, approach it and close the fingers on the block."""
+    ctl, g_cfg, k = ep.ctl, ep.cfg.grasp, plan.k
+    T_grasp = plan.grasp.T_world_gripper
     T_pre = T_grasp.copy()
     T_pre[2, 3] += g_cfg.pregrasp_height
-    ctl.preshape(grasp.width + 0.03)
+    ctl.preshape(plan.grasp.width + g_cfg.finger_margin)
     if not ctl.move(T_pre):
         raise _Failure("collision" if ctl.unexpected_contacts(k) else "timeout")
-    log.stop("pregrasp", ctl)
-    hit = [False]  # did the hand touch the table or another block on the way down?
+    ep.log.stop("pregrasp", ctl)
+    hit = False  # did the hand touch the table or another block on the way down?
 
     def watch_approach() -> None:
-        hit[0] = hit[0] or ctl.unexpected_contacts(k)
+        nonlocal hit
+        hit = hit or ctl.unexpected_contacts(k)
 
     ctl.monitor = watch_approach
     reached = ctl.move(T_grasp, speed=g_cfg.approach_speed)
     ctl.monitor = None
-    log.stop("approach", ctl)
+    ep.log.stop("approach", ctl)
     if not reached:
-        raise _Failure("collision" if hit[0] else "timeout")
+        raise _Failure("collision" if hit else "timeout")
     if not ctl.close(k):
-        raise _Failure("collision" if hit[0] else "slip")
-    log.stop("close", ctl)
-    # -- lift, hold and carry (grasp success: bottom >= lift_min for hold_time) ------------------------
-    z_est = transform_points(T_world_obj_est, block.vertices)[:, 2]
-    bottom_est, top_est = float(z_est.min()), float(z_est.max())
-    state = {"held": 0.0, "max_held": 0.0}
+        raise _Failure("collision" if hit else "slip")
+    ep.log.stop("close", ctl)
 
-    def watch() -> None:
-        up = _block_bottom(wc, k) >= s_cfg.lift_min and ctl.finger_contacts(k).any()
-        state["held"] = state["held"] + cfg.control.dt if up else 0.0
-        state["max_held"] = max(state["max_held"], state["held"])
 
+@dataclass
+class _HoldWatch:
+    """Control-period monitor: for how long (s) block ``k`` has been lifted (bottom >= ``lift_min``) in the
+    fingers, now and at most."""
+
+    ep: _Episode
+    k: int
+    held: float = 0.0
+    max_held: float = 0.0
+
+    def __call__(self) -> None:
+        wc, ctl = self.ep.wc, self.ep.ctl
+        up = _block_bottom(wc, self.k) >= self.ep.cfg.scoring.lift_min and ctl.finger_contacts(self.k).any()
+        self.held = self.held + self.ep.cfg.control.dt if up else 0.0
+        self.max_held = max(self.max_held, self.held)
+
+
+def _lift_and_carry(ep: _Episode, plan: _Plan, target_xy: np.ndarray) -> np.ndarray:
+    """Lift the block, carry it above its place target at ``target_xy`` (world, m) and hold it long enough
+    to score the grasp (bottom >= lift_min for hold_time); returns the place pose ``T_world_gripper``
+    (the block's bottom place_gap above the pad, its centre over the target)."""
+    ctl, g_cfg, s_cfg, k = ep.ctl, ep.cfg.grasp, ep.cfg.scoring, plan.k
+    T_grasp = plan.grasp.T_world_gripper
+    bottom_est, _ = plan.height_range()
+    watch = _HoldWatch(ep, k)
     ctl.monitor = watch
     T_lift = T_grasp.copy()
     T_lift[2, 3] += g_cfg.lift_height - bottom_est
     lifted = ctl.move(T_lift)
-    log.stop("lift", ctl)
-    target_xy = np.asarray(wc.cfg.place_area.center) + place_offset
-    T_place = T_lift.copy()  # the block's bottom place_gap above the pad, its centre over the target
-    T_place[:2, 3] = target_xy + (T_grasp[:2, 3] - T_world_obj_est[:2, 3])
+    ep.log.stop("lift", ctl)
+    T_place = T_lift.copy()
+    T_place[:2, 3] = target_xy + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3])
     T_place[2, 3] = T_grasp[2, 3] + (_PAD_TOP + g_cfg.place_gap - bottom_est)
     T_above = T_place.copy()
     T_above[2, 3] += g_cfg.place_approach
     carried = ctl.move(T_above, speed=g_cfg.carry_speed)
-    if state["max_held"] < s_cfg.hold_time:
-        ctl.hold(s_cfg.hold_time - state["held"])
+    if watch.max_held < s_cfg.hold_time:
+        ctl.hold(s_cfg.hold_time - watch.held)
     ctl.monitor = None
-    log.stop("carry", ctl)
-    rec["grasped"] = state["max_held"] >= s_cfg.hold_time - 1e-9
-    if not rec["grasped"]:
+    ep.log.stop("carry", ctl)
+    ep.rec.grasped = watch.max_held >= s_cfg.hold_time - _EPS
+    if not ep.rec.grasped:
         raise _Failure("slip" if lifted else "timeout")
     if not carried or not ctl.finger_contacts(k).any():
         raise _Failure("drop" if not ctl.finger_contacts(k).any() else "timeout")
-    # -- place, release, retreat ----------------------------------------------------------------------
+    return T_place
+
+
+def _place(ep: _Episode, plan: _Plan, T_place: np.ndarray) -> None:
+    """Lower the block onto the pad (slowly for the last part, until it touches), release it and retreat."""
+    ctl, g_cfg, k = ep.ctl, ep.cfg.grasp, plan.k
     T_down = T_place.copy()
-    T_down[2, 3] -= g_cfg.place_gap + g_cfg.place_press  # then down slowly until the block touches the pad
+    T_down[2, 3] -= g_cfg.place_gap + g_cfg.place_press
     ctl.move(T_place, speed=g_cfg.approach_speed)
-    ctl.move(T_down, speed=0.03, until=lambda: _block_supported(wc, k))
+    ctl.move(T_down, speed=g_cfg.place_descent_speed, until=lambda: _block_supported(ep.wc, k))
     if not ctl.finger_contacts(k).any():
         raise _Failure("drop")
-    ctl.release(k, grasp.width + 0.03, g_cfg.release_time, g_cfg.release_push)
-    T_retreat = T_place.copy()  # fingertips (1 cm below the pinch point) retreat_height above the block's top
-    T_retreat[2, 3] += top_est - T_grasp[2, 3] + 0.012 + g_cfg.retreat_height
+    ctl.release(k, plan.grasp.width + g_cfg.finger_margin, g_cfg.release_time, g_cfg.release_push)
+    _, top_est = plan.height_range()
+    T_retreat = T_place.copy()  # the fingertips retreat_height above the block's top
+    T_retreat[2, 3] += top_est - plan.grasp.T_world_gripper[2, 3] + g_cfg.fingertip_depth + g_cfg.retreat_height
     ctl.move(T_retreat)
-    log.stop("place", ctl)
+    ep.log.stop("place", ctl)
+
+
+def _settle_and_score(ep: _Episode, k: int, target_xy: np.ndarray) -> None:
+    """Wait for block ``k`` to come to rest, then score the place: within place_tol of ``target_xy``, at
+    rest, the hand away from it and no finger touching it."""
+    ctl, wc, s_cfg, dt = ep.ctl, ep.wc, ep.cfg.scoring, ep.cfg.control.dt
     rest = 0
-    for _ in range(int(s_cfg.rest_timeout / cfg.control.dt)):
+    for _ in range(int(s_cfg.rest_timeout / dt)):
         v = wc.block_speeds()[k - 1]
         rest = rest + 1 if v[0] < s_cfg.rest_speed[0] and v[1] < s_cfg.rest_speed[1] else 0
-        if rest >= 3:
+        if rest >= s_cfg.rest_periods:
             break
-        ctl.hold(cfg.control.dt)
-    log.stop("settle", ctl)
+        ctl.hold(dt)
+    ep.log.stop("settle", ctl)
     err = float(np.linalg.norm(wc.block_poses()[k - 1][:2, 3] - target_xy))
-    rec["place_error"] = err
-    away = _hand_block_distance(wc, k, ctl, s_cfg.hand_away) >= s_cfg.hand_away - 1e-9
-    rec["placed"] = bool(err <= s_cfg.place_tol and rest >= 3 and away and not ctl.finger_contacts(k).any())
-    if not rec["placed"]:
+    ep.rec.place_error = err
+    away = _hand_block_distance(wc, k, ctl, s_cfg.hand_away) >= s_cfg.hand_away - _EPS
+    ep.rec.placed = bool(err <= s_cfg.place_tol and rest >= s_cfg.rest_periods and away
+                         and not ctl.finger_contacts(k).any())
+    if not ep.rec.placed:
         raise _Failure("misplaced")

@@ -2,23 +2,23 @@
 
 A provider receives the hand camera's captured ``Frame`` (RGB-D, K) and returns ``Estimate``s
 ``(obj_id, T_cam_obj, score)``. The planner never sees simulator ground truth except through a provider.
-``make_provider(spec)`` builds one from a CLI string:
+This module holds the protocol and the oracles (``grasping.provider_registry.make_provider`` builds any
+provider from its ``--perception`` name):
 
 - ``oracle``: the ground-truth ``T_cam_obj`` of every block with at least ``min_px`` visible mask pixels.
 - ``noisy-oracle[:TRANS_M,ROT_DEG]``: the oracle plus Gaussian translation noise (sigma TRANS_M per axis)
   and a rotation about a uniformly random axis by an angle ~ |N(0, ROT_DEG)|; seeded per frame.
-- ``model[:RUN]``: the learned two-stage network (``grasping.model_provider``; default: the shipped weights).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from posegrasp.errors import UserError
-from posegrasp.geometry import axis_angle_R, make_T
+from posegrasp.geometry import axis_angle_R
 from posegrasp.sim.camera import Frame
 
 
@@ -83,22 +83,15 @@ class NoisyOracleProvider:
         return out
 
 
-#: Provider factories by name; each gets the text after ``name:`` (or None).
-PROVIDERS: dict[str, Callable[[str | None], Provider]] = {}
-
-
-def register(name: str, factory: Callable[[str | None], Provider]) -> None:
-    """Make ``make_provider("name[:ARGS]")`` build a provider with ``factory(ARGS)``."""
-    PROVIDERS[name] = factory
-
-
-def _oracle(args: str | None) -> Provider:
+def oracle_from_spec(args: str | None) -> OracleProvider:
+    """The oracle for ``--perception oracle`` (``args``: the text after ``oracle:``, which must be empty)."""
     if args:
         raise UserError(f"perception 'oracle' takes no parameters, got 'oracle:{args}'")
     return OracleProvider()
 
 
-def _noisy(args: str | None) -> Provider:
+def noisy_oracle_from_spec(args: str | None) -> NoisyOracleProvider:
+    """The noisy oracle for ``--perception noisy-oracle[:TRANS_M,ROT_DEG]`` (``args``: the text after the colon)."""
     if not args:
         return NoisyOracleProvider()
     try:
@@ -108,17 +101,3 @@ def _noisy(args: str | None) -> Provider:
     if not (0 <= t <= 0.2 and 0 <= r <= 180):
         raise UserError(f"noisy-oracle noise {args!r} out of range: TRANS_M in [0, 0.2] m, ROT_DEG in [0, 180]")
     return NoisyOracleProvider(t, r)
-
-
-register("oracle", _oracle)
-register("noisy-oracle", _noisy)
-
-
-def make_provider(spec: str) -> Provider:
-    """A provider from ``name[:ARGS]`` (``oracle``, ``noisy-oracle:0.005,5``, ``model:RUN``)."""
-    name, _, args = spec.partition(":")
-    if name == "model":
-        import posegrasp.grasping.model_provider  # noqa: F401  (registers itself; imports torch only when asked for)
-    if name not in PROVIDERS:
-        raise UserError(f"unknown perception {spec!r}; choose one of: {', '.join(sorted(PROVIDERS))}")
-    return PROVIDERS[name](args or None)

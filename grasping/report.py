@@ -22,14 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp.errors import UserError
+from posegrasp.grasping.record import FAILURES
+from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, SUMMARY, read_campaign, read_records
 from posegrasp.sim.camera import Frame
+from posegrasp.sim.gl import pyrender_renderer
 
 REPORT = "report.html"
 #: Outline colours (RGB) of the model at the true and at the estimated pose.
 TRUE_RGB, EST_RGB = (40, 230, 60), (255, 40, 200)
-#: pyrender renderers by (width, height), never freed: deleting one calls eglTerminate on the EGL display
-#: that MuJoCo's renderer shares.
-_PYRENDERERS: dict = {}
 
 
 @dataclass
@@ -42,24 +42,16 @@ class Look:
     overview: np.ndarray
 
 
-def _trial_config(campaign: dict):
-    from posegrasp.grasping.config import TrialConfig
-    from posegrasp.config import from_dict
-
-    return from_dict(TrialConfig, campaign["config"], where="campaign.json config")
-
-
 def resimulate_look(run_dir: Path, rec: dict) -> Look | None:
     """Episode ``rec`` re-simulated from its seeds up to the look capture; None if it never got there."""
     from posegrasp.grasping.episode import EpisodeTask, capture_look, drive_to_look, episode_draws, episode_workcell
-    from posegrasp.grasping.perception import make_provider
-    from posegrasp.grasping.render import EpisodeCamera
-    from posegrasp.grasping.trials import CAMPAIGN
+    from posegrasp.grasping.provider_registry import make_provider
+    from posegrasp.sim.camera import CameraRenderer
     from posegrasp.sim.workcell import OVERVIEW_CAMERA
 
-    campaign = json.loads((run_dir / CAMPAIGN).read_text())
-    T = tuple(tuple(float(v) for v in row) for row in campaign["T_gripper_cam"])
-    task = EpisodeTask(int(rec["seed"]), int(rec["episode"]), rec["perception"], _trial_config(campaign), T)
+    campaign = read_campaign(run_dir)
+    task = EpisodeTask(int(rec["seed"]), int(rec["episode"]), rec["perception"], campaign.config,
+                       campaign.T_gripper_cam)
     n_blocks, scene_seed, percept_seed, _ = episode_draws(task)
     if scene_seed != rec["scene_seed"]:
         raise UserError(f"episode {rec['episode']} of {run_dir} does not re-simulate (scene seed {scene_seed} "
@@ -68,17 +60,15 @@ def resimulate_look(run_dir: Path, rec: dict) -> Look | None:
         wc = episode_workcell(task.cfg, scene_seed, n_blocks)
     except RuntimeError:  # a scene that never settles (recorded as a simulation error)
         return None
-    if not drive_to_look(wc):
+    if not drive_to_look(wc, task.cfg.control):
         return None
     frame = capture_look(wc)
     provider = make_provider(task.perception)
     ests = provider.estimate(frame, percept_seed)
     labels = frame.mask
     if task.perception.startswith("model"):
-        from posegrasp.grasping.model_provider import _estimator
-
-        labels = _estimator(provider.weights).last_labels
-    cam = EpisodeCamera(wc, OVERVIEW_CAMERA, wc.cfg.overview_camera, wc.cfg.render)
+        labels = provider.perceive(frame).labels
+    cam = CameraRenderer.from_config(wc, OVERVIEW_CAMERA, wc.cfg.overview_camera, wc.cfg.render)
     overview = cam.rgb()
     cam.close()
     return Look(frame, ests, np.asarray(labels), overview)
@@ -89,9 +79,7 @@ def silhouette(block, T_cam_obj: np.ndarray, K: np.ndarray, width: int, height: 
     import pyrender
     import trimesh
 
-    if (width, height) not in _PYRENDERERS:  # (not setdefault: a spare renderer would be freed at once)
-        _PYRENDERERS[(width, height)] = pyrender.OffscreenRenderer(width, height)
-    r = _PYRENDERERS[(width, height)]
+    r = pyrender_renderer(width, height)
     # pyrender's principal point is in pixel-edge coordinates; OpenCV's K uses pixel centres.
     cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=0.02, zfar=5.0)
     sc = pyrender.Scene()
@@ -239,9 +227,7 @@ document.title='images decoded: '+n+'/'+im.length;});</script>"""
 def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
     """Write ``run_dir/report.html`` from its ``episodes.jsonl``, ``summary.json`` and ``campaign.json``;
     ``samples`` episodes get Fig. 9-10 style frames, ``strip`` episodes an overview snapshot. Returns the path."""
-    from posegrasp.grasping.episode import FAILURES
     from posegrasp.grasping.stats import summarise
-    from posegrasp.grasping.trials import CAMPAIGN, EPISODES, SUMMARY, read_records
     from posegrasp.io import atomic_write
 
     run_dir = Path(run_dir)
@@ -253,9 +239,9 @@ def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
     records = [r for _, r in sorted(read_records(run_dir / EPISODES).items())]
     if not records:
         raise UserError(f"{run_dir / EPISODES} holds no finished episode: run (or resume) the trials first")
-    campaign = json.loads((run_dir / CAMPAIGN).read_text())
+    campaign = read_campaign(run_dir)
     s = json.loads((run_dir / SUMMARY).read_text()) if (run_dir / SUMMARY).is_file() else summarise(records)
-    perception = campaign["perception"]
+    perception = campaign.perception
 
     looks: dict[int, Look | None] = {}
 
@@ -270,7 +256,7 @@ def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
              f"{s['grasp_success']['success']}/{s['n']} = {_pct(s['grasp_success']['rate'])} "
              f"({_interval(s['grasp_success']['wilson95'])})</p>",
              _table(["setting", "value"], [["perception", perception], ["episodes", str(len(records))],
-                                           ["campaign seed", str(campaign["seed"])],
+                                           ["campaign seed", str(campaign.seed)],
                                            ["mean pose error (ADD(-S))", "-" if s.get("mean_pose_error_m") is None
                                             else f"{1000 * s['mean_pose_error_m']:.2f} mm"],
                                            ["mean simulated time per episode", f"{s['mean_sim_time_s']:.1f} s"],

@@ -1,18 +1,15 @@
-"""Trial campaigns: many episodes in parallel, resumable, with a summary and a noise sweep.
+"""Trial campaigns: many episodes in parallel, resumable, with a summary, a report and a noise sweep.
 
 ``DIR/episodes.jsonl`` holds one JSON line per finished episode, appended as they finish; a rerun skips
 the episodes already there (a torn last line from a kill is dropped) and the file is finally rewritten
 sorted by episode, so it is identical for any worker count and after a kill and resume. Wall-clock
 timings, which differ run to run, go to ``DIR/timings.jsonl``; ``DIR/summary.json`` has the success rate
-with its Wilson 95 % interval and the per-block and per-failure tables.
+with its Wilson 95 % interval and the per-block and per-failure tables (file layout: ``grasping.runfolder``).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import io
-import json
-import os
 import time
 from pathlib import Path
 
@@ -21,61 +18,28 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from posegrasp.grasping.calibration import load_hand_eye
-from posegrasp.grasping.config import TrialConfig
-from posegrasp.grasping.episode import FAILURES, EpisodeTask, run_episode
-from posegrasp.grasping.perception import make_provider
-from posegrasp.grasping.stats import rate_row, summarise
 from posegrasp.errors import UserError
 from posegrasp.executor import make_executor
-from posegrasp.io import atomic_write, dumps_json, write_bytes, write_json
-from posegrasp.progress import progress
+from posegrasp.grasping.calibration import load_hand_eye
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.episode import EpisodeTask, run_episode
+from posegrasp.grasping.provider_registry import make_provider
+from posegrasp.grasping.record import FAILURES
+from posegrasp.grasping.report import write_report
+from posegrasp.grasping.runfolder import (EPISODES, SUMMARY, TIMINGS, Campaign, append_record, check_campaign,
+                                          read_records, write_records)
+from posegrasp.grasping.stats import rate_row, summarise
+from posegrasp.io import write_bytes, write_json
+from posegrasp.progress import progress as progress_bar
 
-EPISODES, TIMINGS, SUMMARY, CAMPAIGN = "episodes.jsonl", "timings.jsonl", "summary.json", "campaign.json"
 #: Noise levels (translation m, rotation deg) of ``--sweep-noise``.
 SWEEP_LEVELS = ((0.0, 0.0), (0.0025, 2.5), (0.005, 5.0), (0.01, 10.0), (0.02, 20.0), (0.04, 40.0))
 
 
-def _line(rec: dict) -> str:
-    return json.dumps(rec, sort_keys=True, separators=(",", ":")) + "\n"
-
-
-def read_records(path: Path) -> dict[int, dict]:
-    """Complete records of a (possibly torn) JSON-lines file, by episode index."""
-    out: dict[int, dict] = {}
-    if not path.exists():
-        return out
-    for line in path.read_text().splitlines(keepends=True):
-        if not line.endswith("\n"):
-            break  # torn last line of a killed run
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        out[int(rec["episode"])] = rec
-    return out
-
-
-def _write_lines(path: Path, records: list[dict]) -> None:
-    atomic_write(path, lambda p: p.write_text("".join(_line(r) for r in records)))
-
-
-def _check_campaign(out: Path, campaign: dict) -> None:
-    """Refuse to mix two campaigns in one folder; record this one."""
-    path = out / CAMPAIGN
-    if path.exists():
-        old = json.loads(path.read_text())
-        if old != json.loads(dumps_json(campaign)):
-            keys = sorted(k for k in campaign if old.get(k) != json.loads(dumps_json(campaign[k])))
-            raise UserError(f"{out} holds a different campaign (differs in {', '.join(keys)}); "
-                            "use another --out or the same settings to resume")
-    else:
-        write_json(path, campaign)
-
-
 def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: int | str | None,
-               cfg: TrialConfig, console: Console | None = None) -> dict:
-    """Run (or resume) a campaign of ``episodes`` episodes into ``out``; returns the summary."""
+               cfg: TrialConfig, console: Console | None = None, progress: bool = True) -> dict:
+    """Run (or resume) a campaign of ``episodes`` episodes into ``out``; returns the summary; ``progress``
+    shows a progress bar on ``console`` while episodes run."""
     if episodes < 1:
         raise UserError(f"--episodes must be at least 1, got {episodes}")
     if not 1 <= cfg.min_blocks <= cfg.max_blocks:
@@ -84,42 +48,37 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     T_gripper_cam = load_hand_eye(cfg.hand_eye)
     console = console or Console(stderr=True)
     out.mkdir(parents=True, exist_ok=True)
-    _check_campaign(out, {"seed": seed, "perception": perception, "config": dataclasses.asdict(cfg),
-                          "T_gripper_cam": T_gripper_cam})
+    mount = tuple(tuple(float(v) for v in row) for row in T_gripper_cam)
+    check_campaign(out, Campaign(seed, perception, cfg, mount))
     done = {i: r for i, r in read_records(out / EPISODES).items() if i < episodes}
-    _write_lines(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
+    write_records(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
     timings = read_records(out / TIMINGS)
-    _write_lines(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
-    T = tuple(tuple(float(v) for v in row) for row in T_gripper_cam)
-    todo = [EpisodeTask(seed, i, perception, cfg, T) for i in range(episodes) if i not in done]
+    write_records(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
+    todo = [EpisodeTask(seed, i, perception, cfg, mount) for i in range(episodes) if i not in done]
     t0 = time.perf_counter()
     if todo:
-        with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, progress(
+        with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, progress_bar(
                 TextColumn("[bold]trials[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
-                TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=True) as bar:
+                TextColumn("ETA"), TimeRemainingColumn(), enabled=progress, console=console,
+                transient=True) as bar:
             task = bar.add_task(f"{perception}", total=episodes, completed=len(done))
             ok = sum(r["outcome"] == "success" for r in done.values())
-            for _, rec in make_executor(workers).imap(run_episode, todo):
-                wall = rec.pop("_wall")
-                f.write(_line(rec))
-                f.flush()
-                os.fsync(f.fileno())
-                ft.write(_line({"episode": rec["episode"], **wall}))
-                ft.flush()
-                done[rec["episode"]] = rec
-                ok += rec["outcome"] == "success"
+            for _, (rec, timing) in make_executor(workers).imap(run_episode, todo):
+                line = rec.to_json()
+                append_record(f, line, sync=True)
+                append_record(ft, timing.to_json())
+                done[rec.episode] = line
+                ok += rec.outcome == "success"
                 bar.update(task, advance=1, description=f"{perception}  success {ok}/{len(done)}")
     elapsed = time.perf_counter() - t0
     records = [done[i] for i in sorted(done)]
-    _write_lines(out / EPISODES, records)
+    write_records(out / EPISODES, records)
     summary = summarise(records)
     summary.update(seed=seed, perception=perception, workers=workers,
                    wall={"seconds": elapsed, "episodes_run": len(todo),
                          "episodes_per_min": 60 * len(todo) / elapsed if todo and elapsed > 0 else None})
     write_json(out / SUMMARY, summary)
     print_summary(summary, console)
-    from posegrasp.grasping.report import write_report  # here: the report module imports this one
-
     console.print(f"report -> {write_report(out)}")
     return summary
 
@@ -151,13 +110,13 @@ def print_summary(s: dict, console: Console) -> None:
 
 
 def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, cfg: TrialConfig,
-                levels=SWEEP_LEVELS, console: Console | None = None) -> list[dict]:
+                levels=SWEEP_LEVELS, console: Console | None = None, progress: bool = True) -> list[dict]:
     """Noisy-oracle campaigns at increasing noise (same seeds); writes ``sweep.json`` and ``sweep.png``."""
     console = console or Console(stderr=True)
     rows = []
     for t, r in levels:
         spec = f"noisy-oracle:{t:g},{r:g}"
-        s = run_trials(out / f"noise_{t:g}m_{r:g}deg", episodes, seed, spec, workers, cfg, console)
+        s = run_trials(out / f"noise_{t:g}m_{r:g}deg", episodes, seed, spec, workers, cfg, console, progress)
         errs = [rec["pose_error"]["err"] for rec in read_records(out / f"noise_{t:g}m_{r:g}deg" / EPISODES).values()
                 if rec.get("pose_error")]
         rows.append({"trans_m": t, "rot_deg": r, **rate_row(s["success"], s["n"]),

@@ -160,9 +160,15 @@ def load_model(ckpt: Path, stage: str | None = None) -> tuple[nn.Module, Any, di
         model = builder(model_cfg)
     except (ValueError, TypeError, KeyError) as e:
         raise UserError(_one_line(f"{ckpt / 'config.json'} describes an invalid model: {e}")) from None
-    tensors, _ = _read_safetensors(ckpt / "model.safetensors")
-    load_state(model, tensors, ckpt / "model.safetensors")
+    load_weights(ckpt, model)
     return model.eval(), model_cfg, cfg
+
+
+def load_weights(ckpt: Path, model: nn.Module) -> None:
+    """Load the checkpoint's ``model.safetensors`` into ``model`` (one-line UserError when missing, corrupt or not
+    matching)."""
+    path = resolve(Path(ckpt)) / "model.safetensors"
+    load_state(model, _read_safetensors(path)[0], path)
 
 
 def load_state(model: nn.Module, tensors: dict[str, torch.Tensor], where: Path) -> None:

@@ -5,7 +5,7 @@ their types: the blocks differ by shape, not colour (datagen draws colours at ra
 CPU input size a block is a few dozen pixels. This net re-labels every connected segment of the
 class map from a crop of fixed metric size (``crop_side`` metres at the segment's median depth, so
 pixels have the same size in metres at any distance) with RGB, the segment's mask and the depth
-relative to the segment (``perception.data.prepare_cls_input``).
+relative to the segment (``perception.inputs.prepare_cls_input``).
 
     x (B, 6 or 7, S, S) -> [conv-BN-ReLU x2, max-pool] per width -> global average -> linear -> (B, K) logits
 
@@ -16,7 +16,7 @@ tilt's ramp.
 
 K = len(obj_ids); logit k is object ``obj_ids[k]``. Id 0 among them is "not a block" (the seg net's background
 id): segments it wins are dropped, which removes distractors the seg net took for blocks.
-``Estimator(..., classify=False)`` and ``posegrasp eval --no-cls`` give the paper's pipeline without it.
+``EstimatorConfig(classify=False)`` and ``posegrasp eval --no-cls`` give the paper's pipeline without it.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ class ClassifierConfig:
 
     @property
     def in_channels(self) -> int:
-        """Channels of the crop (``perception.data.prepare_cls_input``)."""
+        """Channels of the crop (``perception.inputs.prepare_cls_input``)."""
         return IN_CHANNELS + (self.height_range > 0)
 
     def validate(self) -> None:

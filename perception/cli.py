@@ -2,7 +2,8 @@
 
 A ``--config`` TOML file may hold sections ``[seg]``, ``[pose]``, ``[refine]``, ``[cls]`` and ``[eval]`` (with
 sub-tables such as ``[pose.model]`` and ``[pose.data]``) matching the config dataclasses of
-``perception.train`` and ``perception.evaluate``; command-line flags override it.
+``perception.train_seg``, ``train_pose``, ``train_refine``, ``train_cls`` and ``perception.evaluate``; command-line
+flags override it.
 """
 
 from __future__ import annotations
@@ -11,8 +12,13 @@ import argparse
 import json
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 from posegrasp.config import load_toml, override
 from posegrasp.errors import UserError
+
+if TYPE_CHECKING:
+    from posegrasp.perception.training import StageTraining
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -60,23 +66,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.set_defaults(run=run_perturb)
 
 
+def training_stages() -> dict[str, type[StageTraining]]:
+    """The ``StageTraining`` of each ``posegrasp train`` stage (imported when asked for: they import torch)."""
+    from posegrasp.perception.train_cls import ClsTraining
+    from posegrasp.perception.train_pose import PoseTraining
+    from posegrasp.perception.train_refine import RefineTraining
+    from posegrasp.perception.train_seg import SegTraining
+
+    return {t.name: t for t in (SegTraining, PoseTraining, RefineTraining, ClsTraining)}
+
+
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp train``."""
-    from posegrasp.perception import train as T
-
-    cls, fn = {"seg": (T.SegTrainConfig, T.train_seg), "pose": (T.PoseTrainConfig, T.train_pose),
-               "refine": (T.RefineTrainConfig, T.train_refine), "cls": (T.ClsTrainConfig, T.train_cls)}[args.stage]
+    training = training_stages()[args.stage]
     if args.steps is not None and args.steps < 1:
         raise UserError("--steps must be at least 1")
     if not args.data.is_dir():
         raise UserError(f"--data {args.data} is not a directory")
-    cfg = load_toml(cls, args.config, section=args.stage)
+    cfg = load_toml(training.config, args.config, section=args.stage)
     if args.init is not None:
-        if args.stage not in ("seg", "pose"):
+        if not training.fine_tunes:
             raise UserError("--init is only for 'train seg' and 'train pose' (fine-tuning)")
         cfg = override(cfg, init=str(args.init))
-    result = fn(args.data, args.out, cfg, steps=args.steps, seed=args.seed, resume=args.resume,
-                progress=not args.no_progress)
+    result = training.train(args.data, args.out, cfg, steps=args.steps, seed=args.seed, resume=args.resume,
+                            progress=not args.no_progress)
     print(json.dumps({"stage": args.stage, "checkpoint": str(args.out / args.stage), **result}, default=str))
     return 0
 

@@ -1,5 +1,6 @@
-"""Torch datasets over any BOP dataset (``posegrasp.bop``): segmentation images and per-object
-pose samples, with seeded colour and depth augmentation.
+"""Torch datasets over any BOP dataset (``posegrasp.bop``) for training: segmentation images, per-object
+pose samples and instance classifier crops, with seeded colour and depth augmentation. Their inputs are
+prepared as at run time (``perception.inputs``); the classifier's crops are cached (``perception.crop_cache``).
 
 Every sample is a deterministic function of (dataset seed, index, augmentation key): the trainer
 passes the global sample counter as the key, so a resumed run sees exactly the same batches.
@@ -7,25 +8,20 @@ passes the global sample counter as the key, so a resumed run sees exactly the s
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import ndimage
 import torch
 from torch.utils.data import Dataset
 
 from posegrasp import bop
-from posegrasp import io as pio
 from posegrasp.errors import UserError
-from posegrasp.perception.crop import backproject, crop_box, padded_box, remap_choose, sample_choose
+from posegrasp.perception.crop_cache import fingerprint, read_crop_cache, write_crop_cache
+from posegrasp.perception.inputs import (normalize_cls_input, normalize_rgb, prepare_cls_input, prepare_pose_input,
+                                         segment_components)
 from posegrasp.perception.plane import fit_support_plane
-
-RGB_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
-RGB_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 
 
 @dataclass
@@ -54,16 +50,6 @@ class DataConfig:
     hue_jitter: float = 0.03
     depth_noise: float = 0.001
     translation_noise: float = 0.01
-
-
-def normalize_rgb(rgb: np.ndarray) -> np.ndarray:
-    """uint8 (H, W, 3) RGB -> float32 (3, H, W), ImageNet mean/std normalised (in place on the planes: ~10x faster than
-    on the channels-last image, the same numbers)."""
-    x = rgb.transpose(2, 0, 1).astype(np.float32, order="C")
-    x /= 255.0
-    x -= RGB_MEAN[:, None, None]
-    x /= RGB_STD[:, None, None]
-    return x
 
 
 def color_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float, hue: float) -> np.ndarray:
@@ -170,108 +156,6 @@ def usable(inst: bop.GTInstance, cfg: DataConfig) -> bool:
                                  and inst.info.px_count_visib >= cfg.min_points)
 
 
-def prepare_pose_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray, num_points: int,
-                       crop_size: int, rng: np.random.Generator, depth_noise: float = 0.0
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Crop, point sampling and back-projection for one object mask (shared by training and inference).
-
-    Returns (image (3, S, S) float32 normalised, choose (N,) int64 into the S x S crop, points (N, 3)
-    float32 camera frame, m), or None when the mask has no pixel with valid depth.
-    """
-    if not mask.any():
-        return None
-    box = crop_box(mask)
-    rmin, rmax, cmin, cmax = box
-    valid = mask[rmin:rmax, cmin:cmax] & (depth[rmin:rmax, cmin:cmax] > 0)  # the crop holds the whole mask
-    if not valid.any():
-        return None
-    choose = sample_choose(valid, num_points, rng)
-    pts = backproject(depth, K, box, choose)
-    if depth_noise > 0:
-        z = pts[:, 2]
-        pts = pts * ((z + rng.normal(0.0, depth_noise, z.shape)) / z)[:, None]  # noise along each ray
-    crop = cv2.resize(np.ascontiguousarray(rgb[rmin:rmax, cmin:cmax]), (crop_size, crop_size),
-                      interpolation=cv2.INTER_LINEAR)
-    choose_s = remap_choose(choose, (rmax - rmin, cmax - cmin), crop_size)
-    return normalize_rgb(crop), choose_s, pts.astype(np.float32)
-
-
-def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray, size: int,
-                      side: float, depth_range: float, min_valid: int = 10, height_range: float = 0.0,
-                      plane: np.ndarray | None = None) -> np.ndarray | None:
-    """Fixed-metric-size crop of one segment for the instance classifier (``perception.classifier``).
-
-    The square of ``side`` metres at the segment's median depth z, centred on the mask's centroid, is
-    resampled to size x size px (scale s = size z / (side f_x)). Channels (6, S, S) float32: RGB in [0, 1],
-    the mask, (depth - z) / depth_range clipped to [-1, 1] (0 where invalid), and the valid-depth flag.
-    With ``height_range`` > 0 a 7th channel holds each pixel's height above the supporting ``plane``
-    (``perception.plane``; n . X + d for the back-projected point X), clipped to [0, height_range] m and scaled to
-    [0, 1]; 0 where the depth is invalid or there is no plane (None).
-    RGB is not normalised here (``normalize_cls_input`` does it after augmentation). None when the
-    mask has fewer than ``min_valid`` pixels with valid depth.
-    """
-    box = padded_box(mask, 0)  # the mask's box: its statistics need no more
-    if box is None:
-        return None
-    valid = mask[box] & (depth[box] > 0)
-    if int(valid.sum()) < min_valid:
-        return None
-    z = float(np.median(depth[box][valid]))
-    mom = cv2.moments(mask[box].view(np.uint8), binaryImage=True)  # the centroid, ~5x faster than np.nonzero's means
-    cx, cy = box[1].start + mom["m10"] / mom["m00"], box[0].start + mom["m01"] / mom["m00"]
-    s = size * z / (side * float(K[0, 0]))
-    A = np.array([[s, 0.0, size / 2 - s * cx], [0.0, s, size / 2 - s * cy]], dtype=np.float32)
-    rgb_c = cv2.warpAffine(rgb, A, (size, size), flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
-    mask_c = cv2.warpAffine(mask.view(np.uint8), A, (size, size), flags=cv2.INTER_NEAREST)
-    d_c = cv2.warpAffine(depth.astype(np.float32, copy=False), A, (size, size), flags=cv2.INTER_NEAREST)
-    ok = d_c > 0
-    rel = np.where(ok, np.clip((d_c - z) / depth_range, -1.0, 1.0), 0.0)
-    channels = [rgb_c.transpose(2, 0, 1) / np.float32(255.0), mask_c[None], rel[None], ok[None]]
-    if height_range > 0:
-        height = np.zeros((size, size), dtype=np.float32)
-        if plane is not None:  # crop pixel (x, y) samples image pixel ((x, y) - A[:, 2]) / s
-            u = (np.arange(size, dtype=np.float32) - A[0, 2]) / s
-            v = (np.arange(size, dtype=np.float32) - A[1, 2]) / s
-            X = (u[None, :] - K[0, 2]) / K[0, 0] * d_c
-            Y = (v[:, None] - K[1, 2]) / K[1, 1] * d_c
-            h = X * plane[0] + Y * plane[1] + d_c * plane[2] + plane[3]
-            height = np.where(ok, np.clip(h / height_range, 0.0, 1.0), 0.0)
-        channels.append(height[None])
-    return np.concatenate(channels).astype(np.float32)
-
-
-def normalize_cls_input(x: np.ndarray) -> np.ndarray:
-    """``prepare_cls_input``'s (C, S, S) with the RGB channels ImageNet-normalised."""
-    x = x.astype(np.float32, copy=True)
-    x[:3] = (x[:3] - RGB_MEAN[:, None, None]) / RGB_STD[:, None, None]
-    return x
-
-
-def segment_components(labels: np.ndarray, min_pixels: int) -> list[tuple[int, np.ndarray]]:
-    """(class, mask) of the 8-connected components of at least ``min_pixels`` pixels of every non-background class of a
-    class map (H, W), ints >= 0, in that order: by class, then by the raster position of each component's first pixel.
-    The segmentation net is semantic (one class per block type), while a scene may hold several blocks of a type:
-    separated blocks become separate components, touching ones stay merged. A class's components are found in the box
-    of each connected foreground region in turn (each lies in one), not in the whole image."""
-    W = labels.shape[1]
-    _, regions = cv2.connectedComponents((labels > 0).view(np.uint8), connectivity=8)
-    found = []  # (class, raster index of the first pixel, mask)
-    for k, box in enumerate(ndimage.find_objects(regions), start=1):  # boxes: ~2x faster than OpenCV's stats
-        y, x = box[0].start, box[1].start
-        lab = np.where(regions[box] == k, labels[box], 0)  # another region may reach into the box
-        for c in np.flatnonzero(np.bincount(lab.ravel())):  # the region's classes (and 0, unless it fills its box)
-            if c == 0:
-                continue
-            m, comp, st, _ = cv2.connectedComponentsWithStats((lab == c).view(np.uint8), connectivity=8)
-            for i in range(1, m):
-                if st[i, cv2.CC_STAT_AREA] >= min_pixels:
-                    top = st[i, cv2.CC_STAT_TOP]
-                    mask = np.zeros(labels.shape, dtype=bool)
-                    mask[box] = comp == i
-                    found.append((int(c), (y + top) * W + x + int(np.argmax(comp[top] == i)), mask))
-    return [(c, m) for c, _, m in sorted(found, key=lambda f: f[:2])]
-
-
 class ClsDataset(Dataset):
     """Instance classifier samples: ``{"image": (C, S, S) float32, "label": index into obj_ids}``.
 
@@ -304,16 +188,16 @@ class ClsDataset(Dataset):
         self.seed = seed
         records = load_records(root, split)
         key = {"version": self.CACHE_VERSION, "root": str(Path(root).resolve()), "split": split,
-               "images": len(records), "annotations": _fingerprint(records),
+               "images": len(records), "annotations": fingerprint(records),
                "obj_ids": self.obj_ids, "crop": [size, side, depth_range, height_range],
                "selection": [self.cfg.min_visib_fract, self.cfg.min_points, self.BACKGROUND_MAX_FG],
                "segmenter": segmenter_id if segmenter is not None else None}
-        cached = _read_crop_cache(Path(cache), key) if cache is not None else None
+        cached = read_crop_cache(Path(cache), key) if cache is not None else None
         if cached is None:
             crops, labels = self._crops(records, split, segmenter, (size, side, depth_range, height_range), progress)
             if not crops:
                 raise UserError(f"no usable object instance in {Path(root) / split} for the classifier")
-            cached = _write_crop_cache(Path(cache), key, crops, labels) if cache is not None else (crops, labels)
+            cached = write_crop_cache(Path(cache), key, crops, labels) if cache is not None else (crops, labels)
         self.crops = cached[0]  # (C, S, S) float16 each: a list, or a read-only memory map of the cache
         self.labels = np.asarray(cached[1], dtype=np.int64)
 
@@ -364,46 +248,6 @@ class ClsDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor | int]:
         return self.get(index)
-
-
-def _fingerprint(records: list[bop.ImageRecord]) -> str:
-    """sha256 of the records' ids, cameras and annotated poses: a dataset generated anew in the same place differs."""
-    h = hashlib.sha256()
-    for r in records:
-        h.update(np.array([r.scene_id, r.im_id], dtype=np.int64).tobytes() + np.asarray(r.camera.K, float).tobytes())
-        for g in r.instances:
-            h.update(np.int64(g.obj_id).tobytes() + np.asarray(g.T_cam_obj, float).tobytes())
-    return h.hexdigest()
-
-
-def _read_crop_cache(path: Path, key: dict) -> tuple[np.ndarray, list[int]] | None:
-    """``ClsDataset``'s cached crops (N, C, S, S) float16 (a read-only memory map) and labels, or None when ``path``
-    does not hold crops computed for ``key``."""
-    meta = path.with_suffix(".json")
-    if not (meta.exists() and path.exists()):
-        return None
-    info = json.loads(meta.read_text())
-    if info.get("key") != json.loads(json.dumps(key)):
-        return None
-    crops = np.load(path, mmap_mode="r")
-    return (crops, info["labels"]) if len(crops) == len(info["labels"]) else None
-
-
-def _write_crop_cache(path: Path, key: dict, crops: list[np.ndarray], labels: list[int]
-                      ) -> tuple[np.ndarray, list[int]]:
-    """Write ``crops`` to ``path`` (one array, filled crop by crop) and the labels and ``key`` beside it, each file
-    atomically, the ``.json`` last; returns them as ``_read_crop_cache`` does."""
-    def fill(tmp: Path) -> None:
-        out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(len(crops), *crops[0].shape))
-        for i, x in enumerate(crops):
-            out[i] = x
-        out.flush()
-        del out
-
-    path.with_suffix(".json").unlink(missing_ok=True)  # the old key must not outlive its crops
-    pio.atomic_write(path, fill)
-    pio.write_json(path.with_suffix(".json"), {"key": key, "labels": labels}, indent=None)
-    return np.load(path, mmap_mode="r"), labels
 
 
 class PoseDataset(Dataset):

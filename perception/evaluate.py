@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -30,8 +29,8 @@ from posegrasp import io as pio
 from posegrasp.errors import UserError
 from posegrasp.perception import metrics as M
 from posegrasp.perception.data import label_map, load_records
+from posegrasp.perception.estimator import STAGES, Detection, Estimator, EstimatorConfig
 from posegrasp.perception.guided import GuidedConfig
-from posegrasp.perception.inference import Detection, Estimator
 from posegrasp.perception.split import SplitConfig
 
 RE_THRESHOLDS = np.linspace(0.0, 30.0, 61)  # degrees
@@ -144,11 +143,12 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
     if cfg.masks not in ("pred", "gt"):
         raise UserError(f"eval masks must be 'pred' or 'gt', got {cfg.masks!r}")
     data, out = Path(data), Path(out)
-    est = Estimator(weights, refine_iterations=None if cfg.refine_iterations < 0 else cfg.refine_iterations,
-                    min_valid_points=cfg.min_valid_points, threads=cfg.threads, seed=cfg.seed,
-                    classify=None if cfg.classify else False, models=data if cfg.icp else None, support_plane=cfg.plane,
-                    split=SplitConfig(rounds=SplitConfig.rounds if cfg.split_merged else 0),
-                    guided=None if cfg.guided else GuidedConfig(radius=0))
+    est = Estimator(weights, EstimatorConfig(
+        refine_iterations=None if cfg.refine_iterations < 0 else cfg.refine_iterations,
+        min_valid_points=cfg.min_valid_points, threads=cfg.threads, seed=cfg.seed,
+        classify=None if cfg.classify else False, models=data if cfg.icp else None, support_plane=cfg.plane,
+        split=SplitConfig(rounds=SplitConfig.rounds if cfg.split_merged else 0),
+        guided=GuidedConfig() if cfg.guided else GuidedConfig(radius=0)))
     infos = bop.load_models_info(data)
     obj_ids = [o for o in est.obj_ids if o in infos]
     pts = {o: bop.sample_model_points(bop.load_model(data, o), cfg.model_points, seed=o) for o in obj_ids}
@@ -159,7 +159,7 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
     conf = np.zeros((nc, nc), dtype=np.int64)
     rows: list[dict[str, Any]] = []
     results: list[bop.PoseResult] = []
-    times: dict[str, list[float]] = {k: [] for k in (*est.timings, "total")}
+    times: dict[str, list[float]] = {k: [] for k in (*STAGES, "total")}
     for rec in track(records, f"eval {cfg.split}", enabled=progress):
         rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
         gts = [g for g in rec.instances if g.obj_id in obj_ids
@@ -167,14 +167,15 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
         gt_masks = [(g.obj_id, rec.load_mask(g.gt_index)) for g in gts] if cfg.masks == "gt" else []
         t0 = time.perf_counter()
         if cfg.masks == "pred":
-            dets = est(rgb, depth, K)
-        else:
-            est.timings.update(seg=0.0, cls=0.0, guided=0.0)  # no segmentation stage with ground-truth masks
-            dets = est.estimate(rgb, depth, K, gt_masks)
+            res = est(rgb, depth, K)
+            dets, timings = res.detections, res.timings
+        else:  # no segmentation, classifier, split or guided stage with ground-truth masks
+            dets, stages = est.estimate(rgb, depth, K, gt_masks)
+            timings = {**dict.fromkeys(STAGES, 0.0), **stages}
         total = time.perf_counter() - t0
         if cfg.masks == "pred":
-            conf += M.confusion_matrix(est.last_labels, label_map(rec, rgb.shape[:2]), nc)
-        for k, v in est.timings.items():
+            conf += M.confusion_matrix(res.labels, label_map(rec, rgb.shape[:2]), nc)
+        for k, v in timings.items():
             times[k].append(v)
         times["total"].append(total)
         rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
@@ -188,7 +189,7 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
         "config": asdict(cfg),
         "ablation": {"pam": pose_cfg.use_pam, "cam": pose_cfg.use_cam, "gfem": pose_cfg.use_gfem,
                      "refine_iterations": est.refine_iterations, "masks": cfg.masks,
-                     "classifier": bool(est.classifiers) and cfg.masks == "pred", "icp": cfg.icp,
+                     "classifier": est.classifier is not None and cfg.masks == "pred", "icp": cfg.icp,
                      "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.icp},
         "segmentation": None,
         "overall": overall,
@@ -203,7 +204,7 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
                                   "per_class": {str(c): {"PA": _f(s["pa"][c]), "IoU": _f(s["iou"][c])}
                                                 for c in range(nc)}}
     out.mkdir(parents=True, exist_ok=True)
-    pio.write_bytes(out / "metrics.json", (json.dumps(_clean(report), indent=2) + "\n").encode())
+    pio.write_json(out / "metrics.json", pio.jsonable(report, nan_to_null=True))
     cols = ["obj_id", "n", "detected", "ADD_AUC", "ADD-S_AUC", "ADD(-S)_AUC", "ADD-S_<2cm", "ADD(-S)_acc_0.1d",
             "mean_ADD", "mean_ADD-S", "median_re_sym_deg", "median_te"]
     pio.write_bytes(out / "per_object.csv", _csv_bytes(
@@ -220,21 +221,6 @@ def _nanmean(v: list[float]) -> float:
     a = np.asarray(v, dtype=np.float64)
     a = a[np.isfinite(a)]
     return float(a.mean()) if a.size else float("nan")
-
-
-def _clean(x: Any) -> Any:
-    """Nested structure made strict-JSON safe (nan / inf -> None, numpy scalars -> Python)."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return _f(x)
-    return x
 
 
 def _f(x: Any) -> Any:

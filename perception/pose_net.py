@@ -76,7 +76,7 @@ class PoseNetConfig:
 class BasicBlock(nn.Module):
     """ResNet basic block (two 3x3 convs) with optional stride and dilation."""
 
-    conv_bn_pairs = (("conv1", "bn1"), ("conv2", "bn2"))  # for ``perception.inference.fold_batch_norms``
+    conv_bn_pairs = (("conv1", "bn1"), ("conv2", "bn2"))  # for ``perception.runtime.fold_batch_norms``
 
     def __init__(self, cin: int, cout: int, stride: int = 1, dilation: int = 1):
         super().__init__()

@@ -10,7 +10,8 @@ Layout under a dataset root::
 
 Files are in millimetres (models, translations, depth png x depth_scale); everything this module
 returns is in metres: the conversion happens here, at the boundary. Poses are 4x4 ``T_cam_obj``
-(model frame -> OpenCV camera frame: x right, y down, z forward). Writers are atomic.
+(model frame -> OpenCV camera frame: x right, y down, z forward). Writers are atomic; the image encoders give
+the bytes of BOP's colour, depth and mask images to writers that place their own files.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+import cv2
 import numpy as np
 
 from posegrasp import io as pio
@@ -29,6 +31,11 @@ from posegrasp.errors import UserError
 
 MM = 1e-3  # metres per millimetre
 RESULTS_HEADER = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
+#: PNG settings, the fastest (and smallest) measured for each kind: unfiltered rows for noisy depth, plus
+#: run-length deflate for masks; sub-filtered rows for colour images.
+_PNG_NONE = (cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE)
+_PNG_MASK = (*_PNG_NONE, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE)
+_PNG_SUB = (cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB)
 
 
 # ---------------------------------------------------------------------------- paths
@@ -196,7 +203,8 @@ def _read_json(path: Path) -> Any:
         raise UserError(f"BOP file {path} is not valid JSON: {e}") from None
 
 
-def _T_from_bop(R: list[float], t_mm: list[float]) -> np.ndarray:
+def pose_from_bop(R: list[float], t_mm: list[float]) -> np.ndarray:
+    """4x4 pose (m) from BOP's row-major rotation (9 values) and translation (mm)."""
     T = np.eye(4)
     T[:3, :3] = np.asarray(R, dtype=np.float64).reshape(3, 3)
     T[:3, 3] = np.asarray(t_mm, dtype=np.float64).reshape(3) * MM
@@ -234,7 +242,7 @@ def load_camera(root_or_file: str | Path) -> Camera:
 
 def load_scene_gt(path: str | Path) -> dict[int, list[tuple[int, np.ndarray]]]:
     """``scene_gt.json`` -> {im_id: [(obj_id, T_cam_obj 4x4 m), ...]} in annotation order."""
-    return {int(k): [(int(g["obj_id"]), _T_from_bop(g["cam_R_m2c"], g["cam_t_m2c"])) for g in v]
+    return {int(k): [(int(g["obj_id"]), pose_from_bop(g["cam_R_m2c"], g["cam_t_m2c"])) for g in v]
             for k, v in _read_json(Path(path)).items()}
 
 
@@ -242,7 +250,7 @@ def load_scene_camera(path: str | Path) -> dict[int, SceneCamera]:
     """``scene_camera.json`` -> {im_id: SceneCamera} (T_cam_world in m when present)."""
     out = {}
     for k, v in _read_json(Path(path)).items():
-        T = _T_from_bop(v["cam_R_w2c"], v["cam_t_w2c"]) if "cam_R_w2c" in v and "cam_t_w2c" in v else None
+        T = pose_from_bop(v["cam_R_w2c"], v["cam_t_w2c"]) if "cam_R_w2c" in v and "cam_t_w2c" in v else None
         out[int(k)] = SceneCamera(K=np.asarray(v["cam_K"], dtype=np.float64).reshape(3, 3),
                                   depth_scale=float(v.get("depth_scale", 1.0)), T_cam_world=T)
     return out
@@ -309,7 +317,8 @@ def sample_model_points(mesh, n: int, seed: int = 0) -> np.ndarray:
 
 # ---------------------------------------------------------------------------- writers
 
-def _R_t_mm(T: np.ndarray) -> tuple[list[float], list[float]]:
+def pose_to_bop(T: np.ndarray) -> tuple[list[float], list[float]]:
+    """BOP's row-major rotation (9 values) and translation (mm) of a 4x4 pose (m)."""
     T = np.asarray(T, dtype=np.float64)
     return T[:3, :3].reshape(-1).tolist(), (T[:3, 3] / MM).tolist()
 
@@ -322,58 +331,13 @@ def write_camera(root: str | Path, cam: Camera) -> Path:
                                              "width": int(cam.width), "height": int(cam.height)})
 
 
-def write_models_info(root: str | Path, infos: dict[int, ObjectInfo]) -> Path:
-    """Write ``<root>/models/models_info.json`` (values converted to mm)."""
-    out = {}
-    for oid, inf in sorted(infos.items()):
-        d: dict[str, Any] = {"diameter": inf.diameter / MM}
-        for ax, lo, sz in zip("xyz", inf.min_xyz, inf.size_xyz):
-            d[f"min_{ax}"], d[f"size_{ax}"] = float(lo) / MM, float(sz) / MM
-        if inf.symmetries_discrete:
-            mats = []
-            for s in inf.symmetries_discrete:
-                s = np.array(s, dtype=np.float64)
-                s[:3, 3] /= MM
-                mats.append(s.reshape(-1).tolist())
-            d["symmetries_discrete"] = mats
-        if inf.symmetries_continuous:
-            d["symmetries_continuous"] = [{"axis": np.asarray(a, float).tolist(),
-                                           "offset": (np.asarray(o, float) / MM).tolist()}
-                                          for a, o in inf.symmetries_continuous]
-        out[str(oid)] = d
-    return pio.write_json(models_info_path(root), out)
-
-
-def object_info_from_mesh(obj_id: int, mesh, symmetries_discrete: list[np.ndarray] | None = None,
-                          symmetries_continuous: list[tuple[np.ndarray, np.ndarray]] | None = None) -> ObjectInfo:
-    """ObjectInfo (m) of a mesh in metres: diameter = largest vertex distance, bounding box."""
-    from scipy.spatial.distance import pdist
-
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    if len(v) > 2000:
-        import trimesh
-
-        v = np.asarray(trimesh.convex.convex_hull(mesh).vertices)
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    return ObjectInfo(obj_id=obj_id, diameter=float(pdist(v).max()), min_xyz=lo, size_xyz=hi - lo,
-                      symmetries_discrete=list(symmetries_discrete or []),
-                      symmetries_continuous=list(symmetries_continuous or []))
-
-
-def write_model_ply(root: str | Path, obj_id: int, mesh) -> Path:
-    """Write a trimesh model given in metres to ``<root>/models/obj_XXXXXX.ply`` in mm (binary PLY)."""
-    m = mesh.copy()
-    m.apply_scale(1.0 / MM)
-    return pio.write_bytes(model_path(root, obj_id), m.export(file_type="ply"))
-
-
 def write_scene_gt(path: str | Path, gt: dict[int, list[tuple[int, np.ndarray]]]) -> Path:
     """Write ``scene_gt.json`` from {im_id: [(obj_id, T_cam_obj m), ...]} (translations in mm)."""
     out = {}
     for im_id, insts in sorted(gt.items()):
         rows = []
         for oid, T in insts:
-            R, t = _R_t_mm(T)
+            R, t = pose_to_bop(T)
             rows.append({"cam_R_m2c": R, "cam_t_m2c": t, "obj_id": int(oid)})
         out[str(im_id)] = rows
     return pio.write_json(path, out)
@@ -385,7 +349,7 @@ def write_scene_camera(path: str | Path, cams: dict[int, SceneCamera]) -> Path:
     for im_id, c in sorted(cams.items()):
         d: dict[str, Any] = {"cam_K": np.asarray(c.K, float).reshape(-1).tolist(), "depth_scale": float(c.depth_scale)}
         if c.T_cam_world is not None:
-            d["cam_R_w2c"], d["cam_t_w2c"] = _R_t_mm(c.T_cam_world)
+            d["cam_R_w2c"], d["cam_t_w2c"] = pose_to_bop(c.T_cam_world)
         out[str(im_id)] = d
     return pio.write_json(path, out)
 
@@ -405,32 +369,51 @@ def depth_to_png(depth_m: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:
     return np.clip(np.nan_to_num(v, nan=0.0, posinf=0.0), 0, 65535).astype(np.uint16)
 
 
-def write_depth(path: str | Path, depth_m: np.ndarray, depth_scale: float = 1.0) -> Path:
-    """Atomically write a depth map in metres as a BOP uint16 png."""
-    return pio.write_png(path, depth_to_png(depth_m, depth_scale))
+def encode_rgb(rgb: np.ndarray, ext: str, jpg_quality: int = 95) -> bytes:
+    """An RGB uint8 image (H, W, 3) as BOP colour image bytes; ``ext`` ``jpg`` or ``png``."""
+    if ext == "jpg":
+        return pio.encode_image(".jpg", rgb, [cv2.IMWRITE_JPEG_QUALITY, jpg_quality])
+    return pio.encode_image(".png", rgb, _PNG_SUB)
 
 
-def write_mask(path: str | Path, mask: np.ndarray) -> Path:
-    """Atomically write a boolean mask as a 0/255 png."""
-    return pio.write_png(path, np.asarray(mask, dtype=bool).astype(np.uint8) * 255)
+def encode_depth(depth_m: np.ndarray, depth_scale: float = 1.0) -> bytes:
+    """A depth map (m) as BOP depth PNG bytes (uint16, value x depth_scale = mm)."""
+    return pio.encode_image(".png", depth_to_png(depth_m, depth_scale), _PNG_NONE)
 
 
-def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+def encode_mask(mask: np.ndarray) -> bytes:
+    """A boolean mask as BOP mask PNG bytes (0/255, 8-bit)."""
+    return pio.encode_image(".png", np.asarray(mask, bool).view(np.uint8) * np.uint8(255), _PNG_MASK)
+
+
+def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """BOP box [x, y, w, h] (px) of a boolean mask; (-1, -1, 0, 0) when it is empty."""
     ys, xs = np.nonzero(mask)
     if ys.size == 0:
         return (-1, -1, 0, 0)
     return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
 
 
-def gt_info_from_masks(mask: np.ndarray, mask_visib: np.ndarray, depth_m: np.ndarray) -> GTInfo:
+def gt_info_from_masks(mask: np.ndarray, mask_visib: np.ndarray, depth_m: np.ndarray,
+                       box: tuple[int, int, int, int] | None = None) -> GTInfo:
     """GTInfo of one object from its full and visible masks and the scene depth (m).
 
     bbox_obj is the box of the full mask inside the image (BOP projects the model; the mask is the
-    rendered silhouette, so it is the same up to the image border).
+    rendered silhouette, so it is the same up to the image border). ``box`` [x0, x1) x [y0, y1) px, when
+    given, holds the whole full mask: the counts are then taken inside it (faster) if the visible mask
+    lies inside it too.
     """
+    if box is not None:
+        x0, y0, x1, y1 = box
+        sl = np.s_[y0:y1, x0:x1]
+        if np.count_nonzero(mask_visib[sl]) == np.count_nonzero(mask_visib):
+            info = gt_info_from_masks(mask[sl], mask_visib[sl], depth_m[sl])
+            shift = lambda b: (b[0] + x0, b[1] + y0, b[2], b[3]) if b[2] > 0 else b  # noqa: E731
+            info.bbox_obj, info.bbox_visib = shift(info.bbox_obj), shift(info.bbox_visib)
+            return info
     valid = mask & (depth_m > 0)
     n_all, n_visib = int(mask.sum()), int(mask_visib.sum())
-    return GTInfo(bbox_obj=_bbox(mask), bbox_visib=_bbox(mask_visib), px_count_all=n_all,
+    return GTInfo(bbox_obj=mask_bbox(mask), bbox_visib=mask_bbox(mask_visib), px_count_all=n_all,
                   px_count_valid=int(valid.sum()), px_count_visib=n_visib,
                   visib_fract=float(n_visib / n_all) if n_all else 0.0)
 
@@ -456,18 +439,7 @@ def write_results_csv(path: str | Path, results: Iterable[PoseResult]) -> Path:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(RESULTS_HEADER)
     for r in results:
-        R, t = _R_t_mm(r.T_cam_obj)
+        R, t = pose_to_bop(r.T_cam_obj)
         w.writerow([r.scene_id, r.im_id, r.obj_id, f"{r.score:.6f}", " ".join(f"{x:.9f}" for x in R),
                     " ".join(f"{x:.6f}" for x in t), f"{r.time:.6f}"])
     return pio.write_bytes(path, buf.getvalue().encode())
-
-
-def read_results_csv(path: str | Path) -> list[PoseResult]:
-    """Read a BOP results CSV back (translations to metres)."""
-    out = []
-    with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            T = _T_from_bop([float(x) for x in row["R"].split()], [float(x) for x in row["t"].split()])
-            out.append(PoseResult(int(row["scene_id"]), int(row["im_id"]), int(row["obj_id"]), float(row["score"]), T,
-                                  float(row["time"])))
-    return out

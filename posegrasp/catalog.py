@@ -131,11 +131,6 @@ def load_catalog(root: Path = ASSETS / "blocks") -> dict[str, BlockType]:
     return {b.name: b for b in _load(Path(root).resolve())}
 
 
-def block_names() -> list[str]:
-    """Names of the shipped block types, in ``obj_id`` order."""
-    return list(load_catalog())
-
-
 def symmetry_transforms(block: BlockType, n_continuous: int = 36) -> np.ndarray:
     """(K, 4, 4) transforms ``T`` (m) with ``T``-moved block == block, identity first.
 

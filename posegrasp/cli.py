@@ -37,6 +37,7 @@ def workers_arg(text: str) -> int | str:
 COMMAND_MODULES = (
     "posegrasp.sim.cli",
     "posegrasp.datagen.cli",
+    "posegrasp.bop_cli",
     "posegrasp.perception.cli",
     "posegrasp.grasping.cli",
     "posegrasp.grasping.compare",

@@ -9,7 +9,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
+from typing import Any, Callable, Iterator, Protocol, Sequence
 
 
 class Executor(Protocol):
@@ -72,12 +72,3 @@ def make_executor(workers: int | str | None = None) -> Executor:
         return RayExecutor()
     n = (os.cpu_count() or 1) if workers is None else int(workers)
     return SerialExecutor() if n == 1 else PoolExecutor(n)
-
-
-def run_all(executor: Executor, fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
-    """Results of ``fn`` over ``items`` in item order."""
-    items = list(items)
-    out: list[Any] = [None] * len(items)
-    for i, r in executor.imap(fn, items):
-        out[i] = r
-    return out

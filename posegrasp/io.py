@@ -1,8 +1,9 @@
-"""Atomic file writing: a killed run never leaves a partial file behind."""
+"""Files on disk: atomic writes (a killed run never leaves a partial file behind), JSON, and images."""
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -11,8 +12,12 @@ from typing import Any, Callable
 import numpy as np
 
 
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
-    """Call ``write(tmp)`` on a temporary file beside ``path``, fsync it and rename it to ``path``."""
+def atomic_write(path: str | Path, write: Callable[[Path], None], fsync: bool = True) -> Path:
+    """Call ``write(tmp)`` on a temporary file beside ``path`` and rename it to ``path``.
+
+    With ``fsync`` the data reach the disk before the rename (a power cut keeps the old file or the whole
+    new one); without it, a killed process still never leaves a partial file.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -21,8 +26,9 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
     try:
         write(tmp_path)
         os.chmod(tmp_path, 0o644)  # mkstemp creates 0600 files
-        with open(tmp_path, "rb+") as f:
-            os.fsync(f.fileno())
+        if fsync:
+            with open(tmp_path, "rb+") as f:
+                os.fsync(f.fileno())
         os.replace(tmp_path, path)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
@@ -30,50 +36,62 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
     return path
 
 
-def write_bytes(path: str | Path, data: bytes) -> Path:
-    """Atomically write raw bytes."""
-    return atomic_write(path, lambda p: p.write_bytes(data))
+def write_bytes(path: str | Path, data: bytes, fsync: bool = True) -> Path:
+    """Atomically write raw bytes (``fsync``: see ``atomic_write``)."""
+    return atomic_write(path, lambda p: p.write_bytes(data), fsync)
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+def jsonable(obj: Any, digits: int | None = None, nan_to_null: bool = False) -> Any:
+    """``obj`` in plain JSON types: numpy arrays -> lists, numpy scalars -> Python, tuples -> lists, paths ->
+    strings (dict keys kept); floats rounded to ``digits`` decimals, and NaN / inf -> None if ``nan_to_null``."""
+    if isinstance(obj, dict):
+        return {k: jsonable(v, digits, nan_to_null) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v, digits, nan_to_null) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist(), digits, nan_to_null)
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, float):
+        if nan_to_null and not math.isfinite(obj):
+            return None
+        return obj if digits is None else round(obj, digits)
+    return obj
 
 
 def dumps_json(obj: Any, indent: int | None = 2) -> str:
-    """JSON text with numpy arrays and scalars converted."""
-    return json.dumps(obj, indent=indent, default=_json_default)
+    """JSON text of ``jsonable(obj)``."""
+    return json.dumps(jsonable(obj), indent=indent)
 
 
 def write_json(path: str | Path, obj: Any, indent: int | None = 2) -> Path:
-    """Atomically write ``obj`` as JSON (numpy arrays become lists)."""
+    """Atomically write ``obj`` as JSON (``dumps_json``) and a newline."""
     return write_bytes(path, (dumps_json(obj, indent) + "\n").encode())
 
 
-def write_png(path: str | Path, image: np.ndarray) -> Path:
-    """Atomically write a uint8 (H, W[, 3]) or uint16 (H, W) image as PNG, deterministically."""
+def encode_image(ext: str, image: np.ndarray, params: list[int] | tuple[int, ...]) -> bytes:
+    """PNG or JPEG bytes (``ext``: ``.png`` or ``.jpg``, OpenCV ``params``) of an RGB (H, W, 3) or single-channel
+    (H, W) image."""
     import cv2
 
-    img = image[..., ::-1] if image.ndim == 3 else image  # RGB -> BGR for OpenCV
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    ok, buf = cv2.imencode(ext, np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image), list(params))
     if not ok:
-        raise OSError(f"could not encode PNG for {path}")
-    return write_bytes(path, buf.tobytes())
+        raise OSError(f"could not encode {ext} image")
+    return buf.tobytes()
 
 
-def write_jpg(path: str | Path, rgb: np.ndarray, quality: int = 95) -> Path:
-    """Atomically write an RGB uint8 image as JPEG."""
+def write_image(path: str | Path, image: np.ndarray, jpg_quality: int = 95) -> Path:
+    """Atomically write an image: JPEG for a ``.jpg`` / ``.jpeg`` path (RGB uint8), else PNG (RGB or single-channel
+    uint8, or uint16 depth) at zlib level 1, deterministically."""
     import cv2
 
-    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise OSError(f"could not encode JPEG for {path}")
-    return write_bytes(path, buf.tobytes())
+    if Path(path).suffix.lower() in (".jpg", ".jpeg"):
+        data = encode_image(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpg_quality])
+    else:
+        data = encode_image(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    return write_bytes(path, data)
 
 
 def read_image(path: str | Path) -> np.ndarray:

@@ -12,6 +12,8 @@ import mujoco
 import numpy as np
 
 from posegrasp.geometry import axis_angle_R, invert
+from posegrasp.sim import gl
+from posegrasp.sim.config import CameraConfig, RenderConfig
 
 #: Pose of the OpenCV camera frame in the MuJoCo camera frame (flip y and z); it is its own inverse.
 T_CV_MJ = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -49,7 +51,8 @@ class Frame:
 
 
 class CameraRenderer:
-    """Offscreen renderer for one camera of a workcell (one GL context; reuse it for many frames)."""
+    """Offscreen renderer for one camera of a workcell, in the process's GL context (``sim.gl``); reuse it for
+    many frames, ``close()`` frees the model's GL resources."""
 
     def __init__(self, workcell, camera: str, width: int, height: int, fovy_deg: float,
                  near: float = 0.15, far: float = 2.0, shadows: bool = False, reflections: bool = False):
@@ -58,10 +61,15 @@ class CameraRenderer:
         self.cam_id = workcell.camera_ids[camera]
         self.near, self.far = near, far
         self.K = intrinsics(width, height, fovy_deg)
-        self.renderer = mujoco.Renderer(workcell.model, height=height, width=width)
+        self.renderer = gl.Renderer(workcell.model, height=height, width=width)
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = reflections
         self.option = mujoco.MjvOption()  # groups 0-2 visible: collision primitives (group 3) are hidden
+
+    @classmethod
+    def from_config(cls, workcell, camera: str, c: CameraConfig, render: RenderConfig) -> "CameraRenderer":
+        """The renderer of ``camera`` with its settings ``c`` (size, field of view, depth range) and ``render``."""
+        return cls(workcell, camera, c.width, c.height, c.fovy_deg, c.near, c.far, render.shadows, render.reflections)
 
     def close(self) -> None:
         self.renderer.close()

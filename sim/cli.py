@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_scene(args: argparse.Namespace) -> int:
-    from posegrasp.io import write_json, write_png
+    from posegrasp.io import write_image, write_json
     from posegrasp.sim.config import load_workcell_config
     from posegrasp.sim.scene import SceneConfig, make_scene
     from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA
@@ -63,16 +63,14 @@ def run_scene(args: argparse.Namespace) -> int:
     wc = scene.workcell
     if not wc.drive_arm(wc.look_q):
         raise RuntimeError("the arm did not reach the look pose")
-    c, o = wcfg.hand_camera, wcfg.overview_camera
-    hand = CameraRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far,
-                          wcfg.render.shadows, wcfg.render.reflections)
+    c = wcfg.hand_camera
+    hand = CameraRenderer.from_config(wc, HAND_CAMERA, c, wcfg.render)
     frame = hand.capture()
-    over = CameraRenderer(wc, OVERVIEW_CAMERA, o.width, o.height, o.fovy_deg, 0.05, 10.0,
-                          wcfg.render.shadows, wcfg.render.reflections)
-    write_png(out / "rgb.png", frame.rgb)
-    write_png(out / "depth.png", np.round(frame.depth * 1000.0).astype(np.uint16))
-    write_png(out / "mask.png", frame.mask.astype(np.uint8))
-    write_png(out / "overview.png", over.rgb())
+    over = CameraRenderer.from_config(wc, OVERVIEW_CAMERA, wcfg.overview_camera, wcfg.render)
+    write_image(out / "rgb.png", frame.rgb)
+    write_image(out / "depth.png", np.round(frame.depth * 1000.0).astype(np.uint16))
+    write_image(out / "mask.png", frame.mask.astype(np.uint8))
+    write_image(out / "overview.png", over.rgb())
     T_world_obj = wc.block_poses()
     write_json(out / "scene.json", {
         "seed": args.seed,

@@ -78,16 +78,6 @@ class Scene:
         xy = self.workcell.block_poses()[:, :2, 3]
         return np.all(np.abs(xy - a.center) <= np.add(a.half_size, margin), axis=1)
 
-    def max_penetration(self) -> float:
-        """Deepest contact penetration (m, >= 0) involving any block."""
-        m, d = self.workcell.model, self.workcell.data
-        blocks = set(self.workcell.block_body.tolist())
-        worst = 0.0
-        for c in d.contact[: d.ncon]:
-            if m.geom_bodyid[c.geom1] in blocks or m.geom_bodyid[c.geom2] in blocks:
-                worst = max(worst, -float(c.dist))
-        return worst
-
 
 def drop_poses(cfg: SceneConfig, blocks: list[BlockType], rng: np.random.Generator) -> list[np.ndarray]:
     """Poses above the pick area, random orientation, at least ``min_spacing`` apart in the plane."""

@@ -266,10 +266,6 @@ class Workcell:
         lim = self.arm_velocity_limits()
         self.data.ctrl[self.arm_act] = np.clip(qdot, -lim, lim)
 
-    def command_fingers(self, speed: float) -> None:
-        """Finger velocity command (rad/s): positive closes, negative opens."""
-        self.data.ctrl[self.finger_act] = speed
-
     def gravity_feedforward(self) -> np.ndarray:
         """Velocity command offset that makes the velocity actuators cancel gravity and Coriolis terms.
 

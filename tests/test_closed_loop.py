@@ -9,7 +9,7 @@ import pytest
 
 from posegrasp.grasping.compare import compare_runs, load_run
 from posegrasp.grasping.model_provider import SHIPPED_MODEL
-from posegrasp.grasping.trials import EPISODES
+from posegrasp.grasping.runfolder import EPISODES
 from posegrasp.cli import main
 
 #: Success floor for 20 episodes (seed 0) with the shipped model. Measured: 196/200 episodes (seed 0) succeed

@@ -20,12 +20,13 @@ import trimesh
 from matplotlib.path import Path as PolyPath
 from scipy.spatial import ConvexHull
 
-from posegrasp.datagen.check import check_dataset
+from posegrasp.bop_check import check_dataset
 from posegrasp.datagen.config import load_datagen_config
 from posegrasp.datagen.generate import STATS_FILE, generate_dataset, is_complete
 from posegrasp import bop
 from posegrasp.geometry import invert, transform_points
 from posegrasp.io import read_image
+from posegrasp.sim.gl import pyrender_renderer
 
 SEED, SCENES, VIEWS = 3, 2, 3
 SMALL_TOML = """
@@ -137,8 +138,6 @@ def test_amodal_masks_are_exact_projections_of_convex_blocks(dataset):
     assert checked >= 3
 
 
-#: pyrender renderers stay alive for the whole process: deleting one calls eglTerminate on the display MuJoCo shares.
-_PYRENDERERS: dict = {}
 #: pyrender's principal point is in pixel-edge coordinates (+0.5 px), and its depth is read from a 4x multisampled
 #: buffer, i.e. at sample 0, which Mesa places at (-1/8, +3/8) px from the pixel centre: shift K to match.
 PYRENDER_PP_SHIFT = (0.5 - 0.125, 0.5 + 0.375)
@@ -150,9 +149,7 @@ def test_amodal_masks_match_pyrender(dataset):
 
     cam_info = bop.load_camera(dataset)
     W, H = cam_info.width, cam_info.height
-    if (W, H) not in _PYRENDERERS:  # (not setdefault: a spare renderer would be freed at once)
-        _PYRENDERERS[(W, H)] = pyrender.OffscreenRenderer(W, H)
-    pr = _PYRENDERERS[(W, H)]
+    pr = pyrender_renderer(W, H)
     ious = []
     for rec in records(dataset):
         K = rec.camera.K

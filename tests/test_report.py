@@ -14,7 +14,8 @@ from PIL import Image
 
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.report import REPORT, register, resimulate_look, write_report
-from posegrasp.grasping.trials import EPISODES, run_trials
+from posegrasp.grasping.runfolder import EPISODES
+from posegrasp.grasping.trials import run_trials
 from posegrasp.errors import UserError
 
 CHROMIUM = Path("/usr/bin/chromium")

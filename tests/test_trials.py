@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
 import subprocess
 import sys
 
 import pytest
+from rich.console import Console
 
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.stats import wilson
-from posegrasp.grasping.trials import EPISODES, run_trials
+from posegrasp.grasping.runfolder import EPISODES
+from posegrasp.grasping.trials import run_trials
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +26,10 @@ def oracle_run(tmp_path_factory):
 @pytest.fixture(scope="module")
 def serial_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("serial")
-    run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig())
+    console = Console(file=io.StringIO())
+    run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), console=console, progress=False)
+    assert "episodes succeeded" in console.file.getvalue()  # the summary is printed ...
+    assert "trials oracle" not in console.file.getvalue()  # ... but no progress line
     return out
 
 
@@ -57,8 +63,10 @@ def test_resume_after_a_kill_gives_the_same_file(serial_run, tmp_path):
     shutil.copytree(serial_run, out)
     lines = full.decode().splitlines(keepends=True)
     (out / EPISODES).write_text(lines[2] + lines[0] + lines[3][:37])  # out of order, and a torn last line
-    summary = run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig())
+    console = Console(file=io.StringIO())
+    summary = run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), console=console)
     assert summary["wall"]["episodes_run"] == 2
+    assert "trials oracle  success" in console.file.getvalue()  # the progress line of a non-terminal console
     assert (out / EPISODES).read_bytes() == full
 
 

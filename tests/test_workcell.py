@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import pytest
 import trimesh
@@ -10,7 +11,7 @@ from posegrasp.geometry import invert, rotation_angle
 from posegrasp.sim.camera import CameraRenderer, Frame
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import SceneConfig, make_scene
-from posegrasp.sim.workcell import HAND_CAMERA
+from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA
 
 
 def capture_at_look(seed: int, n_blocks: int = 5, width: int = 640, height: int = 480) -> tuple[Frame, object]:
@@ -30,13 +31,24 @@ def look_frame():
     return capture_at_look(seed=3)
 
 
+def max_penetration(wc) -> float:
+    """Deepest contact penetration (m, >= 0) involving any block."""
+    m, d = wc.model, wc.data
+    blocks = set(wc.block_body.tolist())
+    worst = 0.0
+    for c in d.contact[: d.ncon]:
+        if m.geom_bodyid[c.geom1] in blocks or m.geom_bodyid[c.geom2] in blocks:
+            worst = max(worst, -float(c.dist))
+    return worst
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2, 3, 4])
 def test_scene_settles_inside_pick_area(seed):
     scene = make_scene(seed, 5)
     assert scene.in_pick_area().all()
     speeds = scene.workcell.block_speeds()
     assert np.all(speeds[:, 0] < 0.005) and np.all(speeds[:, 1] < 0.15)
-    assert scene.max_penetration() < 1e-3
+    assert max_penetration(scene.workcell) < 1e-3
     z = scene.workcell.block_poses()[:, 2, 3]
     assert np.all(z > 0.0) and np.all(z < 0.08)
 
@@ -85,6 +97,33 @@ def test_masks_agree_with_pyrender(look_frame):
         assert iou >= 0.97, (scene.blocks[k - 1].block.name, iou)
         checked += 1
     assert checked >= 3
+
+
+def test_shared_gl_context_renders_like_an_own_one():
+    """Renderers sharing the process's GL context, two drawing in turns, across scenes, give the images of a
+    ``mujoco.Renderer`` with a GL context of its own."""
+    for seed in (1, 2):
+        wc = make_scene(seed, 3).workcell
+        assert wc.drive_arm(wc.look_q, tol=0.01)
+        c, o, r = wc.cfg.hand_camera, wc.cfg.overview_camera, wc.cfg.render
+        own = CameraRenderer.from_config(wc, HAND_CAMERA, c, r)
+        own.renderer.close()
+        own.renderer = mujoco.Renderer(wc.model, c.height, c.width)
+        own.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = r.shadows
+        own.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = r.reflections
+        want = [own.rgb(), own.depth(), own.mask()]
+        hand = CameraRenderer.from_config(wc, HAND_CAMERA, c, r)
+        over = CameraRenderer.from_config(wc, OVERVIEW_CAMERA, o, r)
+        overview = over.rgb()
+        got = []
+        for kind in ("rgb", "depth", "mask"):
+            got.append(getattr(hand, kind)())
+            np.testing.assert_array_equal(over.rgb(), overview)  # draws between the hand camera's passes
+        for name, a, b in zip(("rgb", "depth", "mask"), want, got):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        assert (got[2] > 0).sum() > 1000 and overview.shape == (o.height, o.width, 3)
+        for x in (own, hand, over):
+            x.close()
 
 
 def test_same_seed_same_scene_different_seed_differs():

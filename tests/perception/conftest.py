@@ -12,9 +12,10 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+from bop_helpers import object_info_from_mesh, write_depth, write_mask, write_model_ply, write_models_info  # noqa: E402
 from posegrasp import bop  # noqa: E402
 from posegrasp.geometry import axis_angle_R, make_T  # noqa: E402
-from posegrasp.io import write_png  # noqa: E402
+from posegrasp.io import write_image  # noqa: E402
 
 torch.set_num_threads(2)
 
@@ -61,9 +62,9 @@ def make_tiny_bop(root: Path, n_train: int = 8, n_test: int = 3, seed: int = 0) 
     infos = {}
     for oid, (mesh, disc, cont) in models.items():
         mesh.visual.vertex_colors = np.array([*COLOURS[oid], 255], dtype=np.uint8)
-        bop.write_model_ply(root, oid, mesh)
-        infos[oid] = bop.object_info_from_mesh(oid, mesh, disc, cont)
-    bop.write_models_info(root, infos)
+        write_model_ply(root, oid, mesh)
+        infos[oid] = object_info_from_mesh(oid, mesh, disc, cont)
+    write_models_info(root, infos)
     bop.write_camera(root, bop.Camera(WIDTH, HEIGHT, K, depth_scale=0.1))
 
     renderer = pyrender.OffscreenRenderer(WIDTH, HEIGHT)
@@ -89,14 +90,14 @@ def make_tiny_bop(root: Path, n_train: int = 8, n_test: int = 3, seed: int = 0) 
                     singles[oid] = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
                 for node in nodes.values():
                     node.mesh.is_visible = True
-                write_png(bop.image_path(sd, "rgb", im), rgb)
-                bop.write_depth(bop.image_path(sd, "depth", im), depth, depth_scale=0.1)
+                write_image(bop.image_path(sd, "rgb", im), rgb)
+                write_depth(bop.image_path(sd, "depth", im), depth, depth_scale=0.1)
                 gts[im], infos_gt[im] = [], []
                 for gi, (oid, T) in enumerate(poses.items()):
                     full = singles[oid] > 0
                     visib = full & (np.abs(singles[oid] - depth) < 1e-3)
-                    bop.write_mask(bop.mask_path(sd, im, gi, visible=False), full)
-                    bop.write_mask(bop.mask_path(sd, im, gi, visible=True), visib)
+                    write_mask(bop.mask_path(sd, im, gi, visible=False), full)
+                    write_mask(bop.mask_path(sd, im, gi, visible=True), visib)
                     gts[im].append((oid, T))
                     infos_gt[im].append(bop.gt_info_from_masks(full, visib, depth))
                 cams[im] = bop.SceneCamera(K=K, depth_scale=0.1)
@@ -122,7 +123,9 @@ def tiny_configs():
     from posegrasp.perception.pose_net import PoseNetConfig
     from posegrasp.perception.refiner import RefinerConfig
     from posegrasp.perception.seg_net import SegNetConfig
-    from posegrasp.perception.train import PoseTrainConfig, RefineTrainConfig, SegTrainConfig
+    from posegrasp.perception.train_pose import PoseTrainConfig
+    from posegrasp.perception.train_refine import RefineTrainConfig
+    from posegrasp.perception.train_seg import SegTrainConfig
 
     data = DataConfig(num_model_points=200, model_pool=1000)
     seg = SegTrainConfig(model=SegNetConfig(width=0.125, input_size=(96, 128)), data=data, batch_size=2, lr=0.05,
@@ -139,7 +142,7 @@ def tiny_configs():
 def tiny_cls_config():
     """A small instance classifier training config for the tiny dataset."""
     from posegrasp.perception.classifier import ClassifierConfig
-    from posegrasp.perception.train import ClsTrainConfig
+    from posegrasp.perception.train_cls import ClsTrainConfig
 
     return ClsTrainConfig(model=ClassifierConfig(widths=(8, 16), crop_size=32), batch_size=16, lr=1e-2,
                           log_every=1, checkpoint_every=10, eval_every=0)
@@ -160,7 +163,10 @@ def tiny_configs_fixture():
 @pytest.fixture(scope="session")
 def tiny_run(tiny_bop, tmp_path_factory) -> Path:
     """A run directory with seg/, pose/, refine/ and cls/ trained for a few steps on the tiny dataset."""
-    from posegrasp.perception.train import train_cls, train_pose, train_refine, train_seg
+    from posegrasp.perception.train_cls import train_cls
+    from posegrasp.perception.train_pose import train_pose
+    from posegrasp.perception.train_refine import train_refine
+    from posegrasp.perception.train_seg import train_seg
 
     out = tmp_path_factory.mktemp("tiny_run")
     seg, pose, refine = tiny_configs()

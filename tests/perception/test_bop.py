@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from bop_helpers import read_results_csv
 
 from posegrasp import bop
 from posegrasp.errors import UserError
@@ -58,7 +59,7 @@ def test_results_csv(tmp_path):
     assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time"
     assert lines[1].split(",")[5] == "100.000000 200.000000 300.000000"
     assert len(lines[1].split(",")[4].split()) == 9
-    back = bop.read_results_csv(p)[0]
+    back = read_results_csv(p)[0]
     assert np.allclose(back.T_cam_obj, T, atol=1e-8) and back.time == 0.25
 
 

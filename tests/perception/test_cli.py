@@ -63,11 +63,9 @@ def test_perturb_rejects_bad_input(tiny_run, tmp_path, argv, message):
 
 @pytest.mark.parametrize("path", sorted((ASSETS / "perception").glob("*.toml")), ids=lambda p: p.name)
 def test_shipped_training_configs_load(path):
-    from posegrasp.perception import train as T
-
     sections = tomllib.loads(path.read_text())
-    classes = {"seg": T.SegTrainConfig, "pose": T.PoseTrainConfig, "refine": T.RefineTrainConfig,
-               "cls": T.ClsTrainConfig}
+    classes = {name: t.config for name, t in cli.training_stages().items()}
+    assert list(classes) == ["seg", "pose", "refine", "cls"]
     assert sections and set(sections) <= set(classes)
     for name in sections:
         cfg = load_toml(classes[name], path, section=name)

@@ -55,3 +55,11 @@ def test_nothing_to_refine():
     assert refine_labels(truth, rgb, GuidedConfig(radius=0)) is truth
     with pytest.raises(ValueError, match="eps must be positive, got 0"):
         refine_labels(truth, rgb, GuidedConfig(eps=0.0))
+
+
+def test_argmax_planes_is_numpys_argmax_first_on_ties():
+    from posegrasp.perception.guided import argmax_planes
+
+    x = np.random.default_rng(0).integers(0, 4, (7, 30, 40)).astype(np.float32)  # many ties
+    assert argmax_planes(x).dtype == np.uint16
+    np.testing.assert_array_equal(argmax_planes(x), x.argmax(axis=0))

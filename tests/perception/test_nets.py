@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from posegrasp.perception.classifier import ClassifierConfig, build_classifier
-from posegrasp.perception.inference import for_inference
+from posegrasp.perception.runtime import for_inference
 from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
 from posegrasp.perception.refiner import RefinerConfig, build_refiner, refine
 from posegrasp.perception.seg_net import SegNetConfig, build_seg_net, seg_loss

@@ -12,7 +12,8 @@ from posegrasp.perception.data import PoseDataset, SegDataset, collate
 from posegrasp.perception.losses import pose_loss
 from posegrasp.perception.pose_net import build_pose_net
 from posegrasp.perception.seg_net import build_seg_net, seg_loss
-from posegrasp.perception.train import train_pose, train_seg
+from posegrasp.perception.train_pose import train_pose
+from posegrasp.perception.train_seg import train_seg
 from posegrasp.errors import UserError
 
 
@@ -74,7 +75,7 @@ def test_cls_training_lowers_loss(tiny_bop, tiny_run):
 
 
 def test_unusable_model_setting_is_a_one_line_error(tiny_bop, tiny_cls_config, tmp_path):
-    from posegrasp.perception.train import train_cls
+    from posegrasp.perception.train_cls import train_cls
     from posegrasp.errors import UserError
 
     bad = dataclasses.replace(tiny_cls_config, model=dataclasses.replace(tiny_cls_config.model, height_range=-0.1))
@@ -84,7 +85,7 @@ def test_unusable_model_setting_is_a_one_line_error(tiny_bop, tiny_cls_config, t
 
 
 def test_cls_lr_schedule():
-    from posegrasp.perception.train import ClsTrainConfig, cls_lr
+    from posegrasp.perception.train_cls import ClsTrainConfig, cls_lr
 
     cfg = ClsTrainConfig(steps=100, lr=1.0, warmup=0.1)
     assert cls_lr(cfg, 0) == pytest.approx(0.1) and cls_lr(cfg, 9) == pytest.approx(1.0)

@@ -6,7 +6,7 @@ import shutil
 import pytest
 
 from posegrasp.perception import checkpoint
-from posegrasp.perception.inference import Estimator
+from posegrasp.perception.estimator import Estimator
 from posegrasp.errors import UserError
 
 

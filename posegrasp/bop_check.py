@@ -1,5 +1,6 @@
-"""Validating a BOP dataset: schema, units, ids, rotations, masks against ``scene_gt_info.json``, and depth
-against the models at their ground-truth poses. Works on any BOP dataset, not only generated ones.
+"""Validating a BOP dataset (``posegrasp dataset check``): schema, units, ids, rotations, masks against
+``scene_gt_info.json``, and depth against the models at their ground-truth poses. Works on any BOP dataset,
+not only generated ones.
 
 Every problem is a line naming the file (relative to the dataset root) and what is wrong with it.
 """
@@ -79,13 +80,6 @@ def rotation_problem(R: np.ndarray, tol: float = 1e-3) -> str | None:
     if np.linalg.det(R) < 0:
         return "has determinant -1 (a reflection)"
     return None
-
-
-def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
-    ys, xs = np.nonzero(mask)
-    if ys.size == 0:
-        return (-1, -1, 0, 0)
-    return int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)
 
 
 def find_splits(root: Path) -> list[str]:
@@ -291,11 +285,11 @@ class _Checker:
         frac = n_vis / n_all if n_all else 0.0
         if abs(info["visib_fract"] - frac) > 1e-3:
             self.add(f"{where}: visib_fract {info['visib_fract']} != px_count_visib / px_count_all = {frac:.4f}")
-        bv = _bbox(visib)
+        bv = bop.mask_bbox(visib)
         if n_vis and np.abs(np.subtract(info["bbox_visib"], bv)).max() > 1:
             self.add(f"{where}: bbox_visib {info['bbox_visib']} != box of mask_visib {list(bv)}")
         if n_all:
-            x, y, w, h = _bbox(full)
+            x, y, w, h = bop.mask_bbox(full)
             bx, by, bw, bh = info["bbox_obj"]
             if bx > x + 1 or by > y + 1 or bx + bw < x + w - 1 or by + bh < y + h - 1:
                 self.add(f"{where}: bbox_obj {info['bbox_obj']} does not contain the mask's box {[x, y, w, h]}")

@@ -1,13 +1,15 @@
 """The two-stage estimator: segmentation, then per-object pose and iterative refinement.
 
     est = Estimator("runs/blocks")           # RUN dir with seg/, pose/ and optionally cls/, refine/
-    for det in est(rgb, depth, K):           # uint8 (H, W, 3), float32 metres (H, W), (3, 3)
+    res = est(rgb, depth, K)                 # uint8 (H, W, 3), float32 metres (H, W), (3, 3)
+    for det in res.detections:
         det.obj_id, det.T_cam_obj, det.score, det.mask
+    res.labels, res.timings                  # class map (H, W); seconds per stage
 
 Several blocks of one type are told apart as the connected components of their class mask. When the
 run has an instance classifier (``cls/``, ``perception.classifier``; with further ensemble members ``cls_<name>/``,
-whose class probabilities are averaged), every connected segment of the class map is re-labelled by it before the
-instances are formed. With block models (``models``) every
+``perception.ensemble``), every connected segment of the class map is re-labelled by it before the
+instances are formed. With block models (``EstimatorConfig.models``) every
 estimate is refined against the depth image (``perception.icp``) and the parts of a mask its fitted model leaves
 unexplained become detections of their own (``perception.split``: touching blocks segmented as one).
 Last, the outlines of the class map and of the detections' masks are snapped to the colour image's edges
@@ -19,59 +21,75 @@ declared invalid and skipped, as in the paper.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import functools
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
-from threadpoolctl import ThreadpoolController
-from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from posegrasp.perception import checkpoint as ckpt_mod
-from posegrasp.perception.classifier import ClassifierConfig
-from posegrasp.perception.crop import backproject, mask_bbox, padded_box
-from posegrasp.perception.data import (normalize_cls_input, normalize_rgb, prepare_cls_input,
-                             prepare_pose_input, segment_components)
-from posegrasp.perception.guided import GuidedConfig, argmax_planes, refine_labels
-from posegrasp.perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
-from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
-from posegrasp.perception.refiner import refine
-from posegrasp.perception.seg_net import SegNetConfig
-from posegrasp.perception.split import ModelSurface, SplitConfig, unexplained_parts
-from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 from posegrasp import bop
 from posegrasp.errors import UserError
-
-
-_BLAS: ThreadpoolController | None = None
+from posegrasp.perception import checkpoint as ckpt_mod
+from posegrasp.perception.crop import backproject, mask_bbox, padded_box
+from posegrasp.perception.ensemble import ClassifierEnsemble
+from posegrasp.perception.guided import GuidedConfig, refine_labels
+from posegrasp.perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
+from posegrasp.perception.inputs import prepare_pose_input, segment_components
+from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
+from posegrasp.perception.refiner import refine
+from posegrasp.perception.runtime import for_inference, with_one_blas_thread
+from posegrasp.perception.segmenter import Segmenter
+from posegrasp.perception.split import ModelSurface, SplitConfig, unexplained_parts
+from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 
 #: The pose net's points per object and crop side (px) when its estimates are refined against the depth image.
 REFINED_POSE_INPUT = (250, 48)
 
-
-def one_blas_thread() -> contextlib.AbstractContextManager:
-    """A context in which numpy's BLAS (OpenBLAS) runs on one thread. The pipeline's numpy products are small, but
-    past ~2.6e5 multiply-adds OpenBLAS splits them over its threads, which then spin-wait for more work and take the
-    cores from torch's next stage: on 2 cores a classifier after the supporting plane's fit ran 2x slower."""
-    global _BLAS
-    if _BLAS is None:
-        _BLAS = ThreadpoolController()
-    return _BLAS.limit(limits=1, user_api="blas")
+#: The stages ``EstimateResult.timings`` reports, in this order.
+STAGES = ("seg", "cls", "guided", "pose", "refine", "icp", "split")
 
 
-def _with_one_blas_thread(method: Callable) -> Callable:
-    """``method`` run in ``one_blas_thread()``."""
-    @functools.wraps(method)
-    def wrapper(*args, **kwargs):
-        with one_blas_thread():
-            return method(*args, **kwargs)
-    return wrapper
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """How an ``Estimator`` runs a trained run's nets.
+
+    refine_iterations: None = the refiner's configured count (0 when there is no refiner);
+    0 disables refinement (ablation). classify: None = re-label segments with the run's ``cls/``
+    classifier (and its ensemble members ``cls_<name>/``) when it has one; False = never (ablation: the paper's
+    pipeline); True = required.
+    min_valid_points: minimum valid-depth pixels per object. models: a BOP dataset root whose
+    ``models/`` hold the objects' meshes; with it every estimate is refined against the depth image by
+    ICP from rotation hypotheses (``perception.icp``, settings ``icp``); None skips that step.
+    support_plane: fit the frame's dominant plane (``perception.plane``); segmented pixels on it become
+    background and ICP hypotheses sunk into it lose.
+    split: with ``models``, the part of a detection's mask its fitted model leaves unexplained becomes a
+    detection of its own (``perception.split``: touching blocks merged into one segment), and then two fits of one
+    block are one detection (``Estimator.drop_duplicates``); ``rounds = 0`` turns both off. guided: once the poses
+    are fitted, the class map's and the masks' outlines are snapped to the colour image's edges (``perception.guided``);
+    ``radius = 0`` turns it off.
+    pose_points, pose_crop: the depth points sampled per object for the pose net and the side (px) of its colour crop.
+    None: with ``models`` 250 and 48 (``REFINED_POSE_INPUT``), else as in the net's training. The attention over the
+    points costs O(N^2) and the colour CNN O(S^2); once the depth refinement fits the pose, the shipped net (trained
+    with 500 points and 80 px) is as accurate with the smaller inputs (1234 against 1229 of the 1379 instances of the
+    test, val and fresh splits within 0.1 d), while the pose net alone is not (test acc 59.8 against 76.5 %).
+    threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call is deterministic).
+    """
+
+    refine_iterations: int | None = None
+    min_valid_points: int = 50
+    threads: int | None = None
+    seed: int = 0
+    classify: bool | None = None
+    models: str | Path | None = None
+    icp: ICPConfig = field(default_factory=ICPConfig)
+    support_plane: bool = True
+    split: SplitConfig = field(default_factory=SplitConfig)
+    guided: GuidedConfig = field(default_factory=GuidedConfig)
+    pose_points: int | None = None
+    pose_crop: int | None = None
 
 
 @dataclass
@@ -85,74 +103,28 @@ class Detection:
     mask: np.ndarray
 
 
-class Segmenter:
-    """The segmentation stage alone: a seg net and its config; ``segmenter(rgb)`` -> class map."""
+@dataclass
+class EstimateResult:
+    """What one ``Estimator`` call found in a frame: its detections, the class map (H, W) int64 (0 background, else
+    obj_id) after every stage, and the seconds spent per stage (keys ``STAGES``, in that order)."""
 
-    def __init__(self, model: torch.nn.Module, cfg: SegNetConfig):
-        self.model, self.cfg = for_inference(model), cfg
-
-    @classmethod
-    def load(cls, ckpt: str | Path) -> "Segmenter":
-        """From a ``seg`` checkpoint directory."""
-        model, cfg, _ = ckpt_mod.load_model(Path(ckpt), "seg")
-        return cls(model, cfg)
-
-    @torch.no_grad()
-    def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Class map (H, W) int64 (0 background, else obj_id) and class probabilities (H, W, C)
-        float32: softmax at the net's input size, bilinearly resized to the image (OpenCV, channels
-        last, which is ~5x faster on a CPU than arg-maxing upsampled logits in torch); the class map is their
-        arg-max (``upsampled_argmax``)."""
-        h, w = rgb.shape[:2]
-        ih, iw = self.cfg.input_size
-        x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
-        logits = self.model(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
-        small = torch.softmax(logits[0], dim=0)  # (C, ih, iw)
-        prob = np.ascontiguousarray(small.permute(1, 2, 0).numpy())  # (ih, iw, C)
-        if (h, w) == (ih, iw):
-            return argmax_planes(small.numpy()).astype(np.int64), prob
-        prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
-        if prob.ndim == 2:  # OpenCV drops a single channel axis
-            prob = prob[..., None]
-        return upsampled_argmax(small.numpy(), prob), prob
+    detections: list[Detection]
+    labels: np.ndarray
+    timings: dict[str, float]
 
 
 class Estimator:
-    """Segmentation + pose + refinement from a run directory (``seg/``, ``pose/``, ``refine/``).
+    """Segmentation + pose + refinement from a run directory (``seg/``, ``pose/``, optionally ``refine/``, ``cls/``),
+    configured by ``EstimatorConfig``. ``est(rgb, depth, K)`` -> ``EstimateResult``; the estimator keeps no state
+    between calls."""
 
-    refine_iterations: None = the refiner's configured count (0 when there is no refiner);
-    0 disables refinement (ablation). classify: None = re-label segments with the run's ``cls/``
-    classifier (and its ensemble members ``cls_<name>/``) when it has one; False = never (ablation: the paper's
-    pipeline); True = required.
-    min_valid_points: minimum valid-depth pixels per object. models: a BOP dataset root whose
-    ``models/`` hold the objects' meshes; with it every estimate is refined against the depth image by
-    ICP from rotation hypotheses (``perception.icp``, settings ``icp``); None skips that step.
-    support_plane: fit the frame's dominant plane (``perception.plane``); segmented pixels on it become
-    background and ICP hypotheses sunk into it lose.
-    split: with ``models``, the part of a detection's mask its fitted model leaves unexplained becomes a
-    detection of its own (``perception.split``: touching blocks merged into one segment), and then two fits of one
-    block are one detection (``drop_duplicates``); ``rounds = 0`` turns both off. guided: once the poses are
-    fitted, the class map's and the masks' outlines are snapped to the colour image's edges (``perception.guided``);
-    ``radius = 0`` turns it off.
-    pose_points, pose_crop: the depth points sampled per object for the pose net and the side (px) of its colour crop.
-    None: with ``models`` 250 and 48 (``REFINED_POSE_INPUT``), else as in the net's training. The attention over the
-    points costs O(N^2) and the colour CNN O(S^2); once the depth refinement fits the pose, the shipped net (trained
-    with 500 points and 80 px) is as accurate with the smaller inputs (1234 against 1229 of the 1379 instances of the
-    test, val and fresh splits within 0.1 d), while the pose net alone is not (test acc 59.8 against 76.5 %).
-    threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call is deterministic).
-    ``timings`` holds the seconds spent per stage in the last call and ``last_labels`` its class map (H, W).
-    """
-
-    def __init__(self, weights: str | Path, refine_iterations: int | None = None, min_valid_points: int = 50,
-                 threads: int | None = None, seed: int = 0, classify: bool | None = None,
-                 models: str | Path | None = None, icp: ICPConfig | None = None, support_plane: bool = True,
-                 split: SplitConfig | None = None, guided: GuidedConfig | None = None, pose_points: int | None = None,
-                 pose_crop: int | None = None):
+    def __init__(self, weights: str | Path, cfg: EstimatorConfig | None = None):
+        cfg = cfg or EstimatorConfig()
         weights = Path(weights)
         if not weights.is_dir():
             raise UserError(f"weights directory {weights} does not exist")
-        if threads is not None:
-            torch.set_num_threads(threads)
+        if cfg.threads is not None:
+            torch.set_num_threads(cfg.threads)
         self.segmenter = Segmenter.load(weights / "seg")
         self.seg_cfg = self.segmenter.cfg
         self.pose, self.pose_cfg, _ = ckpt_mod.load_model(weights / "pose", "pose")
@@ -163,52 +135,54 @@ class Estimator:
             if list(self.refiner_cfg.obj_ids) != list(self.pose_cfg.obj_ids) or \
                     self.refiner_cfg.emb_dim != self.pose_cfg.emb_dim:
                 raise UserError(f"refiner in {weights / 'refine'} was trained for another pose net")
-        self.classifiers: list[torch.nn.Module] = []
-        self.cls_cfg: ClassifierConfig | None = None  # the crop settings of the members
-        if classify is not False and (weights / "cls").exists():
-            self.classifiers, self.cls_cfg = _load_classifiers(weights)
-        elif classify:
+        self.classifier: ClassifierEnsemble | None = None
+        if cfg.classify is not False and (weights / "cls").exists():
+            self.classifier = ClassifierEnsemble.load(weights)
+        elif cfg.classify:
             raise UserError(f"{weights} has no cls/ checkpoint: train one with 'posegrasp train cls'")
         default_iters = self.refiner_cfg.iterations if self.refiner_cfg is not None else 0
-        self.refine_iterations = default_iters if refine_iterations is None else refine_iterations
+        self.refine_iterations = default_iters if cfg.refine_iterations is None else cfg.refine_iterations
         if self.refine_iterations > 0 and self.refiner is None:
             raise UserError(f"{weights} has no refine/ checkpoint: cannot refine")
-        self.min_valid_points = min_valid_points
-        points, crop = REFINED_POSE_INPUT if models is not None else (self.pose_cfg.num_points, self.pose_cfg.crop_size)
-        self.pose_points = points if pose_points is None else pose_points
-        self.pose_crop = crop if pose_crop is None else pose_crop
+        self.min_valid_points = cfg.min_valid_points
+        points, crop = (REFINED_POSE_INPUT if cfg.models is not None else
+                        (self.pose_cfg.num_points, self.pose_cfg.crop_size))
+        self.pose_points = points if cfg.pose_points is None else cfg.pose_points
+        self.pose_crop = crop if cfg.pose_crop is None else cfg.pose_crop
         if self.pose_points < 1 or self.pose_crop < 8 or self.pose_crop % 8:
             raise UserError(f"pose_points must be >= 1 and pose_crop a multiple of 8 px, got {self.pose_points} and "
                             f"{self.pose_crop}")
-        self.seed = seed
-        self.icp = icp or ICPConfig()
+        self.seed = cfg.seed
+        self.icp = cfg.icp
         self.icp.validate()
-        self.support_plane, self.plane_cfg = support_plane, PlaneConfig()
-        self.split_cfg = split or SplitConfig()
-        self.guided_cfg = guided or GuidedConfig()
+        self.support_plane, self.plane_cfg = cfg.support_plane, PlaneConfig()
+        self.split_cfg = cfg.split
+        self.guided_cfg = cfg.guided
         self.guided_cfg.validate()
         self.model_points: dict[int, np.ndarray] | None = None
         self.hypotheses: dict[int, np.ndarray] = {}
         self.grids: dict[int, NearestGrid] = {}
         self.surfaces: dict[int, ModelSurface] = {}
-        if models is not None:
-            infos = bop.load_models_info(models)
-            missing = [o for o in self.obj_ids if o not in infos]
-            if missing:
-                raise UserError(f"models in {models} lack objects {missing} of the pose net")
-            self.model_points = {o: bop.sample_model_points(bop.load_model(models, o), 500, seed=o)
-                                 for o in self.obj_ids}
-            self.hypotheses = {o: distinct_rotations(self.icp.rotations(), infos[o].symmetries_discrete,
-                                                     [a for a, _ in infos[o].symmetries_continuous])
-                               for o in self.obj_ids}
-            self.grids = {o: NearestGrid(self.model_points[o]) for o in self.obj_ids}
-            if self.split_cfg.rounds > 0:
-                self.surfaces = {o: ModelSurface(bop.sample_model_points(bop.load_model(models, o),
-                                                                          self.split_cfg.model_points, seed=o))
-                                 for o in self.obj_ids}
-        self.timings: dict[str, float] = {"seg": 0.0, "cls": 0.0, "guided": 0.0, "pose": 0.0, "refine": 0.0,
-                                          "icp": 0.0, "split": 0.0}
-        self.last_labels: np.ndarray | None = None
+        if cfg.models is not None:
+            self._load_models(cfg.models)
+
+    def _load_models(self, models: str | Path) -> None:
+        """Model points, ICP rotation hypotheses, nearest-point grids and (for splitting) surfaces of every object of
+        the pose net, from the BOP dataset root ``models``."""
+        infos = bop.load_models_info(models)
+        missing = [o for o in self.obj_ids if o not in infos]
+        if missing:
+            raise UserError(f"models in {models} lack objects {missing} of the pose net")
+        self.model_points = {o: bop.sample_model_points(bop.load_model(models, o), 500, seed=o)
+                             for o in self.obj_ids}
+        self.hypotheses = {o: distinct_rotations(self.icp.rotations(), infos[o].symmetries_discrete,
+                                                 [a for a, _ in infos[o].symmetries_continuous])
+                           for o in self.obj_ids}
+        self.grids = {o: NearestGrid(self.model_points[o]) for o in self.obj_ids}
+        if self.split_cfg.rounds > 0:
+            self.surfaces = {o: ModelSurface(bop.sample_model_points(bop.load_model(models, o),
+                                                                      self.split_cfg.model_points, seed=o))
+                             for o in self.obj_ids}
 
     @property
     def obj_ids(self) -> list[int]:
@@ -219,14 +193,16 @@ class Estimator:
         """Class map and class probabilities of an RGB image (see ``Segmenter``)."""
         return self.segmenter(rgb)
 
-    @_with_one_blas_thread
+    @with_one_blas_thread
     @torch.no_grad()
     def estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
-                 mask_scores: list[float] | None = None, plane: np.ndarray | None = None) -> list[Detection]:
+                 mask_scores: list[float] | None = None, plane: np.ndarray | None = None
+                 ) -> tuple[list[Detection], dict[str, float]]:
         """Poses of objects given their masks (obj_id, bool (H, W)); skips objects the pose net does
         not know and masks with fewer than ``min_valid_points`` valid depth pixels. Each detection
         carries the very mask array it was given. plane: the supporting plane for the depth refinement
-        (fitted here when None and ``support_plane`` is on)."""
+        (fitted here when None and ``support_plane`` is on). Returns the detections and the seconds spent on
+        stages ``pose``, ``refine`` and ``icp``."""
         t0 = time.perf_counter()
         if plane is None and self.support_plane and self.model_points is not None:
             plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
@@ -244,12 +220,11 @@ class Estimator:
             items.append(prep)
             kept.append(k)
         if not items:
-            self.timings.update(pose=time.perf_counter() - t0, refine=0.0, icp=0.0)
-            return []
-        img = torch.from_numpy(np.stack([i[0] for i in items]))
-        choose = torch.from_numpy(np.stack([i[1] for i in items]))
-        points = torch.from_numpy(np.stack([i[2] for i in items]))
-        obj = torch.tensor([cfg.index_of(masks[k][0]) for k in kept])
+            return [], {"pose": time.perf_counter() - t0, "refine": 0.0, "icp": 0.0}
+        img = torch.from_numpy(np.stack([i[0] for i in items]))  # (B, 3, S, S)
+        choose = torch.from_numpy(np.stack([i[1] for i in items]))  # (B, N)
+        points = torch.from_numpy(np.stack([i[2] for i in items]))  # (B, N, 3)
+        obj = torch.tensor([cfg.index_of(masks[k][0]) for k in kept])  # (B,)
         q, t, conf, best, emb = self.pose.predict(img, points, choose, obj)
         T = make_transform(quat_to_rotmat(q), points[torch.arange(len(kept)), best] + t)  # (B, 4, 4)
         t1 = t2 = time.perf_counter()
@@ -262,8 +237,7 @@ class Estimator:
         out = [Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, mask=masks[k][1],
                          score=float((1.0 if mask_scores is None else mask_scores[k]) * float(conf[j])))
                for j, (k, T_j) in enumerate(zip(kept, poses))]
-        self.timings.update(pose=t1 - t0, refine=t2 - t1, icp=time.perf_counter() - t2)
-        return out
+        return out, {"pose": t1 - t0, "refine": t2 - t1, "icp": time.perf_counter() - t2}
 
     def _depth_refine(self, poses: list[np.ndarray], masks: list[tuple[int, np.ndarray]], depth: np.ndarray,
                       K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None) -> list[np.ndarray]:
@@ -280,7 +254,7 @@ class Estimator:
         return [T for T, _ in refine_poses(poses, [self.model_points[o] for o in ids], observed, depth, K, self.icp,
                                            [self.hypotheses[o] for o in ids], plane, [self.grids[o] for o in ids])]
 
-    @_with_one_blas_thread
+    @with_one_blas_thread
     @torch.no_grad()
     def classify(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, labels: np.ndarray,
                  plane: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -300,25 +274,13 @@ class Estimator:
 
     def _classify_masks(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
                         plane: np.ndarray | None) -> list[tuple[int, float] | None]:
-        """(obj_id, probability) by the instance classifier for each mask (H, W) bool, in order; None where the
-        mask lacks the valid depth for a crop. plane: for the height channel (fitted here when None)."""
-        cfg = self.cls_cfg
-        if cfg.height_range > 0 and plane is None:
+        """The ensemble's (obj_id, probability) of each mask; plane: for the height channel (fitted here when None)."""
+        if self.classifier.cfg.height_range > 0 and plane is None:
             plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
-        crops = [prepare_cls_input(rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range,
-                                   height_range=cfg.height_range, plane=plane) for m in masks]
-        ok = [i for i, x in enumerate(crops) if x is not None]
-        out: list[tuple[int, float] | None] = [None] * len(masks)
-        if ok:
-            x = torch.from_numpy(np.stack([normalize_cls_input(crops[i]) for i in ok]))  # (S, C, size, size)
-            prob = torch.stack([torch.softmax(m(x[:, :m.cfg.in_channels]), dim=1) for m in self.classifiers])
-            pmax, k = prob.mean(dim=0).max(dim=1)  # (S,)
-            for i, kk, pp in zip(ok, k.tolist(), pmax.tolist()):
-                out[i] = (cfg.obj_ids[kk], pp)
-        return out
+        return self.classifier(rgb, depth, K, masks, plane)
 
-    @_with_one_blas_thread
-    def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> list[Detection]:
+    @with_one_blas_thread
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> EstimateResult:
         """Detect and estimate every known object in an RGB-D frame (depth in metres, 0 = invalid)."""
         rgb, depth, K = _check_inputs(rgb, depth, K)
         t0 = time.perf_counter()
@@ -328,10 +290,9 @@ class Estimator:
             labels, plane = clear_plane(labels, depth, K, self.seed, self.plane_cfg)
         t1 = time.perf_counter()
         conf, t_cls = None, 0.0
-        if self.classifiers:
+        if self.classifier is not None:
             labels, conf = self.classify(rgb, depth, K, labels, plane)
             t_cls = time.perf_counter() - t1
-        self.last_labels = labels
         masks, scores = [], []
         for obj_id, m in segment_components(labels, self.min_valid_points):
             if obj_id not in self.obj_ids or obj_id >= prob.shape[-1]:
@@ -340,28 +301,29 @@ class Estimator:
             # foreground probability x the classifier's confidence, or the seg net's class probability
             s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
             scores.append(float(s.mean()))
-        self.timings.update(seg=time.perf_counter() - t0 - t_cls, cls=t_cls)
-        dets = self.estimate(rgb, depth, K, masks, scores, plane)
-        t4, stages = time.perf_counter(), {k: self.timings[k] for k in ("pose", "refine", "icp")}
+        timings = {"seg": time.perf_counter() - t0 - t_cls, "cls": t_cls}
+        dets, stages = self.estimate(rgb, depth, K, masks, scores, plane)
+        t4 = time.perf_counter()
         if self.surfaces:
-            dets = self.split_merged(rgb, depth, K, dets, prob, plane)
+            dets, labels = self.split_merged(rgb, depth, K, dets, prob, plane, labels)
             dets = self.drop_duplicates(dets)
         t5, t_guided = time.perf_counter(), 0.0
         if self.guided_cfg.radius > 0:
-            dets = self.snap_outlines(rgb, dets)
+            dets, labels = self.snap_outlines(rgb, labels, dets)
             t_guided = time.perf_counter() - t5
-        self.timings.update(stages, split=t5 - t4, guided=t_guided)
-        return dets
+        timings.update(guided=t_guided, **stages, split=t5 - t4)
+        return EstimateResult(dets, labels, timings)
 
-    @_with_one_blas_thread
-    def snap_outlines(self, rgb: np.ndarray, dets: list[Detection]) -> list[Detection]:
-        """``perception.guided``: the class map ``last_labels`` with its outlines snapped to the colour edges, and
+    @with_one_blas_thread
+    def snap_outlines(self, rgb: np.ndarray, labels: np.ndarray, dets: list[Detection]
+                      ) -> tuple[list[Detection], np.ndarray]:
+        """``perception.guided``: the class map ``labels`` (H, W) with its outlines snapped to the colour edges, and
         each detection's mask likewise: the pixels of its type in the refined map within the filter's radius of
         its mask; a pixel that several such masks reach stays with those that held it. The poses are the ones
         fitted to the masks before (outlines shifted a few pixels onto a neighbour hurt the fits more than they
-        help)."""
+        help). Returns the detections with their new masks and the new class map."""
         r = self.guided_cfg.radius
-        labels = self.last_labels = refine_labels(self.last_labels, rgb, self.guided_cfg)
+        labels = refine_labels(labels, rgb, self.guided_cfg)
         boxes = [padded_box(d.mask, r) for d in dets]  # each grown mask lies in its mask's box widened by r
         grown = [(labels[b] == d.obj_id) & _dilate(d.mask[b], r) for d, b in zip(dets, boxes)]
         claims = np.zeros(labels.shape, dtype=np.uint8)
@@ -372,15 +334,17 @@ class Estimator:
             mask = np.zeros_like(d.mask)
             mask[b] = g & ((claims[b] == 1) | d.mask[b])
             out.append(dataclasses.replace(d, mask=mask))
-        return out
+        return out, labels
 
-    @_with_one_blas_thread
+    @with_one_blas_thread
     def split_merged(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection],
-                     prob: np.ndarray, plane: np.ndarray | None) -> list[Detection]:
+                     prob: np.ndarray, plane: np.ndarray | None, labels: np.ndarray
+                     ) -> tuple[list[Detection], np.ndarray]:
         """``perception.split``: each detection whose fitted model leaves a large part of its mask unexplained
         is fitted again to the rest, and each such part is typed (``_part_types``) and fitted as a detection of
         its own; ``split_cfg.rounds`` times. A split is undone when a part and the rest are fitted as the same block
-        (``_same_block``): the part was a strip of it that the first fit missed. Updates ``last_labels``."""
+        (``_same_block``): the part was a strip of it that the first fit missed. Returns the detections and the class
+        map ``labels`` (H, W) with the split parts relabelled (a copy when any is; ``labels`` itself is kept)."""
         cfg = self.split_cfg
         done: list[Detection] = []  # detections not to be tested again
         for _ in range(cfg.rounds):
@@ -393,7 +357,7 @@ class Estimator:
                 else:
                     done.append(d)
             if not split:
-                return done
+                return done, labels
             all_types = iter(self._part_types(rgb, depth, K, [p for _, ps in split for p in ps], prob, plane))
             groups, masks, scores, todo = [], [], [], []
             for d, ps in split:
@@ -402,7 +366,8 @@ class Estimator:
                 groups.append((d, rest, ps, [o for o, _ in types]))
                 masks += [(d.obj_id, rest)] + [(o, p) for p, (o, _) in zip(ps, types)]
                 scores += [d.score] + [float((1.0 - prob[..., 0][p]).mean()) * pc for p, (_, pc) in zip(ps, types)]
-            fitted = {id(f.mask): f for f in self.estimate(rgb, depth, K, masks, scores, plane)}
+            fitted = {id(f.mask): f for f in self.estimate(rgb, depth, K, masks, scores, plane)[0]}
+            labels = labels.copy()
             for d, rest, ps, types in groups:
                 new = [fitted[id(p)] for p in ps if id(p) in fitted]
                 first = [fitted[id(rest)]] if id(rest) in fitted else []
@@ -411,9 +376,9 @@ class Estimator:
                     continue
                 todo += new + first
                 for p, o in zip(ps, types):
-                    self.last_labels[p] = o
+                    labels[p] = o
             dets = todo
-        return done + dets
+        return done + dets, labels
 
     def drop_duplicates(self, dets: list[Detection]) -> list[Detection]:
         """``dets`` without those fitted where a detection of the same type with a larger mask sits: their centres
@@ -443,7 +408,7 @@ class Estimator:
         """(obj_id, probability) of each part (H, W) bool: the instance classifier's (0: not a block, so the part
         is not fitted and becomes background), else (no classifier, or no crop) the seg net's most probable
         object class (``prob`` (H, W, C)) over the part. All parts go through the classifier as one batch."""
-        by_cls = ([None] * len(parts) if not self.classifiers else
+        by_cls = ([None] * len(parts) if self.classifier is None else
                   self._classify_masks(rgb, depth, K, parts, plane))
         out = []
         for p, c in zip(parts, by_cls):
@@ -454,69 +419,6 @@ class Estimator:
         return out
 
 
-def upsampled_argmax(small: np.ndarray, prob: np.ndarray) -> np.ndarray:
-    """``prob.argmax(axis=-1)`` as int64 (H, W), where ``prob`` (H, W, C) is ``small`` (C, h, w) resized bilinearly by
-    OpenCV (``INTER_LINEAR``, half-pixel centres). A pixel's value is a convex combination of ``small`` at the (up to)
-    2 x 2 source pixels around x_s = (x + 1/2) w / W - 1/2 (likewise y), all within one pixel of the nearest,
-    round(x_s). Where ``small``'s arg-max is one class c over that nearest pixel's 3 x 3 neighbourhood, p_c >= p_k at
-    each source pixel, so also in their combination: the arg-max is c. So the class map is the nearest-neighbour
-    upsampling of ``small``'s, and only the pixels near its class boundaries (a few per cent of a frame) are arg-maxed
-    in ``prob``: the same map (to float rounding) ~3x faster."""
-    lab = argmax_planes(small)  # (h, w)
-    disc = np.ones((3, 3), dtype=np.uint8)
-    mixed = (cv2.dilate(lab, disc) != cv2.erode(lab, disc)).view(np.uint8)  # neighbourhoods of more than one class
-    H, W = prob.shape[:2]
-    out = cv2.resize(lab, (W, H), interpolation=cv2.INTER_NEAREST_EXACT)  # source pixel round(x_s), round(y_s)
-    near = np.nonzero(cv2.resize(mixed, (W, H), interpolation=cv2.INTER_NEAREST_EXACT))
-    out[near] = prob[near].argmax(axis=-1)
-    return out.astype(np.int64)
-
-
-def for_inference(model: torch.nn.Module) -> torch.nn.Module:
-    """``model`` itself, in eval mode, its BatchNorms folded into their convolutions (``fold_batch_norms``) and its 2D
-    convolutions' weights channels-last: the outputs stay the same (to float rounding; inputs may stay NCHW) and come
-    ~35 % faster on a CPU (oneDNN's native layout), a classifier's on a frame's 19 crops another ~35 % faster without
-    the BatchNorms. For inference only: the model no longer trains or loads a checkpoint as it did."""
-    fold_batch_norms(model.eval())
-    return model.to(memory_format=torch.channels_last)
-
-
-def fold_batch_norms(model: torch.nn.Module) -> None:
-    """Each BatchNorm2d of ``model`` (in eval mode) folded into the Conv2d whose output it normalises and replaced by an
-    identity: W' = W g / s, b' = (b - mu) g / s + beta per output channel (g, beta: its affine weights; mu, s^2: its
-    running mean and variance + eps). The pairs are a Conv2d followed by a BatchNorm2d in an ``nn.Sequential`` and
-    those a module names in its ``conv_bn_pairs`` (attribute names: (conv, bn), ...)."""
-    for m in list(model.modules()):
-        pairs = list(getattr(m, "conv_bn_pairs", ()))
-        if isinstance(m, torch.nn.Sequential):
-            pairs += [(str(i), str(i + 1)) for i in range(len(m) - 1)
-                      if isinstance(m[i], torch.nn.Conv2d) and isinstance(m[i + 1], torch.nn.BatchNorm2d)]
-        for conv, bn in pairs:
-            setattr(m, conv, fuse_conv_bn_eval(getattr(m, conv), getattr(m, bn)))
-            setattr(m, bn, torch.nn.Identity())
-
-
-def _load_classifiers(weights: Path) -> tuple[list[torch.nn.Module], ClassifierConfig]:
-    """The run's instance classifier ``cls/`` and the further members of its ensemble, ``cls_<name>/`` (by name), and
-    the crop settings they share: the same objects and crop geometry; members with the height channel share its
-    range, and those without read the crop's first 6 channels."""
-    dirs = [weights / "cls"] + sorted(p for p in weights.glob("cls_*") if p.is_dir())
-    models, cfgs = [], []
-    for d in dirs:
-        model, cfg, _ = ckpt_mod.load_model(d, "cls")
-        models.append(for_inference(model))
-        cfgs.append(cfg)
-    key = [(list(c.obj_ids), c.crop_size, c.crop_side, c.depth_range) for c in cfgs]
-    for d, k in zip(dirs[1:], key[1:]):
-        if k != key[0]:
-            raise UserError(f"classifier {d} differs from {dirs[0]} in its objects or crop settings ({k} vs {key[0]}): "
-                            "an ensemble's members must share them")
-    heights = sorted({c.height_range for c in cfgs if c.height_range > 0})
-    if len(heights) > 1:
-        raise UserError(f"the classifiers in {weights} use height ranges {heights}: an ensemble's members share one")
-    return models, dataclasses.replace(cfgs[0], height_range=heights[0] if heights else 0.0)
-
-
 def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
     """Mask (h, w) bool dilated by a disc of radius r px (nothing beyond its border)."""
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
@@ -524,6 +426,8 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
 
 
 def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The frame as the estimator reads it: rgb uint8 (H, W, 3), depth float32 (H, W) with NaN / inf as 0 (invalid),
+    K float64 (3, 3); ValueError on other shapes."""
     rgb, depth, K = np.asarray(rgb), np.asarray(depth), np.asarray(K, dtype=np.float64)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ValueError(f"rgb must be uint8 (H, W, 3), got {rgb.dtype} {rgb.shape}")

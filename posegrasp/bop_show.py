@@ -1,5 +1,5 @@
-"""Drawing one BOP image with its labels: visible masks, amodal outlines, projected 3D boxes and axes, next to
-the depth image."""
+"""Drawing one BOP image with its labels (``posegrasp dataset show``): visible masks, amodal outlines, projected
+3D boxes and axes, next to the depth image."""
 
 from __future__ import annotations
 

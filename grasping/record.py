@@ -1,0 +1,91 @@
+"""What one grasp-and-place episode records: the typed ``EpisodeRecord`` (a line of ``episodes.jsonl``), its
+failure taxonomy and its phase timings (a line of ``timings.jsonl``).
+
+Lengths in metres, angles in degrees where the name says ``_deg``, times in simulated seconds (wall-clock and
+CPU seconds only in ``EpisodeTimings``). ``to_json()`` gives the JSON-ready dict: floats rounded to 6 decimals.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from posegrasp.io import jsonable
+
+#: Failure reasons, in the order the summary lists them.
+FAILURES = ("no detection", "pose error", "unreachable", "collision", "slip", "drop", "misplaced", "timeout",
+            "simulation error")
+
+
+@dataclass(frozen=True)
+class Target:
+    """The scene block the planner went for (``instance``, 1-based) and the grasp it chose on it."""
+
+    instance: int
+    type: str  # the block's catalogue name
+    class_ok: bool  # did perception give the block's true class?
+    diameter: float
+    grasp_width: float  # span across the fingers (m)
+    clearance: float  # the hand's clearance from the neighbours (m)
+    support: float  # flatness of the contact faces (0-0.5)
+    tilt_deg: float  # approach direction's angle from straight down
+
+
+@dataclass(frozen=True)
+class FalseTarget:
+    """The chosen estimate matched no block of the scene (a false detection of class ``obj_id``)."""
+
+    instance: int  # always 0: no scene block
+    obj_id: int
+
+
+@dataclass(frozen=True)
+class PoseError:
+    """The target estimate's error against ground truth: translation (m), rotation (deg), ADD and ADD-S (m);
+    ``err`` is the one named by ``metric`` (ADD-S for symmetric blocks)."""
+
+    te: float
+    re_deg: float
+    add: float
+    adds: float
+    metric: str
+    err: float
+
+
+@dataclass
+class EpisodeRecord:
+    """One episode's deterministic outcome, filled in as its phases run."""
+
+    episode: int
+    seed: int  # the campaign seed
+    scene_seed: int
+    n_blocks: int
+    perception: str
+    blocks: list[str] = field(default_factory=list)  # catalogue names of the scene's blocks
+    target: Target | FalseTarget | None = None
+    outcome: str = "failure"  # or "success"
+    failure: str | None = None  # one of FAILURES
+    grasped: bool = False
+    placed: bool = False
+    pose_error: PoseError | None = None
+    place_error: float | None = None  # the block's xy distance from its place target (m)
+    detected: int = 0  # estimates the provider returned
+    sim_time: float = 0.0
+    phases: dict[str, float] = field(default_factory=dict)  # simulated seconds per phase
+
+    def to_json(self) -> dict:
+        """The ``episodes.jsonl`` record."""
+        return jsonable(dataclasses.asdict(self), digits=6)
+
+
+@dataclass(frozen=True)
+class EpisodeTimings:
+    """Wall-clock and CPU seconds per phase of one episode (they vary run to run)."""
+
+    episode: int
+    wall_s: dict[str, float]
+    cpu_s: dict[str, float]
+
+    def to_json(self) -> dict:
+        """The ``timings.jsonl`` record."""
+        return jsonable(dataclasses.asdict(self), digits=6)

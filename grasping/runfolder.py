@@ -1,0 +1,97 @@
+"""A trial run folder's files: their names, the JSON-lines records and the campaign they belong to.
+
+``episodes.jsonl`` and ``timings.jsonl`` hold one JSON line (sorted keys, no spaces) per finished episode,
+appended as episodes finish; a reader drops a torn last line left by a kill. ``campaign.json`` records what
+the episodes were made with (seed, perception, ``TrialConfig``, calibrated camera mount); ``summary.json``
+holds the campaign's statistics (``grasping.stats.summarise``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Iterable
+
+from posegrasp.config import from_dict
+from posegrasp.errors import UserError
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.io import atomic_write, dumps_json, write_json
+
+EPISODES, TIMINGS, SUMMARY, CAMPAIGN = "episodes.jsonl", "timings.jsonl", "summary.json", "campaign.json"
+
+
+def _line(rec: dict) -> str:
+    return json.dumps(rec, sort_keys=True, separators=(",", ":")) + "\n"
+
+
+def read_records(path: Path) -> dict[int, dict]:
+    """Complete records of a (possibly torn) JSON-lines file, by episode index."""
+    out: dict[int, dict] = {}
+    if not path.exists():
+        return out
+    for line in path.read_text().splitlines(keepends=True):
+        if not line.endswith("\n"):
+            break  # torn last line of a killed run
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        out[int(rec["episode"])] = rec
+    return out
+
+
+def write_records(path: Path, records: Iterable[dict]) -> None:
+    """Atomically (re)write a JSON-lines file with ``records``, in the given order."""
+    atomic_write(path, lambda p: p.write_text("".join(_line(r) for r in records)))
+
+
+def append_record(f: IO[str], rec: dict, sync: bool = False) -> None:
+    """Append one record to an open JSON-lines file and flush it (to the disk as well when ``sync``)."""
+    f.write(_line(rec))
+    f.flush()
+    if sync:
+        os.fsync(f.fileno())
+
+
+@dataclass(frozen=True)
+class Campaign:
+    """What a run folder's episodes were made with (``campaign.json``); mixing campaigns in a folder is refused."""
+
+    seed: int
+    perception: str
+    config: TrialConfig
+    T_gripper_cam: tuple[tuple[float, ...], ...]  # calibrated mount used by the planner, row-major 4x4
+
+    def to_json(self) -> dict:
+        """The ``campaign.json`` content."""
+        return {"seed": self.seed, "perception": self.perception, "config": dataclasses.asdict(self.config),
+                "T_gripper_cam": self.T_gripper_cam}
+
+
+def read_campaign(run_dir: Path) -> Campaign:
+    """The campaign of a run folder; fields added to ``TrialConfig`` since it was written take their defaults."""
+    path = run_dir / CAMPAIGN
+    data = json.loads(path.read_text())
+    return Campaign(int(data["seed"]), data["perception"],
+                    from_dict(TrialConfig, data["config"], where=f"{path} config"),
+                    tuple(tuple(float(v) for v in row) for row in data["T_gripper_cam"]))
+
+
+def check_campaign(out: Path, campaign: Campaign) -> None:
+    """Refuse to mix two campaigns in one folder; record this one if the folder has none."""
+    path = out / CAMPAIGN
+    if not path.exists():
+        write_json(path, campaign.to_json())
+        return
+    old = json.loads(path.read_text())
+    if isinstance(old.get("config"), dict):  # fields added to TrialConfig since it was written: their defaults
+        old["config"] = dataclasses.asdict(from_dict(TrialConfig, old["config"], where=f"{path} config"))
+    new = json.loads(dumps_json(campaign.to_json()))
+    old = json.loads(dumps_json(old))
+    if old != new:
+        keys = sorted(k for k in new if old.get(k) != new[k])
+        raise UserError(f"{out} holds a different campaign (differs in {', '.join(keys)}); "
+                        "use another --out or the same settings to resume")

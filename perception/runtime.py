@@ -1,0 +1,57 @@
+"""How the trained nets run on a CPU at inference: BatchNorms folded into convolutions, channels-last weights
+(``for_inference``), and numpy's BLAS on one thread (``one_blas_thread``, ``with_one_blas_thread``)."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from collections.abc import Callable
+
+import torch
+from threadpoolctl import ThreadpoolController
+from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+_BLAS: ThreadpoolController | None = None
+
+
+def one_blas_thread() -> contextlib.AbstractContextManager:
+    """A context in which numpy's BLAS (OpenBLAS) runs on one thread. The pipeline's numpy products are small, but
+    past ~2.6e5 multiply-adds OpenBLAS splits them over its threads, which then spin-wait for more work and take the
+    cores from torch's next stage: on 2 cores a classifier after the supporting plane's fit ran 2x slower."""
+    global _BLAS
+    if _BLAS is None:
+        _BLAS = ThreadpoolController()
+    return _BLAS.limit(limits=1, user_api="blas")
+
+
+def with_one_blas_thread(method: Callable) -> Callable:
+    """``method`` run in ``one_blas_thread()`` (a decorator)."""
+    @functools.wraps(method)
+    def wrapper(*args, **kwargs):
+        with one_blas_thread():
+            return method(*args, **kwargs)
+    return wrapper
+
+
+def for_inference(model: torch.nn.Module) -> torch.nn.Module:
+    """``model`` itself, in eval mode, its BatchNorms folded into their convolutions (``fold_batch_norms``) and its 2D
+    convolutions' weights channels-last: the outputs stay the same (to float rounding; inputs may stay NCHW) and come
+    ~35 % faster on a CPU (oneDNN's native layout), a classifier's on a frame's 19 crops another ~35 % faster without
+    the BatchNorms. For inference only: the model no longer trains or loads a checkpoint as it did."""
+    fold_batch_norms(model.eval())
+    return model.to(memory_format=torch.channels_last)
+
+
+def fold_batch_norms(model: torch.nn.Module) -> None:
+    """Each BatchNorm2d of ``model`` (in eval mode) folded into the Conv2d whose output it normalises and replaced by an
+    identity: W' = W g / s, b' = (b - mu) g / s + beta per output channel (g, beta: its affine weights; mu, s^2: its
+    running mean and variance + eps). The pairs are a Conv2d followed by a BatchNorm2d in an ``nn.Sequential`` and
+    those a module names in its ``conv_bn_pairs`` (attribute names: (conv, bn), ...)."""
+    for m in list(model.modules()):
+        pairs = list(getattr(m, "conv_bn_pairs", ()))
+        if isinstance(m, torch.nn.Sequential):
+            pairs += [(str(i), str(i + 1)) for i in range(len(m) - 1)
+                      if isinstance(m[i], torch.nn.Conv2d) and isinstance(m[i + 1], torch.nn.BatchNorm2d)]
+        for conv, bn in pairs:
+            setattr(m, conv, fuse_conv_bn_eval(getattr(m, conv), getattr(m, bn)))
+            setattr(m, bn, torch.nn.Identity())

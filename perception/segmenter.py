@@ -1,0 +1,66 @@
+"""The segmentation stage at inference: a trained seg net turning an RGB image into a class map and class
+probabilities at the image's size (``Segmenter``, ``upsampled_argmax``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from posegrasp.perception import checkpoint as ckpt_mod
+from posegrasp.perception.guided import argmax_planes
+from posegrasp.perception.inputs import normalize_rgb
+from posegrasp.perception.runtime import for_inference
+from posegrasp.perception.seg_net import SegNetConfig
+
+
+class Segmenter:
+    """The segmentation stage alone: a seg net and its config; ``segmenter(rgb)`` -> class map."""
+
+    def __init__(self, model: torch.nn.Module, cfg: SegNetConfig):
+        self.model, self.cfg = for_inference(model), cfg
+
+    @classmethod
+    def load(cls, ckpt: str | Path) -> "Segmenter":
+        """From a ``seg`` checkpoint directory."""
+        model, cfg, _ = ckpt_mod.load_model(Path(ckpt), "seg")
+        return cls(model, cfg)
+
+    @torch.no_grad()
+    def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Class map (H, W) int64 (0 background, else obj_id) and class probabilities (H, W, C)
+        float32: softmax at the net's input size, bilinearly resized to the image (OpenCV, channels
+        last, which is ~5x faster on a CPU than arg-maxing upsampled logits in torch); the class map is their
+        arg-max (``upsampled_argmax``)."""
+        h, w = rgb.shape[:2]
+        ih, iw = self.cfg.input_size
+        x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
+        logits = self.model(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
+        small = torch.softmax(logits[0], dim=0)  # (C, ih, iw)
+        prob = np.ascontiguousarray(small.permute(1, 2, 0).numpy())  # (ih, iw, C)
+        if (h, w) == (ih, iw):
+            return argmax_planes(small.numpy()).astype(np.int64), prob
+        prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)  # (h, w, C)
+        if prob.ndim == 2:  # OpenCV drops a single channel axis
+            prob = prob[..., None]
+        return upsampled_argmax(small.numpy(), prob), prob
+
+
+def upsampled_argmax(small: np.ndarray, prob: np.ndarray) -> np.ndarray:
+    """``prob.argmax(axis=-1)`` as int64 (H, W), where ``prob`` (H, W, C) is ``small`` (C, h, w) resized bilinearly by
+    OpenCV (``INTER_LINEAR``, half-pixel centres). A pixel's value is a convex combination of ``small`` at the (up to)
+    2 x 2 source pixels around x_s = (x + 1/2) w / W - 1/2 (likewise y), all within one pixel of the nearest,
+    round(x_s). Where ``small``'s arg-max is one class c over that nearest pixel's 3 x 3 neighbourhood, p_c >= p_k at
+    each source pixel, so also in their combination: the arg-max is c. So the class map is the nearest-neighbour
+    upsampling of ``small``'s, and only the pixels near its class boundaries (a few per cent of a frame) are arg-maxed
+    in ``prob``: the same map (to float rounding) ~3x faster."""
+    lab = argmax_planes(small)  # (h, w)
+    disc = np.ones((3, 3), dtype=np.uint8)
+    mixed = (cv2.dilate(lab, disc) != cv2.erode(lab, disc)).view(np.uint8)  # neighbourhoods of more than one class
+    H, W = prob.shape[:2]
+    out = cv2.resize(lab, (W, H), interpolation=cv2.INTER_NEAREST_EXACT)  # source pixel round(x_s), round(y_s)
+    near = np.nonzero(cv2.resize(mixed, (W, H), interpolation=cv2.INTER_NEAREST_EXACT))
+    out[near] = prob[near].argmax(axis=-1)
+    return out.astype(np.int64)

@@ -1,0 +1,304 @@
+"""The skeleton every network's training shares (``StageTraining``): the run folder and resume, the seeded set-up,
+the loop with its metrics log, progress bar and checkpoints. Each stage fills it in its own module:
+``perception.train_seg``, ``perception.train_pose``, ``perception.train_refine`` and ``perception.train_cls``.
+
+A stage writes the ``RUN/<stage>/`` checkpoint (see ``perception.checkpoint``) and ``RUN/<stage>_metrics.csv``. Runs
+are seeded and resumable: batch composition and augmentation are functions of (seed, step), and the checkpoint holds
+the weights, the optimizer state, the schedule state and the torch RNG, so a killed run resumed with ``resume=True``
+continues exactly where its last checkpoint was written.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, ClassVar
+
+import numpy as np
+import torch
+
+from posegrasp import bop
+from posegrasp import io as pio
+from posegrasp.errors import UserError
+from posegrasp.perception import checkpoint as ckpt_mod
+
+
+@dataclass
+class StageConfig:
+    """What every stage's training has: splits (``train_split`` empty = ``train_pbr`` if present,
+    else ``train``), logging, checkpoint and evaluation intervals (steps), seed and CPU threads."""
+
+    train_split: str = ""
+    val_split: str = "val"
+    steps: int = 20000
+    batch_size: int = 8
+    lr: float = 1e-4
+    log_every: int = 20
+    checkpoint_every: int = 500
+    eval_every: int = 1000
+    seed: int = 0
+    threads: int = 2
+
+
+def batch_keys(n: int, step: int, batch_size: int, seed: int) -> list[tuple[int, int]]:
+    """(dataset index, augmentation key) of each sample of batch ``step``: epochs are seeded
+    permutations of the n samples, the key is the global sample counter."""
+    out = []
+    perms: dict[int, np.ndarray] = {}
+    for g in range(step * batch_size, (step + 1) * batch_size):
+        e, k = divmod(g, n)
+        if e not in perms:
+            perms[e] = np.random.default_rng([seed, e]).permutation(n)
+        out.append((int(perms[e][k]), g))
+    return out
+
+
+class MetricsLog:
+    """Append-only CSV of training metrics; rows after the resumed step are dropped on resume."""
+
+    def __init__(self, path: Path, columns: list[str], resume_step: int | None):
+        self.path, self.columns = path, columns
+        rows: list[dict[str, str]] = []
+        if resume_step is not None and path.exists():
+            with open(path, newline="") as f:
+                for r in csv.DictReader(f):
+                    try:
+                        if int(r["step"]) <= resume_step and None not in r.values():
+                            rows.append(r)
+                    except (KeyError, TypeError, ValueError):
+                        continue
+        buf = [",".join(columns)] + [",".join(r.get(c, "") or "" for c in columns) for r in rows]
+        pio.write_bytes(path, ("\n".join(buf) + "\n").encode())
+
+    def write(self, **values: Any) -> None:
+        """Append one row (floats with 6 significant digits, missing values empty)."""
+        def fmt(v: Any) -> str:
+            return f"{v:.6g}" if isinstance(v, float) else ("" if v is None else str(v))
+
+        with open(self.path, "a") as f:
+            f.write(",".join(fmt(values.get(c)) for c in self.columns) + "\n")
+            f.flush()
+
+
+@dataclass
+class RunFolder:
+    """Where a stage writes (``out/<stage>/``, ``out/<stage>_metrics.csv``), and whether it resumes."""
+
+    out: Path
+    stage: str
+    resume: bool
+
+    @property
+    def ckpt(self) -> Path:
+        return self.out / self.stage
+
+    @property
+    def metrics(self) -> Path:
+        return self.out / f"{self.stage}_metrics.csv"
+
+    def prepare(self) -> dict[str, Any] | None:
+        """The checkpoint's config+state when resuming, None for a fresh run; UserError on misuse."""
+        have = ckpt_mod.exists(self.ckpt)
+        if have and not self.resume:
+            raise UserError(f"{self.ckpt} already holds a checkpoint: pass --resume to continue it or choose "
+                            f"another --out")
+        if not have:
+            return None
+        return {"config": ckpt_mod.read_config(self.ckpt), "state": ckpt_mod.read_state(self.ckpt)}
+
+
+class StageTraining(ABC):
+    """One network's training on a BOP dataset, as a template: ``train`` resolves the config (the checkpoint's when
+    resuming), seeds torch, calls ``build`` (the net, its config, the optimizer and a fresh ``state``), restores the
+    checkpoint or loads ``cfg.init`` weights, calls ``prepare`` (the datasets), then runs ``step`` and ``after_step``
+    until ``cfg.steps``, logging and checkpointing (``loop``). Subclasses set the class attributes and the hooks."""
+
+    name: ClassVar[str]  # RUN/<name>/ and the checkpoint's stage
+    config: ClassVar[type]  # the training config dataclass (a ``StageConfig``)
+    columns: ClassVar[list[str]]  # of RUN/<name>_metrics.csv
+    needs: ClassVar[str] = ""  # a stage whose checkpoint the run must hold first
+    fine_tunes: ClassVar[bool] = False  # whether ``cfg.init`` may name weights to start from
+
+    model: torch.nn.Module
+    model_cfg: Any
+    opt: torch.optim.Optimizer
+    state: dict[str, Any]  # the schedule's state, saved with the checkpoint ("step" first)
+
+    def __init__(self, data: Path, run: RunFolder, cfg: Any):
+        self.data, self.run, self.cfg = data, run, cfg
+
+    @abstractmethod
+    def build(self) -> None:
+        """Set ``model``, ``model_cfg``, ``cfg`` (with ``model_cfg`` in it), ``opt`` and a fresh ``state``."""
+
+    @abstractmethod
+    def prepare(self, progress: bool) -> None:
+        """Load the datasets (once the weights are restored or initialised)."""
+
+    @abstractmethod
+    def step(self, step: int) -> dict[str, float]:
+        """Optimise on batch ``step`` (0-based); the batch's losses and metrics."""
+
+    @abstractmethod
+    def after_step(self, step: int, values: dict[str, float]) -> dict[str, Any]:
+        """Schedules and evaluation once ``step`` steps are done; the values to log (evaluations as ``val_*``)."""
+
+    def summary(self) -> dict[str, Any]:
+        """Entries of ``train``'s result after the last metrics and the step."""
+        return {}
+
+    def save(self, step: int) -> None:
+        """Write the checkpoint at ``step``."""
+        self.state["step"] = step
+        ckpt_mod.save(self.run.ckpt, self.name, self.model, self.model_cfg, self.cfg, self.state, self.opt)
+
+    @classmethod
+    def train(cls, data: str | Path, out: str | Path, cfg: Any = None, steps: int | None = None,
+              seed: int | None = None, resume: bool = False, progress: bool = True) -> dict[str, Any]:
+        """Train on ``data`` (BOP root) into run ``out``; ``steps`` and ``seed`` override the config. Returns the last
+        logged metrics, the step and ``summary()``."""
+        data, run = Path(data), RunFolder(Path(out), cls.name, resume)
+        if cls.needs and not ckpt_mod.exists(run.out / cls.needs):
+            raise UserError(f"{run.out / cls.needs} holds no {cls.needs} net: run 'train {cls.needs}' with --out "
+                            f"{run.out} first")
+        prior = run.prepare()
+        t = cls(data, run, resumed_cfg(cls.config, prior, cfg or cls.config(), {"steps": steps, "seed": seed}))
+        torch.set_num_threads(max(1, int(t.cfg.threads)))
+        torch.manual_seed(t.cfg.seed)
+        t.build()
+        if prior is not None:
+            t.state = restore(run, prior, t.model, t.opt)
+        elif cls.fine_tunes and t.cfg.init:
+            init_from(t.model, t.model_cfg, Path(t.cfg.init), cls.name)
+        t.prepare(progress)
+        log = MetricsLog(run.metrics, cls.columns, t.state["step"] if prior else None)
+        last = loop(run, t.cfg.steps, int(t.state["step"]), t.step, t.after_step, t.save, t.cfg, log, progress,
+                    t.state)
+        return {**last, "step": t.state["step"], **t.summary()}
+
+
+def _progress(enabled: bool):
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from posegrasp.progress import progress
+
+    return progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("loss {task.fields[loss]}"), TextColumn("{task.fields[extra]}"),
+                    TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), enabled=enabled)
+
+
+def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
+    """Every parameter group of ``opt`` at learning rate ``lr``."""
+    for g in opt.param_groups:
+        g["lr"] = lr
+
+
+def loop(run: RunFolder, total: int, start: int, step_fn: Callable[[int], dict[str, float]],
+         after_step: Callable[[int, dict[str, float]], dict[str, Any]],
+         save: Callable[[int], None], cfg: Any, log: MetricsLog, progress: bool, state: dict[str, Any]
+         ) -> dict[str, float]:
+    """Run steps start..total-1, log every ``cfg.log_every`` (and after evaluations: keys of
+    ``after_step``'s dict starting with ``val_``), checkpoint every ``cfg.checkpoint_every``, at the
+    end and on Ctrl-C."""
+    acc: dict[str, list[float]] = {}
+    last: dict[str, float] = {}
+    t0 = time.perf_counter() - float(state.get("elapsed_s", 0.0))
+    step = start
+
+    def checkpoint(step: int) -> None:
+        state["elapsed_s"] = round(time.perf_counter() - t0, 3)
+        save(step)
+
+    with _progress(progress) as bar:
+        task = bar.add_task(run.stage, total=total, completed=start, loss="-", extra="")
+        try:
+            while step < total:
+                values = step_fn(step)
+                if not all(math.isfinite(v) for v in values.values()):
+                    raise UserError(f"{run.stage} training diverged at step {step}: {values}")
+                step += 1
+                for k, v in values.items():
+                    acc.setdefault(k, []).append(v)
+                extra = after_step(step, values)
+                evaluated = any(k.startswith("val_") for k in extra)
+                if step % cfg.log_every == 0 or step == total or evaluated:
+                    last = {k: float(np.mean(v)) for k, v in acc.items()}
+                    acc = {}
+                    log.write(step=step, time_s=round(time.perf_counter() - t0, 3), **last, **extra)
+                    shown = " ".join(f"{k} {v:.4g}" for k, v in extra.items() if isinstance(v, float))
+                    bar.update(task, loss=f"{last.get('loss', float('nan')):.4f}", extra=shown)
+                if step % cfg.checkpoint_every == 0 or step == total:
+                    checkpoint(step)
+                bar.update(task, completed=step)
+        except KeyboardInterrupt:
+            checkpoint(step)
+            raise
+    return last
+
+
+def build_model(stage: str, build: Callable[[Any], torch.nn.Module], model_cfg: Any) -> torch.nn.Module:
+    """``build(model_cfg)``, with an unusable ``[stage.model]`` setting (its ``validate()``) as a one-line UserError."""
+    try:
+        return build(model_cfg)
+    except ValueError as e:
+        raise UserError(f"[{stage}.model] {e}") from None
+
+
+def split_exists(root: Path, split: str) -> bool:
+    """Whether the BOP dataset ``root`` has the split ``split`` (False for an empty name)."""
+    return bool(split) and bop.split_dir(root, split).is_dir()
+
+
+def train_split(root: Path, split: str) -> str:
+    """The training split: ``split`` if given, else ``train_pbr`` (BOP's synthetic training data)
+    when present, else ``train``."""
+    if split:
+        return split
+    return "train_pbr" if split_exists(root, "train_pbr") else "train"
+
+
+def resumed_cfg(cls: type, prior: dict[str, Any] | None, cfg: Any, overrides: dict[str, Any]) -> Any:
+    """Training config: the checkpoint's when resuming (CLI overrides like steps still apply)."""
+    from posegrasp.config import from_dict
+
+    if prior is not None and prior["config"].get("train"):
+        cfg = from_dict(cls, prior["config"]["train"], where="resumed config.json")
+    return dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+
+
+def dataset_objects(data: Path, wanted: list[int]) -> tuple[dict[int, bop.ObjectInfo], list[int]]:
+    """The dataset's model infos and the objects to train for (``wanted``, or all when empty)."""
+    infos = bop.load_models_info(data)
+    obj_ids = list(wanted) or sorted(infos)
+    unknown = [o for o in obj_ids if o not in infos]
+    if unknown:
+        raise UserError(f"obj_ids {unknown} are not in {bop.models_info_path(data)}")
+    return infos, obj_ids
+
+
+def restore(run: RunFolder, prior: dict[str, Any], model: torch.nn.Module, opt: torch.optim.Optimizer
+            ) -> dict[str, Any]:
+    """Load the checkpoint's weights and optimizer state for a resumed run; its training state."""
+    ckpt_mod.load_weights(run.ckpt, model)
+    ckpt_mod.load_optimizer(run.ckpt, opt)
+    return prior["state"]
+
+
+def init_from(model: torch.nn.Module, model_cfg: Any, src: Path, stage: str) -> None:
+    """Load the weights of the ``stage`` checkpoint at ``src`` (or ``src/stage``) into ``model``. A seg net may have
+    been trained at another input size (it is fully convolutional: fine-tuning adapts it to the new one)."""
+    ckpt = src / stage if (src / stage).is_dir() else src
+    if not ckpt_mod.exists(ckpt):
+        raise UserError(f"init weights {src} hold no {stage} checkpoint: name a run or its {stage}/ folder")
+    src_model, src_cfg, _ = ckpt_mod.load_model(ckpt, stage)
+    if stage == "seg":
+        src_cfg = dataclasses.replace(src_cfg, input_size=model_cfg.input_size)
+    if src_cfg != model_cfg:
+        raise UserError(f"init weights {ckpt} were trained with another {stage} model config than this run's: "
+                        f"use the same [{stage}.model] settings and dataset objects")
+    model.load_state_dict(src_model.state_dict())

@@ -1,0 +1,58 @@
+"""``posegrasp dataset check|show``: validate any BOP dataset, or draw one of its images with its labels."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from posegrasp.cli import positive_int
+from posegrasp.errors import UserError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    d = sub.add_parser("dataset", help="check or draw a BOP dataset")
+    dsub = d.add_subparsers(dest="dataset_command", required=True, parser_class=type(d))
+    c = dsub.add_parser("check", help="validate a BOP dataset and print a summary (exit 1 when invalid)")
+    c.add_argument("dir", help="dataset root (holding models/, camera.json and split folders)")
+    c.add_argument("--split", default=None, help="only this split (default: every split found)")
+    c.add_argument("--depth-tol-mm", type=float, default=5.0, help="max median depth-to-model distance (mm)")
+    c.add_argument("--max-images", type=positive_int("--max-images"), default=None, help="check at most N images per scene")
+    c.set_defaults(run=run_check)
+    s = dsub.add_parser("show", help="draw one image with masks, 3D boxes and axes next to its depth")
+    s.add_argument("dir", help="dataset root")
+    s.add_argument("--scene", type=int, required=True, help="scene id")
+    s.add_argument("--im", type=int, required=True, help="image id")
+    s.add_argument("--out", required=True, help="output image (.png, or .jpg)")
+    s.add_argument("--split", default=None, help="split (default: the only one present)")
+    s.set_defaults(run=run_show)
+
+
+def run_check(args: argparse.Namespace) -> int:
+    from posegrasp.bop_check import check_dataset, print_report
+
+    report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images, progress=True)
+    print_report(report, args.dir)
+    return 0 if report.ok else 1
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from posegrasp.bop_check import find_splits
+    from posegrasp.bop_show import show_image
+    from posegrasp.io import write_image
+
+    root = Path(args.dir)
+    if not root.is_dir():
+        raise UserError(f"dataset folder {root} does not exist")
+    split = args.split
+    if split is None:
+        splits = find_splits(root)
+        if len(splits) != 1:
+            raise UserError(f"{root} has splits {splits or 'none'}; choose one with --split")
+        split = splits[0]
+    panel = show_image(root, split, args.scene, args.im)
+    try:
+        write_image(args.out, panel)
+    except OSError as e:
+        raise UserError(f"cannot write {args.out}: {e.strerror or e}") from None
+    print(f"scene {args.scene} image {args.im} -> {args.out}")
+    return 0
