@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml constraints.txt | sysdeps
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -c constraints.txt -e '.[test]'
+	$(BIN)/pip install -q -c constraints.txt -e '.[test,ray]'
 	$(BIN)/pip install -q -c constraints.txt --no-deps pyrender==0.1.45
 	@touch $(STAMP)
 

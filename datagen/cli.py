@@ -6,7 +6,7 @@ import argparse
 import dataclasses
 import re
 
-from posegrasp.cli import positive_int, workers_arg
+from posegrasp.arguments import nonneg_int, out_dir, positive_int, workers_arg
 from posegrasp.errors import UserError
 
 
@@ -23,10 +23,10 @@ def parse_blocks(text: str) -> tuple[int, int]:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("datagen", help="generate a randomised synthetic RGB-D dataset in BOP format (resumable)")
-    p.add_argument("--out", required=True, help="dataset folder (created; an existing one is completed)")
+    p.add_argument("--out", required=True, type=out_dir(), help="dataset folder (created; an existing one is completed)")
     p.add_argument("--scenes", type=positive_int("--scenes"), default=10, help="simulated scenes (one BOP scene each)")
     p.add_argument("--views", type=positive_int("--views"), default=25, help="hand-camera views per scene")
-    p.add_argument("--seed", type=int, default=0, help="dataset seed (same seed and settings, same bytes)")
+    p.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="dataset seed (same seed and settings, same bytes)")
     p.add_argument("--workers", type=workers_arg, default=None, help="worker processes (default: one per core), or 'ray'")
     p.add_argument("--split", choices=("train_pbr", "test"), default="train_pbr", help="BOP split to write")
     p.add_argument("--resolution", default=None, help="image WIDTHxHEIGHT (default from the config: 640x480)")
@@ -55,13 +55,9 @@ def load_config(args: argparse.Namespace):
 
 def run_datagen(args: argparse.Namespace) -> int:
     from posegrasp.datagen.generate import generate_dataset
-    from posegrasp.datagen.scene import check_capacity
-    from posegrasp.sim.cli import writable_dir
 
-    cfg = load_config(args)
-    check_capacity(cfg)
-    out = writable_dir(args.out)
-    s = generate_dataset(out, args.scenes, args.views, args.seed, cfg, split=args.split, workers=args.workers,
+    out = args.out
+    s = generate_dataset(out, args.scenes, args.views, args.seed, load_config(args), split=args.split, workers=args.workers,
                          progress=not args.no_progress)
     v = s["views"]
     if s["generated_scenes"] == 0:

@@ -7,15 +7,13 @@ default; a TOML file of the same layout (tables ``[views]``, ``[colours]``, ``[t
 
 from __future__ import annotations
 
-import dataclasses
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp.config import load_toml
 from posegrasp.errors import UserError
 from posegrasp.sim.config import WorkcellConfig
-from posegrasp.sim.scene import PALETTE
+from posegrasp.sim.scene import PALETTE, check_block_types
 
 
 @dataclass(frozen=True)
@@ -166,24 +164,10 @@ def _check_range(name: str, r: tuple, lo: float | None = None) -> None:
         raise UserError(f"{name} must be >= {lo}, got {list(r)}")
 
 
-def _check_numbers(obj: object, where: str = "") -> None:
-    """Float settings must hold numbers (``posegrasp.config.from_dict`` lets strings through for floats)."""
-    hints = typing.get_type_hints(type(obj))
-    for f in dataclasses.fields(obj):
-        v, name = getattr(obj, f.name), f"{where}{f.name}"
-        if dataclasses.is_dataclass(v):
-            _check_numbers(v, f"{name}.")
-        elif hints[f.name] is float and (isinstance(v, bool) or not isinstance(v, (int, float))):
-            raise UserError(f"{name} must be a number, got {v!r}")
-        elif typing.get_origin(hints[f.name]) is tuple and float in typing.get_args(hints[f.name]) and not all(
-                isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
-            raise UserError(f"{name} must hold numbers, got {list(v)}")
-
-
 def validate(cfg: DatagenConfig) -> DatagenConfig:
     """Check value types and ranges, raising a one-line UserError naming the bad setting; returns ``cfg``."""
-    _check_numbers(cfg)
     _check_range("blocks", cfg.blocks, 1)
+    check_block_types(cfg.block_types)
     if not 0.01 <= cfg.min_spacing <= 0.2:
         raise UserError(f"min_spacing {cfg.min_spacing} m is out of range: use 0.01-0.2")
     v = cfg.views

@@ -3,6 +3,8 @@
 A scene's content depends only on (seed, scene id, settings): its random streams come from
 ``SeedSequence([seed, scene_id])``, so the dataset is the same for any worker count, and a killed run resumes
 by skipping complete scenes (``scene_gt_info.json`` present) and regenerating the others from scratch.
+Workers return a scene's encoded files and this process writes them, holding the folder's lock
+(``posegrasp.lock``); a split's settings bind once one of its scenes is complete.
 """
 
 from __future__ import annotations
@@ -10,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,11 +24,12 @@ from posegrasp.datagen.noise import noisy_depth, noisy_rgb
 from posegrasp.datagen.render import LabelRenderer
 from posegrasp.datagen.scene import build_scene, check_capacity
 from posegrasp.datagen.views import ViewStats, visit_views
-from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, prepare_root
+from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
 from posegrasp.executor import make_executor
+from posegrasp.lock import folder_lock
 from posegrasp.sim.camera import intrinsics
 from posegrasp.sim.workcell import HAND_CAMERA
 
@@ -38,9 +40,8 @@ STATS_FILE = "datagen_stats.json"
 
 @dataclass(frozen=True)
 class SceneJob:
-    """Everything a worker needs to generate one scene."""
+    """Everything a worker needs to generate one scene (no path: workers never touch the dataset)."""
 
-    root: str
     split: str
     scene_id: int
     seed: int
@@ -60,12 +61,9 @@ def is_complete(root: str | Path, split: str, scene_id: int) -> bool:
     return (bop.scene_dir(root, split, scene_id) / COMPLETE_FILE).is_file()
 
 
-def generate_scene(job: SceneJob) -> dict[str, Any]:
-    """Simulate, render and write one scene from scratch; returns what ``scene_datagen.json`` records."""
+def generate_scene(job: SceneJob) -> SceneWriter:
+    """Simulate and render one scene; returns its encoded files (``extra``: what ``scene_datagen.json`` records)."""
     cfg = job.cfg
-    sd = bop.scene_dir(job.root, job.split, job.scene_id)
-    if sd.exists():  # leftovers of a killed run
-        shutil.rmtree(sd)
     s_scene, s_views, s_noise = np.random.SeedSequence([job.seed, job.scene_id]).spawn(3)
     try:
         gs = build_scene(cfg, np.random.default_rng(s_scene))
@@ -75,7 +73,7 @@ def generate_scene(job: SceneJob) -> dict[str, Any]:
     c = cfg.workcell.hand_camera
     renderer = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far,
                              cfg.workcell.render.shadows, cfg.workcell.render.reflections, cfg.msaa)
-    writer = SceneWriter(sd, cfg.depth_scale, rgb_extension(cfg, job.split), cfg.jpg_quality)
+    writer = SceneWriter(cfg.depth_scale, rgb_extension(cfg, job.split), cfg.jpg_quality)
     stats, noise_rng = ViewStats(), np.random.default_rng(s_noise)
     try:
         for im_id, _ in enumerate(visit_views(wc, cfg.views, job.views, np.random.default_rng(s_views), stats)):
@@ -96,13 +94,14 @@ def generate_scene(job: SceneJob) -> dict[str, Any]:
         "views": stats.as_dict(),
     }
     writer.finish(info)
-    return info
+    return writer
 
 
-def _check_settings(path: Path, settings: dict[str, Any]) -> None:
-    """Record the settings of a split, or refuse to mix a resumed split with other settings."""
+def _check_settings(path: Path, settings: dict[str, Any], binding: bool) -> None:
+    """Record the settings of a split, or refuse to mix a resumed split with other settings (``binding``: the
+    split holds a complete scene; settings left by a failed start are replaced)."""
     want = json.loads(pio.dumps_json(settings))
-    if path.is_file():
+    if binding and path.is_file():
         try:
             have = json.loads(path.read_text())
         except json.JSONDecodeError:
@@ -116,8 +115,11 @@ def _check_settings(path: Path, settings: dict[str, Any]) -> None:
 
 
 def aggregate_stats(root: Path, split: str, scenes: int) -> dict[str, Any]:
-    """Dataset-level counts over scenes 0..scenes-1 from their ``scene_datagen.json`` (no timings: the file
-    is part of the byte-identical output)."""
+    """Dataset-level counts over scenes 0..scenes-1, and the complete scenes after them (a run asking for
+    fewer scenes than the split holds keeps the whole split's counts), from their ``scene_datagen.json`` (no
+    timings: the file is part of the byte-identical output)."""
+    while is_complete(root, split, scenes):
+        scenes += 1
     per_scene = [json.loads((bop.scene_dir(root, split, s) / "scene_datagen.json").read_text()) for s in range(scenes)]
     totals = {k: sum(p["views"][k] for p in per_scene) for k in ViewStats().as_dict()}
     inst = sum(len(p["blocks"]) * p["images"] for p in per_scene)
@@ -141,26 +143,32 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
     check_capacity(cfg)
     root = Path(out)
     c = cfg.workcell.hand_camera
-    prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), cfg.depth_scale))
-    ext = rgb_extension(cfg, split)
-    for tmp in bop.split_dir(root, split).glob(".*.tmp"):  # leftovers of a killed write
-        tmp.unlink()
-    _check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
-                    {"seed": seed, "views": views, "rgb_format": ext, "config": dataclasses.asdict(cfg)})
-    todo = [s for s in range(scenes) if not is_complete(root, split, s)]
-    jobs = [SceneJob(str(root), split, s, seed, views, cfg) for s in todo]
-    if isinstance(workers, int) or workers is None:  # no idle worker processes
-        workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
-    t0 = time.perf_counter()
-    frames = 0
-    with _progress(progress) as bar:
-        task = bar.add_task("datagen", total=len(todo) * views, fps=0.0)
-        for _, info in make_executor(workers).imap(generate_scene, jobs):
-            frames += info["images"]
-            bar.update(task, advance=views, fps=frames / max(time.perf_counter() - t0, 1e-9))
-    seconds = time.perf_counter() - t0
-    stats = aggregate_stats(root, split, scenes)
-    pio.write_json(bop.split_dir(root, split) / STATS_FILE, stats)
+    with folder_lock(root):
+        todo = [s for s in range(scenes) if not is_complete(root, split, s)]
+        if isinstance(workers, int) or workers is None:  # no idle worker processes
+            workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
+        executor = make_executor(workers)  # Ray connects here, before anything is written
+        prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), cfg.depth_scale))
+        ext = rgb_extension(cfg, split)
+        for tmp in bop.split_dir(root, split).glob(".*.tmp"):  # leftovers of a killed write
+            tmp.unlink()
+        _check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
+                        {"seed": seed, "views": views, "rgb_format": ext, "config": dataclasses.asdict(cfg)},
+                        binding=has_scenes(root, split))
+        jobs = [SceneJob(split, s, seed, views, cfg) for s in todo]
+        t0 = time.perf_counter()
+        frames = 0
+        with _progress(progress) as bar:
+            task = bar.add_task("datagen", total=len(todo) * views, fps=0.0)
+            for _, scene in executor.imap(generate_scene, jobs):
+                scene.write(bop.scene_dir(root, split, scene.extra["scene_id"]))
+                frames += scene.extra["images"]
+                bar.update(task, advance=views, fps=frames / max(time.perf_counter() - t0, 1e-9))
+        seconds = time.perf_counter() - t0
+        stats = aggregate_stats(root, split, scenes)
+        pio.write_json(bop.split_dir(root, split) / STATS_FILE, stats)
+        if split == "test":  # what BOP 2019 scores: instances at least 10 % visible
+            bop.write_test_targets(root, bop.targets_from_gt(bop.iter_scene_images(root, split, range(stats["scenes"]))))
     return {**stats, "generated_scenes": len(todo), "generated_images": frames, "seconds": seconds}
 
 

@@ -3,8 +3,9 @@
 Two MuJoCo render passes per frame (colour; segmentation with the depth buffer read alongside), then each
 block rendered alone for its amodal mask, in a viewport cropped to its projected bounding box with the
 frustum cropped to match, so the pixels are exactly those of a full-image render of the block alone, at a
-fraction of the cost. It draws in the process's GL context (``sim.gl``): each scene only gets new
-``MjrContext``s for its model.
+fraction of the cost. A block whose silhouette crosses the image border is also rendered beyond it, in tiles
+over bop_toolkit's canvas (3x the image's size), for ``scene_gt_info.json``'s whole-silhouette counts. It
+draws in the process's GL context (``posegrasp.gl``): each scene only gets new ``MjrContext``s for its model.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import mujoco
 import numpy as np
 
 from posegrasp.geometry import invert, transform_points
-from posegrasp.sim import gl
+from posegrasp import gl
 from posegrasp.sim.camera import Frame, intrinsics
 from posegrasp.sim.workcell import Workcell
 
@@ -127,45 +128,84 @@ class LabelRenderer:
             inst = lut[np.minimum(ids, n + 1)]
         return self._metric_depth(raw)[::-1].copy(), inst[::-1].copy()
 
-    def amodal(self, T_cam_obj: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int, int, int] | None]]:
-        """Full silhouette (H, W) bool of every block rendered alone at its pose (``T_cam_obj``: (K, 4, 4)),
-        and the pixel box [x0, x1) x [y0, y1) it was rendered in (None: not in front of the camera)."""
-        m = self.wc.model
+    def amodal(self, T_cam_obj: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int, int, int] | None],
+                                                   list[tuple[int, tuple[int, int, int, int] | None]]]:
+        """Full silhouette (H, W) bool of every block rendered alone at its pose (``T_cam_obj``: (K, 4, 4)), the
+        pixel box [x0, x1) x [y0, y1) it was rendered in (None: not in the image), and the silhouette's part
+        outside the image on bop_toolkit's canvas (3x the image's size around it): its pixel count and its
+        (x_min, y_min, x_max, y_max) in image pixel coordinates (None: no such pixel)."""
         H, W = self.height, self.width
-        out, boxes = [], []
+        out, boxes, beyond = [], [], []
         for k, geoms in enumerate(self.block_geoms):
             mask = np.zeros((H, W), bool)
             box = self._bbox(k, T_cam_obj[k])
             boxes.append(box)
             if box is not None:
                 x0, y0, x1, y1 = box
-                saved = m.geom_group[geoms].copy()
-                m.geom_group[geoms] = 5
-                self._update(self.solo_option)
-                m.geom_group[geoms] = saved
-                self._crop_frustum(x0, y0, x1, y1)
-                self._set_seg(True)
-                rect = mujoco.MjrRect(0, 0, x1 - x0, y1 - y0)
-                mujoco.mjr_render(rect, self.scene, self.con)
-                sub = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
-                mujoco.mjr_readPixels(sub, None, rect, self.con)
-                self._set_seg(False)
-                mask[y0:y1, x0:x1] = sub[::-1, :, 0] > 0
+                mask[y0:y1, x0:x1] = self._solo(geoms, box)
             out.append(mask)
-        return out, boxes
+            whole = self._bbox(k, T_cam_obj[k], canvas=3)
+            beyond.append(self._beyond(geoms, whole) if whole is not None and whole != box else (0, None))
+        return out, boxes, beyond
 
-    def _bbox(self, k: int, T_cam_obj: np.ndarray) -> tuple[int, int, int, int] | None:
-        """Pixel box [x0, x1) x [y0, y1) covering block k's projected vertices (+1 px), clipped to the image."""
+    def _solo(self, geoms: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+        """Silhouette (y1 - y0, x1 - x0) bool of the block made of ``geoms`` alone, in pixel box
+        [x0, x1) x [y0, y1) of the image plane (any box no larger than the offscreen buffer, also beyond the
+        image)."""
+        m = self.wc.model
+        x0, y0, x1, y1 = box
+        saved = m.geom_group[geoms].copy()
+        m.geom_group[geoms] = 5
+        self._update(self.solo_option)
+        m.geom_group[geoms] = saved
+        self._crop_frustum(x0, y0, x1, y1)
+        self._set_seg(True)
+        rect = mujoco.MjrRect(0, 0, x1 - x0, y1 - y0)
+        mujoco.mjr_render(rect, self.scene, self.con)
+        sub = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
+        mujoco.mjr_readPixels(sub, None, rect, self.con)
+        self._set_seg(False)
+        return sub[::-1, :, 0] > 0
+
+    def _beyond(self, geoms: np.ndarray, whole: tuple[int, int, int, int]
+                ) -> tuple[int, tuple[int, int, int, int] | None]:
+        """Pixel count and (x_min, y_min, x_max, y_max) of the silhouette's pixels in box ``whole`` outside the
+        image, rendered in tiles of the image's size."""
+        H, W = self.height, self.width
+        X0, Y0, X1, Y1 = whole
+        count, ext = 0, []
+        for ty in range(Y0, Y1, H):
+            for tx in range(X0, X1, W):
+                tile = (tx, ty, min(tx + W, X1), min(ty + H, Y1))
+                if tile[0] >= 0 and tile[1] >= 0 and tile[2] <= W and tile[3] <= H:
+                    continue  # inside the image: the amodal mask has it
+                ys, xs = np.nonzero(self._solo(geoms, tile))
+                xs, ys = xs + tx, ys + ty
+                out = (xs < 0) | (xs >= W) | (ys < 0) | (ys >= H)
+                if out.any():
+                    count += int(out.sum())
+                    ext.append((xs[out].min(), ys[out].min(), xs[out].max(), ys[out].max()))
+        if not ext:
+            return 0, None
+        e = np.array(ext)
+        return count, (int(e[:, 0].min()), int(e[:, 1].min()), int(e[:, 2].max()), int(e[:, 3].max()))
+
+    def _bbox(self, k: int, T_cam_obj: np.ndarray, canvas: int = 1) -> tuple[int, int, int, int] | None:
+        """Pixel box [x0, x1) x [y0, y1) covering block k's projected vertices (+1 px), clipped to the image
+        (``canvas`` 1) or to a canvas ``canvas`` times its size centred on it (3: bop_toolkit's)."""
+        W, H = self.width, self.height
+        lo_x, lo_y, hi_x, hi_y = -(canvas // 2) * W, -(canvas // 2) * H, (canvas // 2 + 1) * W, (canvas // 2 + 1) * H
         p = transform_points(T_cam_obj, self.wc.blocks[k].block.vertices)
         if np.all(p[:, 2] <= self._znear):  # behind the GL near plane: not drawn at all
             return None
         if np.any(p[:, 2] <= self._znear):  # cut by the near plane: its projection is unbounded
-            return 0, 0, self.width, self.height
+            return lo_x, lo_y, hi_x, hi_y
         uv = p[:, :2] / p[:, 2:] * self.K[[0, 1], [0, 1]] + self.K[:2, 2]
-        x0, y0 = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 1, 0)
-        x1 = min(int(np.ceil(uv[:, 0].max())) + 2, self.width)
-        y1 = min(int(np.ceil(uv[:, 1].max())) + 2, self.height)
-        return (int(x0), int(y0), x1, y1) if x1 > x0 and y1 > y0 else None
+        x0 = max(int(np.floor(uv[:, 0].min())) - 1, lo_x)
+        y0 = max(int(np.floor(uv[:, 1].min())) - 1, lo_y)
+        x1 = min(int(np.ceil(uv[:, 0].max())) + 2, hi_x)
+        y1 = min(int(np.ceil(uv[:, 1].max())) + 2, hi_y)
+        return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
 
     def _crop_frustum(self, x0: int, y0: int, x1: int, y1: int) -> None:
         """Make the scene's frustum cover only pixel columns [x0, x1) and rows [y0, y1) of the full image.
@@ -181,13 +221,14 @@ class LabelRenderer:
             c.frustum_top, c.frustum_bottom = top - y0 * s, top - y1 * s
 
     def capture(self) -> Frame:
-        """A labelled frame of the current state; ``extra``: per-block full silhouettes ``amodal`` and ``boxes``."""
+        """A labelled frame of the current state; ``extra``: per-block full silhouettes ``amodal``, ``boxes`` and
+        their parts ``beyond`` the image (``amodal``)."""
         wc = self.wc
         T_world_cam = wc.camera_pose(self.camera)
         T_cam_obj = np.einsum("ij,kjl->kil", invert(T_world_cam), wc.block_poses())
         rgb = self.rgb()
         depth, inst = self.depth_and_instances()
         obj_ids = np.array([b.block.obj_id for b in wc.blocks], dtype=int)
-        masks, boxes = self.amodal(T_cam_obj)
+        masks, boxes, beyond = self.amodal(T_cam_obj)
         return Frame(rgb, depth, inst, self.K.copy(), T_world_cam, T_cam_obj, obj_ids,
-                     extra={"amodal": masks, "boxes": boxes})
+                     extra={"amodal": masks, "boxes": boxes, "beyond": beyond})

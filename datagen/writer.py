@@ -5,15 +5,19 @@ Per scene: ``rgb/`` (jpg or png), ``depth/`` (uint16 png, value x depth_scale = 
 ``scene_gt.json``, ``scene_datagen.json`` (what generation did) and, last, ``scene_gt_info.json``: a scene
 is complete exactly when that file exists. The bytes of every file come from ``posegrasp.bop``.
 
-Image files are renamed into place without a per-file fsync (a killed process still never leaves a partial
-file); one ``os.sync()`` before the JSON files (fsynced) makes sure a scene marked complete has all its
-images on disk even after a power cut. Per-file fsyncs cost 10-40 ms a frame.
+A worker encodes a scene's files in memory (``SceneWriter``) and returns them; the process that owns the
+output folder writes them (``SceneWriter.write``), so workers never touch the dataset (no shared filesystem
+on a cluster, and a worker outliving a killed parent has nothing to write). Image files are renamed into
+place without a per-file fsync (a killed process still never leaves a partial file); one ``os.sync()``
+before the JSON files (fsynced) makes sure a scene marked complete has all its images on disk even after a
+power cut. Per-file fsyncs cost 10-40 ms a frame.
 """
 
 from __future__ import annotations
 
 import functools
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -27,11 +31,7 @@ from posegrasp.sim.camera import Frame
 
 COMPLETE_FILE = "scene_gt_info.json"
 SOURCE_MODELS = ASSETS / "blocks" / "models"
-
-
-def _put(path: Path, data: bytes) -> None:
-    """Write an image file atomically, without fsync (``SceneWriter.finish`` syncs once per scene)."""
-    pio.write_bytes(path, data, fsync=False)
+EVAL_EDGE = 0.05  #: longest edge of a ``models_eval/`` model, as a fraction of its diameter
 
 
 def write_if_changed(path: Path, data: bytes) -> None:
@@ -42,14 +42,16 @@ def write_if_changed(path: Path, data: bytes) -> None:
 
 def prepare_root(root: Path, camera: bop.Camera) -> None:
     """Write ``models/`` (the catalogue's BOP models, byte for byte) and ``camera.json``; remove leftovers of
-    killed writes. A ``camera.json`` for another camera is a UserError (one dataset, one camera)."""
-    for tmp in [*root.glob(".*.tmp"), *root.glob("models/.*.tmp")]:
+    killed writes. A ``camera.json`` for another camera is a UserError (one dataset, one camera) once a scene
+    was completed with it; before that (a failed start) it is replaced."""
+    for tmp in [*root.glob(".*.tmp"), *root.glob("models/.*.tmp"), *root.glob("models_eval/.*.tmp")]:
         tmp.unlink(missing_ok=True)
     for src in sorted(SOURCE_MODELS.iterdir()):
         if src.suffix in (".ply", ".json"):
             write_if_changed(bop.models_dir(root) / src.name, src.read_bytes())
+    write_models_eval(root)
     cam_file = bop.camera_path(root)
-    if cam_file.is_file():
+    if cam_file.is_file() and has_scenes(root):
         old = bop.load_camera(cam_file)
         if (old.width, old.height) != (camera.width, camera.height) or not np.allclose(old.K, camera.K) \
                 or old.depth_scale != camera.depth_scale:
@@ -58,35 +60,54 @@ def prepare_root(root: Path, camera: bop.Camera) -> None:
     bop.write_camera(root, camera)
 
 
-class SceneWriter:
-    """Accumulates one scene's frames and labels and writes them into ``<root>/<split>/<scene>/``."""
+def write_models_eval(root: Path) -> None:
+    """Write ``models_eval/``: each model of ``models/`` with its edges split down to ``EVAL_EDGE`` x its diameter
+    (``bop.resample_for_eval``), in mm, as the BOP metrics' evaluation points and VSD's renderings use."""
+    import trimesh
 
-    def __init__(self, scene_dir: Path, depth_scale: float, rgb_ext: str, jpg_quality: int = 95):
-        self.dir, self.depth_scale, self.rgb_ext, self.jpg_quality = scene_dir, depth_scale, rgb_ext, jpg_quality
-        for sub in ("rgb", "depth", "mask", "mask_visib"):
-            (scene_dir / sub).mkdir(parents=True, exist_ok=True)
+    diameters = {o: i.diameter / bop.MM for o, i in bop.load_models_info(root).items()}
+    for oid, diameter in diameters.items():
+        src = bop.model_path(root, oid)
+        mesh = bop.resample_for_eval(trimesh.load(src, force="mesh", process=False), EVAL_EDGE * diameter)
+        write_if_changed(bop.models_eval_dir(root) / src.name, mesh.export(file_type="ply", encoding="binary"))
+
+
+def has_scenes(root: Path, split: str = "*") -> bool:
+    """Whether ``split`` (any split: ``*``) of ``root`` holds a complete scene (its settings then bind)."""
+    return any(root.glob(f"{split}/*/{COMPLETE_FILE}"))
+
+
+class SceneWriter:
+    """One scene's encoded images and labels, accumulated in memory (in a worker) and written by ``write`` into
+    ``<root>/<split>/<scene>/`` (by the process owning the dataset)."""
+
+    def __init__(self, depth_scale: float, rgb_ext: str, jpg_quality: int = 95):
+        self.depth_scale, self.rgb_ext, self.jpg_quality = depth_scale, rgb_ext, jpg_quality
+        self.files: dict[Path, bytes] = {}  # image files, by path relative to the scene folder
         self.gt: dict[int, list[tuple[int, np.ndarray]]] = {}
         self.cams: dict[int, bop.SceneCamera] = {}
         self.infos: dict[int, list[bop.GTInfo]] = {}
+        self.extra: dict[str, Any] = {}
+
+    def _put(self, path: Path, data: bytes) -> None:
+        self.files[path] = data
 
     def add(self, im_id: int, frame: Frame, rgb: np.ndarray, depth: np.ndarray, clean_depth: bool) -> None:
-        """Write image ``im_id``: ``rgb`` and ``depth`` (m) as measured, masks and labels from ``frame``
-        (``frame.extra``: ``amodal`` masks and their pixel ``boxes``)."""
-        d = self.dir
-        _put(bop.image_path(d, "rgb", im_id, self.rgb_ext), bop.encode_rgb(rgb, self.rgb_ext, self.jpg_quality))
-        _put(bop.image_path(d, "depth", im_id), bop.encode_depth(depth, self.depth_scale))
+        """Encode image ``im_id``: ``rgb`` and ``depth`` (m) as measured, masks and labels from ``frame``
+        (``frame.extra``: ``amodal`` masks, their pixel ``boxes`` and their parts ``beyond`` the image)."""
+        d = Path()  # paths relative to the scene folder
+        self._put(bop.image_path(d, "rgb", im_id, self.rgb_ext), bop.encode_rgb(rgb, self.rgb_ext, self.jpg_quality))
+        self._put(bop.image_path(d, "depth", im_id), bop.encode_depth(depth, self.depth_scale))
         if clean_depth:
-            (d / "depth_clean").mkdir(exist_ok=True)
-            _put(bop.image_path(d, "depth_clean", im_id), bop.encode_depth(frame.depth, self.depth_scale))
+            self._put(bop.image_path(d, "depth_clean", im_id), bop.encode_depth(frame.depth, self.depth_scale))
         gts, infos = [], []
         for i, (oid, T) in enumerate(zip(frame.obj_ids, frame.T_cam_obj)):
             amodal, box, visib = frame.extra["amodal"][i], frame.extra["boxes"][i], frame.mask == i + 1
-            # no box: the block is not in front of the camera, its masks are empty
-            info = bop.gt_info_from_masks(amodal, visib, depth, box) if box is not None or visib.any() else bop.GTInfo()
+            info = bop.gt_info_from_masks(amodal, visib, depth, box, *frame.extra["beyond"][i])
             full_png = bop.encode_mask(amodal) if info.px_count_all else self._empty_mask(amodal.shape)
             same = info.px_count_visib == info.px_count_all and np.array_equal(visib, amodal)  # fully visible
-            _put(bop.mask_path(d, im_id, i, visible=False), full_png)
-            _put(bop.mask_path(d, im_id, i, visible=True), full_png if same else bop.encode_mask(visib))
+            self._put(bop.mask_path(d, im_id, i, visible=False), full_png)
+            self._put(bop.mask_path(d, im_id, i, visible=True), full_png if same else bop.encode_mask(visib))
             gts.append((int(oid), T))
             infos.append(info)
         self.gt[im_id], self.infos[im_id] = gts, infos
@@ -99,9 +120,20 @@ class SceneWriter:
         return bop.encode_mask(np.zeros(shape, bool))
 
     def finish(self, extra: dict[str, Any]) -> None:
-        """Flush the images to disk, then write the JSON files, ``scene_gt_info.json`` last (scene complete)."""
+        """Close the scene with what ``scene_datagen.json`` records."""
+        self.extra = extra
+
+    def write(self, scene_dir: Path) -> None:
+        """Write the scene into ``scene_dir`` from scratch (leftovers of a killed run removed): the images, one
+        ``os.sync()``, then the JSON files, ``scene_gt_info.json`` last (scene complete)."""
+        if scene_dir.exists():
+            shutil.rmtree(scene_dir)
+        for sub in ("rgb", "depth", "mask", "mask_visib"):
+            (scene_dir / sub).mkdir(parents=True)
+        for rel, data in self.files.items():
+            pio.write_bytes(scene_dir / rel, data, fsync=False)
         os.sync()
-        bop.write_scene_camera(self.dir / "scene_camera.json", self.cams)
-        bop.write_scene_gt(self.dir / "scene_gt.json", self.gt)
-        pio.write_json(self.dir / "scene_datagen.json", extra)
-        bop.write_scene_gt_info(self.dir / COMPLETE_FILE, self.infos)
+        bop.write_scene_camera(scene_dir / "scene_camera.json", self.cams)
+        bop.write_scene_gt(scene_dir / "scene_gt.json", self.gt)
+        pio.write_json(scene_dir / "scene_datagen.json", self.extra)
+        bop.write_scene_gt_info(scene_dir / COMPLETE_FILE, self.infos)

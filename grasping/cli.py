@@ -4,44 +4,65 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from pathlib import Path
 
-from posegrasp.cli import positive_int, workers_arg
+from posegrasp.arguments import nonneg_int, out_dir, out_file, positive_int, workers_arg
 from posegrasp.errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("trials", help="grasp-and-place trials with a perception provider; resumable")
     p.add_argument("--episodes", type=positive_int("--episodes"), default=200, help="number of episodes (default 200)")
-    p.add_argument("--seed", type=int, default=0, help="campaign seed: episode i draws from (seed, i) only")
+    p.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="campaign seed: episode i draws from (seed, i) only")
     p.add_argument("--perception", default="oracle",
                    help="oracle (default) | noisy-oracle[:TRANS_M,ROT_DEG] | model[:RUN]: the learned network, "
                         "the shipped weights without RUN")
     p.add_argument("--workers", type=workers_arg, default=2, help="worker processes (default 2), or 'ray'")
-    p.add_argument("--out", required=True, help="output folder (episodes.jsonl, summary.json)")
+    p.add_argument("--out", required=True, type=out_dir(), help="output folder (episodes.jsonl, summary.json)")
     p.add_argument("--config", default=None, help="trial settings TOML (grasping.config.TrialConfig layout)")
+    p.add_argument("--task", type=_task_arg, default=None,
+                   help="pick-place (default) | kitting (upright, at the kit's yaw) | stack (on a base block); "
+                        "docs/tasks.md says which to use when")
     p.add_argument("--sweep-noise", action="store_true",
                    help="run noisy-oracle campaigns at increasing noise and plot success against pose error")
+    p.add_argument("--noise", type=_noise_arg, default="both",
+                   help="--sweep-noise levels: rotation (0-45 deg) | translation (0-2 cm) | both (default)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_trials_cmd)
 
     c = sub.add_parser("calibrate", help="hand-eye calibration of the hand camera with a ChArUco board")
-    c.add_argument("--out", required=True, help="output JSON file with T_gripper_cam")
-    c.add_argument("--poses", type=int, default=12, help="number of arm poses viewing the board (>= 3)")
-    c.add_argument("--seed", type=int, default=0, help="seed of the viewpoints")
+    c.add_argument("--out", required=True, type=out_file("--out", (".json",)), help="output JSON file with T_gripper_cam")
+    c.add_argument("--poses", type=positive_int("--poses"), default=12, help="number of arm poses viewing the board (>= 3)")
+    c.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="seed of the viewpoints")
     c.add_argument("--config", default=None, help="workcell TOML file (default: assets/workcell.toml)")
     c.set_defaults(run=run_calibrate_cmd)
 
 
+def _task_arg(text: str) -> str:
+    from posegrasp.grasping.config import TASKS
+
+    if text not in TASKS:
+        raise UserError(f"--task {text!r} is not a task; choose one of: {', '.join(TASKS)}")
+    return text
+
+
+def _noise_arg(text: str) -> str:
+    from posegrasp.grasping.trials import SWEEPS
+
+    if text not in SWEEPS:
+        raise UserError(f"--noise {text!r} is not a sweep; choose one of: {', '.join(SWEEPS)}")
+    return text
+
+
 def run_trials_cmd(args: argparse.Namespace) -> int:
     from posegrasp.grasping.config import load_trial_config
-    from posegrasp.grasping.trials import run_trials, sweep_noise
-    from posegrasp.sim.cli import writable_dir
+    from posegrasp.grasping.trials import SWEEPS, run_trials, sweep_noise
 
     cfg = load_trial_config(args.config)
-    out = writable_dir(args.out)
+    if args.task:
+        cfg = dataclasses.replace(cfg, task=args.task)
+    out = args.out
     if args.sweep_noise:
-        sweep_noise(out, args.episodes, args.seed, args.workers, cfg, progress=not args.no_progress)
+        sweep_noise(out, args.episodes, args.seed, args.workers, cfg, SWEEPS[args.noise], progress=not args.no_progress)
         print(f"noise sweep -> {out / 'sweep.png'}")
     else:
         run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg, progress=not args.no_progress)
@@ -54,9 +75,7 @@ def run_calibrate_cmd(args: argparse.Namespace) -> int:
 
     if args.poses < 3:
         raise UserError(f"--poses must be at least 3 (10 or more for an accurate result), got {args.poses}")
-    out = Path(args.out)
-    if out.is_dir():
-        raise UserError(f"--out {out} is a folder; give a JSON file name, e.g. {out / 'hand_eye.json'}")
+    out = args.out
     wcfg = load_workcell_config(args.config)
     result = calibrate(wcfg, dataclasses.replace(CalibrationConfig(), n_poses=args.poses), args.seed)
     try:

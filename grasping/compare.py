@@ -17,6 +17,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from posegrasp.arguments import number, out_file
 from posegrasp.errors import UserError
 from posegrasp.grasping.runfolder import EPISODES, read_records
 from posegrasp.grasping.stats import rate_row
@@ -53,6 +54,9 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
     common = sorted(set(a) & set(b))
     if not common:
         raise UserError("the two runs share no episodes; run both with the same --seed and --episodes")
+    ta, tb = (run[common[0]].get("task") or "pick-place" for run in (a, b))
+    if ta != tb:
+        raise UserError(f"run A is a {ta} run and run B a {tb} run: compare runs of the same --task")
     bad = [i for i in common if a[i].get("seed") != b[i].get("seed")]
     if bad:
         raise UserError(f"episode {bad[0]} has different seeds in the two runs; compare runs made with the same --seed")
@@ -66,6 +70,7 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
         blocks[t.get("type", "(no block there)")].append((x, y))
     n = len(common)
     return {
+        "task": ta,
         "episodes": n,
         "a": rate_row(sum(sa), n),
         "b": rate_row(sum(sb), n),
@@ -85,7 +90,7 @@ def is_worse(result: dict, alpha: float) -> bool:
 
 
 def print_comparison(result: dict, names: tuple[str, str], console: Console) -> None:
-    t = Table(title=f"{result['episodes']} paired episodes")
+    t = Table(title=f"{result['episodes']} paired {result.get('task', 'pick-place')} episodes")
     for col in ("run", "success", "rate", "Wilson 95 %"):
         t.add_column(col)
     for key, name in zip(("a", "b"), names):
@@ -113,14 +118,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run_a", help="baseline trial run folder")
     p.add_argument("run_b", help="candidate trial run folder")
     p.add_argument("--fail-if-worse", action="store_true", help="exit 1 if B is significantly worse than A")
-    p.add_argument("--alpha", type=float, default=0.05, help="significance level for --fail-if-worse")
-    p.add_argument("--out", default=None, help="also write the comparison as JSON here")
+    p.add_argument("--alpha", type=number("--alpha", 0, 1, open_lo=True, open_hi=True), default=0.05,
+                   help="significance level for --fail-if-worse")
+    p.add_argument("--out", type=out_file("--out", (".json",)), default=None, help="also write the comparison as JSON here")
     p.set_defaults(run=run_compare)
 
 
 def run_compare(args: argparse.Namespace) -> int:
-    if not 0 < args.alpha < 1:
-        raise UserError(f"--alpha must be in (0, 1), got {args.alpha}")
     result = compare_runs(load_run(args.run_a), load_run(args.run_b))
     print_comparison(result, (f"A {args.run_a}", f"B {args.run_b}"), Console())
     if args.out:

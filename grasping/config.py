@@ -72,6 +72,12 @@ class GraspConfig:
     retreat_height: float = 0.055  # after releasing, the fingertips rise this far above the block's top (m)
     fingertip_depth: float = 0.012  # the fingertips reach this far below the pinch point (m)
     place_jitter: float = 0.02  # random offset of the place target from the pad centre (m)
+    # The kitting and stack tasks, where the block's yaw in the hand matters, pinch yaw-stably: the block's
+    # centre near this far along the gripper y axis (m; pick-and-place: grasps.HAND_Y, -5 mm), between the
+    # pads of fingers 2 and 3 (grasps.plan_grasps), and the fingers close up to this many control periods
+    # more until all three touch.
+    pose_hand_y: float = -0.012
+    pose_finger_wait: int = 10
 
 
 @dataclass(frozen=True)
@@ -91,6 +97,35 @@ class ScoringConfig:
 
 
 @dataclass(frozen=True)
+class KittingConfig:
+    """The kitting task (``grasping.tasks``): the block must end upright on the pad at the kit's yaw."""
+
+    pos_tol: float = 0.015  # success: its centre within this xy distance of the kit's (m) ...
+    yaw_tol_deg: float = 10.0  # ... its yaw within this of the kit's, both modulo its symmetries ...
+    upright_tol_deg: float = 15.0  # ... and its upright face within this of straight down ("wrong face up")
+    belief_tol_deg: float = 20.0  # the planner targets only estimates this close to upright
+    kit_yaw_deg: float = 0.0  # the kit's yaw on the pad (world, deg)
+
+
+@dataclass(frozen=True)
+class StackConfig:
+    """The stack task (``grasping.tasks``): a block set centred on a base block standing on the pad."""
+
+    pos_tol: float = 0.01  # success: its centre within this xy distance of the base's top centre (m) ...
+    yaw_tol_deg: float = 10.0  # ... its yaw within this of the base's, modulo both blocks' symmetries ...
+    upright_tol_deg: float = 15.0  # ... upright ...
+    rest_time: float = 1.0  # ... resting there this long after the hand has left (s) ...
+    base_move_tol: float = 0.005  # ... and the base moved at most this far (m)
+    belief_tol_deg: float = 20.0  # the planner targets only estimates this close to upright
+    base_jitter: float = 0.02  # the base's centre is drawn this far (m, per axis) around the pad centre
+    look_height: float = 0.3  # the hand camera looks down at the pad from this height (m)
+
+
+#: The trial tasks (``--task``): ``grasping.tasks``.
+TASKS = ("pick-place", "kitting", "stack")
+
+
+@dataclass(frozen=True)
 class TrialConfig:
     """One trial campaign: scenes of ``min_blocks``-``max_blocks`` blocks, control, grasps, scoring."""
 
@@ -106,6 +141,9 @@ class TrialConfig:
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
     rest: RestConfig = field(default_factory=RestConfig)  # levelling of pose estimates (grasping.support)
     scene: SceneConfig = field(default_factory=lambda: SceneConfig(settle_timeout=2.0))
+    task: str = "pick-place"  # one of TASKS
+    kitting: KittingConfig = field(default_factory=KittingConfig)
+    stack: StackConfig = field(default_factory=StackConfig)
 
 
 def load_trial_config(path: str | Path | None = None) -> TrialConfig:

@@ -209,10 +209,12 @@ class ArmController:
         self.finger_target = finger_angle_for_opening(self.wc.cfg, opening)
         self.finger_limit = speed
 
-    def close(self, k: int, timeout: float = 1.5) -> bool:
+    def close(self, k: int, timeout: float = 1.5, wait_all: int = 0) -> bool:
         """Close the fingers on block ``k``: True once finger 1 and finger 2 or 3 have touched it for 3
         control periods in a row (a finger not touching it then stops, so it does not hook under the block);
-        False when the fingers stall or time out without such a grip."""
+        False when the fingers stall or time out without such a grip. With ``wait_all`` > 0 the fingers
+        close up to that many periods longer, until all three touch (or they stall): finger 1 against
+        finger 3 alone, 2.5 cm apart along the gripper y axis, is a couple that turns the block in the hand."""
         self.finger_target = None
         self.finger_cmd = np.full(3, self.cfg.finger_speed)
         held = still = 0
@@ -221,7 +223,7 @@ class ArmController:
             touch = self.finger_contacts(k)
             held = held + 1 if touch[0] and (touch[1] or touch[2]) else 0
             still = still + 1 if self.finger_speed() < 0.05 else 0
-            if held >= 3:
+            if held >= 3 and (touch.all() or held >= 3 + wait_all or still >= 5):
                 self._balance_grip(touch)
                 return True
             if still >= 5:

@@ -6,31 +6,40 @@ The planner sees the blocks only through the perception provider's ``T_cam_obj``
 the world with the measured forward kinematics and the CALIBRATED camera mount:
 ``T_world_obj = T_world_gripper(q) @ T_gripper_cam @ T_cam_obj`` (the paper's T = T1 x T2).
 Each phase is a function that fills in the episode's ``EpisodeRecord`` (``grasping.record``) and raises
-``_Failure`` with the reason when the episode cannot go on.
+``_Failure`` with the reason when the episode cannot go on. The task (``TrialConfig.task``, ``grasping.tasks``)
+decides the scene, which estimates may be picked, where and at which yaw the block is set down (a turn
+about the vertical while carrying it) and the verdict; in the stack task the arm first looks at the pad and
+perceives the base through the same provider (its own seed, ``SeedSequence([S, i, 1])``).
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import mujoco
 import numpy as np
 
 from posegrasp.catalog import BlockType, load_catalog
-from posegrasp.geometry import transform_points
+from posegrasp.errors import UserError
+from posegrasp.geometry import axis_angle_R, look_at_R, make_T, transform_points
 from posegrasp.grasping.config import ControlConfig, ScoringConfig, TrialConfig
 from posegrasp.grasping.controller import ArmController, SimulationError, robot_workcell
 from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
 from posegrasp.grasping.perception import Estimate
 from posegrasp.grasping.provider_registry import make_provider
-from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, FalseTarget, PoseError, Target
+from posegrasp.grasping.record import BaseRecord, EpisodeRecord, EpisodeTimings, FalseTarget, PoseError, Target
 from posegrasp.grasping.support import rest_on_table
+from posegrasp.grasping.task_scenes import kitting_scene, stack_scene
+from posegrasp.grasping.tasks import (BASE_MOVED, MISALIGNED, NO_BASE, NO_UPRIGHT, PAD_TOP, WRONG_FACE, believed_upright, can_stack, kit_targets,
+                                      kitting_verdict, stack_targets, stack_verdict)
+from posegrasp.grasping.upright import match, standing_copies, upright_error, yaw_between
 from posegrasp.sim.camera import CameraRenderer, Frame
 from posegrasp.sim.scene import make_scene
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell
 
-_PAD_TOP = 0.003  # height of the place pad's surface (m)
 _EPS = 1e-9  # slack for sums of control periods and capped distances compared with their thresholds
 
 
@@ -87,17 +96,39 @@ class _Episode:
 
 @dataclass(frozen=True)
 class _Plan:
-    """The chosen grasp on scene block ``k`` (1-based) and that block's estimated, levelled ``T_world_obj``."""
+    """The chosen grasp on scene block ``k`` (1-based) and that block's estimated, levelled ``T_world_obj``
+    and estimated type ``est_block`` (``block`` is its true type)."""
 
     k: int
     block: BlockType
     grasp: Grasp
     T_world_obj: np.ndarray
+    est_block: BlockType | None = None
 
     def height_range(self) -> tuple[float, float]:
         """Bottom and top (world z, m) of the block at its estimated pose."""
         z = transform_points(self.T_world_obj, self.block.vertices)[:, 2]
         return float(z.min()), float(z.max())
+
+
+@dataclass(frozen=True)
+class _Goal:
+    """Where the block is set down: its centre over ``xy`` (world, m), turned by ``yaw`` (rad) about the
+    vertical while carried, its bottom onto a surface at height ``surface_z`` (m)."""
+
+    xy: np.ndarray
+    yaw: float = 0.0
+    surface_z: float = PAD_TOP
+
+
+@dataclass(frozen=True)
+class _Base:
+    """The stack task's base: its scene instance, true start pose and the perceived type and levelled pose."""
+
+    k: int
+    T_start: np.ndarray
+    block: BlockType | None = None
+    T_est: np.ndarray | None = None
 
 
 def _block_bottom(wc: Workcell, k: int) -> float:
@@ -157,19 +188,25 @@ def _yaw(T: np.ndarray) -> float:
     return float(np.arctan2(T[1, 0], T[0, 0]))
 
 
-def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
-            yaw_now: float) -> tuple[int, Grasp, np.ndarray] | None:
+def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, yaw_now: float,
+            accept: Callable[[BlockType, np.ndarray], bool] | None = None) -> tuple[int, Grasp, np.ndarray] | None:
     """Target estimate index, its best reachable grasp and estimated ``T_world_obj`` (levelled by
-    ``rest_on_table``); None if none is feasible."""
+    ``rest_on_table``), among the estimates ``accept(block, T_world_obj)`` allows (all without it); None if
+    none is feasible; ``_Failure(NO_UPRIGHT)`` if it allows none."""
     g_cfg = cfg.grasp
     cat = {b.obj_id: b for b in load_catalog().values()}
     poses = [rest_on_table(cat[e.obj_id], T_world_cam @ e.T_cam_obj, cfg.rest) for e in ests]
     clouds = [transform_points(T, surface_points(cat[e.obj_id], g_cfg.neighbour_points)) for e, T in zip(ests, poses)]
+    targets = [j for j, (e, T) in enumerate(zip(ests, poses)) if accept is None or accept(cat[e.obj_id], T)]
+    if not targets:
+        raise _Failure(NO_UPRIGHT)
     options = []
-    for j, (e, T) in enumerate(zip(ests, poses)):
+    for j in targets:
+        e, T = ests[j], poses[j]
         others = [c for i, c in enumerate(clouds) if i != j]
         nb = np.concatenate(others) if others else np.zeros((0, 3))
-        for g in plan_grasps(cat[e.obj_id], T, nb, g_cfg, yaw_now)[:g_cfg.grasps_per_block]:
+        for g in plan_grasps(cat[e.obj_id], T, nb, g_cfg, yaw_now, yaw_stable=cfg.task != "pick-place")[
+                :g_cfg.grasps_per_block]:
             options.append((g.score + g_cfg.detection_weight * e.score, j, g))
     options.sort(key=lambda o: -o[0])
     ik = robot_workcell(wc.cfg)
@@ -195,8 +232,14 @@ def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
 
 
 def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
-    """The episode's settled scene (settled with the scene defaults), then the trial's contact settings."""
-    wc = make_scene(scene_seed, n_blocks, cfg.scene).workcell
+    """The episode's settled scene for its task (settled with the scene defaults), then the trial's contact
+    settings."""
+    if cfg.task == "kitting":
+        wc = kitting_scene(cfg, scene_seed, n_blocks)
+    elif cfg.task == "stack":
+        wc = stack_scene(cfg, scene_seed, n_blocks)
+    else:
+        wc = make_scene(scene_seed, n_blocks, cfg.scene).workcell
     for name in ("table", "place_pad"):  # solmix: their contacts with the blocks take their solref
         g = wc.model.geom(name).id
         wc.model.geom_solref[g, 0], wc.model.geom_solmix[g] = cfg.support_timeconst, 1e3
@@ -205,9 +248,23 @@ def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workce
     return wc
 
 
-def drive_to_look(wc: Workcell, cfg: ControlConfig) -> bool:
-    """Drive the arm to the look pose; False if it does not get there."""
-    return wc.drive_arm(_look_q(wc), tol=cfg.look_tol, timeout=cfg.look_timeout, gain=cfg.look_gain)
+def drive_to_look(wc: Workcell, cfg: ControlConfig, q: np.ndarray | None = None) -> bool:
+    """Drive the arm to the look pose (or the joint angles ``q``); False if it does not get there."""
+    return wc.drive_arm(_look_q(wc) if q is None else q, tol=cfg.look_tol, timeout=cfg.look_timeout,
+                        gain=cfg.look_gain)
+
+
+@functools.lru_cache(maxsize=4)
+def pad_look_q(wc_cfg, height: float) -> np.ndarray:
+    """Joint angles putting the hand camera ``height`` (m) above the place pad's centre, looking down."""
+    robot = robot_workcell(wc_cfg)
+    T = make_T(look_at_R(np.array([0.0, 0.0, -1.0]), up_hint=np.array([1.0, 0.0, 0.0])),
+               (*wc_cfg.place_area.center, height))
+    q, dp, dr = robot.solve_camera_ik(T, robot.look_q)
+    if dp > 1e-3 or dr > 1e-2:
+        raise UserError(f"the pad look pose at stack.look_height {height} m is unreachable (residual {dp:.4f} m); "
+                        "set a lower stack.look_height")
+    return q
 
 
 def capture_look(wc: Workcell) -> Frame:
@@ -223,7 +280,8 @@ def run_episode(task: EpisodeTask) -> tuple[EpisodeRecord, EpisodeTimings]:
     (which vary run to run)."""
     cfg = task.cfg
     n_blocks, scene_seed, percept_seed, place_offset = episode_draws(task)
-    rec = EpisodeRecord(task.index, task.seed, scene_seed, n_blocks, task.perception)
+    rec = EpisodeRecord(task.index, task.seed, scene_seed, n_blocks, task.perception,
+                        task=None if cfg.task == "pick-place" else cfg.task)
     log = _Log()
     log.start(None)
     try:
@@ -250,9 +308,12 @@ def _judge(rec: EpisodeRecord, s_cfg: ScoringConfig) -> None:
     """Set the outcome; a failure after a grasp attempt on an estimate too far off counts as "pose error"."""
     if rec.failure is None:
         rec.outcome = "success"
-    elif rec.failure not in ("no detection", "simulation error") and rec.pose_error:
+    elif rec.failure not in ("no detection", "simulation error", *_TASK_REASONS) and rec.pose_error:
         if rec.pose_error.err > s_cfg.pose_error_frac * rec.target.diameter:
             rec.failure = "pose error"
+
+
+_TASK_REASONS = (NO_UPRIGHT, NO_BASE, WRONG_FACE, MISALIGNED, BASE_MOVED)
 
 
 def _look_q(wc: Workcell) -> np.ndarray:
@@ -262,13 +323,76 @@ def _look_q(wc: Workcell) -> np.ndarray:
 
 def _execute(ep: _Episode, percept_seed: int, place_offset: np.ndarray) -> None:
     """The episode's phases after the scene, in order; raises ``_Failure`` at the first that fails."""
+    name = ep.cfg.task
+    base = _look_at_base(ep) if name == "stack" else None
     ests = _look_and_perceive(ep, percept_seed)
-    plan = _plan(ep, ests)
-    _pick(ep, plan)
+    plan = _plan(ep, ests, _acceptor(ep.cfg, base))
     target_xy = np.asarray(ep.wc.cfg.place_area.center) + place_offset
-    T_place = _lift_and_carry(ep, plan, target_xy)
+    goal = _goal(ep, plan, target_xy, base)
+    _pick(ep, plan)
+    T_place = _lift_and_carry(ep, plan, goal)
     _place(ep, plan, T_place)
-    _settle_and_score(ep, plan.k, target_xy)
+    if name == "pick-place":
+        _settle_and_score(ep, plan.k, target_xy)
+    else:
+        _settle_and_judge(ep, plan, target_xy, base)
+
+
+def _acceptor(cfg: TrialConfig, base: _Base | None) -> Callable[[BlockType, np.ndarray], bool] | None:
+    """Which estimates the task may pick: kitting, those believed upright; stack, those believed upright that
+    can stand on the perceived base; pick-and-place, all (None)."""
+    if cfg.task == "kitting":
+        return lambda b, T: believed_upright(b, T, cfg.kitting.belief_tol_deg)
+    if cfg.task == "stack":
+        return lambda b, T: can_stack(base.block, b) and believed_upright(b, T, cfg.stack.belief_tol_deg)
+    return None
+
+
+def _look_at_base(ep: _Episode) -> _Base:
+    """Stack: look down at the pad, perceive the base through the provider and level its estimate onto the
+    pad; records the base and its estimate's error."""
+    wc, k = ep.wc, len(ep.wc.blocks)
+    base = _Base(k, wc.block_poses()[k - 1].copy())
+    ep.rec.base = BaseRecord(k, wc.blocks[k - 1].block.name)
+    if not drive_to_look(wc, ep.cfg.control, pad_look_q(wc.cfg, ep.cfg.stack.look_height)):
+        raise _Failure("timeout")
+    ep.log.stop("look_base", ep.ctl)
+    seed = int(np.random.default_rng(np.random.SeedSequence([ep.task.seed, ep.task.index, 1])).integers(2**31 - 1))
+    ests = make_provider(ep.task.perception).estimate(capture_look(wc), seed)
+    T_world_cam = wc.gripper_pose() @ np.asarray(ep.task.T_gripper_cam)
+    pad = wc.cfg.place_area
+    cat = {b.obj_id: b for b in load_catalog().values()}
+    on_pad = [(float(np.linalg.norm(T[:2, 3] - pad.center)), e.obj_id, T)
+              for e in ests for T in [T_world_cam @ e.T_cam_obj]
+              if np.all(np.abs(T[:2, 3] - pad.center) <= np.add(pad.half_size, 0.02))]
+    ep.log.stop("perceive_base", ep.ctl)
+    if not on_pad:
+        raise _Failure(NO_BASE)
+    _, obj_id, T = min(on_pad, key=lambda o: o[0])
+    block = cat[obj_id]
+    T = rest_on_table(block, T, ep.cfg.rest, surface_z=PAD_TOP)
+    ep.rec.base = BaseRecord(k, ep.rec.base.type, upright_error(block, T, base.T_start[None], standing=False))
+    return _Base(k, base.T_start, block, T)
+
+
+def _goal(ep: _Episode, plan: _Plan, target_xy: np.ndarray, base: _Base | None) -> _Goal:
+    """Where and at which yaw the planner sets the block down: pick-and-place, over ``target_xy`` as it is;
+    kitting, at the kit pose over ``target_xy``; stack, centred on the base's estimated top face, aligned with
+    it. The yaw is the smallest turn, over the block's symmetries, that aligns the estimate with the target."""
+    if ep.cfg.task == "pick-place":
+        return _Goal(target_xy)
+    block = plan.est_block
+    if ep.cfg.task == "kitting":
+        targets, surface = kit_targets(block, target_xy, PAD_TOP, ep.cfg.kitting), PAD_TOP
+    else:
+        targets = stack_targets(base.block, base.T_est, block)
+        surface = float(transform_points(base.T_est, base.block.vertices)[:, 2].max())
+    cands = standing_copies(block, plan.T_world_obj)
+    i, j, _ = match(cands, targets)
+    yaw = yaw_between(cands[i][:3, :3], targets[j][:3, :3])
+    Rz = axis_angle_R(np.array([0.0, 0.0, 1.0]), yaw)
+    xy = targets[j][:2, 3] - (Rz @ (cands[i][:3, 3] - plan.T_world_obj[:3, 3]))[:2]
+    return _Goal(xy, yaw, surface)
 
 
 def _look_and_perceive(ep: _Episode, percept_seed: int) -> list[Estimate]:
@@ -287,10 +411,11 @@ def _look_and_perceive(ep: _Episode, percept_seed: int) -> list[Estimate]:
     return ests
 
 
-def _plan(ep: _Episode, ests: list[Estimate]) -> _Plan:
-    """Choose the target and its grasp; record the target and its estimate's pose error."""
+def _plan(ep: _Episode, ests: list[Estimate], accept: Callable[[BlockType, np.ndarray], bool] | None) -> _Plan:
+    """Choose the target (among the estimates ``accept`` allows) and its grasp; record the target and its
+    estimate's pose error."""
     T_world_cam = ep.wc.gripper_pose() @ np.asarray(ep.task.T_gripper_cam)
-    choice = _choose(ep.wc, ep.cfg, ests, T_world_cam, _yaw(ep.ctl.target))
+    choice = _choose(ep.wc, ep.cfg, ests, T_world_cam, _yaw(ep.ctl.target), accept)
     ep.log.stop("plan", ep.ctl)
     if choice is None:
         raise _Failure("unreachable")
@@ -304,7 +429,10 @@ def _plan(ep: _Episode, ests: list[Estimate]) -> _Plan:
                            grasp.clearance, grasp.support, grasp.tilt_deg)
     ep.rec.pose_error = pose_errors(block, T_world_obj_est, ep.wc.block_poses()[k - 1],
                                     ep.cfg.scoring.pose_error_points)
-    return _Plan(k, block, grasp, T_world_obj_est)
+    if ep.rec.task:
+        ep.rec.estimate_error = upright_error(block, T_world_obj_est, ep.wc.block_poses()[k - 1][None],
+                                              standing=False)
+    return _Plan(k, block, grasp, T_world_obj_est, {b.obj_id: b for b in load_catalog().values()}[ests[j].obj_id])
 
 
 def _pick(ep: _Episode, plan: _Plan) -> None:
@@ -329,7 +457,7 @@ def _pick(ep: _Episode, plan: _Plan) -> None:
     ep.log.stop("approach", ctl)
     if not reached:
         raise _Failure("collision" if hit else "timeout")
-    if not ctl.close(k):
+    if not ctl.close(k, wait_all=0 if ep.cfg.task == "pick-place" else g_cfg.pose_finger_wait):
         raise _Failure("collision" if hit else "slip")
     ep.log.stop("close", ctl)
 
@@ -351,10 +479,10 @@ class _HoldWatch:
         self.max_held = max(self.max_held, self.held)
 
 
-def _lift_and_carry(ep: _Episode, plan: _Plan, target_xy: np.ndarray) -> np.ndarray:
-    """Lift the block, carry it above its place target at ``target_xy`` (world, m) and hold it long enough
-    to score the grasp (bottom >= lift_min for hold_time); returns the place pose ``T_world_gripper``
-    (the block's bottom place_gap above the pad, its centre over the target)."""
+def _lift_and_carry(ep: _Episode, plan: _Plan, goal: _Goal) -> np.ndarray:
+    """Lift the block, carry it above its place ``goal`` (turning it about the vertical by the goal's yaw) and
+    hold it long enough to score the grasp (bottom >= lift_min for hold_time); returns the place pose
+    ``T_world_gripper`` (the block's bottom place_gap above the goal's surface, its centre over the goal)."""
     ctl, g_cfg, s_cfg, k = ep.ctl, ep.cfg.grasp, ep.cfg.scoring, plan.k
     T_grasp = plan.grasp.T_world_gripper
     bottom_est, _ = plan.height_range()
@@ -365,8 +493,13 @@ def _lift_and_carry(ep: _Episode, plan: _Plan, target_xy: np.ndarray) -> np.ndar
     lifted = ctl.move(T_lift)
     ep.log.stop("lift", ctl)
     T_place = T_lift.copy()
-    T_place[:2, 3] = target_xy + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3])
-    T_place[2, 3] = T_grasp[2, 3] + (_PAD_TOP + g_cfg.place_gap - bottom_est)
+    offset = T_grasp[:2, 3] - plan.T_world_obj[:2, 3]  # the gripper from the block's centre, turned with it
+    if goal.yaw:
+        Rz = axis_angle_R(np.array([0.0, 0.0, 1.0]), goal.yaw)
+        T_place[:3, :3] = Rz @ T_place[:3, :3]
+        offset = Rz[:2, :2] @ offset
+    T_place[:2, 3] = goal.xy + offset
+    T_place[2, 3] = T_grasp[2, 3] + (goal.surface_z + g_cfg.place_gap - bottom_est)
     T_above = T_place.copy()
     T_above[2, 3] += g_cfg.place_approach
     carried = ctl.move(T_above, speed=g_cfg.carry_speed)
@@ -399,9 +532,8 @@ def _place(ep: _Episode, plan: _Plan, T_place: np.ndarray) -> None:
     ep.log.stop("place", ctl)
 
 
-def _settle_and_score(ep: _Episode, k: int, target_xy: np.ndarray) -> None:
-    """Wait for block ``k`` to come to rest, then score the place: within place_tol of ``target_xy``, at
-    rest, the hand away from it and no finger touching it."""
+def _wait_for_rest(ep: _Episode, k: int) -> bool:
+    """Hold until block ``k`` has been at rest for rest_periods control periods (True) or rest_timeout passed."""
     ctl, wc, s_cfg, dt = ep.ctl, ep.wc, ep.cfg.scoring, ep.cfg.control.dt
     rest = 0
     for _ in range(int(s_cfg.rest_timeout / dt)):
@@ -410,11 +542,48 @@ def _settle_and_score(ep: _Episode, k: int, target_xy: np.ndarray) -> None:
         if rest >= s_cfg.rest_periods:
             break
         ctl.hold(dt)
-    ep.log.stop("settle", ctl)
-    err = float(np.linalg.norm(wc.block_poses()[k - 1][:2, 3] - target_xy))
+    return rest >= s_cfg.rest_periods
+
+
+def _released(ep: _Episode, k: int) -> bool:
+    """Is the hand at least hand_away from block ``k`` and no finger touching it?"""
+    s_cfg = ep.cfg.scoring
+    away = _hand_block_distance(ep.wc, k, ep.ctl, s_cfg.hand_away) >= s_cfg.hand_away - _EPS
+    return away and not ep.ctl.finger_contacts(k).any()
+
+
+def _settle_and_score(ep: _Episode, k: int, target_xy: np.ndarray) -> None:
+    """Wait for block ``k`` to come to rest, then score the place: within place_tol of ``target_xy``, at
+    rest, the hand away from it and no finger touching it."""
+    at_rest = _wait_for_rest(ep, k)
+    ep.log.stop("settle", ep.ctl)
+    err = float(np.linalg.norm(ep.wc.block_poses()[k - 1][:2, 3] - target_xy))
     ep.rec.place_error = err
-    away = _hand_block_distance(wc, k, ctl, s_cfg.hand_away) >= s_cfg.hand_away - _EPS
-    ep.rec.placed = bool(err <= s_cfg.place_tol and rest >= s_cfg.rest_periods and away
-                         and not ctl.finger_contacts(k).any())
+    ep.rec.placed = bool(err <= ep.cfg.scoring.place_tol and at_rest and _released(ep, k))
     if not ep.rec.placed:
         raise _Failure("misplaced")
+
+
+def _settle_and_judge(ep: _Episode, plan: _Plan, target_xy: np.ndarray, base: _Base | None) -> None:
+    """Kitting and stack: wait for the block to come to rest (stack: and stay there rest_time more), then
+    judge its pose against the task's target (``grasping.tasks``); released and at rest, or "misplaced"."""
+    k, wc = plan.k, ep.wc
+    at_rest = _wait_for_rest(ep, k)
+    if base is not None and at_rest:
+        ep.ctl.hold(ep.cfg.stack.rest_time)
+        v = wc.block_speeds()[k - 1]
+        at_rest = bool(v[0] < ep.cfg.scoring.rest_speed[0] and v[1] < ep.cfg.scoring.rest_speed[1])
+    ep.log.stop("settle", ep.ctl)
+    T = wc.block_poses()
+    if base is None:
+        err, reason = kitting_verdict(plan.block, T[k - 1], target_xy, PAD_TOP, ep.cfg.kitting)
+    else:
+        base_block = wc.blocks[base.k - 1].block
+        err, shift, reason = stack_verdict(base_block, base.T_start, T[base.k - 1], plan.block, T[k - 1],
+                                           ep.cfg.stack)
+        ep.rec.base = BaseRecord(base.k, base_block.name, ep.rec.base.estimate_error, shift)
+    ep.rec.final_error, ep.rec.place_error = err, err.te
+    released = _released(ep, k)
+    ep.rec.placed = bool(reason is None and at_rest and released)
+    if not ep.rec.placed:
+        raise _Failure(reason or "misplaced")

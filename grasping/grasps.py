@@ -25,6 +25,7 @@ HAND_Y = -0.005
 #: Half width (m) of a finger pad along the gripper y axis, and the contact band around the pinch height.
 _PAD_HALF = 0.012
 _BAND = (-0.008, 0.012)  # heights relative to the pinch point that the closing fingertips touch
+_PAD_OVERLAP = 0.004  # a yaw-stable pinch's contact face reaches this far past fingers 2 and 3's inner edges (m)
 #: The open hand in the gripper frame (m), from the jaco_hand meshes: each finger is a box from its pad
 #: (at half the opening along x) outward by _FINGER_OUTER, over its y span, from _TIP_BELOW past the pinch
 #: point (the tips curl past it when closing) upward; the palm is a box starting 7 cm above the pinch point.
@@ -123,11 +124,15 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarray, cfg: GraspConfig,
-                yaw_now: float, opening_margin: float = 0.03) -> list[Grasp]:
+                yaw_now: float, opening_margin: float = 0.03, yaw_stable: bool = False) -> list[Grasp]:
     """Feasible top-down grasps on a block at its estimated pose, best first.
 
     ``neighbours``: (M, 3) world points (m) on the other blocks' estimated surfaces; ``yaw_now``: the
     gripper's current yaw (rad, angle of its x axis in the world xy plane), to prefer small wrist turns.
+    The block's centre sits at ``HAND_Y`` along the gripper y axis; with ``yaw_stable`` it sits as near
+    ``cfg.pose_hand_y`` as lets the contact faces reach the inner edges of both finger 2's and finger 3's pads
+    (finger 1 against finger 3 alone is a couple that turns the block in the hand), or at ``HAND_Y`` if
+    the faces are too narrow for that.
     """
     C = np.einsum("ij,njk->nik", T_world_obj, object_candidates(block))
     cos_tilt = -C[:, 2, 2]  # z axis against straight down
@@ -147,14 +152,15 @@ def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarra
             if key in seen:
                 continue
             seen.add(key)
-            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, opening_margin)
+            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, opening_margin, yaw_stable)
             if g is not None:
                 grasps.append(g)
     return sorted(grasps, key=lambda g: -g.score)
 
 
 def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray, centre: np.ndarray,
-              neighbours: np.ndarray, cfg: GraspConfig, yaw_now: float, opening_margin: float) -> Grasp | None:
+              neighbours: np.ndarray, cfg: GraspConfig, yaw_now: float, opening_margin: float,
+              yaw_stable: bool = False) -> Grasp | None:
     """A straight-down grasp with squeeze axis ``x`` through ``entry_xy``, checked on the estimated geometry."""
     z = np.array([0.0, 0.0, -1.0])
     y = np.cross(z, x)
@@ -179,11 +185,17 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     if best is None:
         return None
     _, support, z_pinch, lo, hi = best
+    hand_y = HAND_Y
+    if yaw_stable:  # the contact face's span along y at the pinch height, shifted by hand_y, must cover both
+        face = (np.abs(px - lo) < 0.0015) & (np.abs(h - z_pinch) < 0.004)  # inner pad edges of fingers 2, 3
+        inner2, inner3 = _FINGER23_Y[0][1] - _PAD_OVERLAP, _FINGER23_Y[1][0] + _PAD_OVERLAP
+        if face.any() and inner3 - py[face].max() <= inner2 - py[face].min():
+            hand_y = float(np.clip(cfg.pose_hand_y, inner3 - py[face].max(), inner2 - py[face].min()))
     width = float(hi - lo)
     if not cfg.min_width <= width <= cfg.max_width:
         return None
     grasp_point = np.array([entry_xy[0], entry_xy[1], z_pinch]) + 0.5 * (lo + hi) * x
-    T = make_T(R, grasp_point - HAND_Y * y)
+    T = make_T(R, grasp_point - hand_y * y)
     clearance = 0.05
     if len(neighbours):
         local = (neighbours - T[:3, 3]) @ R  # gripper frame

@@ -10,11 +10,14 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from posegrasp.grasping.upright import UprightError
 from posegrasp.io import jsonable
 
-#: Failure reasons, in the order the summary lists them.
+#: Failure reasons, in the order the summary lists them (the last five only in the kitting and stack tasks).
 FAILURES = ("no detection", "pose error", "unreachable", "collision", "slip", "drop", "misplaced", "timeout",
-            "simulation error")
+            "simulation error", "no upright block", "no base seen", "wrong face up", "misaligned", "base moved")
+#: Record fields of the kitting and stack tasks, left out of a pick-and-place record.
+TASK_FIELDS = ("task", "estimate_error", "final_error", "base")
 
 
 @dataclass(frozen=True)
@@ -52,6 +55,17 @@ class PoseError:
     err: float
 
 
+@dataclass(frozen=True)
+class BaseRecord:
+    """The stack task's base block: scene ``instance`` (1-based), type, its estimate's error against ground
+    truth modulo symmetries (None if perception found no base) and how far it moved during the episode (m)."""
+
+    instance: int
+    type: str
+    estimate_error: UprightError | None = None
+    shift: float | None = None
+
+
 @dataclass
 class EpisodeRecord:
     """One episode's deterministic outcome, filled in as its phases run."""
@@ -72,10 +86,18 @@ class EpisodeRecord:
     detected: int = 0  # estimates the provider returned
     sim_time: float = 0.0
     phases: dict[str, float] = field(default_factory=dict)  # simulated seconds per phase
+    task: str | None = None  # "kitting" or "stack" (None: pick-and-place)
+    estimate_error: UprightError | None = None  # the target's estimate against ground truth, modulo symmetries
+    final_error: UprightError | None = None  # the placed block against the task's target, modulo symmetries
+    base: BaseRecord | None = None  # stack: the base block
 
     def to_json(self) -> dict:
-        """The ``episodes.jsonl`` record."""
-        return jsonable(dataclasses.asdict(self), digits=6)
+        """The ``episodes.jsonl`` record (the task fields only in a kitting or stack record)."""
+        d = dataclasses.asdict(self)
+        if self.task is None:
+            for k in TASK_FIELDS:
+                del d[k]
+        return jsonable(d, digits=6)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,6 @@ import argparse
 import base64
 import html
 import io
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,9 +22,9 @@ import numpy as np
 
 from posegrasp.errors import UserError
 from posegrasp.grasping.record import FAILURES
-from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, SUMMARY, read_campaign, read_records
+from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, SUMMARY, read_campaign, read_json_object, read_records
 from posegrasp.sim.camera import Frame
-from posegrasp.sim.gl import pyrender_renderer
+from posegrasp.gl import pyrender_renderer
 
 REPORT = "report.html"
 #: Outline colours (RGB) of the model at the true and at the estimated pose.
@@ -134,8 +133,18 @@ def _data_uri(rgb: np.ndarray, fmt: str = "jpeg") -> str:
     return f"data:image/{fmt};base64,{base64.b64encode(buf.getvalue()).decode()}"
 
 
-def error_plot(records: list[dict]) -> str | None:
-    """PNG data URI: each episode's outcome against its pose error (ADD(-S), mm), with binned success rates."""
+def _adds_mm(rec: dict) -> float | None:
+    return 1000 * rec["pose_error"]["err"] if rec.get("pose_error") else None
+
+
+def _rotation_deg(rec: dict) -> float | None:
+    return rec["estimate_error"]["re_deg"] if rec.get("estimate_error") else None
+
+
+def error_plot(records: list[dict], value=_adds_mm,
+               xlabel: str = "pose error of the grasped estimate, ADD(-S) (mm)") -> str | None:
+    """PNG data URI: each episode's outcome against its perception error ``value(record)`` (None: no
+    estimate), with binned success rates."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -143,7 +152,7 @@ def error_plot(records: list[dict]) -> str | None:
 
     from posegrasp.grasping.stats import wilson
 
-    pts = [(1000 * r["pose_error"]["err"], r["outcome"] == "success") for r in records if r.get("pose_error")]
+    pts = [(value(r), r["outcome"] == "success") for r in records if value(r) is not None]
     if not pts:
         return None
     x = np.array([p[0] for p in pts])
@@ -167,7 +176,7 @@ def error_plot(records: list[dict]) -> str | None:
                 hi.append(100 * (c - k / n))
         ax.errorbar(mids, rates, yerr=[lo, hi], fmt="o-", color="tab:blue", capsize=4,
                     label="binned success rate (Wilson 95 %)")
-    ax.set_xlabel("pose error of the grasped estimate, ADD(-S) (mm)")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("success (%)")
     ax.set_ylim(-8, 108)
     ax.grid(alpha=0.3)
@@ -240,7 +249,7 @@ def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
     if not records:
         raise UserError(f"{run_dir / EPISODES} holds no finished episode: run (or resume) the trials first")
     campaign = read_campaign(run_dir)
-    s = json.loads((run_dir / SUMMARY).read_text()) if (run_dir / SUMMARY).is_file() else summarise(records)
+    s = read_json_object(run_dir / SUMMARY) if (run_dir / SUMMARY).is_file() else summarise(records)
     perception = campaign.perception
 
     looks: dict[int, Look | None] = {}
@@ -250,12 +259,13 @@ def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
             looks[rec["episode"]] = resimulate_look(run_dir, rec)
         return looks[rec["episode"]]
 
-    parts = [f"<h1>Grasp-and-place trials: {html.escape(perception)}</h1>",
+    task = campaign.config.task
+    parts = [f"<h1>Grasp trials, task {html.escape(task)}: {html.escape(perception)}</h1>",
              f"<p class=big><b>{s['success']}/{s['n']}</b> episodes succeeded = <b>{_pct(s['rate'])}</b> "
              f"(Wilson 95 % interval {_interval(s['wilson95'])}); grasp success "
              f"{s['grasp_success']['success']}/{s['n']} = {_pct(s['grasp_success']['rate'])} "
              f"({_interval(s['grasp_success']['wilson95'])})</p>",
-             _table(["setting", "value"], [["perception", perception], ["episodes", str(len(records))],
+             _table(["setting", "value"], [["task", task], ["perception", perception], ["episodes", str(len(records))],
                                            ["campaign seed", str(campaign.seed)],
                                            ["mean pose error (ADD(-S))", "-" if s.get("mean_pose_error_m") is None
                                             else f"{1000 * s['mean_pose_error_m']:.2f} mm"],
@@ -274,6 +284,10 @@ def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
     plot = error_plot(records)
     parts.append(f'<img alt="success against pose error" src="{plot}">' if plot
                  else "<p>no episode has a pose error (nothing was detected)</p>")
+    rot = error_plot(records, _rotation_deg, "rotation error of the grasped estimate, modulo symmetries (deg)")
+    if rot:  # kitting and stack: the whole pose matters, and ADD(-S) forgives a block turned or upside down
+        parts.append(f"<h2>Success against rotation error ({html.escape(task)})</h2>"
+                     f'<img alt="success against rotation error" src="{rot}">')
     key = (f'<span class=key style="background:rgb{TRUE_RGB}"></span> model at the true pose &nbsp; '
            f'<span class=key style="background:rgb{EST_RGB}"></span> model at the estimated pose')
     seg = "the model's segmentation" if perception.startswith("model") else "the ground-truth instance mask"

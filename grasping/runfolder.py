@@ -28,18 +28,27 @@ def _line(rec: dict) -> str:
 
 
 def read_records(path: Path) -> dict[int, dict]:
-    """Complete records of a (possibly torn) JSON-lines file, by episode index."""
+    """Complete records of a (possibly torn) JSON-lines file, by episode index; a UserError naming the line
+    for a complete line that is not a record."""
     out: dict[int, dict] = {}
     if not path.exists():
         return out
-    for line in path.read_text().splitlines(keepends=True):
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"cannot read {path}: {getattr(e, 'strerror', None) or 'not UTF-8 text'}") from None
+    for n, line in enumerate(lines, start=1):
         if not line.endswith("\n"):
             break  # torn last line of a killed run
         try:
             rec = json.loads(line)
         except json.JSONDecodeError:
-            continue
-        out[int(rec["episode"])] = rec
+            rec = None
+        episode = rec.get("episode") if isinstance(rec, dict) else None
+        if not isinstance(episode, int) or isinstance(episode, bool) or episode < 0:
+            raise UserError(f"{path} line {n} is not an episode record (a JSON object with an integer "
+                            f"\"episode\"); the file is corrupt: rerun the trials into a new --out")
+        out[episode] = rec
     return out
 
 
@@ -74,10 +83,29 @@ class Campaign:
 def read_campaign(run_dir: Path) -> Campaign:
     """The campaign of a run folder; fields added to ``TrialConfig`` since it was written take their defaults."""
     path = run_dir / CAMPAIGN
-    data = json.loads(path.read_text())
-    return Campaign(int(data["seed"]), data["perception"],
-                    from_dict(TrialConfig, data["config"], where=f"{path} config"),
-                    tuple(tuple(float(v) for v in row) for row in data["T_gripper_cam"]))
+    data = read_json_object(path)
+    try:
+        mount = tuple(tuple(float(v) for v in row) for row in data["T_gripper_cam"])
+        if len(mount) != 4 or any(len(row) != 4 for row in mount):
+            raise ValueError
+        return Campaign(int(data["seed"]), str(data["perception"]),
+                        from_dict(TrialConfig, data["config"], where=f"{path} config"), mount)
+    except (KeyError, TypeError, ValueError):
+        raise UserError(f"{path} is corrupt (needs seed, perception, config and a 4x4 T_gripper_cam); "
+                        "rerun the trials into a new --out") from None
+
+
+def read_json_object(path: Path) -> dict:
+    """The JSON object in ``path``, or a UserError naming the file."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UserError(f"{path} is missing: give a folder written by 'posegrasp trials --out'") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise UserError(f"{path} is not readable JSON ({e}); rerun the trials into a new --out") from None
+    if not isinstance(data, dict):
+        raise UserError(f"{path} is not a JSON object; rerun the trials into a new --out")
+    return data
 
 
 def check_campaign(out: Path, campaign: Campaign) -> None:
@@ -86,7 +114,7 @@ def check_campaign(out: Path, campaign: Campaign) -> None:
     if not path.exists():
         write_json(path, campaign.to_json())
         return
-    old = json.loads(path.read_text())
+    old = read_json_object(path)
     if isinstance(old.get("config"), dict):  # fields added to TrialConfig since it was written: their defaults
         old["config"] = dataclasses.asdict(from_dict(TrialConfig, old["config"], where=f"{path} config"))
     new = json.loads(dumps_json(campaign.to_json()))

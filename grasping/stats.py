@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import statistics
 from collections import Counter, defaultdict
 from typing import Iterable
 
@@ -32,13 +33,18 @@ def rate_row(k: int, n: int) -> dict:
 
 def summarise(records: Iterable[dict]) -> dict:
     """Success rate with its interval, per-block and per-failure tables, targets whose class perception got
-    wrong, mean pose error and simulated time."""
+    wrong, mean pose error and simulated time; for kitting and stack, the median final pose error of the
+    placed block against the task's target."""
     recs = list(records)
     ok = [r["outcome"] == "success" for r in recs]
     by_block: dict[str, list[bool]] = defaultdict(list)
     for r, s in zip(recs, ok):
         by_block[(r.get("target") or {}).get("type", "(no block there)")].append(s)
     errs = [r["pose_error"]["err"] for r in recs if r.get("pose_error")]
+    final = [r["final_error"] for r in recs if r.get("final_error")]
+    extra = {"final_error": {"episodes": len(final),
+                             "median_te_m": statistics.median(f["te"] for f in final),
+                             "median_abs_yaw_deg": statistics.median(abs(f["yaw_deg"]) for f in final)}} if final else {}
     return {
         "episodes": len(recs),
         **rate_row(sum(ok), len(recs)),
@@ -48,4 +54,5 @@ def summarise(records: Iterable[dict]) -> dict:
         "wrong_class": sum((r.get("target") or {}).get("class_ok") is False for r in recs),
         "mean_pose_error_m": sum(errs) / len(errs) if errs else None,
         "mean_sim_time_s": sum(r["sim_time"] for r in recs) / len(recs) if recs else None,
+        **extra,
     }

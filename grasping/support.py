@@ -66,9 +66,10 @@ def _leveling(block: BlockType, R: np.ndarray, min_face_share: float) -> tuple[f
     return best
 
 
-def rest_on_table(block: BlockType, T_world_obj: np.ndarray, cfg: RestConfig = RestConfig()) -> np.ndarray:
-    """``T_world_obj`` (m) levelled into the nearest resting pose and set onto the table if close to both;
-    otherwise a copy of it unchanged."""
+def rest_on_table(block: BlockType, T_world_obj: np.ndarray, cfg: RestConfig = RestConfig(),
+                  surface_z: float = 0.0) -> np.ndarray:
+    """``T_world_obj`` (m) levelled into the nearest resting pose and set onto the table (or a horizontal
+    surface at height ``surface_z``, m) if close to both; otherwise a copy of it unchanged."""
     T = np.array(T_world_obj, dtype=float)
     if not cfg.enabled:
         return T
@@ -77,6 +78,6 @@ def rest_on_table(block: BlockType, T_world_obj: np.ndarray, cfg: RestConfig = R
         return T
     T = make_T(R_c @ T[:3, :3], T[:3, 3])
     bottom = float(transform_points(T, block.vertices)[:, 2].min())
-    if abs(bottom) <= cfg.max_gap:
-        T[2, 3] -= bottom
+    if abs(bottom - surface_z) <= cfg.max_gap:
+        T[2, 3] -= bottom - surface_z
     return T

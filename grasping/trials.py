@@ -26,14 +26,19 @@ from posegrasp.grasping.episode import EpisodeTask, run_episode
 from posegrasp.grasping.provider_registry import make_provider
 from posegrasp.grasping.record import FAILURES
 from posegrasp.grasping.report import write_report
-from posegrasp.grasping.runfolder import (EPISODES, SUMMARY, TIMINGS, Campaign, append_record, check_campaign,
-                                          read_records, write_records)
+from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, SUMMARY, TIMINGS, Campaign, append_record,
+                                          check_campaign, read_records, write_records)
 from posegrasp.grasping.stats import rate_row, summarise
+from posegrasp.grasping.tasks import check_task
 from posegrasp.io import write_bytes, write_json
+from posegrasp.lock import folder_lock
 from posegrasp.progress import progress as progress_bar
 
-#: Noise levels (translation m, rotation deg) of ``--sweep-noise``.
+#: Noise levels (translation m, rotation deg) of ``--sweep-noise``, by ``--noise``.
 SWEEP_LEVELS = ((0.0, 0.0), (0.0025, 2.5), (0.005, 5.0), (0.01, 10.0), (0.02, 20.0), (0.04, 40.0))
+SWEEPS = {"both": SWEEP_LEVELS,
+          "rotation": tuple((0.0, r) for r in (0.0, 5.0, 10.0, 20.0, 45.0)),
+          "translation": tuple((t, 0.0) for t in (0.0, 0.0025, 0.005, 0.01, 0.02))}
 
 
 def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: int | str | None,
@@ -45,48 +50,53 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     if not 1 <= cfg.min_blocks <= cfg.max_blocks:
         raise UserError(f"need 1 <= min_blocks <= max_blocks, got {cfg.min_blocks} and {cfg.max_blocks}")
     make_provider(perception)  # validates the spec before any work starts
+    check_task(cfg)
     T_gripper_cam = load_hand_eye(cfg.hand_eye)
     console = console or Console(stderr=True)
-    out.mkdir(parents=True, exist_ok=True)
-    mount = tuple(tuple(float(v) for v in row) for row in T_gripper_cam)
-    check_campaign(out, Campaign(seed, perception, cfg, mount))
-    done = {i: r for i, r in read_records(out / EPISODES).items() if i < episodes}
-    write_records(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
-    timings = read_records(out / TIMINGS)
-    write_records(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
-    todo = [EpisodeTask(seed, i, perception, cfg, mount) for i in range(episodes) if i not in done]
-    t0 = time.perf_counter()
-    if todo:
-        with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, progress_bar(
-                TextColumn("[bold]trials[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
-                TextColumn("ETA"), TimeRemainingColumn(), enabled=progress, console=console,
-                transient=True) as bar:
-            task = bar.add_task(f"{perception}", total=episodes, completed=len(done))
-            ok = sum(r["outcome"] == "success" for r in done.values())
-            for _, (rec, timing) in make_executor(workers).imap(run_episode, todo):
-                line = rec.to_json()
-                append_record(f, line, sync=True)
-                append_record(ft, timing.to_json())
-                done[rec.episode] = line
-                ok += rec.outcome == "success"
-                bar.update(task, advance=1, description=f"{perception}  success {ok}/{len(done)}")
-    elapsed = time.perf_counter() - t0
-    records = [done[i] for i in sorted(done)]
-    write_records(out / EPISODES, records)
-    summary = summarise(records)
-    summary.update(seed=seed, perception=perception, workers=workers,
-                   wall={"seconds": elapsed, "episodes_run": len(todo),
-                         "episodes_per_min": 60 * len(todo) / elapsed if todo and elapsed > 0 else None})
-    write_json(out / SUMMARY, summary)
-    print_summary(summary, console)
-    console.print(f"report -> {write_report(out)}")
+    with folder_lock(out):
+        executor = make_executor(workers)  # Ray connects here, before anything is written
+        mount = tuple(tuple(float(v) for v in row) for row in T_gripper_cam)
+        recorded = read_records(out / EPISODES)
+        if not recorded:  # a campaign binds once it has an episode: settings of a failed start are replaced
+            (out / CAMPAIGN).unlink(missing_ok=True)
+        check_campaign(out, Campaign(seed, perception, cfg, mount))
+        done = {i: r for i, r in recorded.items() if i < episodes}
+        write_records(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
+        timings = read_records(out / TIMINGS)
+        write_records(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
+        todo = [EpisodeTask(seed, i, perception, cfg, mount) for i in range(episodes) if i not in done]
+        t0 = time.perf_counter()
+        if todo:
+            with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, progress_bar(
+                    TextColumn("[bold]trials[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("ETA"), TimeRemainingColumn(), enabled=progress, console=console,
+                    transient=True) as bar:
+                task = bar.add_task(f"{cfg.task} {perception}", total=episodes, completed=len(done))
+                ok = sum(r["outcome"] == "success" for r in done.values())
+                for _, (rec, timing) in executor.imap(run_episode, todo):
+                    line = rec.to_json()
+                    append_record(f, line, sync=True)
+                    append_record(ft, timing.to_json())
+                    done[rec.episode] = line
+                    ok += rec.outcome == "success"
+                    bar.update(task, advance=1, description=f"{cfg.task} {perception}  success {ok}/{len(done)}")
+        elapsed = time.perf_counter() - t0
+        records = [done[i] for i in sorted(done)]
+        write_records(out / EPISODES, records)
+        summary = summarise(records)
+        summary.update(task=cfg.task, seed=seed, perception=perception, workers=workers,
+                       wall={"seconds": elapsed, "episodes_run": len(todo),
+                             "episodes_per_min": 60 * len(todo) / elapsed if todo and elapsed > 0 else None})
+        write_json(out / SUMMARY, summary)
+        print_summary(summary, console)
+        console.print(f"report -> {write_report(out)}")
     return summary
 
 
 def print_summary(s: dict, console: Console) -> None:
     """The success rate, per-block and per-failure tables, printed with rich."""
     lo, hi = s["wilson95"]
-    console.print(f"[bold]{s['perception']}[/]: {s['success']}/{s['n']} episodes succeeded = "
+    console.print(f"[bold]{s.get('task', 'pick-place')}, {s['perception']}[/]: {s['success']}/{s['n']} episodes succeeded = "
                   f"{100 * s['rate']:.1f} % (Wilson 95 % interval {100 * lo:.1f}-{100 * hi:.1f} %); "
                   f"grasped {s['grasp_success']['success']}/{s['n']}; "
                   f"target of the wrong class {s.get('wrong_class', 0)}/{s['n']}")
@@ -111,18 +121,20 @@ def print_summary(s: dict, console: Console) -> None:
 
 def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, cfg: TrialConfig,
                 levels=SWEEP_LEVELS, console: Console | None = None, progress: bool = True) -> list[dict]:
-    """Noisy-oracle campaigns at increasing noise (same seeds); writes ``sweep.json`` and ``sweep.png``."""
+    """Noisy-oracle campaigns at increasing noise (same seeds) for ``cfg.task``; writes ``sweep.json`` and
+    ``sweep.png``."""
     console = console or Console(stderr=True)
-    rows = []
-    for t, r in levels:
-        spec = f"noisy-oracle:{t:g},{r:g}"
-        s = run_trials(out / f"noise_{t:g}m_{r:g}deg", episodes, seed, spec, workers, cfg, console, progress)
-        errs = [rec["pose_error"]["err"] for rec in read_records(out / f"noise_{t:g}m_{r:g}deg" / EPISODES).values()
-                if rec.get("pose_error")]
-        rows.append({"trans_m": t, "rot_deg": r, **rate_row(s["success"], s["n"]),
-                     "median_pose_error_m": float(np.median(errs)) if errs else None})
-    write_json(out / "sweep.json", rows)
-    plot_sweep(rows, out / "sweep.png")
+    with folder_lock(out):  # the sweep's own files; each campaign locks its subfolder
+        rows = []
+        for t, r in levels:
+            spec, run_dir = f"noisy-oracle:{t:g},{r:g}", out / f"noise_{t:g}m_{r:g}deg"
+            s = run_trials(run_dir, episodes, seed, spec, workers, cfg, console, progress)
+            errs = [rec["pose_error"]["err"] for rec in read_records(run_dir / EPISODES).values()
+                    if rec.get("pose_error")]
+            rows.append({"task": cfg.task, "trans_m": t, "rot_deg": r, **rate_row(s["success"], s["n"]),
+                         "median_pose_error_m": float(np.median(errs)) if errs else None})
+        write_json(out / "sweep.json", rows)
+        plot_sweep(rows, out / "sweep.png")
     return rows
 
 
@@ -134,17 +146,22 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     x = [1000 * (r["median_pose_error_m"] or 0.0) for r in rows]
+    xlabel = "median pose error of the estimate used, ADD(-S) (mm)"
+    if all(r["trans_m"] == 0 for r in rows):  # a rotation sweep: ADD(-S) forgives rotations, plot the noise
+        x, xlabel = [r["rot_deg"] for r in rows], "rotation noise sigma (deg, random axis)"
+    elif all(r["rot_deg"] == 0 for r in rows):
+        x, xlabel = [1000 * r["trans_m"] for r in rows], "translation noise sigma (mm per axis)"
     y = [100 * r["rate"] for r in rows]
     err = [[100 * (r["rate"] - r["wilson95"][0]) for r in rows], [100 * (r["wilson95"][1] - r["rate"]) for r in rows]]
     fig, (ax, tab) = plt.subplots(1, 2, figsize=(11, 4.2), gridspec_kw={"width_ratios": [1.2, 1]})
     ax.errorbar(x, y, yerr=err, fmt="o-", capsize=4)
-    ax.set_xlabel("median pose error of the estimate used, ADD(-S) (mm)")
-    ax.set_ylabel("grasp-and-place success (%)")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(f"{rows[0].get('task', 'pick-place')} success (%)")
     ax.set_ylim(-3, 103)
     ax.grid(alpha=0.3)
     tab.axis("off")
-    cells = [[f"{r['trans_m'] * 1000:g}", f"{r['rot_deg']:g}", f"{xi:.1f}", f"{r['success']}/{r['n']}",
-              f"{100 * r['wilson95'][0]:.0f}-{100 * r['wilson95'][1]:.0f}"] for r, xi in zip(rows, x)]
+    cells = [[f"{r['trans_m'] * 1000:g}", f"{r['rot_deg']:g}", f"{1000 * (r['median_pose_error_m'] or 0.0):.1f}",
+              f"{r['success']}/{r['n']}", f"{100 * r['wilson95'][0]:.0f}-{100 * r['wilson95'][1]:.0f}"] for r in rows]
     t = tab.table(cellText=cells, colLabels=["sigma t (mm)", "sigma r (deg)", "ADD(-S) mm", "success", "95 % CI (%)"],
                   loc="center")
     t.auto_set_font_size(False)

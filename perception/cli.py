@@ -14,6 +14,7 @@ from pathlib import Path
 
 from typing import TYPE_CHECKING
 
+from posegrasp.arguments import in_dir, nonneg_int, number, out_dir, positive_int
 from posegrasp.config import load_toml, override
 from posegrasp.errors import UserError
 
@@ -27,11 +28,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description="Train one stage of the perception network on a BOP dataset.")
     p.add_argument("stage", choices=["seg", "pose", "refine", "cls"],
                    help="which network to train (cls: the instance classifier, after seg)")
-    p.add_argument("--data", required=True, type=Path, help="BOP dataset root")
-    p.add_argument("--out", required=True, type=Path, help="run directory (RUN/<stage> holds the checkpoint)")
+    p.add_argument("--data", required=True, type=in_dir("--data"), help="BOP dataset root")
+    p.add_argument("--out", required=True, type=out_dir(), help="run directory (RUN/<stage> holds the checkpoint)")
     p.add_argument("--config", type=Path, help="TOML file with [seg] / [pose] / [refine] sections")
-    p.add_argument("--steps", type=int, help="total optimisation steps (overrides the config)")
-    p.add_argument("--seed", type=int, help="random seed (overrides the config)")
+    p.add_argument("--steps", type=positive_int("--steps"), help="total optimisation steps (overrides the config)")
+    p.add_argument("--seed", type=nonneg_int("--seed"), help="random seed (overrides the config)")
     p.add_argument("--resume", action="store_true", help="continue the checkpoint in RUN/<stage>")
     p.add_argument("--init", type=Path, help="seg and pose: start from these weights (a run or its stage folder)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -39,10 +40,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     e = subparsers.add_parser("eval", help="evaluate a trained run on a BOP split",
                               description="mPA/mIoU, ADD, ADD-S, AUC, accuracies, curves, BOP results CSV.")
-    e.add_argument("--data", required=True, type=Path, help="BOP dataset root")
-    e.add_argument("--weights", required=True, type=Path, help="run directory with seg/, pose/ [, refine/]")
+    e.add_argument("--data", required=True, type=in_dir("--data"), help="BOP dataset root")
+    e.add_argument("--weights", required=True, type=in_dir("--weights"), help="run directory with seg/, pose/ [, refine/]")
     e.add_argument("--split", help="split to evaluate (default: test)")
-    e.add_argument("--out", type=Path, help="report directory (default: WEIGHTS/eval_<split>)")
+    e.add_argument("--out", type=out_dir(), help="report directory (default: WEIGHTS/eval_<split>)")
     e.add_argument("--config", type=Path, help="TOML file with an [eval] section")
     e.add_argument("--gt-masks", action="store_true", help="use ground-truth masks (pose stage only)")
     e.add_argument("--no-refine", action="store_true", help="ablation: skip refinement")
@@ -52,17 +53,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--no-guided", action="store_true",
                    help="ablation: class-map outlines not snapped to colour edges (guided filter)")
     e.add_argument("--no-split", action="store_true", help="ablation: merged segments not split by the fitted models")
-    e.add_argument("--max-images", type=int, help="evaluate at most this many images")
+    e.add_argument("--max-images", type=positive_int("--max-images"), help="evaluate at most this many images")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(run=run_eval)
 
     d = subparsers.add_parser("perturb", help="write a deliberately degraded copy of a run (seeded weight noise)",
                               description="For sensitivity studies: run trials with model:OUT and compare.")
-    d.add_argument("--weights", required=True, type=Path, help="run directory with seg/, pose/ [, refine/]")
-    d.add_argument("--out", required=True, type=Path, help="new run directory")
-    d.add_argument("--rel-sigma", required=True, type=float, help="noise std as a fraction of each tensor's std")
+    d.add_argument("--weights", required=True, type=in_dir("--weights"), help="run directory with seg/, pose/ [, refine/]")
+    d.add_argument("--out", required=True, type=out_dir(), help="new run directory")
+    d.add_argument("--rel-sigma", required=True, type=number("--rel-sigma", 0), help="noise std as a fraction of each tensor's std")
     d.add_argument("--stages", default="pose", help="comma-separated stages to perturb (default: pose)")
-    d.add_argument("--seed", type=int, default=0, help="noise seed")
+    d.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="noise seed")
     d.set_defaults(run=run_perturb)
 
 
@@ -79,10 +80,6 @@ def training_stages() -> dict[str, type[StageTraining]]:
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp train``."""
     training = training_stages()[args.stage]
-    if args.steps is not None and args.steps < 1:
-        raise UserError("--steps must be at least 1")
-    if not args.data.is_dir():
-        raise UserError(f"--data {args.data} is not a directory")
     cfg = load_toml(training.config, args.config, section=args.stage)
     if args.init is not None:
         if not training.fine_tunes:
@@ -104,13 +101,27 @@ def run_eval(args: argparse.Namespace) -> int:
                    classify=False if args.no_cls else None, icp=False if args.no_icp else None,
                    plane=False if args.no_plane else None,
                    guided=False if args.no_guided else None, split_merged=False if args.no_split else None)
-    out = args.out or args.weights / f"eval_{cfg.split}"
+    out = args.out or out_dir("--weights")(str(args.weights / f"eval_{cfg.split}"))
+    check_ground_truth(args.data, cfg.split, cfg.max_images or None)
     report = evaluate(args.data, args.weights, out, cfg, progress=not args.no_progress)
     summary = {"out": str(out), "segmentation": (report["segmentation"] or {}).get("mIoU"),
                **{k: report["overall"][k] for k in ("ADD-S_AUC", "ADD_AUC", "ADD(-S)_acc_0.1d")},
-               "time_per_image_s": report["time_per_image_s"]}
+               "bop19": report["bop19"], "time_per_image_s": report["time_per_image_s"]}
     print(json.dumps(summary))
     return 0
+
+
+def check_ground_truth(data: Path, split: str, max_images: int | None) -> None:
+    """Refuse (UserError) a dataset whose labels ``dataset check`` would flag (schema, rotations, units,
+    object ids), before any scoring: a bad label would silently lower the score instead."""
+    from posegrasp.bop_check import check_dataset
+
+    if not (data / "models").is_dir():
+        raise UserError(f"--data {data} is not a BOP dataset (no models/ folder)")
+    report = check_dataset(data, split, max_images=max_images, max_problems=10, labels_only=True)
+    if report.problems:
+        raise UserError(f"--data {data}: {report.problems[0]} ({len(report.problems)} problem(s) in its models and "
+                        f"labels; 'posegrasp dataset check {data}' lists them)")
 
 
 def run_perturb(args: argparse.Namespace) -> int:

@@ -3,9 +3,10 @@
 Writes into ``out``: ``metrics.json`` (segmentation mPA / mIoU, per object and overall ADD, ADD-S,
 AUC, < 2 cm accuracy, accuracy at 0.1 x diameter, time per stage, the ablation flags),
 ``per_object.csv``, ``instances.csv`` (one row per evaluated ground-truth instance),
-``curves.png`` (accuracy against rotation error, up to the object's symmetries, and translation
-error thresholds) and a BOP results CSV
-``<method>_<dataset>-<split>.csv``.
+``curves.png`` (accuracy against ADD(-S), rotation error up to the object's symmetries and translation
+error thresholds), ``scores_bop19.json`` (BOP 2019 AR, AR_VSD, AR_MSSD, AR_MSPD overall and per object, on the
+targets of ``test_targets_bop19.json``, or of the ground truth when the dataset has none: ``perception.bop19``)
+and a BOP results CSV ``<method>_<dataset>-<split>.csv``.
 
 Ablations: ``refine_iterations = 0`` evaluates without refinement; a pose net trained with
 ``use_pam = use_cam = use_gfem = false`` is the DenseFusion-like variant (its flags are reported);
@@ -27,14 +28,19 @@ import numpy as np
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
+from posegrasp.lock import folder_lock
+from posegrasp.perception import bop19 as B
 from posegrasp.perception import metrics as M
 from posegrasp.perception.data import label_map, load_records
+from posegrasp.perception.depth_render import DepthRenderer
 from posegrasp.perception.estimator import STAGES, Detection, Estimator, EstimatorConfig
 from posegrasp.perception.guided import GuidedConfig
 from posegrasp.perception.split import SplitConfig
 
 RE_THRESHOLDS = np.linspace(0.0, 30.0, 61)  # degrees
 TE_THRESHOLDS = np.linspace(0.0, 0.05, 51)  # metres
+ADD_THRESHOLDS = np.linspace(0.0, 0.02, 41)  # metres
+RE_SYM_GOAL = 15.0  # degrees: the rotation error (up to symmetry) the "re_sym_<15deg" accuracy counts below
 
 
 @dataclass
@@ -80,6 +86,7 @@ def _summary(rows: list[dict[str, Any]], diameter: float | None) -> dict[str, fl
         acc01 = float(np.mean([r["add_or_adds"] < 0.1 * r["diameter"] for r in rows]) * 100.0) if n else float("nan")
     fin = det & np.isfinite(adds)
     nan = float("nan")
+    re_det = np.array([r["re_sym"] for r in rows if r["detected"]])
     return {
         "n": n,
         "detected": float(det.mean() * 100.0) if n else float("nan"),
@@ -92,6 +99,9 @@ def _summary(rows: list[dict[str, Any]], diameter: float | None) -> dict[str, fl
         "mean_ADD-S": float(adds[fin].mean()) if fin.any() else float("nan"),
         "median_re_sym_deg": float(np.median([r["re_sym"] for r in rows if r["detected"]])) if fin.any() else nan,
         "median_te": float(np.median([r["te"] for r in rows if r["detected"]])) if fin.any() else nan,
+        "re_sym_<15deg_of_detected": float(np.mean(re_det < RE_SYM_GOAL) * 100.0) if re_det.size else nan,
+        "re_sym_<15deg": float(np.sum(re_det < RE_SYM_GOAL) / n * 100.0) if n else nan,
+        "re_sym_AUC_30deg": M.ycb_auc(np.array([r["re_sym"] for r in rows]), max_threshold=30.0),
     }
 
 
@@ -101,7 +111,7 @@ def _plot_curves(path: Path, rows: list[dict[str, Any]], obj_ids: list[int]) -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     groups = [(f"obj {o}", [r for r in rows if r["obj_id"] == o]) for o in obj_ids] + [("all", rows)]
     for name, rs in groups:
         if not rs:
@@ -111,12 +121,15 @@ def _plot_curves(path: Path, rows: list[dict[str, Any]], obj_ids: list[int]) -> 
         te = [r["te"] if r["detected"] else np.inf for r in rs]
         axes[0].plot(RE_THRESHOLDS, M.threshold_curve(re, RE_THRESHOLDS) * 100, lw=lw, label=name)
         axes[1].plot(TE_THRESHOLDS * 100, M.threshold_curve(te, TE_THRESHOLDS) * 100, lw=lw, label=name)
+        addss = [r["add_or_adds"] for r in rs]
+        axes[2].plot(ADD_THRESHOLDS * 100, M.threshold_curve(addss, ADD_THRESHOLDS) * 100, lw=lw, label=name)
     axes[0].set(xlabel="rotation error threshold (deg, up to symmetry)", ylabel="accuracy (%)", ylim=(0, 101),
                 xlim=(0, 30))
     axes[1].set(xlabel="translation error threshold (cm)", ylabel="accuracy (%)", ylim=(0, 101), xlim=(0, 5))
+    axes[2].set(xlabel="ADD(-S) threshold (cm)", ylabel="accuracy (%)", ylim=(0, 101), xlim=(0, 2))
     for a in axes:
         a.grid(alpha=0.3)
-    axes[1].legend(fontsize=8, loc="lower right")
+    axes[2].legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
@@ -136,7 +149,12 @@ def _csv_bytes(rows: list[dict[str, Any]], columns: list[str]) -> bytes:
 def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalConfig | None = None,
              progress: bool = True) -> dict[str, Any]:
     """Evaluate the run ``weights`` on split ``cfg.split`` of BOP dataset ``data``; write reports in
-    ``out``; return the metrics dict (also in ``out/metrics.json``)."""
+    ``out`` (locked meanwhile: ``posegrasp.lock``); return the metrics dict (also in ``out/metrics.json``)."""
+    with folder_lock(out):
+        return _evaluate(Path(data), weights, Path(out), cfg, progress)
+
+
+def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None, progress: bool) -> dict[str, Any]:
     from posegrasp.progress import track
 
     cfg = cfg or EvalConfig()
@@ -155,6 +173,8 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
     records = load_records(data, cfg.split)
     if cfg.max_images:
         records = records[:cfg.max_images]
+    bop19, targets = _bop19_setup(data, cfg.split, records, infos)
+    groups: list[B.ObjectErrors] = []
     nc = est.seg_cfg.num_classes
     conf = np.zeros((nc, nc), dtype=np.int64)
     rows: list[dict[str, Any]] = []
@@ -180,6 +200,9 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
         times["total"].append(total)
         rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
         results.extend(bop.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total) for d in dets)
+        groups.extend(bop19.image(
+            depth, K, [B.Truth(g.obj_id, g.T_cam_obj, g.info.visib_fract if g.info else 1.0) for g in rec.instances],
+            [B.Estimate(d.obj_id, d.score, d.T_cam_obj) for d in dets], targets.get((rec.scene_id, rec.im_id), {})))
 
     per_object = {o: _summary([r for r in rows if r["obj_id"] == o], infos[o].diameter) for o in obj_ids}
     overall = _summary(rows, None)
@@ -204,7 +227,6 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
                                   "per_class": {str(c): {"PA": _f(s["pa"][c]), "IoU": _f(s["iou"][c])}
                                                 for c in range(nc)}}
     out.mkdir(parents=True, exist_ok=True)
-    pio.write_json(out / "metrics.json", pio.jsonable(report, nan_to_null=True))
     cols = ["obj_id", "n", "detected", "ADD_AUC", "ADD-S_AUC", "ADD(-S)_AUC", "ADD-S_<2cm", "ADD(-S)_acc_0.1d",
             "mean_ADD", "mean_ADD-S", "median_re_sym_deg", "median_te"]
     pio.write_bytes(out / "per_object.csv", _csv_bytes(
@@ -213,8 +235,28 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
                                                              "visib_fract", "detected", "score", "add", "adds",
                                                              "add_or_adds", "re", "re_sym", "te"]))
     _plot_curves(out / "curves.png", rows, obj_ids)
+    scores = B.scores(groups, infos, bop.load_camera(data).width)
+    pio.write_json(out / "scores_bop19.json", pio.jsonable(scores, nan_to_null=True))
+    report["bop19"] = {k: scores[k] for k in ("ar", "ar_vsd", "ar_mssd", "ar_mspd", "targets")}
     bop.write_results_csv(out / f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv", results)
+    pio.write_json(out / "metrics.json", pio.jsonable(report, nan_to_null=True))
     return report
+
+
+def _bop19_setup(data: Path, split: str, records: list[bop.ImageRecord], infos: dict[int, bop.ObjectInfo]
+                 ) -> tuple[B.Bop19, dict[tuple[int, int], dict[int, int]]]:
+    """The BOP 2019 scorer on the dataset's ``models_eval/`` (else ``models/``) and the targets per image
+    ({(scene_id, im_id): {obj_id: inst_count}}) of the evaluated images: ``test_targets_bop19.json`` for the
+    test split when the dataset has it, else the instances at least 10 % visible."""
+    meshes = {o: bop.load_model(bop.eval_model_path(data, o)) for o in infos}
+    scorer = B.Bop19({o: np.asarray(m.vertices) for o, m in meshes.items()}, infos, DepthRenderer(meshes))
+    listed = bop.load_test_targets(data) if split == "test" else None
+    shown = {(r.scene_id, r.im_id) for r in records}
+    targets: dict[tuple[int, int], dict[int, int]] = {}
+    for t in bop.targets_from_gt(records) if listed is None else listed:
+        if (t.scene_id, t.im_id) in shown and t.obj_id in infos:
+            targets.setdefault((t.scene_id, t.im_id), {})[t.obj_id] = t.inst_count
+    return scorer, targets
 
 
 def _nanmean(v: list[float]) -> float:

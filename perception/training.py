@@ -25,6 +25,7 @@ import torch
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.errors import UserError
+from posegrasp.lock import folder_lock
 from posegrasp.perception import checkpoint as ckpt_mod
 
 
@@ -166,20 +167,21 @@ class StageTraining(ABC):
         if cls.needs and not ckpt_mod.exists(run.out / cls.needs):
             raise UserError(f"{run.out / cls.needs} holds no {cls.needs} net: run 'train {cls.needs}' with --out "
                             f"{run.out} first")
-        prior = run.prepare()
-        t = cls(data, run, resumed_cfg(cls.config, prior, cfg or cls.config(), {"steps": steps, "seed": seed}))
-        torch.set_num_threads(max(1, int(t.cfg.threads)))
-        torch.manual_seed(t.cfg.seed)
-        t.build()
-        if prior is not None:
-            t.state = restore(run, prior, t.model, t.opt)
-        elif cls.fine_tunes and t.cfg.init:
-            init_from(t.model, t.model_cfg, Path(t.cfg.init), cls.name)
-        t.prepare(progress)
-        log = MetricsLog(run.metrics, cls.columns, t.state["step"] if prior else None)
-        last = loop(run, t.cfg.steps, int(t.state["step"]), t.step, t.after_step, t.save, t.cfg, log, progress,
-                    t.state)
-        return {**last, "step": t.state["step"], **t.summary()}
+        with folder_lock(run.out):  # one process writes a run folder at a time
+            prior = run.prepare()
+            t = cls(data, run, resumed_cfg(cls.config, prior, cfg or cls.config(), {"steps": steps, "seed": seed}))
+            torch.set_num_threads(max(1, int(t.cfg.threads)))
+            torch.manual_seed(t.cfg.seed)
+            t.build()
+            if prior is not None:
+                t.state = restore(run, prior, t.model, t.opt)
+            elif cls.fine_tunes and t.cfg.init:
+                init_from(t.model, t.model_cfg, Path(t.cfg.init), cls.name)
+            t.prepare(progress)
+            log = MetricsLog(run.metrics, cls.columns, t.state["step"] if prior else None)
+            last = loop(run, t.cfg.steps, int(t.state["step"]), t.step, t.after_step, t.save, t.cfg, log, progress,
+                        t.state)
+            return {**last, "step": t.state["step"], **t.summary()}
 
 
 def _progress(enabled: bool):

@@ -3,7 +3,8 @@
 Layout under a dataset root::
 
     models/obj_XXXXXX.ply, models/models_info.json      (mm)
-    camera.json
+    models_eval/obj_XXXXXX.ply                          (mm; the models resampled densely, for the BOP metrics)
+    camera.json, test_targets_bop19.json
     <split>/<scene 6 digits>/{rgb,depth,mask,mask_visib}/<im 6 digits>.png|jpg
     <split>/<scene>/mask[_visib]/<im>_<gt index 6 digits>.png
     <split>/<scene>/scene_gt.json, scene_camera.json, scene_gt_info.json
@@ -19,6 +20,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -30,6 +32,9 @@ from posegrasp import io as pio
 from posegrasp.errors import UserError
 
 MM = 1e-3  # metres per millimetre
+TEST_TARGETS_FILE = "test_targets_bop19.json"
+MIN_TARGET_VISIB = 0.1  #: BOP 2019: instances less visible are no targets
+EMPTY_BOX = (-1, -1, -1, -1)
 RESULTS_HEADER = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 #: PNG settings, the fastest (and smallest) measured for each kind: unfiltered rows for noisy depth, plus
 #: run-length deflate for masks; sub-filtered rows for colour images.
@@ -48,6 +53,22 @@ def models_dir(root: str | Path) -> Path:
 def model_path(root: str | Path, obj_id: int) -> Path:
     """``<root>/models/obj_XXXXXX.ply``."""
     return models_dir(root) / f"obj_{obj_id:06d}.ply"
+
+
+def models_eval_dir(root: str | Path) -> Path:
+    """``<root>/models_eval`` (the models with dense, roughly uniform vertices: the BOP metrics' points)."""
+    return Path(root) / "models_eval"
+
+
+def eval_model_path(root: str | Path, obj_id: int) -> Path:
+    """``<root>/models_eval/obj_XXXXXX.ply`` when the dataset has it, else the model itself."""
+    p = models_eval_dir(root) / f"obj_{obj_id:06d}.ply"
+    return p if p.is_file() else model_path(root, obj_id)
+
+
+def targets_path(root: str | Path) -> Path:
+    """``<root>/test_targets_bop19.json``."""
+    return Path(root) / TEST_TARGETS_FILE
 
 
 def models_info_path(root: str | Path) -> Path:
@@ -115,10 +136,12 @@ class ObjectInfo:
 
 @dataclass
 class GTInfo:
-    """One entry of ``scene_gt_info.json``: boxes [x, y, w, h] px and pixel counts."""
+    """One entry of ``scene_gt_info.json`` as bop_toolkit computes it: boxes [x, y, w, h] px with w = x_max - x_min
+    (``EMPTY_BOX`` when empty); ``px_count_all`` and ``bbox_obj`` over the whole silhouette, also outside the image;
+    visib_fract = px_count_visib / px_count_all (0 when px_count_all is 0)."""
 
-    bbox_obj: tuple[int, int, int, int] = (-1, -1, 0, 0)
-    bbox_visib: tuple[int, int, int, int] = (-1, -1, 0, 0)
+    bbox_obj: tuple[int, int, int, int] = EMPTY_BOX
+    bbox_visib: tuple[int, int, int, int] = EMPTY_BOX
     px_count_all: int = 0
     px_count_valid: int = 0
     px_count_visib: int = 0
@@ -386,36 +409,117 @@ def encode_mask(mask: np.ndarray) -> bytes:
     return pio.encode_image(".png", np.asarray(mask, bool).view(np.uint8) * np.uint8(255), _PNG_MASK)
 
 
-def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
-    """BOP box [x, y, w, h] (px) of a boolean mask; (-1, -1, 0, 0) when it is empty."""
+def _extent(mask: np.ndarray, x0: int = 0, y0: int = 0) -> tuple[int, int, int, int] | None:
+    """(x_min, y_min, x_max, y_max) px of a boolean mask's pixels, shifted by (x0, y0); None when empty."""
     ys, xs = np.nonzero(mask)
     if ys.size == 0:
-        return (-1, -1, 0, 0)
-    return (int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1))
+        return None
+    return int(xs.min()) + x0, int(ys.min()) + y0, int(xs.max()) + x0, int(ys.max()) + y0
+
+
+def _box(extents: list[tuple[int, int, int, int] | None]) -> tuple[int, int, int, int]:
+    """BOP box [x, y, w, h] (w = x_max - x_min, as bop_toolkit's ``calc_2d_bbox``) around extents; empty: -1s."""
+    e = np.array([x for x in extents if x is not None]).reshape(-1, 4)
+    if not len(e):
+        return EMPTY_BOX
+    x, y, x1, y1 = int(e[:, 0].min()), int(e[:, 1].min()), int(e[:, 2].max()), int(e[:, 3].max())
+    return x, y, x1 - x, y1 - y
+
+
+def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """BOP box [x, y, w, h] (px, w = x_max - x_min) of a boolean mask; ``EMPTY_BOX`` when it is empty."""
+    return _box([_extent(mask)])
 
 
 def gt_info_from_masks(mask: np.ndarray, mask_visib: np.ndarray, depth_m: np.ndarray,
-                       box: tuple[int, int, int, int] | None = None) -> GTInfo:
-    """GTInfo of one object from its full and visible masks and the scene depth (m).
+                       box: tuple[int, int, int, int] | None = None, beyond_px: int = 0,
+                       beyond_extent: tuple[int, int, int, int] | None = None) -> GTInfo:
+    """GTInfo of one object from its full and visible masks in the image and the scene depth (m).
 
-    bbox_obj is the box of the full mask inside the image (BOP projects the model; the mask is the
-    rendered silhouette, so it is the same up to the image border). ``box`` [x0, x1) x [y0, y1) px, when
-    given, holds the whole full mask: the counts are then taken inside it (faster) if the visible mask
-    lies inside it too.
+    bop_toolkit counts the whole silhouette, rendered on a canvas 3x the image's size: ``beyond_px`` are its
+    pixels outside the image and ``beyond_extent`` their (x_min, y_min, x_max, y_max) in image pixel coordinates
+    (may be negative), so ``px_count_all`` and ``bbox_obj`` are not clipped to the image. ``box`` [x0, x1) x
+    [y0, y1) px, when given, holds the whole in-image full mask: the counts are then taken inside it (faster)
+    if the visible mask lies inside it too.
     """
+    x0 = y0 = 0
     if box is not None:
-        x0, y0, x1, y1 = box
-        sl = np.s_[y0:y1, x0:x1]
+        bx0, by0, bx1, by1 = box
+        sl = np.s_[by0:by1, bx0:bx1]
         if np.count_nonzero(mask_visib[sl]) == np.count_nonzero(mask_visib):
-            info = gt_info_from_masks(mask[sl], mask_visib[sl], depth_m[sl])
-            shift = lambda b: (b[0] + x0, b[1] + y0, b[2], b[3]) if b[2] > 0 else b  # noqa: E731
-            info.bbox_obj, info.bbox_visib = shift(info.bbox_obj), shift(info.bbox_visib)
-            return info
-    valid = mask & (depth_m > 0)
-    n_all, n_visib = int(mask.sum()), int(mask_visib.sum())
-    return GTInfo(bbox_obj=mask_bbox(mask), bbox_visib=mask_bbox(mask_visib), px_count_all=n_all,
-                  px_count_valid=int(valid.sum()), px_count_visib=n_visib,
+            x0, y0, mask, mask_visib, depth_m = bx0, by0, mask[sl], mask_visib[sl], depth_m[sl]
+    n_all = int(np.count_nonzero(mask)) + int(beyond_px)
+    n_visib = int(np.count_nonzero(mask_visib))
+    return GTInfo(bbox_obj=_box([_extent(mask, x0, y0), beyond_extent]),
+                  bbox_visib=_box([_extent(mask_visib, x0, y0)]), px_count_all=n_all,
+                  px_count_valid=int(np.count_nonzero(mask & (depth_m > 0))), px_count_visib=n_visib,
                   visib_fract=float(n_visib / n_all) if n_all else 0.0)
+
+
+def resample_for_eval(mesh, max_edge: float):
+    """The mesh with every edge longer than ``max_edge`` (the mesh's units) split at its midpoint, repeatedly,
+    each face re-triangulated by which of its edges were split (a conforming refinement: no T-junctions): the
+    same surface with dense, roughly uniform vertices, like BOP's ``models_eval``. A ``trimesh.Trimesh``."""
+    import trimesh
+
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+    while True:
+        m = trimesh.Trimesh(v, f, process=False)
+        edges, fe = m.edges_unique, m.faces_unique_edges  # fe[:, k]: edge of (f[k], f[k + 1])
+        long = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1) > max_edge
+        if not long.any():
+            return trimesh.Trimesh(v, f, process=False)
+        mid = np.full(len(edges), -1)
+        mid[long] = len(v) + np.arange(long.sum())
+        v = np.concatenate([v, 0.5 * (v[edges[long, 0]] + v[edges[long, 1]])])
+        local = np.concatenate([f, mid[fe]], axis=1)  # v0 v1 v2 m01 m12 m20 (-1: edge kept)
+        code = (local[:, 3:] >= 0) @ np.array([4, 2, 1])
+        f = np.concatenate([local[code == c][:, t].reshape(-1, 3) for c, t in _SPLIT_TRIANGLES.items()])
+
+
+#: Triangles (local vertex indices: 0-2 corners, 3-5 midpoints of edges 01, 12, 20) of a face whose split edges
+#: are coded m01 * 4 + m12 * 2 + m20, fanned from a midpoint so that none is degenerate.
+_SPLIT_TRIANGLES = {0: [0, 1, 2], 4: [3, 1, 2, 3, 2, 0], 2: [4, 2, 0, 4, 0, 1], 1: [5, 0, 1, 5, 1, 2],
+                    6: [3, 1, 4, 3, 4, 2, 3, 2, 0], 3: [4, 2, 5, 4, 5, 0, 4, 0, 1], 5: [3, 1, 2, 3, 2, 5, 3, 5, 0],
+                    7: [0, 3, 5, 3, 1, 4, 5, 4, 2, 3, 4, 5]}
+
+
+@dataclass(frozen=True)
+class EvalTarget:
+    """One line of ``test_targets_bop19.json``: in image (scene_id, im_id), ``inst_count`` instances of obj_id."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    inst_count: int
+
+
+def targets_from_gt(records: Iterable[ImageRecord], min_visib: float = MIN_TARGET_VISIB) -> list[EvalTarget]:
+    """BOP 2019 targets: per image and object, its instances with visib_fract >= ``min_visib`` (none: no line)."""
+    out = []
+    for r in records:
+        n = Counter(g.obj_id for g in r.instances if g.info is not None and g.info.visib_fract >= min_visib)
+        out += [EvalTarget(r.scene_id, r.im_id, o, c) for o, c in sorted(n.items())]
+    return out
+
+
+def write_test_targets(root: str | Path, targets: Iterable[EvalTarget]) -> Path:
+    """Write ``<root>/test_targets_bop19.json`` (BOP's key order, sorted by scene, image and object)."""
+    rows = [{"im_id": t.im_id, "inst_count": t.inst_count, "obj_id": t.obj_id, "scene_id": t.scene_id}
+            for t in sorted(targets, key=lambda t: (t.scene_id, t.im_id, t.obj_id))]
+    return pio.write_json(targets_path(root), rows)
+
+
+def load_test_targets(root: str | Path) -> list[EvalTarget] | None:
+    """``<root>/test_targets_bop19.json`` as EvalTargets, or None when the dataset has no such file."""
+    p = targets_path(root)
+    if not p.is_file():
+        return None
+    rows = _read_json(p)
+    try:
+        return [EvalTarget(int(r["scene_id"]), int(r["im_id"]), int(r["obj_id"]), int(r["inst_count"])) for r in rows]
+    except (KeyError, TypeError, ValueError) as e:
+        raise UserError(f"BOP file {p}: each entry needs integer scene_id, im_id, obj_id, inst_count ({e})") from None
 
 
 # ---------------------------------------------------------------------------- results

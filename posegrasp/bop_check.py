@@ -1,6 +1,8 @@
 """Validating a BOP dataset (``posegrasp dataset check``): schema, units, ids, rotations, masks against
-``scene_gt_info.json``, and depth against the models at their ground-truth poses. Works on any BOP dataset,
-not only generated ones.
+``scene_gt_info.json`` (bop_toolkit's rules: boxes [x, y, w, h] with w = x_max - x_min, empty ones all -1,
+``px_count_all`` and ``bbox_obj`` over the whole silhouette, also beyond the image), depth against the models at
+their ground-truth poses, ``models_eval/`` and the test split's ``test_targets_bop19.json``. Works on any BOP
+dataset, not only generated ones.
 
 Every problem is a line naming the file (relative to the dataset root) and what is wrong with it.
 """
@@ -24,9 +26,12 @@ from posegrasp.geometry import invert
 CAMERA_KEYS = {"fx": "num", "fy": "num", "cx": "num", "cy": "num", "width": "int", "height": "int"}
 MODEL_KEYS = {"diameter": "num", **{f"{p}_{a}": "num" for p in ("min", "size") for a in "xyz"}}
 SCENE_CAMERA_KEYS = {"cam_K": ("nums", 9)}
+#: Keys of scene_camera.json checked only when present.
+SCENE_CAMERA_OPTIONAL = {"cam_R_w2c": ("nums", 9), "cam_t_w2c": ("nums", 3), "depth_scale": "num"}
 GT_KEYS = {"cam_R_m2c": ("nums", 9), "cam_t_m2c": ("nums", 3), "obj_id": "int"}
 INFO_KEYS = {"bbox_obj": ("nums", 4), "bbox_visib": ("nums", 4), "px_count_all": "int", "px_count_valid": "int",
              "px_count_visib": "int", "visib_fract": "num"}
+TARGET_KEYS = {"scene_id": "int", "im_id": "int", "obj_id": "int", "inst_count": "int"}
 HIST_BINS = np.linspace(0.0, 1.0, 11)
 
 
@@ -91,8 +96,8 @@ def find_splits(root: Path) -> list[str]:
 class _Checker:
     """Accumulates problems over one dataset; ``max_problems`` stops the search early."""
 
-    def __init__(self, root: Path, depth_tol_mm: float, max_problems: int):
-        self.root, self.tol, self.max_problems = root, depth_tol_mm, max_problems
+    def __init__(self, root: Path, depth_tol_mm: float, max_problems: int, labels_only: bool = False):
+        self.root, self.tol, self.max_problems, self.labels_only = root, depth_tol_mm, max_problems, labels_only
         self.report = CheckReport()
         self.meshes: dict[int, Any] = {}
         self.infos: dict[str, Any] = {}
@@ -115,6 +120,8 @@ class _Checker:
             self.add(f"{self.rel(path)}: missing")
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             self.add(f"{self.rel(path)}: not valid JSON ({e})")
+        except OSError as e:
+            self.add(f"{self.rel(path)}: unreadable ({e.strerror})")
         return None
 
     def image(self, path: Path, shape: tuple[int, int], what: str) -> np.ndarray | None:
@@ -158,6 +165,8 @@ class _Checker:
                                                             f"{where}: symmetries_continuous[{s}]"))
             self.infos[key] = d
             self.model(int(key), d)
+            if not self.labels_only:  # eval falls back to models/ without models_eval/
+                self.eval_model(int(key))
 
     def model(self, obj_id: int, d: dict[str, Any]) -> None:
         """The PLY exists, loads, and its extent (mm) matches ``models_info.json``."""
@@ -180,6 +189,68 @@ class _Checker:
             return
         self.meshes[obj_id] = mesh
 
+    def eval_model(self, obj_id: int) -> None:
+        """``models_eval/`` (the BOP metrics' points and renderings) holds the model, with its extent and at least
+        its vertices."""
+        p = bop.models_eval_dir(self.root) / f"obj_{obj_id:06d}.ply"
+        if not p.is_file():
+            self.add(f"{self.rel(p)}: missing; BOP's metrics use models_eval/ (rerun the datagen command to add it)")
+            return
+        try:
+            dense = bop.load_model(p)
+        except UserError:
+            self.add(f"{self.rel(p)}: unreadable (corrupt or not a PLY mesh)")
+            return
+        mesh = self.meshes.get(obj_id)
+        if mesh is None:
+            return
+        if not np.allclose(np.ptp(dense.vertices, axis=0), np.ptp(mesh.vertices, axis=0), rtol=0.02, atol=1e-4):
+            self.add(f"{self.rel(p)}: extent differs from models/obj_{obj_id:06d}.ply")
+        elif len(dense.vertices) < len(mesh.vertices):
+            self.add(f"{self.rel(p)}: {len(dense.vertices)} vertices, fewer than the model's {len(mesh.vertices)}")
+
+    def targets(self, split: str) -> None:
+        """``test_targets_bop19.json`` (test split): entries well formed, naming images of the split, with
+        inst_count = the object's instances there at least 10 % visible (BOP 2019)."""
+        path = bop.targets_path(self.root)
+        if not path.is_file():
+            self.add(f"{self.rel(path)}: missing; BOP 2019 scores the test split on it (rerun the datagen command "
+                     "to add it)")
+            return
+        rows = self.json(path)
+        if not isinstance(rows, list):
+            if rows is not None:
+                self.add(f"{self.rel(path)}: expected a list of targets")
+            return
+        scenes: dict[int, dict[int, bop.ImageRecord]] = {}
+        for i, t in enumerate(rows):
+            if self.full:
+                return
+            probs = schema_problems(t, TARGET_KEYS, f"{self.rel(path)}: entry {i}")
+            if probs:
+                self.report.problems.extend(probs)
+                continue
+            if t["scene_id"] not in scenes:
+                scenes[t["scene_id"]] = self.scene_records(split, t["scene_id"])
+            rec = scenes[t["scene_id"]].get(t["im_id"])
+            if rec is None:
+                self.add(f"{self.rel(path)}: entry {i} names scene {t['scene_id']} image {t['im_id']}, not in {split}/")
+                continue
+            n = sum(g.obj_id == t["obj_id"] and g.info is not None and g.info.visib_fract >= bop.MIN_TARGET_VISIB
+                    for g in rec.instances)
+            if t["inst_count"] != n:
+                self.add(f"{self.rel(path)}: entry {i} (scene {t['scene_id']} im {t['im_id']} obj {t['obj_id']}): "
+                         f"inst_count {t['inst_count']} != {n} instances with visib_fract >= {bop.MIN_TARGET_VISIB}")
+
+    def scene_records(self, split: str, scene_id: int) -> dict[int, bop.ImageRecord]:
+        """{im_id: record} of a scene; empty when it is missing or unreadable (reported where scenes are checked)."""
+        if not bop.scene_dir(self.root, split, scene_id).is_dir():
+            return {}
+        try:
+            return {r.im_id: r for r in bop.iter_scene_images(self.root, split, [scene_id])}
+        except (UserError, KeyError, TypeError, ValueError):
+            return {}
+
     def camera(self) -> tuple[int, int] | None:
         path = bop.camera_path(self.root)
         d = self.json(path)
@@ -196,6 +267,9 @@ class _Checker:
         cams = self.json(sd / "scene_camera.json")
         gts = self.json(sd / "scene_gt.json")
         infos = self.json(sd / "scene_gt_info.json")
+        for name, x in (("scene_camera", cams), ("scene_gt", gts), ("scene_gt_info", infos)):
+            if x is not None and not isinstance(x, dict):
+                self.add(f"{self.rel(sd)}/{name}.json: expected a JSON object keyed by image id, got {type(x).__name__}")
         if not all(isinstance(x, dict) for x in (cams, gts, infos)):
             return
         ids = [set(x) for x in (cams, gts, infos)]
@@ -209,7 +283,10 @@ class _Checker:
 
     def image_record(self, sd: Path, key: str, cam: Any, gts: Any, infos: Any, shape: tuple[int, int]) -> None:
         rel = self.rel(sd)
-        probs = schema_problems(cam, SCENE_CAMERA_KEYS, f"{rel}/scene_camera.json: im {key}")
+        where = f"{rel}/scene_camera.json: im {key}"
+        probs = schema_problems(cam, SCENE_CAMERA_KEYS, where)
+        if not probs:
+            probs = schema_problems(cam, {k: v for k, v in SCENE_CAMERA_OPTIONAL.items() if k in cam}, where)
         if not key.isdigit():
             probs.append(f"{rel}: image id {key!r} is not an integer")
         if not isinstance(gts, list) or not isinstance(infos, list) or len(gts) != len(infos):
@@ -219,13 +296,21 @@ class _Checker:
             return
         im = int(key)
         scale = cam.get("depth_scale", 1.0)
-        if not (_is_num(scale) and scale > 0):
-            self.add(f"{rel}/scene_camera.json: im {key}: 'depth_scale' must be a positive number, got {scale!r}")
+        if not scale > 0:
+            self.add(f"{where}: 'depth_scale' must be a positive number, got {scale!r}")
             return
         if "cam_R_w2c" in cam and (why := rotation_problem(np.reshape(cam["cam_R_w2c"], (3, 3)))):
-            self.add(f"{rel}/scene_camera.json: im {key}: cam_R_w2c {why}")
+            self.add(f"{where}: cam_R_w2c {why}")
+        if "cam_t_w2c" in cam and np.linalg.norm(cam["cam_t_w2c"]) < 10.0:
+            self.add(f"{where}: cam_t_w2c {cam['cam_t_w2c']} looks like metres; BOP translations are in millimetres")
         K = np.reshape(cam["cam_K"], (3, 3))
         self.report.images += 1
+        depth_mm = None if self.labels_only else self.rgbd(sd, im, shape, scale)
+        for i, (g, info) in enumerate(zip(gts, infos)):
+            self.instance(sd, im, i, g, info, K, depth_mm, shape)
+
+    def rgbd(self, sd: Path, im: int, shape: tuple[int, int], scale: float) -> np.ndarray | None:
+        """Check image ``im``'s colour and depth images; its depth (mm), or None if unusable."""
         rgb_png, rgb_jpg = bop.image_path(sd, "rgb", im, "png"), bop.image_path(sd, "rgb", im, "jpg")
         self.image(rgb_png if rgb_png.exists() or not rgb_jpg.exists() else rgb_jpg, shape, "rgb")
         dpath = bop.image_path(sd, "depth", im)
@@ -233,9 +318,7 @@ class _Checker:
         if depth is not None and depth.dtype != np.uint16:
             self.add(f"{self.rel(dpath)}: depth must be a uint16 png, got {depth.dtype}")
             depth = None
-        depth_mm = None if depth is None else depth.astype(np.float64) * scale
-        for i, (g, info) in enumerate(zip(gts, infos)):
-            self.instance(sd, im, i, g, info, K, depth_mm, shape)
+        return None if depth is None else depth.astype(np.float64) * scale
 
     def instance(self, sd: Path, im: int, i: int, g: Any, info: Any, K: np.ndarray, depth_mm: np.ndarray | None,
                  shape: tuple[int, int]) -> None:
@@ -258,6 +341,8 @@ class _Checker:
             units_ok = False
         self.report.instances[oid] += 1
         self.report.visib_fracts.append(float(info["visib_fract"]))
+        if self.labels_only:
+            return
         masks = [self.image(bop.mask_path(sd, im, i, visible=v), shape, "mask") for v in (False, True)]
         if any(m is None for m in masks):
             return
@@ -271,28 +356,36 @@ class _Checker:
             self.depth_on_model(f"{rel}/depth/{im:06d}.png: gt {i} (obj {oid})", depth_mm, K, visib, T, self.meshes[oid])
 
     def mask_info(self, where: str, full: np.ndarray, visib: np.ndarray, info: dict, depth_mm: np.ndarray | None) -> None:
-        """Pixel counts, boxes and visible fraction in ``scene_gt_info.json`` against the masks."""
+        """Pixel counts, boxes and visible fraction in ``scene_gt_info.json`` against the masks (in the image)."""
         n_all, n_vis = int(full.sum()), int(visib.sum())
+        h, w = full.shape
         outside = int((visib & ~full).sum())
         if outside:
             self.add(f"{where}: {outside} visible-mask pixels lie outside the full (amodal) mask")
-        if info["px_count_all"] != n_all:
-            self.add(f"{where}: px_count_all {info['px_count_all']} != {n_all} pixels in mask/")
+        bx, by, bw, bh = info["bbox_obj"]
+        inside = info["px_count_all"] > 0 and bx >= 0 and by >= 0 and bx + bw < w and by + bh < h
+        if info["px_count_all"] < n_all or (inside and info["px_count_all"] != n_all):
+            self.add(f"{where}: px_count_all {info['px_count_all']} != {n_all} pixels in mask/"
+                     + ("" if inside else " (or more, with the silhouette beyond the image)"))
         if info["px_count_visib"] != n_vis:
             self.add(f"{where}: px_count_visib {info['px_count_visib']} != {n_vis} pixels in mask_visib/")
         if depth_mm is not None and info["px_count_valid"] != (n_valid := int((full & (depth_mm > 0)).sum())):
             self.add(f"{where}: px_count_valid {info['px_count_valid']} != {n_valid} mask pixels with depth")
-        frac = n_vis / n_all if n_all else 0.0
+        frac = info["px_count_visib"] / info["px_count_all"] if info["px_count_all"] else 0.0
         if abs(info["visib_fract"] - frac) > 1e-3:
             self.add(f"{where}: visib_fract {info['visib_fract']} != px_count_visib / px_count_all = {frac:.4f}")
+        for key, count in (("bbox_obj", info["px_count_all"]), ("bbox_visib", n_vis)):
+            if not count and list(info[key]) != list(bop.EMPTY_BOX):
+                self.add(f"{where}: {key} {info[key]} of no pixel must be {list(bop.EMPTY_BOX)} (bop_toolkit)")
         bv = bop.mask_bbox(visib)
         if n_vis and np.abs(np.subtract(info["bbox_visib"], bv)).max() > 1:
-            self.add(f"{where}: bbox_visib {info['bbox_visib']} != box of mask_visib {list(bv)}")
+            self.add(f"{where}: bbox_visib {info['bbox_visib']} != box of mask_visib {list(bv)} (w = x_max - x_min)")
         if n_all:
-            x, y, w, h = bop.mask_bbox(full)
-            bx, by, bw, bh = info["bbox_obj"]
-            if bx > x + 1 or by > y + 1 or bx + bw < x + w - 1 or by + bh < y + h - 1:
-                self.add(f"{where}: bbox_obj {info['bbox_obj']} does not contain the mask's box {[x, y, w, h]}")
+            x, y, mw, mh = bop.mask_bbox(full)
+            if bx > x + 1 or by > y + 1 or bx + bw < x + mw - 1 or by + bh < y + mh - 1:
+                self.add(f"{where}: bbox_obj {info['bbox_obj']} does not contain the mask's box {[x, y, mw, mh]}")
+            elif inside and np.abs(np.subtract(info["bbox_obj"], (x, y, mw, mh))).max() > 1:
+                self.add(f"{where}: bbox_obj {info['bbox_obj']} != box of mask {[x, y, mw, mh]} (w = x_max - x_min)")
 
     def depth_on_model(self, where: str, depth_mm: np.ndarray, K: np.ndarray, visib: np.ndarray, T: np.ndarray,
                        mesh) -> None:
@@ -323,17 +416,19 @@ class _Checker:
 
 
 def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: float = 5.0, max_images: int | None = None,
-                  max_problems: int = 200, progress: bool = False) -> CheckReport:
+                  max_problems: int = 200, progress: bool = False, labels_only: bool = False) -> CheckReport:
     """Validate the BOP dataset at ``root`` (all splits, or ``split``); ``max_images`` per scene limits the work.
 
-    The search stops after ``max_problems`` problems; ``progress`` shows a bar over scenes.
+    The search stops after ``max_problems`` problems; ``progress`` shows a bar over scenes. ``labels_only``
+    checks ``models/`` and the JSON labels (poses, units, ids), not the images, ``models_eval/`` or the BOP19
+    targets, as ``eval`` does before it scores.
     """
     from posegrasp.progress import track
 
     root = Path(root)
     if not root.is_dir():
         raise UserError(f"dataset folder {root} does not exist")
-    c = _Checker(root, depth_tol_mm, max_problems)
+    c = _Checker(root, depth_tol_mm, max_problems, labels_only)
     c.models()
     shape = c.camera()
     splits = find_splits(root)
@@ -344,7 +439,7 @@ def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: floa
     c.report.splits = splits
     if not splits:
         c.add(f"{root}: no split folder with scene folders (e.g. train_pbr/000000/)")
-    for tmp in sorted(root.rglob(".*.tmp"))[:5]:
+    for tmp in [] if labels_only else sorted(root.rglob(".*.tmp"))[:5]:
         c.add(f"{c.rel(tmp)}: leftover of an interrupted write; rerun the generator to complete the dataset")
     if shape is None:
         return c.report
@@ -354,6 +449,8 @@ def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: floa
             c.report.stopped_early = True
             break
         c.scene(sd, shape, max_images)
+    if "test" in splits and not c.full and not labels_only:
+        c.targets("test")
     return c.report
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from posegrasp.cli import positive_int
+from posegrasp.arguments import nonneg_int, number, out_file, positive_int
 from posegrasp.errors import UserError
 
 
@@ -15,14 +15,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     c = dsub.add_parser("check", help="validate a BOP dataset and print a summary (exit 1 when invalid)")
     c.add_argument("dir", help="dataset root (holding models/, camera.json and split folders)")
     c.add_argument("--split", default=None, help="only this split (default: every split found)")
-    c.add_argument("--depth-tol-mm", type=float, default=5.0, help="max median depth-to-model distance (mm)")
+    c.add_argument("--depth-tol-mm", type=number("--depth-tol-mm", 0, open_lo=True), default=5.0,
+                   help="max median depth-to-model distance (mm)")
     c.add_argument("--max-images", type=positive_int("--max-images"), default=None, help="check at most N images per scene")
     c.set_defaults(run=run_check)
     s = dsub.add_parser("show", help="draw one image with masks, 3D boxes and axes next to its depth")
     s.add_argument("dir", help="dataset root")
-    s.add_argument("--scene", type=int, required=True, help="scene id")
-    s.add_argument("--im", type=int, required=True, help="image id")
-    s.add_argument("--out", required=True, help="output image (.png, or .jpg)")
+    s.add_argument("--scene", type=nonneg_int("--scene"), required=True, help="scene id")
+    s.add_argument("--im", type=nonneg_int("--im"), required=True, help="image id")
+    s.add_argument("--out", required=True, type=out_file("--out", (".png", ".jpg", ".jpeg")),
+                   help="output image (.png, or .jpg)")
     s.add_argument("--split", default=None, help="split (default: the only one present)")
     s.set_defaults(run=run_show)
 

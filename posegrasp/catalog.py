@@ -44,6 +44,10 @@ class BlockType:
             through ``offset`` along ``axis`` maps the block onto itself.
         friction: MuJoCo geom friction hint (sliding, torsional, rolling).
         rgba: Display colour.
+        upright_down: (3,) unit object-frame direction that points straight down when the block stands
+            upright (studs up, an arch on its feet), or None if the type has no upright pose.
+        flat_top, flat_bottom: standing upright, is its top one flat face another block can stand on, and
+            does its bottom rest flat on such a face (which pairs can stack)?
     """
 
     obj_id: int
@@ -58,6 +62,9 @@ class BlockType:
     symmetries_continuous: tuple[tuple[np.ndarray, np.ndarray], ...]
     friction: tuple[float, float, float] = (0.5, 0.005, 0.0001)
     rgba: tuple[float, float, float, float] = field(default=(0.8, 0.8, 0.8, 1.0))
+    upright_down: np.ndarray | None = None
+    flat_top: bool = False
+    flat_bottom: bool = False
 
 
 def _frozen(a: Any, dtype: Any = np.float64) -> np.ndarray:
@@ -82,6 +89,15 @@ def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise UserError(f"block model {path} is missing: run `python assets/blocks/make_blocks.py`")
     mesh = trimesh.load(path, process=False, force="mesh")
     return np.asarray(mesh.vertices, np.float64) * _MM, np.asarray(mesh.faces, np.int64)
+
+
+def _upright(entry: dict | None) -> dict[str, Any]:
+    """``BlockType`` upright fields from a catalogue entry's optional ``upright`` object."""
+    if not entry:
+        return {}
+    down = np.asarray(entry["down"], float)
+    return {"upright_down": _frozen(down / np.linalg.norm(down)), "flat_top": bool(entry.get("flat_top", False)),
+            "flat_bottom": bool(entry.get("flat_bottom", False))}
 
 
 @functools.lru_cache(maxsize=4)
@@ -118,6 +134,7 @@ def _load(root: Path) -> tuple[BlockType, ...]:
             symmetries_continuous=cont,
             friction=tuple(entry.get("friction", (0.5, 0.005, 0.0001))),
             rgba=tuple(entry.get("rgba", (0.8, 0.8, 0.8, 1.0))),
+            **_upright(entry.get("upright")),
         ))
     return tuple(blocks)
 

@@ -11,26 +11,8 @@ import importlib
 import os
 import sys
 
+from posegrasp.arguments import positive_int, workers_arg  # noqa: F401  (option types, re-exported)
 from posegrasp.errors import UserError
-
-def positive_int(name: str):
-    """An argparse ``type`` for option ``name``: a positive integer, else a one-line UserError."""
-
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise UserError(f"{name} must be a positive integer, got {text!r}") from None
-        if v < 1:
-            raise UserError(f"{name} must be a positive integer, got {v}")
-        return v
-
-    return parse
-
-
-def workers_arg(text: str) -> int | str:
-    """An argparse ``type`` for ``--workers``: a number of local processes, or ``ray``."""
-    return text if text == "ray" else positive_int("--workers (a number of processes, or 'ray')")(text)
 
 
 #: Modules that register subcommands, in the order they appear in ``--help``.
@@ -42,6 +24,7 @@ COMMAND_MODULES = (
     "posegrasp.grasping.cli",
     "posegrasp.grasping.compare",
     "posegrasp.grasping.report",
+    "posegrasp.objects.cli",
 )
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 import typing
 from pathlib import Path
@@ -22,10 +23,28 @@ def from_dict(cls: type[C], data: dict[str, Any], where: str = "config") -> C:
     unknown = sorted(set(data) - names)
     if unknown:
         raise UserError(f"{where}: unknown key(s) {unknown}; valid keys are {sorted(names)}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
-        kwargs[key] = _coerce(hints[key], value, f"{where}.{key}")
+        kwargs[key] = check_range(fields[key], _coerce(hints[key], value, f"{where}.{key}"), f"{where}.{key}")
     return cls(**kwargs)
+
+
+def within(lo: float, hi: float) -> dict[str, Any]:
+    """Field metadata bounding a number (or each number of a tuple) to [lo, hi]:
+    ``width: int = field(default=640, metadata=within(16, 4096))``; ``from_dict`` and ``override`` enforce it."""
+    return {"range": (lo, hi)}
+
+
+def check_range(f: dataclasses.Field, value: Any, where: str) -> Any:
+    """``value`` of field ``f`` if it lies in the field's ``within`` bounds (if any), else a UserError."""
+    lo, hi = f.metadata.get("range", (None, None))
+    if lo is None or value is None:
+        return value
+    values = value if isinstance(value, (list, tuple)) else [value]
+    if not all(lo <= v <= hi for v in values):
+        raise UserError(f"{where} = {value!r} is out of range: use {lo:g} to {hi:g}")
+    return value
 
 
 def _coerce(tp: Any, value: Any, where: str) -> Any:
@@ -44,7 +63,9 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
         inner = args[0] if args else Any
         out = [_coerce(inner, v, where) for v in value]
         return tuple(out) if origin is tuple else out
-    if tp is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise UserError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if tp in (int, str, bool) and not isinstance(value, tp) or (tp is int and isinstance(value, bool)):
         raise UserError(f"{where}: expected {tp.__name__}, got {value!r}")
@@ -56,10 +77,16 @@ def load_toml(cls: type[C], path: str | Path | None, section: str | None = None)
     if path is None:
         return cls()
     path = Path(path)
+    if not path.exists():
+        raise UserError(f"config file {path} does not exist")
+    if not path.is_file():
+        raise UserError(f"config file {path} is not a file; name a TOML file")
     try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"config file {path} does not exist") from None
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise UserError(f"cannot read config file {path}: {e.strerror}") from None
+    except UnicodeDecodeError:
+        raise UserError(f"config file {path} is not UTF-8 text; save it as a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"config file {path} is not valid TOML: {e}") from None
     if section is not None:
@@ -69,4 +96,5 @@ def load_toml(cls: type[C], path: str | Path | None, section: str | None = None)
 
 def override(cfg: C, **changes: Any) -> C:
     """Copy of ``cfg`` with the non-None ``changes`` applied (CLI flags override the file)."""
-    return dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
+    fields = {f.name: f for f in dataclasses.fields(cfg)}
+    return dataclasses.replace(cfg, **{k: check_range(fields[k], v, k) for k, v in changes.items() if v is not None})

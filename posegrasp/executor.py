@@ -1,15 +1,29 @@
 """One small interface for work that fans out (scenes, episodes, evaluation frames).
 
 ``make_executor(workers)`` gives a local process pool (default) or Ray (``"ray"``, for clusters).
-Results come back keyed by task index, so they never depend on how many workers ran them.
+Results come back keyed by task index, so they never depend on how many workers ran them. Tasks return
+their results to the caller, which alone writes files: a worker needs no access to the output folder (a Ray
+node needs no shared filesystem), and a worker whose parent is gone has nothing to write. Pool workers also
+die with their parent, whatever kills it (``die_with_parent``).
 """
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing as mp
 import os
+import signal
+import socket
+import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Callable, Iterator, Protocol, Sequence
+
+from posegrasp.errors import UserError
+
+#: ``prctl`` option asking the kernel to signal this process when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
+#: Environment variables a Ray worker gets from the driver (headless rendering backend).
+RAY_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM")
 
 
 class Executor(Protocol):
@@ -26,8 +40,21 @@ class SerialExecutor:
             yield i, fn(item)
 
 
+def die_with_parent(parent: int) -> None:
+    """Pool worker initializer: the kernel sends this process SIGKILL when ``parent`` dies (Linux
+    ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing is set); a parent already gone ends it at once."""
+    if not sys.platform.startswith("linux"):
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent:  # the parent died before the prctl call
+        os._exit(1)
+
+
 class PoolExecutor:
-    """A local pool of ``workers`` processes (spawned, so every worker owns its own GL context)."""
+    """A local pool of ``workers`` processes (spawned, so every worker owns its own GL context) that die with
+    this process."""
 
     def __init__(self, workers: int):
         if workers < 1:
@@ -36,7 +63,8 @@ class PoolExecutor:
 
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         ctx = mp.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=die_with_parent,
+                                 initargs=(os.getpid(),)) as pool:
             futures = {pool.submit(fn, item): i for i, item in enumerate(items)}
             try:
                 for fut in as_completed(futures):
@@ -47,23 +75,48 @@ class PoolExecutor:
                 raise
 
 
+def _check_reachable(address: str) -> None:
+    """A one-line UserError unless a ``HOST:PORT`` cluster address accepts a connection within 5 s (``ray.init``
+    itself retries for ever); ``auto``, ``ray://`` and an empty address are left to Ray."""
+    host, sep, port = address.rpartition(":")
+    if not sep or "://" in address or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=5).close()
+    except OSError as e:
+        raise UserError(f"cannot reach the Ray cluster at RAY_ADDRESS={address!r} ({e.strerror or e}); start it "
+                        "with 'ray start --head' or unset RAY_ADDRESS") from None
+
+
 class RayExecutor:
-    """Ray tasks on an existing cluster (``ray.init(address="auto")``) or a local one."""
+    """Ray tasks on an existing cluster (``RAY_ADDRESS``, or ``ray.init`` called before) or a new local one.
+    Results travel back to the driver through Ray's object store; the driver's ``MUJOCO_GL`` and
+    ``PYOPENGL_PLATFORM`` go to the workers."""
 
     def __init__(self, address: str | None = None):
-        import ray  # optional dependency: pip install 'posegrasp[ray]'
-
+        try:
+            import ray  # optional dependency: pip install 'posegrasp[ray]'
+        except ImportError:
+            raise UserError("--workers ray needs Ray: pip install 'posegrasp[ray]' (on every node)") from None
         if not ray.is_initialized():
-            ray.init(address=address, ignore_reinit_error=True)
+            _check_reachable(address or os.environ.get("RAY_ADDRESS", ""))
+            # worker logs stay in Ray's session folder, out of the progress bar's way
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
         self._ray = ray
 
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
-        remote = self._ray.remote(fn)
+        env = {k: os.environ[k] for k in RAY_ENV if k in os.environ}
+        remote = self._ray.remote(fn).options(runtime_env={"env_vars": env} if env else None)
         refs = {remote.remote(item): i for i, item in enumerate(items)}
         pending = list(refs)
-        while pending:
-            done, pending = self._ray.wait(pending, num_returns=1)
-            yield refs[done[0]], self._ray.get(done[0])
+        try:
+            while pending:
+                done, pending = self._ray.wait(pending, num_returns=1)
+                yield refs[done[0]], self._ray.get(done[0])
+        except BaseException:
+            for ref in pending:
+                self._ray.cancel(ref, force=True)
+            raise
 
 
 def make_executor(workers: int | str | None = None) -> Executor:

@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 
 from posegrasp.geometry import axis_angle_R, invert
-from posegrasp.sim import gl
+from posegrasp import gl
 from posegrasp.sim.config import CameraConfig, RenderConfig
 
 #: Pose of the OpenCV camera frame in the MuJoCo camera frame (flip y and z); it is its own inverse.
@@ -51,7 +51,7 @@ class Frame:
 
 
 class CameraRenderer:
-    """Offscreen renderer for one camera of a workcell, in the process's GL context (``sim.gl``); reuse it for
+    """Offscreen renderer for one camera of a workcell, in the process's GL context (``posegrasp.gl``); reuse it for
     many frames, ``close()`` frees the model's GL resources."""
 
     def __init__(self, workcell, camera: str, width: int, height: int, fovy_deg: float,

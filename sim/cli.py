@@ -4,45 +4,33 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-from pathlib import Path
 
 import numpy as np
 
+from posegrasp.arguments import nonneg_int, out_dir, positive_int
+from posegrasp.config import check_range
 from posegrasp.errors import UserError
+from posegrasp.sim.config import CameraConfig
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
-    """``"640x480"`` -> (640, 480); a one-line error for anything else."""
+    """``"640x480"`` -> (640, 480), within ``CameraConfig``'s bounds; a one-line error for anything else."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise UserError(f"resolution {text!r} is not WIDTHxHEIGHT, e.g. 640x480") from None
-    if not (16 <= w <= 4096 and 16 <= h <= 4096):
-        raise UserError(f"resolution {text!r} is out of range: width and height must be 16-4096 pixels")
-    return w, h
-
-
-def writable_dir(path: str | Path) -> Path:
-    """Create ``path`` if needed and check it is a writable folder, or raise a one-line UserError."""
-    p = Path(path)
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UserError(f"cannot create output folder {p}: {e.strerror}") from None
-    if not p.is_dir() or not os.access(p, os.W_OK):
-        raise UserError(f"output folder {p} is not writable; choose another --out")
-    return p
+    fields = {f.name: f for f in dataclasses.fields(CameraConfig)}
+    return check_range(fields["width"], w, "--resolution width"), check_range(fields["height"], h, "--resolution height")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("scene", help="render a random settled scene from the hand camera at the look pose")
-    p.add_argument("--seed", type=int, default=0, help="scene seed (same seed, same scene)")
-    p.add_argument("--blocks", type=int, default=5, help="number of blocks to drop into the pick area")
+    p.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="scene seed (same seed, same scene)")
+    p.add_argument("--blocks", type=positive_int("--blocks"), default=5, help="number of blocks to drop into the pick area")
     p.add_argument("--types", default="", help="comma-separated block types to draw from (default: all)")
     p.add_argument("--resolution", default=None, help="hand camera WIDTHxHEIGHT (default from the config)")
     p.add_argument("--config", default=None, help="workcell TOML file (default: assets/workcell.toml)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, type=out_dir(), help="output folder")
     p.set_defaults(run=run_scene)
 
 
@@ -58,8 +46,9 @@ def run_scene(args: argparse.Namespace) -> int:
         w, h = parse_resolution(args.resolution)
         wcfg = dataclasses.replace(wcfg, hand_camera=dataclasses.replace(wcfg.hand_camera, width=w, height=h))
     types = tuple(t.strip() for t in args.types.split(",") if t.strip())
-    out = writable_dir(args.out)
     scene = make_scene(args.seed, args.blocks, SceneConfig(block_types=types, workcell=wcfg))
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
     wc = scene.workcell
     if not wc.drive_arm(wc.look_q):
         raise RuntimeError("the arm did not reach the look pose")

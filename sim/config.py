@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp import ASSETS
-from posegrasp.config import load_toml
+from posegrasp.config import load_toml, within
 
 
 @dataclass(frozen=True)
@@ -21,11 +21,11 @@ class CameraConfig:
     ``mount_rpy_deg`` are extrinsic x-y-z rotations. Depth outside [near, far] reads 0 (invalid).
     """
 
-    width: int = 640
-    height: int = 480
-    fovy_deg: float = 55.0
-    near: float = 0.15
-    far: float = 2.0
+    width: int = field(default=640, metadata=within(16, 4096))
+    height: int = field(default=480, metadata=within(16, 4096))
+    fovy_deg: float = field(default=55.0, metadata=within(1.0, 170.0))
+    near: float = field(default=0.15, metadata=within(0.001, 10.0))
+    far: float = field(default=2.0, metadata=within(0.01, 100.0))
     mount_pos: tuple[float, float, float] = (0.0, 0.065, -0.11)
     mount_rpy_deg: tuple[float, float, float] = (12.0, 0.0, 0.0)
 

@@ -46,12 +46,18 @@ def area_capacity(cfg: SceneConfig) -> int:
     return int((2 * hx // s + 1) * (2 * hy // (s * np.sqrt(3) / 2) + 1) * 0.5)
 
 
-def choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[BlockType]:
+def check_block_types(names: tuple[str, ...] | list[str]) -> None:
+    """Raise a UserError naming the ``names`` that are not catalogue block types."""
     cat = load_catalog()
-    names = list(cfg.block_types) or list(cat)
     unknown = [t for t in names if t not in cat]
     if unknown:
         raise UserError(f"unknown block type(s) {unknown}; known types: {', '.join(cat)}")
+
+
+def choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[BlockType]:
+    cat = load_catalog()
+    names = list(cfg.block_types) or list(cat)
+    check_block_types(names)
     return [cat[names[i]] for i in rng.integers(0, len(names), size=n)]
 
 

@@ -26,7 +26,7 @@ from posegrasp.datagen.generate import STATS_FILE, generate_dataset, is_complete
 from posegrasp import bop
 from posegrasp.geometry import invert, transform_points
 from posegrasp.io import read_image
-from posegrasp.sim.gl import pyrender_renderer
+from posegrasp.perception.depth_render import DepthRenderer
 
 SEED, SCENES, VIEWS = 3, 2, 3
 SMALL_TOML = """
@@ -115,7 +115,10 @@ def test_masks_and_info_agree(dataset):
             full, vis = rec.load_mask(g.gt_index, visible=False), rec.load_mask(g.gt_index)
             assert not (vis & ~full).any()  # amodal contains visible
             i = g.info
-            assert (i.px_count_all, i.px_count_visib) == (full.sum(), vis.sum())
+            x, y, w, h = i.bbox_obj
+            inside = x >= 0 and y >= 0 and x + w < full.shape[1] and y + h < full.shape[0]
+            assert i.px_count_visib == vis.sum() and i.px_count_all >= full.sum()
+            assert i.px_count_all == full.sum() or not inside  # more: the silhouette beyond the image
             assert i.px_count_valid == (full & (depth > 0)).sum()
             assert i.visib_fract == (i.px_count_visib / i.px_count_all if i.px_count_all else 0.0)
 
@@ -138,33 +141,45 @@ def test_amodal_masks_are_exact_projections_of_convex_blocks(dataset):
     assert checked >= 3
 
 
-#: pyrender's principal point is in pixel-edge coordinates (+0.5 px), and its depth is read from a 4x multisampled
-#: buffer, i.e. at sample 0, which Mesa places at (-1/8, +3/8) px from the pixel centre: shift K to match.
-PYRENDER_PP_SHIFT = (0.5 - 0.125, 0.5 + 0.375)
-
-
 def test_amodal_masks_match_pyrender(dataset):
     """Each block rendered alone by pyrender (from the PLY model) at its GT pose gives its amodal mask."""
-    import pyrender
-
     cam_info = bop.load_camera(dataset)
     W, H = cam_info.width, cam_info.height
-    pr = pyrender_renderer(W, H)
+    render = DepthRenderer({o: bop.load_model(dataset, o) for o in bop.load_models_info(dataset)})
     ious = []
     for rec in records(dataset):
-        K = rec.camera.K
-        cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + PYRENDER_PP_SHIFT[0], K[1, 2] + PYRENDER_PP_SHIFT[1],
-                                        znear=0.05, zfar=5.0)
         for g in rec.instances:
-            if g.info.px_count_all < 20:
-                continue  # (nearly) out of view; occluded blocks are compared too: both render them alone
             full = rec.load_mask(g.gt_index, visible=False)
-            sc = pyrender.Scene()
-            sc.add(pyrender.Mesh.from_trimesh(bop.load_model(dataset, g.obj_id), smooth=False), pose=g.T_cam_obj)
-            sc.add(cam, pose=np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenCV camera -> OpenGL camera
-            sil = pr.render(sc, flags=pyrender.RenderFlags.DEPTH_ONLY) > 0
+            if full.sum() < 20:
+                continue  # (nearly) out of view; occluded blocks are compared too: both render them alone
+            sil = render(g.obj_id, g.T_cam_obj, rec.camera.K, H, W) > 0
             ious.append((sil & full).sum() / (sil | full).sum())
     assert len(ious) >= 10 and min(ious) >= 0.97 and np.mean(ious) > 0.99, ious
+
+
+def test_gt_info_counts_the_whole_silhouette_as_bop_toolkit(dataset):
+    """``px_count_all`` and ``bbox_obj`` cover each block's silhouette on a canvas 3x the image's size (bop_toolkit's
+    ``calc_gt_info``), checked against pyrender there; boxes are [x, y, w, h] with w = x_max - x_min, empty: -1s."""
+    cam = bop.load_camera(dataset)
+    W, H = cam.width, cam.height
+    render = DepthRenderer({o: bop.load_model(dataset, o) for o in bop.load_models_info(dataset)})
+    beyond = 0
+    for rec in records(dataset):
+        K = rec.camera.K.copy()
+        K[:2, 2] += (W, H)  # the image in the middle of the canvas
+        for g in rec.instances:
+            ys, xs = np.nonzero(render(g.obj_id, g.T_cam_obj, K, 3 * H, 3 * W) > 0)
+            i = g.info
+            if i.px_count_visib == 0:
+                assert i.bbox_visib == bop.EMPTY_BOX
+            if not len(xs):
+                assert i.px_count_all == 0 and i.bbox_obj == bop.EMPTY_BOX
+                continue
+            assert abs(i.px_count_all - len(xs)) <= max(0.03 * len(xs), 5), (i, len(xs))
+            box = (xs.min() - W, ys.min() - H, xs.max() - xs.min(), ys.max() - ys.min())
+            assert np.abs(np.subtract(i.bbox_obj, box)).max() <= 1, (i.bbox_obj, box)
+            beyond += not (W <= xs.min() and xs.max() < 2 * W and H <= ys.min() and ys.max() < 2 * H)
+    assert beyond >= 1  # a block (partly) outside the image
 
 
 def test_cameras_look_down_at_the_blocks_from_reachable_poses(dataset):
@@ -174,6 +189,43 @@ def test_cameras_look_down_at_the_blocks_from_reachable_poses(dataset):
         assert max(g.info.px_count_visib for g in rec.instances) > 30  # the clutter is in view
         d = [np.linalg.norm(g.T_cam_obj[:3, 3]) for g in rec.instances if g.info.px_count_visib > 0]
         assert 0.15 < min(d) and max(d) < 1.0
+
+
+def test_test_split_lists_bop19_targets_and_models_eval(dataset, tmp_path, small_toml):
+    """A test split gets ``test_targets_bop19.json`` (instances >= 10 % visible) and the dataset ``models_eval/``
+    (the models with edges of at most 5 % of their diameter, same surface); ``dataset check`` checks both."""
+    out = tmp_path / "test"
+    generate_dataset(out, 1, 2, SEED, load_datagen_config(small_toml), split="test", workers=1)
+    recs = list(bop.iter_scene_images(out, "test"))
+    assert bop.load_test_targets(out) == bop.targets_from_gt(recs) != []
+    assert sum(t.inst_count for t in bop.load_test_targets(out)) == sum(
+        g.info.visib_fract >= 0.1 for r in recs for g in r.instances)
+    infos = bop.load_models_info(out)
+    for o in infos:
+        model, dense = bop.load_model(out, o), bop.load_model(bop.eval_model_path(out, o))
+        assert bop.eval_model_path(out, o).parent.name == "models_eval" and len(dense.vertices) > len(model.vertices)
+        assert dense.edges_unique_length.max() <= 0.05 * infos[o].diameter + 1e-9
+        assert np.isclose(dense.area, model.area, rtol=1e-5) and np.allclose(dense.bounds, model.bounds, atol=1e-6)
+    assert check_dataset(out).ok
+    (out / bop.TEST_TARGETS_FILE).write_text('[{"scene_id": 0, "im_id": 0, "obj_id": 3, "inst_count": 7}]')
+    assert any("inst_count 7 !=" in p for p in check_dataset(out).problems)
+
+
+def test_check_flags_boxes_and_counts_against_bop_toolkit_rules(dataset, tmp_path):
+    import shutil
+
+    out = tmp_path / "old_rules"
+    shutil.copytree(dataset, out)
+    path = out / "train_pbr" / "000000" / "scene_gt_info.json"
+    infos = json.loads(path.read_text())
+    hidden = [g for v in infos.values() for g in v if g["px_count_visib"] == 0]
+    seen = [g for v in infos.values() for g in v if 0 < g["px_count_all"] == g["px_count_visib"]]
+    assert hidden and seen
+    hidden[0]["bbox_visib"] = [-1, -1, 0, 0]  # the old empty box
+    seen[0]["px_count_all"] -= 10  # a count clipped short of the mask
+    path.write_text(json.dumps(infos))
+    problems = "\n".join(check_dataset(out).problems)
+    assert "of no pixel must be [-1, -1, -1, -1]" in problems and "px_count_all" in problems
 
 
 # ------------------------------------------------------------------------------------------- determinism

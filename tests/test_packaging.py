@@ -19,8 +19,9 @@ import posegrasp
 ROOT = Path(__file__).resolve().parents[1]
 #: Package name -> folder, as pyproject.toml maps them.
 PACKAGES = {"posegrasp": "posegrasp", "posegrasp.sim": "sim", "posegrasp.datagen": "datagen",
-            "posegrasp.perception": "perception", "posegrasp.grasping": "grasping", "posegrasp.assets": "assets"}
-PARTS = ("sim", "datagen", "perception", "grasping")
+            "posegrasp.perception": "perception", "posegrasp.grasping": "grasping", "posegrasp.objects": "objects",
+            "posegrasp.assets": "assets"}
+PARTS = ("sim", "datagen", "perception", "grasping", "objects")
 
 
 def _modules() -> dict[str, Path]:

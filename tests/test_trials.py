@@ -66,7 +66,7 @@ def test_resume_after_a_kill_gives_the_same_file(serial_run, tmp_path):
     console = Console(file=io.StringIO())
     summary = run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), console=console)
     assert summary["wall"]["episodes_run"] == 2
-    assert "trials oracle  success" in console.file.getvalue()  # the progress line of a non-terminal console
+    assert "trials pick-place oracle  success" in console.file.getvalue()  # the progress line of a non-terminal console
     assert (out / EPISODES).read_bytes() == full
 
 

@@ -13,7 +13,9 @@ Writes, deterministically (same inputs and library versions give byte-identical 
   (row-major 4x4, translation in mm, identity excluded) and ``symmetries_continuous``
   (``{"axis": [..], "offset": [.. mm]}``).
 - ``catalog.json``: per block, in SI units (m, kg): mass from ABS density x mesh volume, a friction
-  hint (MuJoCo's sliding/torsional/rolling triple), a colour, and ``collision``: MuJoCo primitives in
+  hint (MuJoCo's sliding/torsional/rolling triple), a colour, ``upright`` (the object-frame direction of the
+  face it stands on upright, studs up and arch on its feet, and whether its top and bottom are flat enough
+  to stack: read by the kitting and stack tasks) and ``collision``: MuJoCo primitives in
   the object frame (box half-sizes, cylinder ``[radius, half_height]``, or a convex ``mesh`` given by
   its vertices) whose union approximates the solid within 10 % of its volume. Non-convex blocks are
   split into convex pieces; no piece is a hull over a non-convex part.
@@ -77,6 +79,8 @@ class Block:
     mesh: trimesh.Trimesh
     collision: list[dict] = field(default_factory=list)
     rgba: tuple[float, float, float, float] = (0.8, 0.8, 0.8, 1.0)
+    flat_top: bool = True  # upright (-z face down), its top is one flat face another block can stand on ...
+    flat_bottom: bool = True  # ... and its bottom rests flat on a flat top (the kitting and stack tasks)
 
 
 # ----------------------------------------------------------------------------- primitives (mm)
@@ -132,7 +136,7 @@ def _brick(obj_id: int, name: str, nx: int, ny: int, rgba) -> Block:
         # Studs start 1 mm inside the body so the union has no coplanar faces.
         parts.append(_cyl_mesh(STUD_R, BRICK_H - 1.0, BRICK_H + STUD_H, xy, STUD_SECTIONS))
         prims.append(_cyl_prim(STUD_R, BRICK_H, BRICK_H + STUD_H, xy))
-    return Block(obj_id, name, trimesh.boolean.union(parts, engine="manifold"), prims, rgba)
+    return Block(obj_id, name, trimesh.boolean.union(parts, engine="manifold"), prims, rgba, flat_top=False)
 
 
 def cylinder() -> Block:
@@ -152,7 +156,7 @@ def triangular_prism() -> Block:
     mesh = trimesh.Trimesh(v, faces, process=True)
     if mesh.volume < 0:
         mesh.invert()
-    return Block(6, "triangular_prism", mesh, [{"type": "mesh", "vertices": v}], (0.2, 0.7, 0.3, 1.0))
+    return Block(6, "triangular_prism", mesh, [{"type": "mesh", "vertices": v}], (0.2, 0.7, 0.3, 1.0), flat_top=False)
 
 
 def arch() -> Block:
@@ -184,7 +188,7 @@ def l_block() -> Block:
     a, w = 50.0, 25.0
     foot, leg = ([0, 0, 0], [a, w, w]), ([0, 0, w], [w, w, a])
     mesh = trimesh.boolean.union([_box_mesh(*foot), _box_mesh([0, 0, w - 1.0], leg[1])], engine="manifold")
-    return Block(8, "l_block", mesh, [_box_prim(*foot), _box_prim(*leg)], (0.95, 0.5, 0.1, 1.0))
+    return Block(8, "l_block", mesh, [_box_prim(*foot), _box_prim(*leg)], (0.95, 0.5, 0.1, 1.0), flat_top=False)
 
 
 def build_blocks() -> list[Block]:
@@ -382,6 +386,7 @@ def generate(out: Path) -> list[dict]:
             "mass_kg": round(DENSITY_ABS * volume_m3, 6), "density": DENSITY_ABS,
             "volume_m3": round(volume_m3, 12), "friction": list(FRICTION), "rgba": list(b.rgba),
             "collision": [_prim_to_m(p) for p in b.collision],
+            "upright": {"down": [0.0, 0.0, -1.0], "flat_top": b.flat_top, "flat_bottom": b.flat_bottom},
         })
         table.append({"name": b.name, "extents_mm": _r(ext, 2), "mass_g": round(float(DENSITY_ABS * volume_m3 * 1000), 1),
                       "n_discrete": len(disc), "continuous": bool(cont), "faces": len(mesh.faces),

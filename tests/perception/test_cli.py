@@ -49,15 +49,15 @@ def test_bad_config_is_user_error(tiny_bop, tmp_path):
 
 @pytest.mark.parametrize("argv, message", [
     (["--stages", "pose,nope"], "name one or more of"),
-    (["--rel-sigma", "-1"], "must be >= 0"),
+    (["--rel-sigma", "-1"], "--rel-sigma must be a finite number >= 0"),
     (["--weights", "."], "holds no pose/"),
     (["--out", "."], "is not empty"),
 ])
 def test_perturb_rejects_bad_input(tiny_run, tmp_path, argv, message):
     base = {"--weights": str(tiny_run), "--out": str(tmp_path / "noisy"), "--rel-sigma": "0.1"}
     base.update(dict(zip(argv[::2], argv[1::2])))
-    args = _parser().parse_args(["perturb", *[x for kv in base.items() for x in kv]])
-    with pytest.raises(UserError, match=message):
+    with pytest.raises(UserError, match=message):  # refused when parsed or when run
+        args = _parser().parse_args(["perturb", *[x for kv in base.items() for x in kv]])
         args.run(args)
 
 

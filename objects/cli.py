@@ -1,0 +1,74 @@
+"""``posegrasp objects import|show``: make an object set from meshes, and draw one."""
+
+from __future__ import annotations
+
+import argparse
+
+from posegrasp.arguments import number, out_dir, out_file
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("objects", help="object sets: import meshes (STL, OBJ, PLY, BOP models) or draw a set")
+    cmds = p.add_subparsers(dest="objects_command", required=True, metavar="import|show")
+    imp = cmds.add_parser("import", help="make an object set from meshes: repaired, measured, symmetries found, "
+                                         "collision pieces by convex decomposition (CoACD)")
+    imp.add_argument("meshes", nargs="+", metavar="MESH", help="STL, OBJ or PLY files, or BOP models folders")
+    imp.add_argument("--out", required=True, type=out_dir(), help="the object set folder to write")
+    imp.add_argument("--unit", nargs="+", default=["m"], metavar="m|cm|mm",
+                     help="length unit of the mesh files, one for all or one per mesh (default m; BOP models are mm)")
+    imp.add_argument("--density", type=number("--density", 1.0, 25000.0), default=None,
+                     help="density in kg/m^3 (default 1050, ABS plastic)")
+    imp.add_argument("--name", nargs="+", default=None, metavar="NAME", help="one name per mesh (default: file names)")
+    imp.add_argument("--config", default=None, help="import settings TOML (fields of objects.config.ImportConfig)")
+    imp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    imp.set_defaults(run=run_import)
+    show = cmds.add_parser("show", help="draw each object of a set with its collision pieces and symmetry axes")
+    show.add_argument("set", metavar="SET", help="object set folder")
+    show.add_argument("--out", required=True, type=out_file("--out", (".png",)), help="PNG file to write")
+    show.set_defaults(run=run_show)
+
+
+def run_import(args: argparse.Namespace) -> int:
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+
+    from posegrasp.config import load_toml, override
+    from posegrasp.objects.config import ImportConfig
+    from posegrasp.objects.importer import Workcell, import_objects, sources
+    from posegrasp.objects.objset import check_writable_set, write_object_set
+    from posegrasp.progress import progress
+
+    cfg = override(load_toml(ImportConfig, args.config), density=args.density)
+    check_writable_set(args.out)
+    srcs = sources(args.meshes, args.unit, args.name)
+    cell = Workcell.default()
+    lines: list[str] = []
+
+    def report(o, seconds: float) -> None:
+        sym = f"{len(o.symmetries_discrete)} discrete" + (
+            f" + {len(o.symmetries_continuous)} continuous" if o.symmetries_continuous else "")
+        n = len(o.collision)
+        lines.append(f"{o.obj_id} {o.name}: {o.mass * 1000:.1f} g, {o.extents[0] * 1000:.1f} x "
+                     f"{o.extents[1] * 1000:.1f} x {o.extents[2] * 1000:.1f} mm, symmetries {sym}, "
+                     f"{n} collision piece{'s' if n != 1 else ''} covering {o.collision_volume_ratio:.3f} of its "
+                     f"volume ({seconds:.1f} s)")
+        lines.extend(f"  repaired: {r}" for r in o.repairs)
+        lines.extend(f"  warning: {w}" for w in o.warnings)
+        bar.advance(task)
+
+    with progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  enabled=not args.no_progress, transient=True) as bar:
+        task = bar.add_task("import", total=len(srcs))
+        objects = import_objects(srcs, cfg, cell, report)
+    write_object_set(args.out, objects)
+    print("\n".join(lines))
+    print(f"wrote object set {args.out} ({len(objects)} objects)")
+    return 0
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from posegrasp.objects.objset import load_object_set
+    from posegrasp.objects.show import draw_set
+
+    draw_set(load_object_set(args.set), args.out)
+    print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,234 @@
+"""``posegrasp objects import|show``: meshes the test makes with trimesh in several forms become an object set whose
+collision pieces are convex and cover the mesh, whose symmetries are right, and whose files are byte-identical
+when imported twice; bad input is a one-line error with nothing written."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+import pytest
+import trimesh
+from test_bad_input import refused, snapshot
+
+from posegrasp.catalog import load_catalog
+from posegrasp.cli import main
+from posegrasp.objects.mass import mass_properties
+from posegrasp.objects.objset import load_object_set
+from posegrasp.objects.rest import upright
+from posegrasp.objects.symmetry import find_symmetries
+
+TF = trimesh.transformations
+TILT = TF.rotation_matrix(0.7, [1.0, 2.0, 3.0])
+
+
+def u_channel() -> trimesh.Trimesh:
+    """A 60 x 30 x 40 mm U (a 10 mm base and two 10 mm walls), opening up: not convex."""
+    parts = [trimesh.creation.box([0.06, 0.03, 0.01], TF.translation_matrix([0, 0, -0.015]))]
+    parts += [trimesh.creation.box([0.01, 0.03, 0.04], TF.translation_matrix([x, 0, 0])) for x in (-0.025, 0.025)]
+    return trimesh.boolean.union(parts, engine="manifold")
+
+
+def open_cylinder() -> trimesh.Trimesh:
+    """A 32-gon cylinder (r 15 mm, h 50 mm) with its top cap missing: a hole of 13 % of the surface."""
+    m = trimesh.creation.cylinder(0.015, 0.05, sections=32)
+    return trimesh.Trimesh(m.vertices, m.faces[m.face_normals[:, 2] < 0.5], process=False)
+
+
+@pytest.fixture(scope="module")
+def meshes(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("meshes")
+    files = {"box": d / "box.obj", "cyl": d / "cyl.stl", "u": d / "u.ply", "blob": d / "blob.obj",
+             "cup": d / "cup.ply"}
+    trimesh.creation.box([0.06, 0.04, 0.02]).apply_translation([0.1, 0.2, 0.3]).export(files["box"])  # OBJ, m
+    cyl = trimesh.creation.cylinder(0.015, 0.05, sections=32, transform=TILT)
+    cyl.apply_scale(1000.0).export(files["cyl"])  # STL, mm, axis tilted away from the frame's axes
+    u_channel().export(files["u"])
+    pts = np.random.default_rng(3).uniform(-0.03, 0.03, (14, 3))  # convex, irregular: no symmetry
+    trimesh.convex.convex_hull(pts).export(files["blob"])
+    open_cylinder().export(files["cup"])
+    return files
+
+
+def _import(meshes: dict[str, Path], out: Path) -> int:
+    names = ["box", "cyl", "u", "blob", "cup"]
+    return main(["objects", "import", *[str(meshes[n]) for n in names], "--unit", "m", "mm", "m", "m", "m",
+                 "--out", str(out), "--no-progress"])
+
+
+@pytest.fixture(scope="module")
+def imported(meshes, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("set") / "parts"
+    assert _import(meshes, out) == 0
+    return out
+
+
+def _on_surface(mesh: trimesh.Trimesh, pts: np.ndarray, tol: float) -> bool:
+    return float(trimesh.proximity.closest_point(mesh, pts)[1].max()) <= tol
+
+
+def test_import_measures_repairs_and_centres(imported: Path) -> None:
+    objs = load_object_set(imported).by_name()
+    assert list(objs) == ["box", "cyl", "u", "blob", "cup"]
+    box = objs["box"]
+    np.testing.assert_allclose(box.extents, [0.06, 0.04, 0.02], atol=1e-6)
+    np.testing.assert_allclose(box.min_xyz, [-0.03, -0.02, -0.01], atol=1e-6)
+    np.testing.assert_allclose(box.source["offset"], [-0.1, -0.2, -0.3], atol=1e-9)
+    assert box.mass == pytest.approx(1050.0 * 0.06 * 0.04 * 0.02, rel=1e-6)
+    assert box.diameter == pytest.approx(np.sqrt(0.06 ** 2 + 0.04 ** 2 + 0.02 ** 2), rel=1e-6)
+    cyl = objs["cyl"]  # read in mm
+    assert cyl.diameter == pytest.approx(np.hypot(0.03, 0.05), rel=1e-3)
+    assert cyl.mass == pytest.approx(1050.0 * trimesh.creation.cylinder(0.015, 0.05, sections=32).volume, rel=1e-6)
+    assert any("merged" in r for r in cyl.repairs)  # an STL is a triangle soup
+    cup = objs["cup"]  # the missing cap was closed
+    assert any("closed 1 hole" in r for r in cup.repairs)
+    assert cup.volume == pytest.approx(trimesh.creation.cylinder(0.015, 0.05, sections=32).volume, rel=1e-6)
+    for o in objs.values():
+        np.testing.assert_allclose(o.vertices.min(0) + o.vertices.max(0), 0.0, atol=2e-6)  # bbox-centred
+        assert not o.warnings, o.warnings  # every part suits the hand and the pick area
+    R_up = trimesh.transformations.quaternion_matrix(objs["cyl"].upright_quat)[:3, :3]
+    assert abs((R_up @ (TILT[:3, :3] @ [0, 0, 1.0]))[2]) < 1e-6  # the tilted cylinder is laid on its side ...
+    assert not objs["cyl"].flat_bottom and not objs["cyl"].flat_top  # ... where it cannot stack
+    assert objs["box"].flat_top and objs["box"].flat_bottom and np.allclose(objs["box"].upright_down, [0, 0, -1])
+    assert not objs["u"].flat_top and objs["u"].flat_bottom
+
+
+def test_collision_pieces_are_convex_and_cover_the_mesh(imported: Path) -> None:
+    for o in load_object_set(imported).objects:
+        mesh = trimesh.Trimesh(o.vertices, o.faces)
+        hulls = []
+        for p in o.collision:
+            v = np.asarray(p["vertices"])
+            hull = trimesh.convex.convex_hull(v)
+            assert _on_surface(hull, v, 1e-7), f"{o.name}: a piece is not convex"
+            hulls.append(hull)
+        union = hulls[0] if len(hulls) == 1 else trimesh.boolean.union(hulls, engine="manifold")
+        assert union.volume / mesh.volume == pytest.approx(1.0, abs=0.10), o.name
+        pts = trimesh.sample.sample_surface(mesh, 300, seed=1)[0]
+        inside = np.zeros(len(pts), bool)
+        for h in hulls:
+            inside |= (pts @ h.face_normals.T - np.sum(h.face_normals * h.triangles[:, 0], axis=1)).max(1) < 1e-4
+        assert inside.mean() > 0.99, f"{o.name}: pieces leave {(~inside).mean():.1%} of the surface uncovered"
+    objs = load_object_set(imported).by_name()
+    assert len(objs["box"].collision) == len(objs["cyl"].collision) == 1  # convex: its own hull
+    assert 2 <= len(objs["u"].collision) <= 32  # decomposed (CoACD), capped
+
+
+def test_symmetries_found(imported: Path) -> None:
+    objs = load_object_set(imported).by_name()
+    (axis, offset), = objs["cyl"].symmetries_continuous
+    assert abs(abs(axis @ (TILT[:3, :3] @ [0, 0, 1.0])) - 1) < 1e-6  # the cylinder's own (tilted) axis
+    np.testing.assert_allclose(offset, 0.0, atol=1e-6)
+    assert len(objs["cyl"].symmetries_discrete) == 1  # plus one flip, BOP style
+    assert len(objs["box"].symmetries_discrete) == 3 and not objs["box"].symmetries_continuous
+    for T in objs["box"].symmetries_discrete:  # half turns about the box's axes
+        assert np.trace(T[:3, :3]) == pytest.approx(-1.0, abs=1e-6)
+        assert np.allclose(np.abs(T[:3, :3]), np.round(np.abs(T[:3, :3])), atol=1e-6)
+    assert len(objs["u"].symmetries_discrete) == 1 and not objs["u"].symmetries_continuous  # half turn about z
+    assert not objs["blob"].symmetries_discrete and not objs["blob"].symmetries_continuous
+    for o in objs.values():  # each symmetry maps the surface onto itself
+        mesh = trimesh.Trimesh(o.vertices, o.faces)
+        pts = trimesh.sample.sample_surface(mesh, 200, seed=2)[0]
+        for T in o.symmetries_discrete:
+            assert _on_surface(mesh, pts @ T[:3, :3].T + T[:3, 3], 0.01 * o.diameter), o.name
+
+
+def test_the_shipped_blocks_symmetries_and_upright_faces_are_found() -> None:
+    """On the eight blocks, the search (any frame) finds exactly the symmetries make_blocks.py found (axis-aligned),
+    and the catalogue's upright face and stacking flags."""
+    for block in load_catalog().values():
+        mesh = trimesh.Trimesh(block.vertices, block.faces)
+        props = mass_properties(mesh, 1050.0)
+        up = upright(mesh, props.center_of_mass, 0.01 * props.diameter)
+        assert np.allclose(up.down, block.upright_down), block.name
+        assert (up.flat_top, up.flat_bottom) == (block.flat_top, block.flat_bottom), block.name
+        disc, cont = find_symmetries(mesh, props.center_of_mass, props.inertia, 0.01 * props.diameter)
+        assert len(cont) == len(block.symmetries_continuous), block.name
+        assert len(disc) == len(block.symmetries_discrete), block.name
+        for T in disc:
+            assert min(np.abs(T - S).max() for S in block.symmetries_discrete) < 1e-5, block.name
+
+
+def test_the_set_format_imports_only_the_core() -> None:
+    """The catalogue (core) can read sets through objset, which therefore must not reach into any part."""
+    from test_packaging import PARTS, import_graph
+
+    reached = nx.descendants(import_graph(), "posegrasp.objects.objset")
+    assert not [m for m in reached if m.split(".")[1] in PARTS], sorted(reached)
+
+
+def test_same_input_gives_byte_identical_files(meshes, imported: Path, tmp_path: Path) -> None:
+    again = tmp_path / "again"
+    assert _import(meshes, again) == 0
+    assert snapshot(again) == snapshot(imported)
+
+
+def test_bop_models_folder_keeps_its_symmetries(imported: Path, tmp_path: Path) -> None:
+    """A BOP models folder is read in mm and its models_info.json symmetries are taken, not searched."""
+    models = tmp_path / "ds" / "models"
+    models.mkdir(parents=True)
+    info = json.loads((imported / "models" / "models_info.json").read_text())
+    for i in (1, 2):
+        shutil.copy(imported / "models" / f"obj_{i:06d}.ply", models)
+    info = {"1": {**info["1"], "symmetries_discrete": info["1"]["symmetries_discrete"][:1]}, "2": info["2"]}
+    (models / "models_info.json").write_text(json.dumps(info))
+    out = tmp_path / "bopset"
+    assert main(["objects", "import", str(models.parent), "--out", str(out), "--no-progress"]) == 0
+    objs = load_object_set(out).objects
+    assert [o.name for o in objs] == ["obj_000001", "obj_000002"]
+    assert len(objs[0].symmetries_discrete) == 1 and "models_info.json" in objs[0].source["symmetries"]
+    assert len(objs[1].symmetries_continuous) == 1
+
+
+def test_show_draws_the_set(imported: Path, tmp_path: Path) -> None:
+    png = tmp_path / "set.png"
+    assert main(["objects", "show", str(imported), "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20000
+
+
+def _bad_meshes(d: Path) -> dict[str, Path]:
+    files = {"txt": d / "part.fbx", "empty": d / "empty.obj", "line": d / "line.obj", "cm": d / "big.stl",
+             "lid": d / "lid.stl"}
+    files["txt"].write_text("not a mesh\n")
+    files["empty"].write_text("# no vertices\n")
+    files["line"].write_text("v 0 0 0\nv 0.01 0 0\nv 0.02 0 0\nv 0.03 0 0\nf 1 2 3\nf 2 3 4\n")  # zero area
+    trimesh.creation.box([6.0, 4.0, 2.0]).export(files["cm"])  # a 60 mm part in cm
+    box = trimesh.creation.box([0.06, 0.04, 0.02])
+    trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] < 0.5]).export(files["lid"])  # top open: 37 %
+    return files
+
+
+@pytest.mark.parametrize("case, words", [
+    ("missing", "no such file"), ("txt", "unknown mesh format '.fbx'"), ("empty", "no triangles"),
+    ("line", "degenerate"), ("cm", "pass --unit cm"), ("lid", "too large to close"),
+])
+def test_bad_mesh_is_a_one_line_error_and_writes_nothing(capsys, tmp_path: Path, case: str, words: str) -> None:
+    files = _bad_meshes(tmp_path)
+    mesh = tmp_path / "nothere.stl" if case == "missing" else files[case]
+    out = tmp_path / "set"
+    refused(capsys, ["objects", "import", mesh, "--out", out, "--no-progress"], words)
+    assert not out.exists() and not list(tmp_path.glob(".set*"))
+
+
+def test_bad_set_folders_are_refused(capsys, imported: Path, tmp_path: Path) -> None:
+    png = tmp_path / "x.png"
+    refused(capsys, ["objects", "show", tmp_path / "none", "--out", png], "does not exist")
+    ds = tmp_path / "ds"
+    (ds / "models").mkdir(parents=True)
+    (ds / "camera.json").write_text("{}")
+    refused(capsys, ["objects", "show", ds, "--out", png], "is a BOP dataset, not an object set")
+    broken = tmp_path / "broken"
+    shutil.copytree(imported, broken)
+    (broken / "objects" / "obj_000003.json").unlink()
+    refused(capsys, ["objects", "show", broken, "--out", png], "obj_000003.json is missing")
+    shutil.copytree(imported, broken, dirs_exist_ok=True)
+    info = json.loads((broken / "models" / "models_info.json").read_text())
+    info["2"]["size_x"] += 5.0
+    (broken / "models" / "models_info.json").write_text(json.dumps(info))
+    refused(capsys, ["objects", "show", broken, "--out", png], "does not match its models_info.json")
+    before = snapshot(ds)
+    refused(capsys, ["objects", "import", imported / "models" / "obj_000001.ply", "--out", ds], "not an object set")
+    assert snapshot(ds) == before and not png.exists()

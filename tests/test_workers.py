@@ -1,0 +1,127 @@
+"""Pool workers die with their parent, whatever kills it, and never write after it: SIGKILL lands on the parent
+only (not its process group) of a 2-worker datagen and a 2-worker trials run; 5 s later no worker is alive,
+nothing in ``--out`` changed, and a resumed run gives the bytes of an uninterrupted one."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from test_datagen import file_hashes
+
+from posegrasp.datagen.config import load_datagen_config
+from posegrasp.datagen.generate import generate_dataset, is_complete
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.runfolder import EPISODES
+from posegrasp.grasping.trials import run_trials
+
+TINY_TOML = """
+blocks = [2, 3]
+[workcell.hand_camera]
+width = 80
+height = 60
+"""
+
+
+def cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "posegrasp.cli", *args]
+
+
+def children(pid: int) -> dict[int, str]:
+    """Processes whose parent is ``pid``: their command lines."""
+    out = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[1]) == pid:
+                out[int(stat.parent.name)] = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
+
+
+def alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, dead but not yet reaped by its new parent, counts as dead)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def listing(root: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``root``: (size, mtime in ns)."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*") if p.is_file()}
+
+
+def kill_parent_when(proc: subprocess.Popen, ready, what: str) -> dict[int, str]:
+    """Wait until ``ready()`` with two pool workers up, SIGKILL the parent alone; its children before the kill."""
+    t0 = time.monotonic()
+    while True:
+        assert proc.poll() is None, f"{what} ended before the kill: {proc.stderr.read().decode()}"
+        assert time.monotonic() - t0 < 240, f"{what}: never ready"
+        kids = children(proc.pid)
+        if sum("spawn_main" in c for c in kids.values()) >= 2 and ready():
+            break
+        time.sleep(0.01)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    return kids
+
+
+def assert_orphans_gone_and_nothing_written(kids: dict[int, str], out: Path) -> None:
+    before = listing(out)
+    time.sleep(5.0)
+    left = [f"{pid}: {cmd}" for pid, cmd in kids.items() if alive(pid)]
+    for pid in kids:  # clean up whatever the assertion below reports
+        if alive(pid):
+            os.kill(pid, signal.SIGKILL)
+    assert not left, f"workers outlived their parent: {left}"
+    assert listing(out) == before, "files were written after the parent was killed"
+
+
+@pytest.fixture(scope="module")
+def tiny_toml(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("cfg") / "tiny.toml"
+    p.write_text(TINY_TOML)
+    return p
+
+
+def test_datagen_workers_die_with_their_parent(tmp_path, tiny_toml):
+    out = tmp_path / "killed"
+    args = ["datagen", "--out", str(out), "--scenes", "4", "--views", "3", "--seed", "5", "--workers", "2",
+            "--config", str(tiny_toml), "--no-progress"]
+    proc = subprocess.Popen(cli(*args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        kids = kill_parent_when(proc, lambda: is_complete(out, "train_pbr", 0), "datagen")
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert not all(is_complete(out, "train_pbr", s) for s in range(4)), "the run finished before it was killed"
+    assert_orphans_gone_and_nothing_written(kids, out)
+    generate_dataset(out, 4, 3, 5, load_datagen_config(tiny_toml), workers=1)  # resumed
+    ref = tmp_path / "reference"
+    generate_dataset(ref, 4, 3, 5, load_datagen_config(tiny_toml), workers=1)
+    assert file_hashes(out) == file_hashes(ref)
+
+
+def test_trials_workers_die_with_their_parent(tmp_path):
+    out = tmp_path / "killed"
+    args = ["trials", "--out", str(out), "--episodes", "2", "--seed", "4", "--workers", "2", "--perception", "oracle",
+            "--no-progress"]
+    proc = subprocess.Popen(cli(*args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    lines = lambda: (out / EPISODES).read_text().count("\n") if (out / EPISODES).exists() else 0  # noqa: E731
+    try:
+        kids = kill_parent_when(proc, lambda: lines() >= 1, "trials")
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert_orphans_gone_and_nothing_written(kids, out)
+    ref = tmp_path / "reference"
+    run_trials(ref, 2, seed=4, perception="oracle", workers=1, cfg=TrialConfig(), progress=False)
+    run_trials(out, 2, seed=4, perception="oracle", workers=1, cfg=TrialConfig(), progress=False)
+    assert (out / EPISODES).read_bytes() == (ref / EPISODES).read_bytes()
