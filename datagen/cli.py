@@ -33,6 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="generation settings TOML (defaults: datagen/datagen.toml)")
     p.add_argument("--rgb-format", choices=("png", "jpg"), default=None, help="colour images (default: jpg for train_pbr, png for test)")
     p.add_argument("--blocks", default=None, help="blocks per scene: N or MIN-MAX (default 3-8)")
+    p.add_argument("--objects", default=None,
+                   help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_datagen)
 
@@ -42,8 +44,10 @@ def load_config(args: argparse.Namespace):
     from posegrasp.datagen.config import load_datagen_config, validate
     from posegrasp.config import override
     from posegrasp.sim.cli import parse_resolution
+    from posegrasp.sim.config import with_objects
 
     cfg = load_datagen_config(args.config)
+    cfg = dataclasses.replace(cfg, workcell=with_objects(cfg.workcell, args.objects))
     if args.resolution:
         w, h = parse_resolution(args.resolution)
         wc = cfg.workcell

@@ -7,12 +7,13 @@ default; a TOML file of the same layout (tables ``[views]``, ``[colours]``, ``[t
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp.config import load_toml
 from posegrasp.errors import UserError
-from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.config import WorkcellConfig, with_objects
 from posegrasp.sim.scene import PALETTE, check_block_types
 
 
@@ -127,7 +128,7 @@ class RgbNoiseConfig:
 class DatagenConfig:
     """Everything that decides the content of a generated dataset (besides seed, scene and view counts).
 
-    ``blocks``: blocks per scene, drawn uniformly in [min, max]; ``block_types``: catalogue names (empty: all);
+    ``blocks``: blocks per scene, drawn uniformly in [min, max]; ``block_types``: names in the object set (empty: all);
     ``min_spacing``: least distance (m) between drop points in the plane (smaller: piles, more occlusion);
     blocks must come to rest within ``area_margin`` (m) of the pick area, else they are dropped again.
     ``depth_scale``: BOP depth png units (value x depth_scale = mm). ``rgb_format``: ``jpg``, ``png`` or
@@ -165,9 +166,11 @@ def _check_range(name: str, r: tuple, lo: float | None = None) -> None:
 
 
 def validate(cfg: DatagenConfig) -> DatagenConfig:
-    """Check value types and ranges, raising a one-line UserError naming the bad setting; returns ``cfg``."""
+    """Check value types and ranges, raising a one-line UserError naming the bad setting; returns ``cfg`` (its
+    object set's folder made absolute and checked: ``sim.config.with_objects``)."""
+    cfg = dataclasses.replace(cfg, workcell=with_objects(cfg.workcell))
     _check_range("blocks", cfg.blocks, 1)
-    check_block_types(cfg.block_types)
+    check_block_types(cfg.block_types, cfg.workcell.objects)
     if not 0.01 <= cfg.min_spacing <= 0.2:
         raise UserError(f"min_spacing {cfg.min_spacing} m is out of range: use 0.01-0.2")
     v = cfg.views

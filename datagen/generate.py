@@ -97,7 +97,7 @@ def generate_scene(job: SceneJob) -> SceneWriter:
     return writer
 
 
-def _check_settings(path: Path, settings: dict[str, Any], binding: bool) -> None:
+def check_settings(path: Path, settings: dict[str, Any], binding: bool) -> None:
     """Record the settings of a split, or refuse to mix a resumed split with other settings (``binding``: the
     split holds a complete scene; settings left by a failed start are replaced)."""
     want = json.loads(pio.dumps_json(settings))
@@ -112,6 +112,15 @@ def _check_settings(path: Path, settings: dict[str, Any], binding: bool) -> None
                             "use a new --out or the original options")
         return
     pio.write_json(path, want)
+
+
+def recorded_config(cfg: DatagenConfig) -> dict[str, Any]:
+    """``cfg`` as ``datagen_config.json`` records it: ``workcell.objects`` only for a set other than the shipped
+    blocks (a dataset's ``models/`` are its set's; datasets made before sets existed stay resumable)."""
+    d = dataclasses.asdict(cfg)
+    if not cfg.workcell.objects:
+        del d["workcell"]["objects"]
+    return d
 
 
 def aggregate_stats(root: Path, split: str, scenes: int) -> dict[str, Any]:
@@ -148,12 +157,13 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
         if isinstance(workers, int) or workers is None:  # no idle worker processes
             workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
         executor = make_executor(workers)  # Ray connects here, before anything is written
-        prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), cfg.depth_scale))
+        prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), cfg.depth_scale),
+                     cfg.workcell.objects)
         ext = rgb_extension(cfg, split)
         for tmp in bop.split_dir(root, split).glob(".*.tmp"):  # leftovers of a killed write
             tmp.unlink()
-        _check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
-                        {"seed": seed, "views": views, "rgb_format": ext, "config": dataclasses.asdict(cfg)},
+        check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
+                        {"seed": seed, "views": views, "rgb_format": ext, "config": recorded_config(cfg)},
                         binding=has_scenes(root, split))
         jobs = [SceneJob(split, s, seed, views, cfg) for s in todo]
         t0 = time.perf_counter()

@@ -23,14 +23,14 @@ from typing import Any
 
 import numpy as np
 
-from posegrasp import ASSETS, bop
+from posegrasp import bop
 from posegrasp import io as pio
+from posegrasp.catalog import set_root
 from posegrasp.errors import UserError
 from posegrasp.geometry import invert
 from posegrasp.sim.camera import Frame
 
 COMPLETE_FILE = "scene_gt_info.json"
-SOURCE_MODELS = ASSETS / "blocks" / "models"
 EVAL_EDGE = 0.05  #: longest edge of a ``models_eval/`` model, as a fraction of its diameter
 
 
@@ -40,15 +40,30 @@ def write_if_changed(path: Path, data: bytes) -> None:
         pio.write_bytes(path, data)
 
 
-def prepare_root(root: Path, camera: bop.Camera) -> None:
-    """Write ``models/`` (the catalogue's BOP models, byte for byte) and ``camera.json``; remove leftovers of
-    killed writes. A ``camera.json`` for another camera is a UserError (one dataset, one camera) once a scene
-    was completed with it; before that (a failed start) it is replaced."""
+def _set_models(objects: str) -> dict[str, bytes]:
+    """The object set's BOP ``models/`` files (name -> bytes): its PLY models and ``models_info.json``."""
+    src = set_root(objects) / "models"
+    return {p.name: p.read_bytes() for p in sorted(src.iterdir()) if p.suffix in (".ply", ".json")}
+
+
+def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
+    """Write ``models/`` (the object set ``objects``'s BOP models, byte for byte; ``""``: the shipped blocks) and
+    ``camera.json``; remove leftovers of killed writes. Models of another set or a ``camera.json`` for another
+    camera are a UserError (one dataset, one set, one camera) once a scene was completed with them; before that
+    (a failed start) they are replaced."""
     for tmp in [*root.glob(".*.tmp"), *root.glob("models/.*.tmp"), *root.glob("models_eval/.*.tmp")]:
         tmp.unlink(missing_ok=True)
-    for src in sorted(SOURCE_MODELS.iterdir()):
-        if src.suffix in (".ply", ".json"):
-            write_if_changed(bop.models_dir(root) / src.name, src.read_bytes())
+    models = _set_models(objects)
+    have = {p.name for p in bop.models_dir(root).glob("*") if p.suffix in (".ply", ".json")}
+    if has_scenes(root) and (have != set(models) or any((bop.models_dir(root) / n).read_bytes() != b
+                                                        for n, b in models.items())):
+        raise UserError(f"{root} was generated from another object set (its models/ differ from those of "
+                        f"{set_root(objects)}); use a new --out or the original --objects")
+    for name in sorted(have - set(models)):  # a failed start with another set
+        for d in (bop.models_dir(root), bop.models_eval_dir(root)):
+            (d / name).unlink(missing_ok=True)
+    for name, data in models.items():
+        write_if_changed(bop.models_dir(root) / name, data)
     write_models_eval(root)
     cam_file = bop.camera_path(root)
     if cam_file.is_file() and has_scenes(root):
@@ -123,9 +138,10 @@ class SceneWriter:
         """Close the scene with what ``scene_datagen.json`` records."""
         self.extra = extra
 
-    def write(self, scene_dir: Path) -> None:
+    def write(self, scene_dir: Path, extra_file: str = "scene_datagen.json") -> None:
         """Write the scene into ``scene_dir`` from scratch (leftovers of a killed run removed): the images, one
-        ``os.sync()``, then the JSON files, ``scene_gt_info.json`` last (scene complete)."""
+        ``os.sync()``, then the JSON files (``extra_file`` holds ``finish``'s record), ``scene_gt_info.json`` last
+        (scene complete)."""
         if scene_dir.exists():
             shutil.rmtree(scene_dir)
         for sub in ("rgb", "depth", "mask", "mask_visib"):
@@ -135,5 +151,5 @@ class SceneWriter:
         os.sync()
         bop.write_scene_camera(scene_dir / "scene_camera.json", self.cams)
         bop.write_scene_gt(scene_dir / "scene_gt.json", self.gt)
-        pio.write_json(scene_dir / "scene_datagen.json", self.extra)
+        pio.write_json(scene_dir / extra_file, self.extra)
         bop.write_scene_gt_info(scene_dir / COMPLETE_FILE, self.infos)

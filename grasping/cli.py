@@ -15,17 +15,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="campaign seed: episode i draws from (seed, i) only")
     p.add_argument("--perception", default="oracle",
                    help="oracle (default) | noisy-oracle[:TRANS_M,ROT_DEG] | model[:RUN]: the learned network, "
-                        "the shipped weights without RUN")
+                        "the shipped weights without RUN | py:MODULE_OR_FILE:FACTORY[:ARGS] or an installed "
+                        "NAME[:ARGS]: your own estimator | bop-csv:RESULTS.csv: a BOP results file's estimates "
+                        "for the --export-captures frames (docs/estimators.md)")
     p.add_argument("--workers", type=workers_arg, default=2, help="worker processes (default 2), or 'ray'")
-    p.add_argument("--out", required=True, type=out_dir(), help="output folder (episodes.jsonl, summary.json)")
+    p.add_argument("--out", type=out_dir(), help="output folder (episodes.jsonl, summary.json); required unless "
+                                                  "--captures-only")
     p.add_argument("--config", default=None, help="trial settings TOML (grasping.config.TrialConfig layout)")
     p.add_argument("--task", type=_task_arg, default=None,
                    help="pick-place (default) | kitting (upright, at the kit's yaw) | stack (on a base block); "
                         "docs/tasks.md says which to use when")
+    p.add_argument("--objects", default=None,
+                   help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--sweep-noise", action="store_true",
                    help="run noisy-oracle campaigns at increasing noise and plot success against pose error")
     p.add_argument("--noise", type=_noise_arg, default="both",
                    help="--sweep-noise levels: rotation (0-45 deg) | translation (0-2 cm) | both (default)")
+    p.add_argument("--export-captures", type=out_dir("--export-captures"), metavar="DIR",
+                   help="also write every frame the robot perceives as a BOP test split with ground truth "
+                        "(scene = episode, im 0 the pick look, 1 stack's look at the base), for any BOP method; "
+                        "replay its results with --perception bop-csv:RESULTS.csv (docs/estimators.md)")
+    p.add_argument("--captures-only", action="store_true",
+                   help="with --export-captures: only drive to the looks and capture, no grasps (no --out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_trials_cmd)
 
@@ -54,19 +65,43 @@ def _noise_arg(text: str) -> str:
 
 
 def run_trials_cmd(args: argparse.Namespace) -> int:
-    from posegrasp.grasping.config import load_trial_config
+    from posegrasp.grasping.config import load_trial_config, with_set
     from posegrasp.grasping.trials import SWEEPS, run_trials, sweep_noise
 
-    cfg = load_trial_config(args.config)
+    cfg = with_set(load_trial_config(args.config), args.objects)
     if args.task:
         cfg = dataclasses.replace(cfg, task=args.task)
-    out = args.out
+    out, export = args.out, args.export_captures
+    if args.captures_only or export:
+        _check_export_args(args)
+    if args.captures_only:
+        from posegrasp.grasping.captures import export_captures
+        from posegrasp.grasping.trials import campaign_settings
+
+        cfg, mount = campaign_settings(args.episodes, cfg)
+        export_captures(export, args.episodes, args.seed, args.workers, cfg, mount, progress=not args.no_progress)
+        return 0
+    if out is None:
+        raise UserError("--out is required: the run folder (episodes.jsonl, summary.json)")
     if args.sweep_noise:
         sweep_noise(out, args.episodes, args.seed, args.workers, cfg, SWEEPS[args.noise], progress=not args.no_progress)
         print(f"noise sweep -> {out / 'sweep.png'}")
     else:
-        run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg, progress=not args.no_progress)
+        run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg, progress=not args.no_progress,
+                   export=export)
     return 0
+
+
+def _check_export_args(args: argparse.Namespace) -> None:
+    """``--export-captures`` and ``--captures-only`` go with one campaign and a folder of their own."""
+    if args.captures_only and args.export_captures is None:
+        raise UserError("--captures-only needs --export-captures DIR (the folder the captures go to)")
+    if args.captures_only and args.out is not None:
+        raise UserError("--captures-only runs no episodes and writes no run folder: drop --out")
+    if args.sweep_noise:
+        raise UserError("--export-captures is for one campaign, not --sweep-noise (its campaigns share the captures)")
+    if args.out is not None and args.out.resolve() == args.export_captures.resolve():
+        raise UserError(f"--export-captures {args.export_captures} is the --out folder: give it a folder of its own")
 
 
 def run_calibrate_cmd(args: argparse.Namespace) -> int:

@@ -1,6 +1,7 @@
 """``posegrasp compare RUN_A RUN_B``: did a perception change make grasping better or worse?
 
-Two trial runs on the same episode seeds are paired episode by episode. Reported: each run's success rate with
+Two trial runs on the same episode seeds are paired episode by episode, whatever their perception providers
+(oracle, model, a plug-in, a replayed BOP results file). Reported: each run's success rate with
 its Wilson 95 % interval, the difference, McNemar's exact test on the discordant pairs (b = A succeeded and B
 failed, c = A failed and B succeeded; two-sided p = min(1, 2 P[X <= min(b, c)]) with X ~ Binomial(b + c, 1/2)),
 per-block differences and the episodes that flipped. ``--fail-if-worse`` makes the exit status 1 when B is
@@ -19,7 +20,7 @@ from rich.table import Table
 
 from posegrasp.arguments import number, out_file
 from posegrasp.errors import UserError
-from posegrasp.grasping.runfolder import EPISODES, read_records
+from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, read_campaign, read_records
 from posegrasp.grasping.stats import rate_row
 from posegrasp.io import write_json
 
@@ -49,6 +50,22 @@ def load_run(path: str | Path) -> dict[int, dict]:
     return recs
 
 
+def run_objects(path: str | Path) -> dict | None:
+    """The object set a trial run folder (or its episodes.jsonl) ran on (``catalog.set_record``, from its
+    campaign.json); None when there is no campaign.json beside the episodes."""
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent
+    return read_campaign(folder).set_record() if (folder / CAMPAIGN).is_file() else None
+
+
+def check_same_objects(path_a: str | Path, path_b: str | Path) -> None:
+    """UserError when the two runs ran on different object sets (their set files' sha256 differ)."""
+    sa, sb = run_objects(path_a), run_objects(path_b)
+    if sa and sb and sa["sha256"] != sb["sha256"]:
+        raise UserError(f"run A ran on the object set {sa['name']} ({sa['path']}) and run B on {sb['name']} "
+                        f"({sb['path']}): compare runs on the same --objects")
+
+
 def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
     """Paired comparison of two runs on their common episodes (the same seeds in both)."""
     common = sorted(set(a) & set(b))
@@ -72,8 +89,8 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
     return {
         "task": ta,
         "episodes": n,
-        "a": rate_row(sum(sa), n),
-        "b": rate_row(sum(sb), n),
+        "a": {"perception": a[common[0]].get("perception"), **rate_row(sum(sa), n)},  # any providers pair up
+        "b": {"perception": b[common[0]].get("perception"), **rate_row(sum(sb), n)},
         "difference": (sum(sb) - sum(sa)) / n,
         "mcnemar": {"a_only": len(only_a), "b_only": len(only_b), "p_value": mcnemar_exact(len(only_a), len(only_b))},
         "per_block": {k: {"n": len(v), "a": sum(x for x, _ in v), "b": sum(y for _, y in v),
@@ -91,11 +108,11 @@ def is_worse(result: dict, alpha: float) -> bool:
 
 def print_comparison(result: dict, names: tuple[str, str], console: Console) -> None:
     t = Table(title=f"{result['episodes']} paired {result.get('task', 'pick-place')} episodes")
-    for col in ("run", "success", "rate", "Wilson 95 %"):
+    for col in ("run", "perception", "success", "rate", "Wilson 95 %"):
         t.add_column(col)
     for key, name in zip(("a", "b"), names):
         r = result[key]
-        t.add_row(name, f"{r['success']}/{r['n']}", f"{100 * r['rate']:.1f} %",
+        t.add_row(name, str(r.get("perception")), f"{r['success']}/{r['n']}", f"{100 * r['rate']:.1f} %",
                   f"[{100 * r['wilson95'][0]:.1f}, {100 * r['wilson95'][1]:.1f}]")
     console.print(t)
     m = result["mcnemar"]
@@ -125,7 +142,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_compare(args: argparse.Namespace) -> int:
-    result = compare_runs(load_run(args.run_a), load_run(args.run_b))
+    a, b = load_run(args.run_a), load_run(args.run_b)
+    check_same_objects(args.run_a, args.run_b)
+    result = compare_runs(a, b)
     print_comparison(result, (f"A {args.run_a}", f"B {args.run_b}"), Console())
     if args.out:
         write_json(args.out, result)

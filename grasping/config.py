@@ -6,12 +6,13 @@ the name says ``_deg``. Any field can be set from a TOML file of the same layout
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp import ASSETS
 from posegrasp.grasping.support import RestConfig
-from posegrasp.config import load_toml
+from posegrasp.config import load_toml, within
 from posegrasp.sim.scene import SceneConfig
 
 #: The shipped hand-eye calibration (``posegrasp calibrate``), used by the trials.
@@ -78,6 +79,15 @@ class GraspConfig:
     # more until all three touch.
     pose_hand_y: float = -0.012
     pose_finger_wait: int = 10
+    # The stack task also lets the arm stop swaying (5-8 mm after a fast descent) before closing and before
+    # setting the block down: the gripper within pose_settle_tol (m) of its target for 3 control periods in a
+    # row, at most pose_settle_time (s); and sets the block down from pose_place_gap (m) above its surface
+    # (guarded, slowly), so a block that slid down in the fingers touches the base slowly too. Kitting does
+    # not: an L-block turns in the hand while held (7-10 deg), and the longer hold took it past 10 deg.
+    pose_settle_tol: float = 0.001
+    pose_settle_time: float = 1.0
+    pose_place_gap: float = 0.02
+    pose_approach_speed: float = 0.1  # stack: the approach and place descent (m/s; approach_speed sways the arm)
 
 
 @dataclass(frozen=True)
@@ -144,8 +154,20 @@ class TrialConfig:
     task: str = "pick-place"  # one of TASKS
     kitting: KittingConfig = field(default_factory=KittingConfig)
     stack: StackConfig = field(default_factory=StackConfig)
+    # a perception provider that has not answered a capture after this many wall seconds fails the episode with
+    # "perception error" (0: no limit; the oracles are not timed)
+    perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
 
 
 def load_trial_config(path: str | Path | None = None) -> TrialConfig:
     """Trial settings from a TOML file, or the defaults."""
     return load_toml(TrialConfig, path)
+
+
+def with_set(cfg: TrialConfig, objects: str | Path | None = None) -> TrialConfig:
+    """``cfg`` on the object set ``objects`` (None: the one ``cfg`` names; ``""``: the shipped blocks), its folder
+    made absolute and checked (``sim.config.with_objects``)."""
+    from posegrasp.sim.config import with_objects
+
+    scene = dataclasses.replace(cfg.scene, workcell=with_objects(cfg.scene.workcell, objects))
+    return dataclasses.replace(cfg, scene=scene)

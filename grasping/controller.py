@@ -199,6 +199,18 @@ class ArmController:
             self._period(T_goal)
         return False
 
+    def settle(self, tol: float, timeout: float, periods: int = 3) -> bool:
+        """Track the current target until the measured gripper position has stayed within ``tol`` (m) of it for
+        ``periods`` control periods in a row (True) or ``timeout`` simulated seconds passed (False): after a
+        fast segment the arm sways by several millimetres, which a segment's ``pos_tol`` lets through."""
+        inside = 0
+        for _ in range(int(np.ceil(timeout / self.cfg.dt))):
+            inside = inside + 1 if self.pose_error(self.target)[0] < tol else 0
+            if inside >= periods:
+                return True
+            self._period(self.target)
+        return False
+
     def hold(self, duration: float) -> None:
         """Track the current target for ``duration`` simulated seconds."""
         for _ in range(int(np.ceil(duration / self.cfg.dt))):

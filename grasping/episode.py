@@ -22,13 +22,13 @@ from typing import Callable
 import mujoco
 import numpy as np
 
-from posegrasp.catalog import BlockType, load_catalog
+from posegrasp.catalog import BlockType, catalog_by_id
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, look_at_R, make_T, transform_points
 from posegrasp.grasping.config import ControlConfig, ScoringConfig, TrialConfig
 from posegrasp.grasping.controller import ArmController, SimulationError, robot_workcell
 from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
-from posegrasp.grasping.perception import Estimate
+from posegrasp.grasping.perception import BASE_LOOK, PICK_LOOK, Estimate, PerceptionError, perceive
 from posegrasp.grasping.provider_registry import make_provider
 from posegrasp.grasping.record import BaseRecord, EpisodeRecord, EpisodeTimings, FalseTarget, PoseError, Target
 from posegrasp.grasping.support import rest_on_table
@@ -52,6 +52,7 @@ class EpisodeTask:
     perception: str
     cfg: TrialConfig
     T_gripper_cam: tuple[tuple[float, ...], ...]  # calibrated mount, row-major 4x4
+    captures_only: bool = False  # only drive to the looks and capture (``--captures-only``): no perception, no grasp
 
 
 @dataclass
@@ -88,6 +89,7 @@ class _Episode:
     ctl: ArmController
     rec: EpisodeRecord
     log: _Log
+    on_capture: Callable[[Workcell, Frame, int], None] | None = None  # gets each capture and its im_id
 
     @property
     def cfg(self) -> TrialConfig:
@@ -194,7 +196,7 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
     ``rest_on_table``), among the estimates ``accept(block, T_world_obj)`` allows (all without it); None if
     none is feasible; ``_Failure(NO_UPRIGHT)`` if it allows none."""
     g_cfg = cfg.grasp
-    cat = {b.obj_id: b for b in load_catalog().values()}
+    cat = catalog_by_id(wc.cfg.objects)
     poses = [rest_on_table(cat[e.obj_id], T_world_cam @ e.T_cam_obj, cfg.rest) for e in ests]
     clouds = [transform_points(T, surface_points(cat[e.obj_id], g_cfg.neighbour_points)) for e, T in zip(ests, poses)]
     targets = [j for j, (e, T) in enumerate(zip(ests, poses)) if accept is None or accept(cat[e.obj_id], T)]
@@ -275,9 +277,12 @@ def capture_look(wc: Workcell) -> Frame:
     return frame
 
 
-def run_episode(task: EpisodeTask) -> tuple[EpisodeRecord, EpisodeTimings]:
+def run_episode(task: EpisodeTask, on_capture: Callable[[Workcell, Frame, int], None] | None = None
+                ) -> tuple[EpisodeRecord, EpisodeTimings]:
     """Run one episode; returns its record (deterministic) and the wall-clock and CPU timings of its phases
-    (which vary run to run)."""
+    (which vary run to run). ``on_capture(workcell, frame, im_id)`` sees every frame the hand camera captures for
+    perception, as it is taken (``grasping.captures``). With ``task.captures_only`` the episode stops after its
+    last capture and its record judges nothing."""
     cfg = task.cfg
     n_blocks, scene_seed, percept_seed, place_offset = episode_draws(task)
     rec = EpisodeRecord(task.index, task.seed, scene_seed, n_blocks, task.perception,
@@ -289,9 +294,11 @@ def run_episode(task: EpisodeTask) -> tuple[EpisodeRecord, EpisodeTimings]:
         rec.blocks = [inst.block.name for inst in wc.blocks]
         log.stop("scene", None)
         ctl = ArmController(wc, cfg.control, _look_q(wc))
-        _execute(_Episode(task, wc, ctl, rec, log), percept_seed, place_offset)
+        _execute(_Episode(task, wc, ctl, rec, log, on_capture), percept_seed, place_offset)
     except _Failure as f:
         rec.failure = f.reason
+    except PerceptionError as e:
+        rec.failure, rec.perception_error = "perception error", str(e)
     except SimulationError:
         rec.failure = "simulation error"
     except RuntimeError as e:  # a scene that never settles
@@ -326,6 +333,8 @@ def _execute(ep: _Episode, percept_seed: int, place_offset: np.ndarray) -> None:
     name = ep.cfg.task
     base = _look_at_base(ep) if name == "stack" else None
     ests = _look_and_perceive(ep, percept_seed)
+    if ep.task.captures_only:
+        return
     plan = _plan(ep, ests, _acceptor(ep.cfg, base))
     target_xy = np.asarray(ep.wc.cfg.place_area.center) + place_offset
     goal = _goal(ep, plan, target_xy, base)
@@ -358,10 +367,13 @@ def _look_at_base(ep: _Episode) -> _Base:
         raise _Failure("timeout")
     ep.log.stop("look_base", ep.ctl)
     seed = int(np.random.default_rng(np.random.SeedSequence([ep.task.seed, ep.task.index, 1])).integers(2**31 - 1))
-    ests = make_provider(ep.task.perception).estimate(capture_look(wc), seed)
+    frame = _capture(ep, BASE_LOOK)
+    if ep.task.captures_only:
+        return base
+    ests = _perceive(ep, frame, seed, BASE_LOOK)
     T_world_cam = wc.gripper_pose() @ np.asarray(ep.task.T_gripper_cam)
     pad = wc.cfg.place_area
-    cat = {b.obj_id: b for b in load_catalog().values()}
+    cat = catalog_by_id(wc.cfg.objects)
     on_pad = [(float(np.linalg.norm(T[:2, 3] - pad.center)), e.obj_id, T)
               for e in ests for T in [T_world_cam @ e.T_cam_obj]
               if np.all(np.abs(T[:2, 3] - pad.center) <= np.add(pad.half_size, 0.02))]
@@ -395,6 +407,26 @@ def _goal(ep: _Episode, plan: _Plan, target_xy: np.ndarray, base: _Base | None) 
     return _Goal(xy, yaw, surface)
 
 
+def _capture(ep: _Episode, im_id: int) -> Frame:
+    """The hand camera's frame at the arm's current pose, capture ``im_id`` of the episode (shown to
+    ``ep.on_capture``)."""
+    frame = capture_look(ep.wc)
+    if ep.on_capture is not None:
+        ep.on_capture(ep.wc, frame, im_id)
+    return frame
+
+
+def _perceive(ep: _Episode, frame: Frame, seed: int, im_id: int) -> list[Estimate]:
+    """The provider's checked estimates of capture ``im_id`` of the episode (``perception.perceive``: a
+    ``PerceptionError`` if it fails, hangs or returns what the planner cannot use)."""
+    try:
+        provider = make_provider(ep.task.perception, ep.wc.cfg.objects)
+    except UserError as e:  # built in the main process before the campaign, but not in this worker
+        raise PerceptionError(f"cannot build perception {ep.task.perception!r} in this worker: {e}") from None
+    return perceive(provider, frame, seed, ep.task.index, im_id, known_ids=catalog_by_id(ep.wc.cfg.objects),
+                    timeout_s=ep.cfg.perception_timeout_s)
+
+
 def _look_and_perceive(ep: _Episode, percept_seed: int) -> list[Estimate]:
     """Drive to the look pose, capture the hand camera and ask the provider for pose estimates."""
     if not drive_to_look(ep.wc, ep.cfg.control):
@@ -402,8 +434,10 @@ def _look_and_perceive(ep: _Episode, percept_seed: int) -> list[Estimate]:
     ep.ctl.check_stable()
     ep.ctl.target = ep.wc.gripper_pose()
     ep.log.stop("look", ep.ctl)
-    frame = capture_look(ep.wc)
-    ests = make_provider(ep.task.perception).estimate(frame, percept_seed)
+    frame = _capture(ep, PICK_LOOK)
+    if ep.task.captures_only:
+        return []
+    ests = _perceive(ep, frame, percept_seed, PICK_LOOK)
     ep.rec.detected = len(ests)
     ep.log.stop("perceive", ep.ctl)
     if not ests:
@@ -432,7 +466,7 @@ def _plan(ep: _Episode, ests: list[Estimate], accept: Callable[[BlockType, np.nd
     if ep.rec.task:
         ep.rec.estimate_error = upright_error(block, T_world_obj_est, ep.wc.block_poses()[k - 1][None],
                                               standing=False)
-    return _Plan(k, block, grasp, T_world_obj_est, {b.obj_id: b for b in load_catalog().values()}[ests[j].obj_id])
+    return _Plan(k, block, grasp, T_world_obj_est, catalog_by_id(ep.wc.cfg.objects)[ests[j].obj_id])
 
 
 def _pick(ep: _Episode, plan: _Plan) -> None:
@@ -452,11 +486,13 @@ def _pick(ep: _Episode, plan: _Plan) -> None:
         hit = hit or ctl.unexpected_contacts(k)
 
     ctl.monitor = watch_approach
-    reached = ctl.move(T_grasp, speed=g_cfg.approach_speed)
+    reached = ctl.move(T_grasp, speed=_approach_speed(ep.cfg))
     ctl.monitor = None
     ep.log.stop("approach", ctl)
     if not reached:
         raise _Failure("collision" if hit else "timeout")
+    if ep.cfg.task == "stack":  # the fingers close on the block where the plan put them, not mid-sway
+        ctl.settle(g_cfg.pose_settle_tol, g_cfg.pose_settle_time)
     if not ctl.close(k, wait_all=0 if ep.cfg.task == "pick-place" else g_cfg.pose_finger_wait):
         raise _Failure("collision" if hit else "slip")
     ep.log.stop("close", ctl)
@@ -499,7 +535,7 @@ def _lift_and_carry(ep: _Episode, plan: _Plan, goal: _Goal) -> np.ndarray:
         T_place[:3, :3] = Rz @ T_place[:3, :3]
         offset = Rz[:2, :2] @ offset
     T_place[:2, 3] = goal.xy + offset
-    T_place[2, 3] = T_grasp[2, 3] + (goal.surface_z + g_cfg.place_gap - bottom_est)
+    T_place[2, 3] = T_grasp[2, 3] + (goal.surface_z + _place_gap(ep.cfg) - bottom_est)
     T_above = T_place.copy()
     T_above[2, 3] += g_cfg.place_approach
     carried = ctl.move(T_above, speed=g_cfg.carry_speed)
@@ -515,12 +551,26 @@ def _lift_and_carry(ep: _Episode, plan: _Plan, goal: _Goal) -> np.ndarray:
     return T_place
 
 
+def _place_gap(cfg: TrialConfig) -> float:
+    """How far above its surface (m) the block is brought before the slow, guarded descent."""
+    return cfg.grasp.pose_place_gap if cfg.task == "stack" else cfg.grasp.place_gap
+
+
+def _approach_speed(cfg: TrialConfig) -> float:
+    """Peak speed (m/s) of the approach to the grasp and of the descent to the place pose."""
+    return cfg.grasp.pose_approach_speed if cfg.task == "stack" else cfg.grasp.approach_speed
+
+
 def _place(ep: _Episode, plan: _Plan, T_place: np.ndarray) -> None:
     """Lower the block onto the pad (slowly for the last part, until it touches), release it and retreat."""
     ctl, g_cfg, k = ep.ctl, ep.cfg.grasp, plan.k
     T_down = T_place.copy()
-    T_down[2, 3] -= g_cfg.place_gap + g_cfg.place_press
-    ctl.move(T_place, speed=g_cfg.approach_speed)
+    T_down[2, 3] -= _place_gap(ep.cfg) + g_cfg.place_press
+    if ep.cfg.task != "stack":
+        ctl.move(T_place, speed=g_cfg.approach_speed)
+    elif not ctl.move(T_place, speed=_approach_speed(ep.cfg), until=lambda: _block_supported(ep.wc, k)) or \
+            not _block_supported(ep.wc, k):  # set down where the plan says, not mid-sway
+        ctl.settle(g_cfg.pose_settle_tol, g_cfg.pose_settle_time)
     ctl.move(T_down, speed=g_cfg.place_descent_speed, until=lambda: _block_supported(ep.wc, k))
     if not ctl.finger_contacts(k).any():
         raise _Failure("drop")

@@ -4,9 +4,11 @@ A grasp is a gripper (pinch-site) pose ``T_world_gripper``: z is the approach di
 x the squeeze axis (finger 1 on +x opposes fingers 2 and 3 on -x), and the block's material centre sits at
 ``HAND_Y`` along the gripper y axis, between finger 1 and finger 3. Candidates are made per block type in
 the object frame (every face as the top, both in-plane axes as the squeeze axis, a few offsets along the
-face), expanded by the block's symmetries, moved into the world by the ESTIMATED pose, then checked on the
-estimated geometry: the material span across the fingers at the pinch height, the table, the clearance
-of the open hand from the neighbours' estimated surfaces, and (by the caller) IK reachability.
+face) where those suit the shape (``faces_fit``: boxes, prisms, round parts, the shipped blocks), else from
+the mesh's own antipodal pairs (``antipodal_pairs``: any imported shape), expanded by the block's symmetries,
+moved into the world by the ESTIMATED pose, then checked on the estimated geometry: the material span across
+the fingers at the pinch height, the table, the clearance of the open hand from the neighbours' estimated
+surfaces, and (by the caller) IK reachability.
 """
 
 from __future__ import annotations
@@ -25,6 +27,11 @@ HAND_Y = -0.005
 #: Half width (m) of a finger pad along the gripper y axis, and the contact band around the pinch height.
 _PAD_HALF = 0.012
 _BAND = (-0.008, 0.012)  # heights relative to the pinch point that the closing fingertips touch
+#: On shapes with mesh-made candidates (``faces_fit`` false) the span is measured this far past the widest
+#: opening on each side, so that material reaching past it (a handle beside the pinched body) makes the span
+#: too wide instead of going unseen (m).
+_COLUMN_MARGIN = 0.005
+_SPAN_TOL = 0.003  # ... and the span must be that of the antipodal pair the candidate was made for, within this (m)
 _PAD_OVERLAP = 0.004  # a yaw-stable pinch's contact face reaches this far past fingers 2 and 3's inner edges (m)
 #: The open hand in the gripper frame (m), from the jaco_hand meshes: each finger is a box from its pad
 #: (at half the opening along x) outward by _FINGER_OUTER, over its y span, from _TIP_BELOW past the pinch
@@ -72,12 +79,134 @@ def squeeze_axes(block: BlockType) -> list[int]:
     return axes
 
 
+#: Antipodal candidates: both contact normals within this half-angle (deg) of the squeeze axis (a friction
+#: coefficient of tan(15 deg) = 0.27, well inside the simulated 0.9, so the pinch holds off-centre too), from
+#: this many seeded surface samples, each pair approached from this many directions around its squeeze axis.
+ANTIPODAL_CONE_DEG = 15.0
+_ANTIPODAL_SAMPLES = 600
+_APPROACHES = 12
+_PATCH_RADIUS = 0.005  # the surface this close to a contact must face the finger (m)
+
+
+def _face_normals(block: BlockType) -> np.ndarray:
+    """(M, 3) outward unit normals of the block's triangles (object frame)."""
+    tri = block.vertices[block.faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def _surface_samples(block: BlockType, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``sample_surface``'s (n, 3) points (m, object frame) and the index of the triangle of each (its first
+    draw, repeated)."""
+    tri = block.vertices[block.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    idx = np.random.default_rng(seed).choice(len(tri), size=n, p=area / area.sum())
+    return sample_surface(block, n, seed), idx
+
+
+def _flat_patch(pts: np.ndarray, normals: np.ndarray, contact: np.ndarray, normal: np.ndarray,
+                cos_cone: float) -> bool:
+    """Does the surface within ``_PATCH_RADIUS`` of ``contact`` and 2 mm of its tangent plane face ``normal``
+    within the cone everywhere (a finger pad rests on it, not on a thin rim or a stud; a thin wall's inside is
+    not in the way)? ``pts``/``normals``: surface samples (m)."""
+    rel = pts - contact
+    near = (np.linalg.norm(rel, axis=1) < _PATCH_RADIUS) & (np.abs(rel @ normal) < 0.002)
+    return bool(np.all(normals[near] @ normal >= cos_cone))
+
+
+@functools.lru_cache(maxsize=32)
+def antipodal_pairs(block: BlockType, n: int = _ANTIPODAL_SAMPLES, seed: int = 0,
+                    cone_deg: float = ANTIPODAL_CONE_DEG, min_width: float = GraspConfig.min_width,
+                    max_width: float = GraspConfig.max_width) -> np.ndarray:
+    """(K, 2, 3) antipodal contact pairs ``[finger-side contact, far contact]`` (object frame, m).
+
+    Dex-Net style: ``n`` points drawn uniformly over the surface (seeded), a ray from each straight into the
+    part along its inward normal, and the point where it leaves the part for good is the opposite contact (the
+    fingers close from outside: across a hollow or a slot they touch the outer walls).
+    A pair is kept when the outward normal there lies within ``cone_deg`` of the ray (both normals oppose
+    within the friction cone), the span is within ``min_width``-``max_width`` and the surface within 5 mm of
+    each contact faces the finger within the cone (a pad rests on it, not on a thin rim, a handle or a stud's
+    side). Dropped: pairs along a continuous symmetry axis (a round end slips out), and pairs within 3 mm and
+    10 deg of a kept one. Same block and seed, same pairs.
+    """
+    import trimesh
+
+    normals = _face_normals(block)
+    pts, idx = _surface_samples(block, 10 * n, seed)  # the first n start rays, all check contact patches
+    pt_n = normals[idx]
+    p1, d = pts[:n], -pt_n[:n]
+    mesh = trimesh.Trimesh(np.asarray(block.vertices), np.asarray(block.faces), process=False)
+    hits, ray, face = trimesh.ray.ray_triangle.RayMeshIntersector(mesh).intersects_location(
+        p1 + 1e-6 * d, d, multiple_hits=True)
+    cos_cone = np.cos(np.deg2rad(cone_deg))
+    dist = np.einsum("ij,ij->i", hits - p1[ray], d[ray])
+    exits = np.flatnonzero((dist > 1e-5) & (np.einsum("ij,ij->i", normals[face], d[ray]) > 0.0))  # leaving
+    last: dict[int, int] = {}
+    for h in exits[np.lexsort((-dist[exits], ray[exits]))]:  # where each ray leaves the part for good
+        last.setdefault(int(ray[h]), int(h))
+    round_axes = np.array([a for a, _ in block.symmetries_continuous]).reshape(-1, 3)
+    pairs: list[np.ndarray] = []
+    for r, h in sorted(last.items()):
+        axis, width = d[r], float(dist[h])
+        ends = np.stack([p1[r], hits[h]])
+        if (not min_width <= width <= max_width or normals[face[h]] @ axis < cos_cone
+                or np.abs(round_axes @ axis).max(initial=0.0) > cos_cone
+                or not all(_flat_patch(pts, pt_n, e, s * axis, cos_cone) for e, s in zip(ends, (-1.0, 1.0)))):
+            continue
+        mid = p1[r] + 0.5 * width * axis
+        if any(np.linalg.norm(0.5 * (q[0] + q[1]) - mid) < 3e-3
+               and abs(axis @ (q[1] - q[0])) > np.cos(np.deg2rad(10.0)) * np.linalg.norm(q[1] - q[0]) for q in pairs):
+            continue
+        pairs.append(ends)
+    return np.stack(pairs) if pairs else np.zeros((0, 2, 3))
+
+
+def _pair_frames(pairs: np.ndarray) -> list[np.ndarray]:
+    """Grasp frames ``T_obj_grasp`` for antipodal pairs: x along the pair, origin at its midpoint, z (approach)
+    every ``360 / _APPROACHES`` degrees around x."""
+    frames = []
+    for q in pairs:
+        x = (q[1] - q[0]) / np.linalg.norm(q[1] - q[0])
+        ref = np.eye(3)[int(np.argmin(np.abs(x)))]
+        a = np.cross(x, ref)
+        a /= np.linalg.norm(a)
+        b = np.cross(x, a)
+        for k in range(_APPROACHES):
+            t = 2.0 * np.pi * k / _APPROACHES
+            z = np.cos(t) * a + np.sin(t) * b
+            frames.append(make_T(np.stack([x, np.cross(z, x), z], 1), 0.5 * (q[0] + q[1])))
+    return frames
+
+
+@functools.lru_cache(maxsize=32)
+def faces_fit(block: BlockType) -> bool:
+    """Do the face-based candidates suit this shape: does every one of its ``antipodal_pairs`` squeeze along a
+    bounding-box axis (within the friction cone), moved by any of its symmetries?"""
+    pairs = antipodal_pairs(block)
+    axes = np.einsum("sij,aj->sai", symmetry_transforms(block)[:, :3, :3], np.eye(3)).reshape(-1, 3)
+    spans = pairs[:, 1] - pairs[:, 0]
+    along = np.abs(spans @ axes.T).max(1, initial=0.0) / np.linalg.norm(spans, axis=1)
+    return bool(np.all(along >= np.cos(np.deg2rad(ANTIPODAL_CONE_DEG))))
+
+
 @functools.lru_cache(maxsize=32)
 def object_candidates(block: BlockType, n_continuous: int = 36) -> np.ndarray:
-    """(N, 4, 4) grasp frames ``T_obj_grasp`` (object frame, m): z = approach into a face, x = squeeze axis.
+    """(N, 4, 4) grasp frames ``T_obj_grasp`` (object frame, m): z = approach direction, x = squeeze axis
+    (``candidate_spans`` gives the span each was made for)."""
+    return candidate_spans(block, n_continuous)[0]
 
-    Origins lie on the face at its centre and at +-1/4 of its length along the third axis; the set is
-    closed under the block's symmetries (``symmetry_transforms``), duplicates removed.
+
+@functools.lru_cache(maxsize=32)
+def candidate_spans(block: BlockType, n_continuous: int = 36) -> tuple[np.ndarray, np.ndarray]:
+    """``object_candidates``' (N, 4, 4) frames and (N,) the span (m) of the antipodal pair each was made for
+    (NaN for a face-based one).
+
+    Origins lie on the face at its centre and at +-1/4 of its length along the third axis. These face-based
+    frames suit shapes whose antipodal pairs all squeeze along a bounding-box axis (moved by the symmetries):
+    boxes, prisms, round parts, brackets, the shipped blocks. A shape with a pair squeezing across anything
+    else (a mug's body beside its handle, slanted or curved sides off the box axes) gets frames from its
+    ``antipodal_pairs`` instead: x along the pair, origin at its midpoint, approach every 30 deg around x.
+    The set is closed under the block's symmetries (``symmetry_transforms``), duplicates removed.
     """
     lo, hi = block.vertices.min(0), block.vertices.max(0)
     centre, ext = (lo + hi) / 2, hi - lo
@@ -99,10 +228,16 @@ def object_candidates(block: BlockType, n_continuous: int = 36) -> np.ndarray:
                     p[l_axis] += o
                     frames.append(make_T(np.stack([x, y, z], 1), p))
     syms = symmetry_transforms(block, n_continuous)
+    spans = np.full(len(frames), np.nan)
+    if not faces_fit(block):
+        pairs = antipodal_pairs(block)
+        frames = _pair_frames(pairs)
+        spans = np.repeat(np.linalg.norm(pairs[:, 1] - pairs[:, 0], axis=1), _APPROACHES)
     out = np.einsum("sij,njk->snik", syms, np.stack(frames)).reshape(-1, 4, 4)
     key = np.round(np.concatenate([out[:, :3, 3] / 1e-3, out[:, :3, :3].reshape(-1, 9) / 0.05], 1)).astype(np.int64)
     _, first = np.unique(key, axis=0, return_index=True)
-    return out[np.sort(first)]
+    keep = np.sort(first)
+    return out[keep], np.tile(spans, len(syms))[keep]
 
 
 @functools.lru_cache(maxsize=32)
@@ -134,15 +269,20 @@ def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarra
     (finger 1 against finger 3 alone is a couple that turns the block in the hand), or at ``HAND_Y`` if
     the faces are too narrow for that.
     """
-    C = np.einsum("ij,njk->nik", T_world_obj, object_candidates(block))
+    frames, spans = candidate_spans(block)
+    C = np.einsum("ij,njk->nik", T_world_obj, frames)
     cos_tilt = -C[:, 2, 2]  # z axis against straight down
     keep = cos_tilt > np.cos(np.deg2rad(cfg.max_tilt_deg))
-    C, tilt = C[keep], np.degrees(np.arccos(np.clip(cos_tilt[keep], -1, 1)))
+    C, spans, tilt = C[keep], spans[keep], np.degrees(np.arccos(np.clip(cos_tilt[keep], -1, 1)))
+    if not faces_fit(block):  # of a mesh pair's approaches that reach one grasp, the least tilted counts
+        order = np.argsort(tilt, kind="stable")
+        C, spans, tilt = C[order], spans[order], tilt[order]
     pts = transform_points(T_world_obj, surface_points(block))
     centre = T_world_obj[:3, 3]
+    reach = cfg.max_width / 2 + (0.0 if faces_fit(block) else _COLUMN_MARGIN)
     grasps: list[Grasp] = []
     seen: set[tuple[int, int, int]] = set()
-    for Tc, tl in zip(C, tilt):
+    for Tc, tl, span in zip(C, tilt, spans):
         xh = np.array([Tc[0, 0], Tc[1, 0], 0.0])
         if np.linalg.norm(xh) < 0.5:
             continue
@@ -152,22 +292,25 @@ def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarra
             if key in seen:
                 continue
             seen.add(key)
-            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, opening_margin, yaw_stable)
-            if g is not None:
+            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, opening_margin, yaw_stable,
+                          reach)
+            if g is not None and not abs(g.width - span) > _SPAN_TOL:  # a mesh candidate pinches its own pair
                 grasps.append(g)
     return sorted(grasps, key=lambda g: -g.score)
 
 
 def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray, centre: np.ndarray,
               neighbours: np.ndarray, cfg: GraspConfig, yaw_now: float, opening_margin: float,
-              yaw_stable: bool = False) -> Grasp | None:
-    """A straight-down grasp with squeeze axis ``x`` through ``entry_xy``, checked on the estimated geometry."""
+              yaw_stable: bool = False, reach: float | None = None) -> Grasp | None:
+    """A straight-down grasp with squeeze axis ``x`` through ``entry_xy``, checked on the estimated geometry;
+    the span is measured on the surface points within ``reach`` (m; default half the widest opening) of the
+    entry along ``x``."""
     z = np.array([0.0, 0.0, -1.0])
     y = np.cross(z, x)
     R = np.stack([x, y, z], 1)
     rel = pts - np.array([entry_xy[0], entry_xy[1], 0.0])
     px, py, h = rel @ x, rel @ y, pts[:, 2]
-    column = (np.abs(px) < cfg.max_width / 2) & (np.abs(py) < _PAD_HALF)
+    column = (np.abs(px) < (cfg.max_width / 2 if reach is None else reach)) & (np.abs(py) < _PAD_HALF)
     if not column.any():
         return None
     best = None

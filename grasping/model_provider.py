@@ -13,10 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from posegrasp.grasping.perception import Estimate, visible_enough
+from posegrasp.grasping.perception import Estimate, Observation, visible_enough
 from posegrasp import ASSETS
+from posegrasp.catalog import set_root
 from posegrasp.errors import UserError
-from posegrasp.sim.camera import Frame
 
 if TYPE_CHECKING:  # torch is imported only when a model is asked for
     from posegrasp.perception.estimator import EstimateResult, Estimator
@@ -26,12 +26,12 @@ SHIPPED_MODEL = ASSETS / "perception" / "model"
 
 
 @functools.lru_cache(maxsize=2)
-def load_estimator(weights: str) -> Estimator:
-    """The trials' estimator of the run ``weights``: one torch thread, ICP against the catalogue's block meshes;
-    loaded once per process and run."""
+def load_estimator(weights: str, objects: str = "") -> Estimator:
+    """The trials' estimator of the run ``weights``: one torch thread, ICP against the models of the object set
+    ``objects`` (``""``: the shipped blocks); loaded once per process, run and set."""
     from posegrasp.perception.estimator import Estimator, EstimatorConfig
 
-    return Estimator(weights, EstimatorConfig(threads=1, models=ASSETS / "blocks"))
+    return Estimator(weights, EstimatorConfig(threads=1, models=set_root(objects)))
 
 
 @dataclass(frozen=True)
@@ -42,26 +42,32 @@ class ModelProvider:
 
     weights: str
     min_px: int = 150
+    objects: str = ""  # the object set whose models the ICP fits (``""``: the shipped blocks)
 
     @property
     def name(self) -> str:
         return f"model:{self.weights}"
 
-    def perceive(self, frame: Frame) -> EstimateResult:
-        """The estimator's whole result on the hand camera's ``frame``: detections, class map and stage timings."""
-        return load_estimator(self.weights)(frame.rgb, frame.depth, frame.K)
+    def perceive(self, obs: Observation) -> EstimateResult:
+        """The estimator's whole result on the hand camera's ``obs``: detections, class map and stage timings."""
+        return load_estimator(self.weights, self.objects)(obs.rgb, obs.depth, obs.K)
 
-    def estimate(self, frame: Frame, seed: int) -> list[Estimate]:
+    def estimate(self, obs: Observation, seed: int) -> list[Estimate]:
         """The detections of blocks seen well enough (``min_px``) as pose estimates T_cam_obj; ``seed`` is unused
         (the estimator is deterministic)."""
-        return [Estimate(d.obj_id, d.T_cam_obj, d.score) for d in self.perceive(frame).detections
+        return self.select(self.perceive(obs))
+
+    def select(self, result: EstimateResult) -> list[Estimate]:
+        """The detections of ``result`` seen well enough (``min_px``), as pose estimates T_cam_obj."""
+        return [Estimate(d.obj_id, d.T_cam_obj, d.score) for d in result.detections
                 if visible_enough(int(d.mask.sum()), d.mask.shape, self.min_px)]
 
 
-def from_spec(args: str | None) -> ModelProvider:
-    """The provider for ``--perception model[:RUN]`` (``args``: RUN, a run folder; None: the shipped weights)."""
+def from_spec(args: str | None, objects: str = "") -> ModelProvider:
+    """The provider for ``--perception model[:RUN]`` (``args``: RUN, a run folder; None: the shipped weights) on
+    the object set ``objects``."""
     path = Path(args) if args else SHIPPED_MODEL
     if not (path / "seg").is_dir() or not (path / "pose").is_dir():
         raise UserError(f"model weights {path} must hold seg/ and pose/ checkpoints (a 'posegrasp train' run folder)")
-    load_estimator(str(path))  # fail early, in this process, on corrupt or mismatched weights
-    return ModelProvider(str(path))
+    load_estimator(str(path), objects)  # fail early, in this process, on corrupt or mismatched weights
+    return ModelProvider(str(path), objects=objects)

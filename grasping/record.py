@@ -14,8 +14,9 @@ from posegrasp.grasping.upright import UprightError
 from posegrasp.io import jsonable
 
 #: Failure reasons, in the order the summary lists them (the last five only in the kitting and stack tasks).
-FAILURES = ("no detection", "pose error", "unreachable", "collision", "slip", "drop", "misplaced", "timeout",
-            "simulation error", "no upright block", "no base seen", "wrong face up", "misaligned", "base moved")
+FAILURES = ("no detection", "perception error", "pose error", "unreachable", "collision", "slip", "drop", "misplaced",
+            "timeout", "simulation error",
+            "no upright block", "no base seen", "wrong face up", "misaligned", "base moved")
 #: Record fields of the kitting and stack tasks, left out of a pick-and-place record.
 TASK_FIELDS = ("task", "estimate_error", "final_error", "base")
 
@@ -90,13 +91,17 @@ class EpisodeRecord:
     estimate_error: UprightError | None = None  # the target's estimate against ground truth, modulo symmetries
     final_error: UprightError | None = None  # the placed block against the task's target, modulo symmetries
     base: BaseRecord | None = None  # stack: the base block
+    perception_error: str | None = None  # "perception error": what the provider did wrong (one line)
 
     def to_json(self) -> dict:
-        """The ``episodes.jsonl`` record (the task fields only in a kitting or stack record)."""
+        """The ``episodes.jsonl`` record (the task fields only in a kitting or stack record, ``perception_error``
+        only when set)."""
         d = dataclasses.asdict(self)
         if self.task is None:
             for k in TASK_FIELDS:
                 del d[k]
+        if self.perception_error is None:
+            del d["perception_error"]
         return jsonable(d, digits=6)
 
 

@@ -39,11 +39,15 @@ class Look:
     estimates: list
     labels: np.ndarray
     overview: np.ndarray
+    objects: str = ""  # the object set's folder (``""``: the shipped blocks)
 
 
 def resimulate_look(run_dir: Path, rec: dict) -> Look | None:
     """Episode ``rec`` re-simulated from its seeds up to the look capture; None if it never got there."""
     from posegrasp.grasping.episode import EpisodeTask, capture_look, drive_to_look, episode_draws, episode_workcell
+    from posegrasp.grasping.model_provider import ModelProvider
+    from posegrasp.catalog import catalog_by_id
+    from posegrasp.grasping.perception import PICK_LOOK, PerceptionError, observation, perceive
     from posegrasp.grasping.provider_registry import make_provider
     from posegrasp.sim.camera import CameraRenderer
     from posegrasp.sim.workcell import OVERVIEW_CAMERA
@@ -62,15 +66,21 @@ def resimulate_look(run_dir: Path, rec: dict) -> Look | None:
     if not drive_to_look(wc, task.cfg.control):
         return None
     frame = capture_look(wc)
-    provider = make_provider(task.perception)
-    ests = provider.estimate(frame, percept_seed)
-    labels = frame.mask
-    if task.perception.startswith("model"):
-        labels = provider.perceive(frame).labels
+    provider = make_provider(task.perception, wc.cfg.objects)
+    if isinstance(provider, ModelProvider):  # its class map too, from the same single run of the network
+        result = provider.perceive(observation(frame, task.index, PICK_LOOK))
+        ests, labels = provider.select(result), result.labels
+    else:
+        try:
+            ests = perceive(provider, frame, percept_seed, task.index, PICK_LOOK,
+                            known_ids=catalog_by_id(wc.cfg.objects), timeout_s=task.cfg.perception_timeout_s)
+        except PerceptionError:  # the episode's "perception error": no estimates to draw
+            ests = []
+        labels = frame.mask
     cam = CameraRenderer.from_config(wc, OVERVIEW_CAMERA, wc.cfg.overview_camera, wc.cfg.render)
     overview = cam.rgb()
     cam.close()
-    return Look(frame, ests, np.asarray(labels), overview)
+    return Look(frame, ests, np.asarray(labels), overview, wc.cfg.objects)
 
 
 def silhouette(block, T_cam_obj: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -111,11 +121,11 @@ def segmentation_overlay(rgb: np.ndarray, labels: np.ndarray, alpha: float = 0.6
 
 def pose_overlay(look: Look) -> np.ndarray:
     """RGB (dimmed) with the block outlines at the true pose (green) and at the estimated pose (magenta)."""
-    from posegrasp.catalog import load_catalog
+    from posegrasp.catalog import catalog_by_id
 
     f = look.frame
     h, w = f.mask.shape
-    cat = {b.obj_id: b for b in load_catalog().values()}
+    cat = catalog_by_id(look.objects)
     out = (0.75 * f.rgb).astype(np.uint8)
     visible = np.unique(f.mask[f.mask > 0])
     for k in visible:  # thick, so that an estimate drawn on top of it leaves it visible
@@ -218,7 +228,8 @@ def _caption(rec: dict) -> str:
     err = f", {pe['metric']} {1000 * pe['err']:.1f} mm, rot {pe['re_deg']:.1f} deg" if pe else ""
     what = "success" if rec["outcome"] == "success" else f"failure: {rec['failure']}"
     target = t.get("type", "a false detection (no block)" if t else "-")
-    return (f"episode {rec['episode']} ({what}); target {target}{err}; "
+    why = f" ({rec['perception_error']})" if rec.get("perception_error") else ""
+    return (f"episode {rec['episode']} ({what}{why}); target {target}{err}; "
             f"{rec['n_blocks']} blocks, {rec['detected']} detected")
 
 
@@ -267,6 +278,8 @@ def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
              f"({_interval(s['grasp_success']['wilson95'])})</p>",
              _table(["setting", "value"], [["task", task], ["perception", perception], ["episodes", str(len(records))],
                                            ["campaign seed", str(campaign.seed)],
+                                           ["object set", f"{campaign.set_record()['name']} "
+                                                          f"({campaign.set_record()['path']})"],
                                            ["mean pose error (ADD(-S))", "-" if s.get("mean_pose_error_m") is None
                                             else f"{1000 * s['mean_pose_error_m']:.2f} mm"],
                                            ["mean simulated time per episode", f"{s['mean_sim_time_s']:.1f} s"],

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Iterable
 
+from posegrasp.catalog import set_record
 from posegrasp.config import from_dict
 from posegrasp.errors import UserError
 from posegrasp.grasping.config import TrialConfig
@@ -73,11 +74,16 @@ class Campaign:
     perception: str
     config: TrialConfig
     T_gripper_cam: tuple[tuple[float, ...], ...]  # calibrated mount used by the planner, row-major 4x4
+    objects: dict | None = None  # the object set as recorded (``catalog.set_record``); None: the config's set now
+
+    def set_record(self) -> dict:
+        """Name, path and sha256 of the object set the campaign runs on (``catalog.set_record``)."""
+        return self.objects or set_record(self.config.scene.workcell.objects)
 
     def to_json(self) -> dict:
         """The ``campaign.json`` content."""
         return {"seed": self.seed, "perception": self.perception, "config": dataclasses.asdict(self.config),
-                "T_gripper_cam": self.T_gripper_cam}
+                "T_gripper_cam": self.T_gripper_cam, "objects": self.set_record()}
 
 
 def read_campaign(run_dir: Path) -> Campaign:
@@ -88,8 +94,10 @@ def read_campaign(run_dir: Path) -> Campaign:
         mount = tuple(tuple(float(v) for v in row) for row in data["T_gripper_cam"])
         if len(mount) != 4 or any(len(row) != 4 for row in mount):
             raise ValueError
+        objects = data.get("objects")  # absent in runs made before object sets: the shipped blocks
         return Campaign(int(data["seed"]), str(data["perception"]),
-                        from_dict(TrialConfig, data["config"], where=f"{path} config"), mount)
+                        from_dict(TrialConfig, data["config"], where=f"{path} config"), mount,
+                        dict(objects) if isinstance(objects, dict) else None)
     except (KeyError, TypeError, ValueError):
         raise UserError(f"{path} is corrupt (needs seed, perception, config and a 4x4 T_gripper_cam); "
                         "rerun the trials into a new --out") from None
@@ -118,7 +126,12 @@ def check_campaign(out: Path, campaign: Campaign) -> None:
     if isinstance(old.get("config"), dict):  # fields added to TrialConfig since it was written: their defaults
         old["config"] = dataclasses.asdict(from_dict(TrialConfig, old["config"], where=f"{path} config"))
     new = json.loads(dumps_json(campaign.to_json()))
+    old.setdefault("objects", set_record(""))  # runs made before object sets ran on the shipped blocks
     old = json.loads(dumps_json(old))
+    was = old["objects"] if isinstance(old["objects"], dict) else {}
+    if was.get("sha256") != new["objects"]["sha256"]:
+        raise UserError(f"{out} holds a campaign on the object set {was.get('name')} ({was.get('path')}), not on "
+                        f"{new['objects']['path']}; use another --out, or --objects {was.get('path')} to resume")
     if old != new:
         keys = sorted(k for k in new if old.get(k) != new[k])
         raise UserError(f"{out} holds a different campaign (differs in {', '.join(keys)}); "

@@ -21,9 +21,12 @@ from rich.table import Table
 from posegrasp.errors import UserError
 from posegrasp.executor import make_executor
 from posegrasp.grasping.calibration import load_hand_eye
-from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.bop_csv import check_rows
+from posegrasp.grasping.captures import open_export, run_capturing
+from posegrasp.catalog import set_record
+from posegrasp.grasping.config import TrialConfig, with_set
 from posegrasp.grasping.episode import EpisodeTask, run_episode
-from posegrasp.grasping.provider_registry import make_provider
+from posegrasp.grasping.provider_registry import canonical_spec, make_provider
 from posegrasp.grasping.record import FAILURES
 from posegrasp.grasping.report import write_report
 from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, SUMMARY, TIMINGS, Campaign, append_record,
@@ -41,21 +44,30 @@ SWEEPS = {"both": SWEEP_LEVELS,
           "translation": tuple((t, 0.0) for t in (0.0, 0.0025, 0.005, 0.01, 0.02))}
 
 
-def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: int | str | None,
-               cfg: TrialConfig, console: Console | None = None, progress: bool = True) -> dict:
-    """Run (or resume) a campaign of ``episodes`` episodes into ``out``; returns the summary; ``progress``
-    shows a progress bar on ``console`` while episodes run."""
+def campaign_settings(episodes: int, cfg: TrialConfig) -> tuple[TrialConfig, tuple[tuple[float, ...], ...]]:
+    """``cfg`` checked for a campaign of ``episodes`` episodes (its object set's folder made absolute, for the
+    workers) and the calibrated camera mount (row-major 4x4); a UserError for settings no campaign can run."""
     if episodes < 1:
         raise UserError(f"--episodes must be at least 1, got {episodes}")
     if not 1 <= cfg.min_blocks <= cfg.max_blocks:
         raise UserError(f"need 1 <= min_blocks <= max_blocks, got {cfg.min_blocks} and {cfg.max_blocks}")
-    make_provider(perception)  # validates the spec before any work starts
+    cfg = with_set(cfg)
     check_task(cfg)
-    T_gripper_cam = load_hand_eye(cfg.hand_eye)
+    return cfg, tuple(tuple(float(v) for v in row) for row in load_hand_eye(cfg.hand_eye))
+
+
+def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: int | str | None,
+               cfg: TrialConfig, console: Console | None = None, progress: bool = True,
+               export: Path | None = None) -> dict:
+    """Run (or resume) a campaign of ``episodes`` episodes into ``out``; returns the summary; ``progress``
+    shows a progress bar on ``console`` while episodes run; ``export``: also write the frames the episodes
+    perceive there, as a BOP test split (``grasping.captures``)."""
+    cfg, mount = campaign_settings(episodes, cfg)
+    perception = canonical_spec(perception)  # a plug-in file's path absolute, for the workers and the record
+    check_rows(make_provider(perception, cfg.scene.workcell.objects), episodes, cfg.task)  # before any work starts
     console = console or Console(stderr=True)
-    with folder_lock(out):
+    with folder_lock(out), open_export(export, seed, cfg) as captures:
         executor = make_executor(workers)  # Ray connects here, before anything is written
-        mount = tuple(tuple(float(v) for v in row) for row in T_gripper_cam)
         recorded = read_records(out / EPISODES)
         if not recorded:  # a campaign binds once it has an episode: settings of a failed start are replaced
             (out / CAMPAIGN).unlink(missing_ok=True)
@@ -65,6 +77,9 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
         timings = read_records(out / TIMINGS)
         write_records(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
         todo = [EpisodeTask(seed, i, perception, cfg, mount) for i in range(episodes) if i not in done]
+        if captures is not None:  # episodes run before without their captures: only capture them
+            todo += [EpisodeTask(seed, i, perception, cfg, mount, captures_only=True) for i in done
+                     if not captures.has(i)]
         t0 = time.perf_counter()
         if todo:
             with open(out / EPISODES, "a") as f, open(out / TIMINGS, "a") as ft, progress_bar(
@@ -73,7 +88,12 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                     transient=True) as bar:
                 task = bar.add_task(f"{cfg.task} {perception}", total=episodes, completed=len(done))
                 ok = sum(r["outcome"] == "success" for r in done.values())
-                for _, (rec, timing) in executor.imap(run_episode, todo):
+                for _, result in executor.imap(run_episode if captures is None else run_capturing, todo):
+                    rec, timing = result[:2]
+                    if captures is not None:  # the captures first: an episode on record has them
+                        captures.write(result[2])
+                        if rec.episode in done:  # on record already: it was only captured
+                            continue
                     line = rec.to_json()
                     append_record(f, line, sync=True)
                     append_record(ft, timing.to_json())
@@ -81,12 +101,14 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                     ok += rec.outcome == "success"
                     bar.update(task, advance=1, description=f"{cfg.task} {perception}  success {ok}/{len(done)}")
         elapsed = time.perf_counter() - t0
+        ran = sum(not t.captures_only for t in todo)  # (the others were only captured)
         records = [done[i] for i in sorted(done)]
         write_records(out / EPISODES, records)
         summary = summarise(records)
         summary.update(task=cfg.task, seed=seed, perception=perception, workers=workers,
-                       wall={"seconds": elapsed, "episodes_run": len(todo),
-                             "episodes_per_min": 60 * len(todo) / elapsed if todo and elapsed > 0 else None})
+                       objects=set_record(cfg.scene.workcell.objects),
+                       wall={"seconds": elapsed, "episodes_run": ran,
+                             "episodes_per_min": 60 * ran / elapsed if ran and elapsed > 0 else None})
         write_json(out / SUMMARY, summary)
         print_summary(summary, console)
         console.print(f"report -> {write_report(out)}")
@@ -96,7 +118,9 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
 def print_summary(s: dict, console: Console) -> None:
     """The success rate, per-block and per-failure tables, printed with rich."""
     lo, hi = s["wilson95"]
-    console.print(f"[bold]{s.get('task', 'pick-place')}, {s['perception']}[/]: {s['success']}/{s['n']} episodes succeeded = "
+    objects = s.get("objects", {}).get("name", "blocks")
+    console.print(f"[bold]{s.get('task', 'pick-place')}, {s['perception']}, {objects}[/]: "
+                  f"{s['success']}/{s['n']} episodes succeeded = "
                   f"{100 * s['rate']:.1f} % (Wilson 95 % interval {100 * lo:.1f}-{100 * hi:.1f} %); "
                   f"grasped {s['grasp_success']['success']}/{s['n']}; "
                   f"target of the wrong class {s.get('wrong_class', 0)}/{s['n']}")

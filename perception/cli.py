@@ -54,6 +54,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="ablation: class-map outlines not snapped to colour edges (guided filter)")
     e.add_argument("--no-split", action="store_true", help="ablation: merged segments not split by the fitted models")
     e.add_argument("--max-images", type=positive_int("--max-images"), help="evaluate at most this many images")
+    e.add_argument("--threads", type=positive_int("--threads"), help="torch CPU threads (default 2; the grasp "
+                   "trials' estimator runs 1, and its scores can differ in the last digits with more)")
+    e.add_argument("--min-mask-px", type=nonneg_int("--min-mask-px"),
+                   help="drop detections whose mask has fewer pixels at 640x480 (150: as the grasp trials' model "
+                        "provider; default 0)")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(run=run_eval)
 
@@ -96,7 +101,8 @@ def run_eval(args: argparse.Namespace) -> int:
     from posegrasp.perception.evaluate import EvalConfig, evaluate
 
     cfg = load_toml(EvalConfig, args.config, section="eval")
-    cfg = override(cfg, split=args.split, max_images=args.max_images,
+    cfg = override(cfg, split=args.split, max_images=args.max_images, min_mask_px=args.min_mask_px,
+                   threads=args.threads,
                    masks="gt" if args.gt_masks else None, refine_iterations=0 if args.no_refine else None,
                    classify=False if args.no_cls else None, icp=False if args.no_icp else None,
                    plane=False if args.no_plane else None,

@@ -53,6 +53,9 @@ class EvalConfig:
     class map's outlines to the colour edges (``perception.guided``). split_merged: split
     off the parts of a mask its fitted model leaves unexplained (``perception.split``; needs icp).
     min_visib_fract: ground-truth instances less visible are not evaluated (BOP: 0.1).
+    min_mask_px: detections whose mask has fewer pixels (counted at 640x480) are dropped, from the scores and from
+    the results CSV (0: none; the grasp trials' model provider drops those under 150: with 150 the CSV holds
+    exactly what it returns on the same frames).
     min_valid_points: the estimator's minimum valid-depth pixels per object. model_points: surface
     points per model for ADD / ADD-S. max_images: 0 = all. method: name in the results CSV file."""
 
@@ -66,6 +69,7 @@ class EvalConfig:
     split_merged: bool = True
     min_visib_fract: float = 0.1
     min_valid_points: int = 50
+    min_mask_px: int = 0
     model_points: int = 1000
     max_images: int = 0
     method: str = "posegrasp"
@@ -188,7 +192,7 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
         t0 = time.perf_counter()
         if cfg.masks == "pred":
             res = est(rgb, depth, K)
-            dets, timings = res.detections, res.timings
+            dets, timings = [d for d in res.detections if _kept(d, cfg.min_mask_px)], res.timings
         else:  # no segmentation, classifier, split or guided stage with ground-truth masks
             dets, stages = est.estimate(rgb, depth, K, gt_masks)
             timings = {**dict.fromkeys(STAGES, 0.0), **stages}
@@ -257,6 +261,12 @@ def _bop19_setup(data: Path, split: str, records: list[bop.ImageRecord], infos: 
         if (t.scene_id, t.im_id) in shown and t.obj_id in infos:
             targets.setdefault((t.scene_id, t.im_id), {})[t.obj_id] = t.inst_count
     return scorer, targets
+
+
+def _kept(d: Detection, min_mask_px: int) -> bool:
+    """Is detection ``d``'s mask at least ``min_mask_px`` pixels at 640x480 (``grasping.perception.visible_enough``'s
+    rule)?"""
+    return int(d.mask.sum()) >= min_mask_px * d.mask.size / (640 * 480)
 
 
 def _nanmean(v: list[float]) -> float:

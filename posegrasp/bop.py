@@ -22,6 +22,7 @@ import io
 import json
 from collections import Counter
 from dataclasses import dataclass, field
+from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -203,7 +204,7 @@ class ImageRecord:
 
     def load_depth(self) -> np.ndarray:
         """Depth float32 (H, W) in metres along the optical axis; 0 = no measurement."""
-        return (_read_image(self.depth_path).astype(np.float32) * np.float32(self.camera.depth_scale * MM))
+        return depth_from_png(_read_image(self.depth_path), self.camera.depth_scale)
 
     def load_mask(self, gt_index: int, visible: bool = True) -> np.ndarray:
         """Boolean (H, W) mask of annotation ``gt_index``."""
@@ -392,6 +393,16 @@ def depth_to_png(depth_m: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:
     return np.clip(np.nan_to_num(v, nan=0.0, posinf=0.0), 0, 65535).astype(np.uint16)
 
 
+def depth_from_png(png: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:
+    """BOP depth png values (x depth_scale = mm) -> depth float32 (H, W) in metres; 0 stays 0."""
+    return np.asarray(png).astype(np.float32) * np.float32(depth_scale * MM)
+
+
+def quantise_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Depth (m) in steps of ``depth_scale`` mm, float32: what a BOP depth png of it reads back as (bit for bit)."""
+    return depth_from_png(depth_to_png(depth_m, depth_scale), depth_scale)
+
+
 def encode_rgb(rgb: np.ndarray, ext: str, jpg_quality: int = 95) -> bytes:
     """An RGB uint8 image (H, W, 3) as BOP colour image bytes; ``ext`` ``jpg`` or ``png``."""
     if ext == "jpg":
@@ -537,13 +548,70 @@ class PoseResult:
 
 
 def write_results_csv(path: str | Path, results: Iterable[PoseResult]) -> Path:
-    """Write BOP results: ``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm,
-    space-separated."""
+    """Write BOP results: ``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm, space-separated.
+    Lossless: R and the score as the shortest decimals that read back as the same floats, t as those of the
+    metres with the decimal point moved (``read_results_csv`` gives back the very same poses)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(RESULTS_HEADER)
     for r in results:
-        R, t = pose_to_bop(r.T_cam_obj)
-        w.writerow([r.scene_id, r.im_id, r.obj_id, f"{r.score:.6f}", " ".join(f"{x:.9f}" for x in R),
-                    " ".join(f"{x:.6f}" for x in t), f"{r.time:.6f}"])
+        T = np.asarray(r.T_cam_obj, dtype=np.float64)
+        w.writerow([r.scene_id, r.im_id, r.obj_id, repr(float(r.score)),
+                    " ".join(repr(x) for x in T[:3, :3].ravel().tolist()),
+                    " ".join(format(Decimal(repr(x)).scaleb(3), "f") for x in T[:3, 3].tolist()), f"{r.time:.6f}"])
     return pio.write_bytes(path, buf.getvalue().encode())
+
+
+def read_results_csv(path: str | Path) -> list[PoseResult]:
+    """A BOP results CSV (header ``scene_id,im_id,obj_id,score,R,t,time``; t in mm) as PoseResults (m), in file
+    order. A UserError naming the line for a wrong header, a missing field, a negative or non-integer id or a
+    number that does not parse or is not finite; R is not checked to be a rotation here."""
+    p = Path(path)
+    try:
+        lines = p.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise UserError(f"results file {p} does not exist") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"cannot read results file {p}: {getattr(e, 'strerror', None) or 'not UTF-8 text'}") from None
+    header = [h.strip() for h in lines[0].split(",")] if lines else []
+    if tuple(header) != RESULTS_HEADER:
+        raise UserError(f"{p} line 1: the header must be {','.join(RESULTS_HEADER)} (BOP results format), got "
+                        f"{','.join(header)!r}")
+    while len(lines) > 1 and not lines[-1].strip():  # blank lines at the end
+        lines.pop()
+    out = []
+    for n, row in enumerate(csv.reader(lines[1:]), start=2):  # result i is on line i + 2
+        try:
+            out.append(_result(row))
+        except ValueError as e:
+            raise UserError(f"{p} line {n}: {e}") from None
+    return out
+
+
+def _result(row: list[str]) -> PoseResult:
+    """One results row (fields as text) -> PoseResult; ValueError saying what is wrong."""
+    if not "".join(row).strip():
+        raise ValueError("empty line")
+    if len(row) != len(RESULTS_HEADER):
+        raise ValueError(f"expected {len(RESULTS_HEADER)} fields ({','.join(RESULTS_HEADER)}), got {len(row)}")
+    ids = []
+    for name, text in zip(RESULTS_HEADER[:3], row[:3]):
+        if not (text.strip().isascii() and text.strip().isdigit()):
+            raise ValueError(f"{name} {text!r} is not a non-negative integer")
+        ids.append(int(text))
+    nums = {name: _numbers(name, text, count) for name, text, count in zip(RESULTS_HEADER[3:], row[3:], (1, 9, 3, 1))}
+    T = np.eye(4)
+    T[:3, :3] = np.array([float(v) for v in nums["R"]]).reshape(3, 3)
+    T[:3, 3] = [float(v.scaleb(-3)) for v in nums["t"]]  # mm -> m, rounded once
+    return PoseResult(*ids, float(nums["score"][0]), T, float(nums["time"][0]))
+
+
+def _numbers(name: str, text: str, count: int) -> list[Decimal]:
+    """``count`` space-separated finite numbers of field ``name``, exactly as written; ValueError otherwise."""
+    try:
+        v = [Decimal(x) for x in text.split()]
+    except InvalidOperation:
+        v = []
+    if len(v) != count or not all(x.is_finite() for x in v):
+        raise ValueError(f"{name} {text!r} is not {count} finite number{'s' if count > 1 else ''}")
+    return v

@@ -1,15 +1,19 @@
-"""The building-block catalogue: meshes, masses, collision primitives and symmetries.
+"""The object catalogue: any object set's meshes, masses, collision pieces, upright faces and symmetries.
+
+An object set (``posegrasp.objects.objset``, format in ``docs/objects.md``) is a folder of BOP models plus one
+simulator file per object; the shipped default is the eight building blocks in ``assets/blocks`` (written by
+``assets/blocks/make_blocks.py``). Every command that builds scenes names its set with ``--objects SET``
+(``WorkcellConfig.objects``: ``""`` is the shipped set) and reads it through ``load_catalog``.
 
 Everything returned here is in SI units (metres, kilograms) and in the OBJECT frame: origin at the
-centre of the block's axis-aligned bounding box, +z up in its natural resting pose, x along its
-longest horizontal side. The files on disk (``assets/blocks``, written by
-``assets/blocks/make_blocks.py``) follow BOP: models and ``models_info.json`` in millimetres.
+centre of the object's axis-aligned bounding box. The files on disk follow BOP: models and
+``models_info.json`` in millimetres.
 """
 
 from __future__ import annotations
 
 import functools
-import json
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,36 +21,39 @@ from typing import Any
 import numpy as np
 
 from posegrasp import ASSETS
-from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T
 
-_MM = 1e-3  # metres per millimetre
+#: The shipped object set, used when ``objects`` is empty.
+DEFAULT_SET = ASSETS / "blocks"
 
 
 @dataclass(frozen=True, eq=False)
 class BlockType:
-    """One block type, in metres, in its object frame (compared and hashed by identity; read-only arrays).
+    """One object type of a set, in metres, in its object frame (compared and hashed by identity; read-only
+    arrays). The name is historical: any object of any set is a ``BlockType``.
 
     Attributes:
         obj_id: BOP object id (1-based).
-        name: Unique name, e.g. ``"brick_2x4"``.
+        name: Unique name within its set.
         vertices: (N, 3) mesh vertices (m).
         faces: (M, 3) triangle vertex indices, outward-facing (counter-clockwise seen from outside).
-        mass: Mass (kg), ABS density times the mesh volume.
-        collision: MuJoCo primitives (m) approximating the solid, as in ``catalog.json``:
+        mass: Mass (kg), density times the mesh volume.
+        collision: MuJoCo pieces (m) approximating the solid, as in the set's ``objects/*.json``:
             ``{"type": "box", "size": half-sizes, "pos", "quat" (w, x, y, z)}``,
             ``{"type": "cylinder", "size": [radius, half_height], "pos", "quat"}`` (axis local z) or
             ``{"type": "mesh", "vertices": [[x, y, z], ...]}`` (one convex piece).
         diameter: Largest distance between two vertices (m).
         extents: (3,) bounding-box size along x, y, z (m).
-        symmetries_discrete: 4x4 transforms (m) mapping the block onto itself, identity excluded.
+        symmetries_discrete: 4x4 transforms (m) mapping the object onto itself, identity excluded.
         symmetries_continuous: ``(axis (3,), offset (3,) m)``: rotation by any angle about the line
-            through ``offset`` along ``axis`` maps the block onto itself.
+            through ``offset`` along ``axis`` maps the object onto itself.
         friction: MuJoCo geom friction hint (sliding, torsional, rolling).
         rgba: Display colour.
-        upright_down: (3,) unit object-frame direction that points straight down when the block stands
-            upright (studs up, an arch on its feet), or None if the type has no upright pose.
-        flat_top, flat_bottom: standing upright, is its top one flat face another block can stand on, and
+        upright_down: (3,) unit object-frame direction that points straight down when the object stands
+            upright (a brick studs up, an arch on its feet), or None if the type has no upright pose.
+        upright_quat: (w, x, y, z) of ``R_table_obj`` standing it upright at the kit's yaw
+            (``R_table_obj @ upright_down = -z``).
+        flat_top, flat_bottom: standing upright, is its top one flat face another object can stand on, and
             does its bottom rest flat on such a face (which pairs can stack)?
     """
 
@@ -63,6 +70,7 @@ class BlockType:
     friction: tuple[float, float, float] = (0.5, 0.005, 0.0001)
     rgba: tuple[float, float, float, float] = field(default=(0.8, 0.8, 0.8, 1.0))
     upright_down: np.ndarray | None = None
+    upright_quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     flat_top: bool = False
     flat_bottom: bool = False
 
@@ -73,79 +81,69 @@ def _frozen(a: Any, dtype: Any = np.float64) -> np.ndarray:
     return out
 
 
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"block catalogue file {path} is missing: run `python assets/blocks/make_blocks.py`") from None
-    except json.JSONDecodeError as e:
-        raise UserError(f"block catalogue file {path} is not valid JSON ({e}): regenerate it") from None
+def set_root(objects: str | Path | None = "") -> Path:
+    """The folder of the object set ``objects`` names (absolute): the shipped set for ``""`` or None."""
+    return DEFAULT_SET if objects in ("", None) else Path(objects).expanduser().resolve()
 
 
-def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
+def _block(o: Any) -> BlockType:
+    """A ``BlockType`` from an ``objset.SetObject`` (the file's rounded rotations made orthonormal again)."""
+    disc = []
+    for T in o.symmetries_discrete:
+        T = np.array(T, np.float64)
+        U, _, Vt = np.linalg.svd(T[:3, :3])  # undo the rounding in the file: nearest rotation
+        T[:3, :3] = U @ Vt
+        disc.append(_frozen(T))
+    down = np.asarray(o.upright_down, float)
+    return BlockType(
+        obj_id=o.obj_id, name=o.name, vertices=_frozen(o.vertices), faces=_frozen(o.faces, np.int64), mass=o.mass,
+        collision=o.collision, diameter=o.diameter, extents=_frozen(o.extents), symmetries_discrete=tuple(disc),
+        symmetries_continuous=tuple((_frozen(a), _frozen(c)) for a, c in o.symmetries_continuous),
+        friction=tuple(o.friction), rgba=tuple(o.rgba), upright_down=_frozen(down / np.linalg.norm(down)),
+        upright_quat=tuple(o.upright_quat), flat_top=o.flat_top, flat_bottom=o.flat_bottom)
 
-    if not path.is_file():
-        raise UserError(f"block model {path} is missing: run `python assets/blocks/make_blocks.py`")
-    mesh = trimesh.load(path, process=False, force="mesh")
-    return np.asarray(mesh.vertices, np.float64) * _MM, np.asarray(mesh.faces, np.int64)
 
-
-def _upright(entry: dict | None) -> dict[str, Any]:
-    """``BlockType`` upright fields from a catalogue entry's optional ``upright`` object."""
-    if not entry:
-        return {}
-    down = np.asarray(entry["down"], float)
-    return {"upright_down": _frozen(down / np.linalg.norm(down)), "flat_top": bool(entry.get("flat_top", False)),
-            "flat_bottom": bool(entry.get("flat_bottom", False))}
-
-
-@functools.lru_cache(maxsize=4)
+@functools.lru_cache(maxsize=8)
 def _load(root: Path) -> tuple[BlockType, ...]:
-    catalog = _read_json(root / "catalog.json")
-    info = _read_json(root / "models" / "models_info.json")
-    blocks = []
-    for entry in sorted(catalog["blocks"], key=lambda e: e["obj_id"]):
-        oid = int(entry["obj_id"])
-        if str(oid) not in info:
-            raise UserError(f"{root / 'models' / 'models_info.json'} has no entry for obj_id {oid}: regenerate it")
-        mi = info[str(oid)]
-        vertices, faces = _read_ply(root / entry.get("model", f"models/obj_{oid:06d}.ply"))
-        disc = []
-        for flat in mi.get("symmetries_discrete", []):
-            T = np.array(flat, np.float64).reshape(4, 4)
-            U, _, Vt = np.linalg.svd(T[:3, :3])  # undo the rounding in the file: nearest rotation
-            T[:3, :3] = U @ Vt
-            T[:3, 3] *= _MM
-            disc.append(_frozen(T))
-        cont = tuple((_frozen(np.asarray(c["axis"], float) / np.linalg.norm(c["axis"])),
-                      _frozen(np.asarray(c["offset"], float) * _MM))
-                     for c in mi.get("symmetries_continuous", []))
-        blocks.append(BlockType(
-            obj_id=oid,
-            name=str(entry["name"]),
-            vertices=_frozen(vertices),
-            faces=_frozen(faces, np.int64),
-            mass=float(entry["mass_kg"]),
-            collision=tuple(entry["collision"]),
-            diameter=float(mi["diameter"]) * _MM,
-            extents=_frozen([mi["size_x"] * _MM, mi["size_y"] * _MM, mi["size_z"] * _MM]),
-            symmetries_discrete=tuple(disc),
-            symmetries_continuous=cont,
-            friction=tuple(entry.get("friction", (0.5, 0.005, 0.0001))),
-            rgba=tuple(entry.get("rgba", (0.8, 0.8, 0.8, 1.0))),
-            **_upright(entry.get("upright")),
-        ))
-    return tuple(blocks)
+    from posegrasp.objects.objset import load_object_set
+
+    return tuple(_block(o) for o in load_object_set(root).objects)
 
 
-def load_catalog(root: Path = ASSETS / "blocks") -> dict[str, BlockType]:
-    """All block types under ``root``, keyed by name, ordered by ``obj_id`` (cached per root).
+def load_catalog(objects: str | Path | None = "") -> dict[str, BlockType]:
+    """Every object type of the set ``objects`` (a set folder; ``""``: the shipped blocks), keyed by name,
+    ordered by ``obj_id`` (cached per folder).
 
     Raises:
-        UserError: when a catalogue file is missing or unreadable.
+        UserError: one line naming the folder or file, when it is no object set or a file of it is missing or
+            inconsistent (``objects.objset.load_object_set`` checks every file).
     """
-    return {b.name: b for b in _load(Path(root).resolve())}
+    return {b.name: b for b in _load(set_root(objects))}
+
+
+def catalog_by_id(objects: str | Path | None = "") -> dict[int, BlockType]:
+    """``load_catalog(objects)`` keyed by ``obj_id``."""
+    return {b.obj_id: b for b in _load(set_root(objects))}
+
+
+@functools.lru_cache(maxsize=8)
+def _digest(root: Path) -> str:
+    from posegrasp.objects.objset import MANIFEST
+
+    files = [MANIFEST, "models/models_info.json", *sorted(p.relative_to(root).as_posix() for d in ("objects", "models")
+                                                          for p in (root / d).glob("obj_*"))]
+    h = hashlib.sha256()
+    for rel in files:
+        h.update(rel.encode() + b"\0" + hashlib.sha256((root / rel).read_bytes()).digest())
+    return h.hexdigest()
+
+
+def set_record(objects: str | Path | None = "") -> dict[str, str]:
+    """What a run records of the object set it used: ``name`` (its folder's), ``path`` and ``sha256`` (of its
+    manifest, object files and models: two runs used the same set when these are equal). Loads (checks) it."""
+    root = set_root(objects)
+    _load(root)
+    return {"name": root.name, "path": str(root), "sha256": _digest(root)}
 
 
 def symmetry_transforms(block: BlockType, n_continuous: int = 36) -> np.ndarray:

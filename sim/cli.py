@@ -30,18 +30,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--types", default="", help="comma-separated block types to draw from (default: all)")
     p.add_argument("--resolution", default=None, help="hand camera WIDTHxHEIGHT (default from the config)")
     p.add_argument("--config", default=None, help="workcell TOML file (default: assets/workcell.toml)")
+    p.add_argument("--objects", default=None,
+                   help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--out", required=True, type=out_dir(), help="output folder")
     p.set_defaults(run=run_scene)
 
 
 def run_scene(args: argparse.Namespace) -> int:
     from posegrasp.io import write_image, write_json
-    from posegrasp.sim.config import load_workcell_config
+    from posegrasp.sim.config import load_workcell_config, with_objects
     from posegrasp.sim.scene import SceneConfig, make_scene
     from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA
     from posegrasp.sim.camera import CameraRenderer
 
-    wcfg = load_workcell_config(args.config)
+    wcfg = with_objects(load_workcell_config(args.config), args.objects)
     if args.resolution:
         w, h = parse_resolution(args.resolution)
         wcfg = dataclasses.replace(wcfg, hand_camera=dataclasses.replace(wcfg.hand_camera, width=w, height=h))

@@ -6,6 +6,7 @@ these defaults; any field can be overridden from a TOML file of the same layout.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,7 +49,11 @@ class AreaConfig:
 
 @dataclass(frozen=True)
 class WorkcellConfig:
-    """Everything that defines the workcell; the world frame is the arm base on the table top, z up."""
+    """Everything that defines the workcell; the world frame is the arm base on the table top, z up.
+
+    ``objects``: the object set its scenes draw from (a set folder, ``--objects``; ``""``: the shipped blocks,
+    ``posegrasp.catalog``).
+    """
 
     table_half_size: tuple[float, float, float] = (0.55, 0.75, 0.02)
     table_center: tuple[float, float] = (0.3, 0.0)
@@ -62,6 +67,7 @@ class WorkcellConfig:
     look_height: float = 0.38
     home_qpos: tuple[float, ...] = (-0.37, 3.34, 5.10, 2.65, 1.64, 2.28)
     timestep: float = 0.002
+    objects: str = ""
 
 
 DEFAULT_TOML = ASSETS / "workcell.toml"
@@ -70,3 +76,17 @@ DEFAULT_TOML = ASSETS / "workcell.toml"
 def load_workcell_config(path: str | Path | None = None) -> WorkcellConfig:
     """Workcell settings from ``path``, or the shipped ``assets/workcell.toml``."""
     return load_toml(WorkcellConfig, path if path is not None else DEFAULT_TOML)
+
+
+def with_objects(cfg: WorkcellConfig, objects: str | Path | None = None) -> WorkcellConfig:
+    """``cfg`` drawing from the object set ``objects`` (None: ``cfg.objects``, as a TOML file gave it), its folder
+    made absolute (worker processes may run elsewhere) and checked: a one-line ``UserError`` for a missing
+    folder, a missing or inconsistent file, or a BOP dataset given instead of a set."""
+    from posegrasp.catalog import load_catalog
+
+    name = cfg.objects if objects is None else str(objects)
+    if not name:
+        return dataclasses.replace(cfg, objects="")
+    root = Path(name).expanduser().resolve()
+    load_catalog(root)
+    return dataclasses.replace(cfg, objects=str(root))

@@ -11,7 +11,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
-from posegrasp.catalog import BlockType, load_catalog
+from posegrasp.catalog import BlockType, load_catalog, set_root
 from posegrasp.errors import UserError
 from posegrasp.geometry import make_T, quat_to_R
 from posegrasp.sim.config import WorkcellConfig
@@ -46,18 +46,20 @@ def area_capacity(cfg: SceneConfig) -> int:
     return int((2 * hx // s + 1) * (2 * hy // (s * np.sqrt(3) / 2) + 1) * 0.5)
 
 
-def check_block_types(names: tuple[str, ...] | list[str]) -> None:
-    """Raise a UserError naming the ``names`` that are not catalogue block types."""
-    cat = load_catalog()
+def check_block_types(names: tuple[str, ...] | list[str], objects: str = "") -> None:
+    """Raise a UserError naming the ``names`` that are not object types of the set ``objects``."""
+    cat = load_catalog(objects)
     unknown = [t for t in names if t not in cat]
     if unknown:
-        raise UserError(f"unknown block type(s) {unknown}; known types: {', '.join(cat)}")
+        raise UserError(f"unknown block type(s) {unknown}; the object set {set_root(objects).name} has: "
+                        f"{', '.join(cat)}")
 
 
 def choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[BlockType]:
-    cat = load_catalog()
+    """``n`` object types drawn from ``cfg.block_types`` (all of the workcell's object set when empty)."""
+    cat = load_catalog(cfg.workcell.objects)
     names = list(cfg.block_types) or list(cat)
-    check_block_types(names)
+    check_block_types(names, cfg.workcell.objects)
     return [cat[names[i]] for i in rng.integers(0, len(names), size=n)]
 
 

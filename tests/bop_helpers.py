@@ -3,7 +3,6 @@ one file at a time, and the results CSV read back. Metres in, millimetres on dis
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 from typing import Any
 
@@ -69,12 +68,5 @@ def write_mask(path: str | Path, mask: np.ndarray) -> Path:
     return pio.write_image(path, np.asarray(mask, dtype=bool).astype(np.uint8) * 255)
 
 
-def read_results_csv(path: str | Path) -> list[bop.PoseResult]:
-    """Read a BOP results CSV back (translations to metres)."""
-    out = []
-    with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            T = bop.pose_from_bop([float(x) for x in row["R"].split()], [float(x) for x in row["t"].split()])
-            out.append(bop.PoseResult(int(row["scene_id"]), int(row["im_id"]), int(row["obj_id"]), float(row["score"]),
-                                      T, float(row["time"])))
-    return out
+#: Reading a BOP results CSV back (translations to metres).
+read_results_csv = bop.read_results_csv

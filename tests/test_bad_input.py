@@ -233,7 +233,8 @@ def test_trials_refuse_a_corrupt_run_folder(capsys, tmp_path, lines, campaign, w
 
 
 @pytest.mark.parametrize("argv, words", [
-    (["--perception", "sonar"], "unknown perception 'sonar'; choose one of: model, noisy-oracle, oracle"),
+    (["--perception", "sonar"], "unknown perception 'sonar'; choose one of: "),
+    (["--perception", "sonar"], "oracle, py:MODULE_OR_FILE:FACTORY[:ARGS]; installed: "),
     (["--perception", "noisy-oracle:far"], "are not TRANS_M,ROT_DEG"),
     (["--perception", "model:/nonexistent"], "must hold seg/ and pose/"),
     (["--episodes", "0"], "--episodes must be a positive integer"),
@@ -243,6 +244,47 @@ def test_trials_refuse_a_corrupt_run_folder(capsys, tmp_path, lines, campaign, w
 def test_trials_bad_options(capsys, tmp_path, argv, words):
     refused(capsys, ["trials", "--out", tmp_path / "run", "--episodes", "1", *argv], words)
     assert snapshot(tmp_path) == {}
+
+
+#: A plug-in file with a good factory and three bad ones (``--perception py:FILE:FACTORY``).
+PLUGIN = """class P:
+    name = "p"
+
+    def estimate(self, obs, seed):
+        return []
+
+def make(args):
+    return P()
+
+def broken(args):
+    raise ValueError("no weights at\\n" + str(args))
+
+def nothing(args):
+    return 42
+
+not_callable = 3
+"""
+
+
+@pytest.mark.parametrize("spec, words", [
+    ("py:no_such_module_xyz:make", "no module named 'no_such_module_xyz'"),
+    ("py:{d}/missing.py:make", "no file"),
+    ("py:{d}/plugin.py:nope", "has no callable 'nope'"),
+    ("py:{d}/plugin.py:not_callable", "has no callable 'not_callable'"),
+    ("py:{d}/plugin.py:broken:/w", "its factory raised ValueError: no weights at /w"),
+    ("py:{d}/plugin.py:nothing", "the factory returned a int, not a provider"),
+    ("py:{d}/syntax.py:make", "syntax.py failed: SyntaxError"),
+    ("py:{d}/plugin.py", "is not py:MODULE_OR_FILE:FACTORY[:ARGS]"),
+    ("py::make", "is not py:MODULE_OR_FILE:FACTORY[:ARGS]"),
+])
+def test_trials_unbuildable_plugins(capsys, tmp_path, spec, words):
+    d = tmp_path / "plug"
+    d.mkdir()
+    (d / "plugin.py").write_text(PLUGIN)
+    (d / "syntax.py").write_text("def make(:\n")
+    before = snapshot(tmp_path)
+    refused(capsys, ["trials", "--out", tmp_path / "run", "--episodes", "1", "--perception", spec.format(d=d)], words)
+    assert snapshot(tmp_path) == before
 
 
 def test_trials_unreadable_weights(capsys, tmp_path):
@@ -378,3 +420,104 @@ def test_program_bad_options(capsys, tmp_path, monkeypatch, argv, words):
     monkeypatch.chdir(tmp_path)
     refused(capsys, argv, words)
     assert snapshot(tmp_path) == {}
+
+
+# -- object sets (--objects) --------------------------------------------------------------------------------------
+
+def _bad_set(tmp_path: Path, kind: str, dataset: Path) -> Path:
+    """An ``--objects`` value that is no usable object set, made from a copy of the shipped one as ``kind`` says."""
+    from posegrasp.catalog import DEFAULT_SET
+
+    if kind == "missing":
+        return tmp_path / "none"
+    if kind == "dataset":
+        return dataset
+    root = Path(shutil.copytree(DEFAULT_SET, tmp_path / "set", ignore=shutil.ignore_patterns("*.py", "__pycache__")))
+    if kind == "no object file":
+        (root / "objects" / "obj_000003.json").unlink()
+    elif kind == "inconsistent":
+        _edit_json(root / "objects" / "obj_000002.json", lambda d: d.update(name="rod"))
+    elif kind == "other model":
+        shutil.copy(root / "models" / "obj_000001.ply", root / "models" / "obj_000002.ply")
+    return root
+
+
+OBJECT_COMMANDS = {
+    "scene": ["scene", "--resolution", "64x48"],
+    "datagen": ["datagen", "--scenes", "1", "--views", "1", "--resolution", "64x48", "--workers", "1", "--no-progress"],
+    "trials": ["trials", "--episodes", "1", "--workers", "1", "--no-progress"],
+}
+
+
+@pytest.mark.parametrize("command", OBJECT_COMMANDS)
+@pytest.mark.parametrize("kind, words", [
+    ("missing", "does not exist"),
+    ("dataset", "is a BOP dataset, not an object set"),
+    ("no object file", "obj_000003.json is missing"),
+    ("inconsistent", "says obj_id 2 'rod', the manifest 2 'long_cuboid'"),
+    ("other model", "obj_000002.ply does not match its models_info.json entry"),
+])
+def test_objects_that_are_no_object_set(capsys, dataset, tmp_path, command, kind, words):
+    objects = _bad_set(tmp_path / "in", kind, dataset)
+    before, data_before = snapshot(tmp_path), snapshot(dataset)
+    refused(capsys, [*OBJECT_COMMANDS[command], "--objects", objects, "--out", tmp_path / "out"], words)
+    assert snapshot(tmp_path) == before and snapshot(dataset) == data_before
+
+
+# -- trials: a BOP results file (--perception bop-csv:) and the capture export options -----------------------------
+
+CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+CSV_ROW = "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1"
+
+
+@pytest.mark.parametrize("lines, words", [
+    (["scene_id,im_id,obj_id,score,R,t", CSV_ROW], "line 1: the header must be scene_id,im_id,obj_id,score,R,t,time"),
+    ([], "line 1: the header must be"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 5e2x,-1"], "line 2: t '10 -20 5e2x' is not 3 finite numbers"),
+    ([CSV_HEADER, "0,0,1,nan,1 0 0 0 1 0 0 0 1,10 -20 500,-1"], "line 2: score 'nan' is not 1 finite number"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 NaN,10 -20 500,-1"], "line 2: R '1 0 0 0 1 0 0 0 NaN' is not 9 finite"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0,10 -20 500,-1"], "line 2: R '1 0 0 0 1 0' is not 9 finite numbers"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 500"], "line 2: expected 7 fields"),
+    ([CSV_HEADER, "0.5,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1"], "line 2: scene_id '0.5' is not a non-negative integer"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 2 0 0 0 1,10 -20 500,-1"], "line 2: R is not orthonormal"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 -1 0 0 0 1,10 -20 500,-1"], "line 2: R has determinant -1"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,0.01 -0.02 0.5,-1"], "BOP results give t in mm, not metres"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 -500,-1"], "line 2: t = 10 -20 -500 is -500 mm in front"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 500000,-1"], "mm is over 5 m from the camera"),
+    ([CSV_HEADER, "0,0,99,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1"], "line 2: obj_id 99 is not in the object set"),
+    ([CSV_HEADER, CSV_ROW, "0,0,2,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1", CSV_ROW.replace("0.9", "0.1")],
+     "line 4: duplicates line 2 (same scene_id, im_id, obj_id, R and t)"),
+    ([CSV_HEADER, CSV_ROW, "", CSV_ROW], "line 3: empty line"),
+    ([CSV_HEADER, CSV_ROW.replace("0,0,1", "5,0,1")], "line 2: scene_id 5, im_id 0 is no frame of this campaign"),
+    ([CSV_HEADER, CSV_ROW.replace("0,0,1", "0,1,1")], "im_id 1 is no frame of this campaign (scene_id = episode, 0-1; "
+                                                      "im_id 0 in the pick-place task)"),
+])
+def test_trials_bad_bop_results_file(capsys, tmp_path, lines, words):
+    (tmp_path / "r.csv").write_text("".join(f"{x}\n" for x in lines))
+    before = snapshot(tmp_path)
+    refused(capsys, ["trials", "--out", tmp_path / "run", "--episodes", "2", "--perception",
+                     f"bop-csv:{tmp_path / 'r.csv'}"], words)
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("spec, words", [("bop-csv", "needs a results file"), ("bop-csv:{d}/none.csv", "does not exist"),
+                                         ("bop-csv:{d}", "cannot read results file")])
+def test_trials_missing_bop_results_file(capsys, tmp_path, spec, words):
+    before = snapshot(tmp_path)
+    refused(capsys, ["trials", "--out", tmp_path / "run", "--perception", spec.format(d=tmp_path)], words)
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--captures-only"], "--captures-only needs --export-captures DIR"),
+    (["--captures-only", "--export-captures", "{d}/ex", "--out", "{d}/run"], "drop --out"),
+    (["--export-captures", "{d}/run", "--out", "{d}/run"], "is the --out folder"),
+    (["--export-captures", "{d}/ex"], "--out is required"),
+    (["--export-captures", "{d}/ex", "--out", "{d}/run", "--sweep-noise"], "not --sweep-noise"),
+    (["--export-captures", "{d}/file", "--out", "{d}/run"], "--export-captures {d}/file is a file"),
+])
+def test_trials_bad_export_options(capsys, tmp_path, argv, words):
+    (tmp_path / "file").write_text("x")
+    before = snapshot(tmp_path)
+    refused(capsys, ["trials", "--episodes", "1", *[a.format(d=tmp_path) for a in argv]], words.format(d=tmp_path))
+    assert snapshot(tmp_path) == before

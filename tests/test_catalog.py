@@ -1,4 +1,4 @@
-"""The block catalogue: files, units, symmetries, collision primitives, masses, reproducibility."""
+"""The shipped object set of blocks: files, units, symmetries, collision primitives, masses, reproducibility."""
 
 from __future__ import annotations
 
@@ -33,6 +33,15 @@ def test_all_blocks_load_in_id_order(catalog):
     assert list(catalog) == NAMES
     assert [b.obj_id for b in catalog.values()] == list(range(1, 9))
     assert load_catalog() is not catalog and load_catalog()["cube"] is catalog["cube"]  # cached
+
+
+def test_the_blocks_are_the_default_object_set(catalog):
+    from posegrasp.objects.objset import load_object_set
+
+    assert [o.name for o in load_object_set(BLOCKS).objects] == NAMES
+    assert load_catalog(BLOCKS)["cube"] is catalog["cube"] and load_catalog(str(BLOCKS))["arch"] is catalog["arch"]
+    assert all(b.upright_quat == (1.0, 0.0, 0.0, 0.0) for b in catalog.values())  # +z up as they rest
+    assert not (BLOCKS / "catalog.json").exists()
 
 
 def test_meshes_watertight_and_graspable(catalog):
@@ -134,8 +143,8 @@ def test_masses_plausible(catalog):
         assert b.mass == pytest.approx(1050.0 * _mesh(b).volume, rel=1e-3)
 
 
-def test_missing_catalogue_is_a_user_error(tmp_path):
-    with pytest.raises(UserError, match="missing"):
+def test_a_folder_that_is_no_object_set_is_a_user_error(tmp_path):
+    with pytest.raises(UserError, match="is not an object set"):
         load_catalog(tmp_path)
 
 

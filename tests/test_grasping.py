@@ -10,7 +10,7 @@ from posegrasp.grasping.config import ControlConfig, GraspConfig
 from posegrasp.grasping.controller import ArmController, finger_angle_for_opening
 from posegrasp.grasping.grasps import object_candidates, plan_grasps, squeeze_axes, surface_points
 from posegrasp.grasping.support import RestConfig, rest_on_table
-from posegrasp.grasping.perception import NoisyOracleProvider, OracleProvider, visible_enough
+from posegrasp.grasping.perception import NoisyOracleProvider, OracleProvider, observation, visible_enough
 from posegrasp.grasping.provider_registry import make_provider
 from posegrasp.catalog import load_catalog, symmetry_transforms
 from posegrasp.errors import UserError
@@ -122,7 +122,7 @@ def look_frame():
 
 
 def test_oracle_reports_only_visible_blocks(look_frame):
-    est = OracleProvider().estimate(look_frame, seed=0)
+    est = OracleProvider().estimate_truth(look_frame, seed=0)
     assert len(est) == 3
     for e, k in zip(est, (1, 2, 3)):
         assert e.obj_id == look_frame.obj_ids[k - 1]
@@ -134,11 +134,11 @@ def test_model_provider_drops_slivers_like_the_oracle(look_frame):
 
     assert visible_enough(150, (480, 640), 150) and not visible_enough(149, (480, 640), 150)
     assert visible_enough(38, (240, 320), 150) and not visible_enough(37, (240, 320), 150)
-    dets = ModelProvider(str(SHIPPED_MODEL)).perceive(look_frame).detections
+    dets = ModelProvider(str(SHIPPED_MODEL)).perceive(observation(look_frame)).detections
     sizes = [int(d.mask.sum()) for d in dets]
     assert len(dets) >= 2
     cut = max(sizes)  # a threshold that drops all but the largest mask
-    kept = ModelProvider(str(SHIPPED_MODEL), min_px=cut).estimate(look_frame, seed=0)
+    kept = ModelProvider(str(SHIPPED_MODEL), min_px=cut).estimate(observation(look_frame), seed=0)
     assert len(kept) == sum(n >= cut for n in sizes) < len(dets)
 
 
@@ -175,7 +175,7 @@ def test_noisy_oracle_is_seeded_and_has_the_requested_noise():
     frame = Frame(np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32), mask, np.eye(3), np.eye(4), T,
                   np.ones(K, int))
     p = make_provider("noisy-oracle:0.01,5")
-    a, b = p.estimate(frame, seed=7), p.estimate(frame, seed=7)
+    a, b = p.estimate_truth(frame, seed=7), p.estimate_truth(frame, seed=7)
     assert all(np.array_equal(x.T_cam_obj, y.T_cam_obj) for x, y in zip(a, b))
     dt = np.array([e.T_cam_obj[:3, 3] - T[i, :3, 3] for i, e in enumerate(a)])
     assert np.std(dt) == pytest.approx(0.01, rel=0.1)

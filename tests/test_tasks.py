@@ -18,8 +18,8 @@ from posegrasp.grasping.compare import compare_runs
 from posegrasp.grasping.config import KittingConfig, StackConfig, TrialConfig
 from posegrasp.grasping.record import EpisodeRecord
 from posegrasp.grasping.runfolder import EPISODES
-from posegrasp.grasping.tasks import (MISALIGNED, PAD_TOP, WRONG_FACE, check_task, kitting_verdict, stack_verdict,
-                                      standing_extent)
+from posegrasp.grasping.tasks import (MISALIGNED, PAD_TOP, WRONG_FACE, can_stack, check_task, kitting_verdict,
+                                      stack_verdict, standing_extent)
 from posegrasp.grasping.trials import run_trials
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import SceneConfig, settle
@@ -90,6 +90,14 @@ def test_a_moved_base_fails_stack():
     assert got == "base moved" and shift == pytest.approx(0.008)
 
 
+def test_a_block_may_not_overhang_its_base():
+    cat = load_catalog()
+    assert can_stack(cat["cube"], cat["brick_2x2"]) and can_stack(cat["arch"], cat["cylinder"])
+    # 31.8 mm on a 30 mm cylinder, 40 mm on it, 31.8 mm across a 25 mm wide cuboid: they fell off (docs/tasks.md)
+    assert not any(can_stack(cat[b], cat[t]) for b, t in [("cylinder", "brick_2x2"), ("cylinder", "cube"),
+                                                          ("long_cuboid", "brick_2x2")])
+
+
 def test_pick_place_records_carry_no_task_fields():
     rec = EpisodeRecord(0, 0, 1, 1, "oracle").to_json()
     assert not {"task", "final_error", "estimate_error", "base"} & set(rec)
@@ -105,15 +113,15 @@ def test_compare_refuses_runs_of_different_tasks():
 
 def test_a_task_the_catalogue_cannot_serve_is_refused():
     cfg = TrialConfig(task="stack", scene=dataclasses.replace(TrialConfig().scene, block_types=("triangular_prism",)))
-    with pytest.raises(UserError, match="stack needs a block type with a flat top"):
+    with pytest.raises(UserError, match="stack needs an object type with a flat top"):
         check_task(cfg)
 
 
-@pytest.mark.parametrize("task, floor", [("kitting", 7), ("stack", 5)])  # measured: 8/8 and 7/8
+@pytest.mark.parametrize("task, floor", [("kitting", 7), ("stack", 6)])  # measured: 8/8 and 7/8
 def test_short_oracle_campaign_and_same_seed_same_records(tmp_path, task, floor):
     cfg = TrialConfig(task=task)
     s = run_trials(tmp_path / "a", 8, seed=0, perception="oracle", workers=2, cfg=cfg, progress=False)
-    assert s["task"] == task and s["success"] >= floor  # floors from the 200-episode rates (95 %, 72 %): docs/tasks.md
+    assert s["task"] == task and s["success"] >= floor  # floors from the seed-0 rates (about 92 % and 85 %): docs/tasks.md
     recs = [json.loads(line) for line in (tmp_path / "a" / EPISODES).read_text().splitlines()]
     for r in recs:
         assert r["task"] == task

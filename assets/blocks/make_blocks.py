@@ -1,4 +1,4 @@
-"""Generate the building-block catalogue: BOP object models plus MuJoCo collision primitives.
+"""Generate the shipped object set of the eight building blocks: BOP models plus MuJoCo collision primitives.
 
 Usage::
 
@@ -12,13 +12,15 @@ Writes, deterministically (same inputs and library versions give byte-identical 
   distance between two vertices), ``min_x/y/z`` and ``size_x/y/z`` (mm), ``symmetries_discrete``
   (row-major 4x4, translation in mm, identity excluded) and ``symmetries_continuous``
   (``{"axis": [..], "offset": [.. mm]}``).
-- ``catalog.json``: per block, in SI units (m, kg): mass from ABS density x mesh volume, a friction
-  hint (MuJoCo's sliding/torsional/rolling triple), a colour, ``upright`` (the object-frame direction of the
-  face it stands on upright, studs up and arch on its feet, and whether its top and bottom are flat enough
-  to stack: read by the kitting and stack tasks) and ``collision``: MuJoCo primitives in
-  the object frame (box half-sizes, cylinder ``[radius, half_height]``, or a convex ``mesh`` given by
-  its vertices) whose union approximates the solid within 10 % of its volume. Non-convex blocks are
-  split into convex pieces; no piece is a hull over a non-convex part.
+- ``objects/obj_00000N.json`` and ``objectset.json``: the folder is an object set (``posegrasp.objects.objset``,
+  ``docs/objects.md``), the default one every command uses. Per block, in SI units (m, kg): mass from ABS
+  density x mesh volume, a friction hint (MuJoCo's sliding/torsional/rolling triple), a colour, ``upright``
+  (the object-frame direction of the face it stands on upright, studs up and arch on its feet, the rotation
+  ``quat`` standing it so, the identity, and whether its top and bottom are flat enough to stack: read by the
+  kitting and stack tasks) and ``collision``: MuJoCo primitives in the object frame (box half-sizes, cylinder
+  ``[radius, half_height]``, or a convex ``mesh`` given by its vertices) whose union approximates the solid
+  within 10 % of its volume. Non-convex blocks are split into convex pieces; no piece is a hull over a
+  non-convex part.
 
 Object frame: origin at the centre of the axis-aligned bounding box, +z up in the block's natural
 resting pose (studs up, arch legs down), x along the longest horizontal side.
@@ -52,6 +54,7 @@ from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.distance import pdist
 
 from posegrasp.io import write_bytes, write_json
+from posegrasp.objects.objset import FORMAT, MANIFEST, VERSION
 
 HERE = Path(__file__).resolve().parent
 DENSITY_ABS = 1050.0  # kg/m^3
@@ -360,8 +363,9 @@ def _ply_bytes(mesh: trimesh.Trimesh) -> bytes:
 
 
 def generate(out: Path) -> list[dict]:
-    """Build all blocks and write models, models_info.json and catalog.json under ``out``."""
-    models_info, catalog, table = {}, [], []
+    """Build all blocks and write them as an object set under ``out``: models, models_info.json, objects/ and
+    objectset.json."""
+    models_info, entries, table = {}, [], []
     for b in build_blocks():
         mesh = b.mesh
         ext = mesh.extents
@@ -381,23 +385,28 @@ def generate(out: Path) -> list[dict]:
             "symmetries_continuous": [{"axis": _r(d["axis"], 6), "offset": _r(d["offset"], 6)} for d in cont],
         }
         volume_m3 = mesh.volume * 1e-9
-        catalog.append({
+        entries.append({
             "obj_id": b.obj_id, "name": b.name, "model": f"models/obj_{b.obj_id:06d}.ply",
             "mass_kg": round(DENSITY_ABS * volume_m3, 6), "density": DENSITY_ABS,
             "volume_m3": round(volume_m3, 12), "friction": list(FRICTION), "rgba": list(b.rgba),
             "collision": [_prim_to_m(p) for p in b.collision],
-            "upright": {"down": [0.0, 0.0, -1.0], "flat_top": b.flat_top, "flat_bottom": b.flat_bottom},
+            "upright": {"down": [0.0, 0.0, -1.0], "flat_top": b.flat_top, "flat_bottom": b.flat_bottom,
+                        "quat": [1.0, 0.0, 0.0, 0.0]},
         })
         table.append({"name": b.name, "extents_mm": _r(ext, 2), "mass_g": round(float(DENSITY_ABS * volume_m3 * 1000), 1),
                       "n_discrete": len(disc), "continuous": bool(cont), "faces": len(mesh.faces),
                       "collision_vol_ratio": round(float(prim_vol / mesh.volume), 3)})
     write_json(out / "models" / "models_info.json", models_info)
-    write_json(out / "catalog.json", {
-        "units": "SI: metres, kilograms; models/*.ply are in millimetres (BOP)",
+    for entry in entries:
+        write_json(out / "objects" / f"obj_{entry['obj_id']:06d}.json", entry)
+    write_json(out / MANIFEST, {
+        "format": FORMAT, "version": VERSION,
+        "units": "objects/*.json in SI units (m, kg); models/ in BOP's millimetres",
         "frame": "origin at the bounding-box centre, +z up in the resting pose, x along the longest horizontal side",
         "collision_types": "box size = half-sizes; cylinder size = [radius, half_height] along local z; "
                            "mesh = vertices of one convex piece; quat = (w, x, y, z)",
-        "blocks": catalog,
+        "objects": [{"obj_id": e["obj_id"], "name": e["name"], "file": f"objects/obj_{e['obj_id']:06d}.json"}
+                    for e in entries],
     })
     return table
 

@@ -57,10 +57,10 @@ def test_results_csv(tmp_path):
     p = bop.write_results_csv(tmp_path / "res.csv", [bop.PoseResult(1, 2, 3, 0.5, T, 0.25)])
     lines = p.read_text().splitlines()
     assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time"
-    assert lines[1].split(",")[5] == "100.000000 200.000000 300.000000"
+    assert lines[1].split(",")[5] == "100 200 300"
     assert len(lines[1].split(",")[4].split()) == 9
     back = read_results_csv(p)[0]
-    assert np.allclose(back.T_cam_obj, T, atol=1e-8) and back.time == 0.25
+    assert np.array_equal(back.T_cam_obj, T) and back.score == 0.5 and back.time == 0.25  # lossless
 
 
 def test_missing_files_are_user_errors(tmp_path):

@@ -1,0 +1,120 @@
+"""Pose estimates from a BOP results file: ``--perception bop-csv:RESULTS.csv``.
+
+Any BOP method run offline on a campaign's captures (``--export-captures``, ``grasping.captures``) gives a results
+CSV (``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm); this provider replays it: for the capture
+``(scene_id, im_id)`` = (episode, ``PICK_LOOK`` or ``BASE_LOOK``) it returns that frame's rows as estimates
+(``T_cam_obj`` in metres), in file order; a frame without rows is a frame where nothing was detected.
+
+The file is checked when the campaign starts (``read_rows``, ``check_rows``), a one-line UserError naming the line
+for: a wrong header, a field that is not a number or not finite (NaN), an R that is not a rotation (orthonormal,
+det +1, within 1e-3), a translation less than ``MIN_Z_MM`` in front of the camera (metres written instead of mm;
+or behind the camera) or farther than ``grasping.perception.MAX_TRANSLATION_M``, an obj_id not in the object set,
+an exact duplicate (same scene_id, im_id and obj_id and the very same R and t as an earlier row; several rows of
+one object in one image are otherwise allowed: BOP images may hold several instances), and a row for a frame no
+episode of the campaign captures (scene_id >= the episodes, or im_id 1 outside the stack task).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from posegrasp import bop
+from posegrasp.bop_check import rotation_problem
+from posegrasp.catalog import catalog_by_id
+from posegrasp.errors import UserError
+from posegrasp.grasping.perception import MAX_TRANSLATION_M, ROT_TOL, Estimate, Observation, capture_ids
+
+#: A row whose translation is less than this far in front of the camera (mm) is refused: no camera sees an object
+#: there, and it is what metres written in the mm column look like.
+MIN_Z_MM = 10.0
+
+
+@dataclass(frozen=True)
+class BopCsvProvider:
+    """The rows of the BOP results file ``path`` for the observed frame (``obs.scene_id``, ``obs.im_id``)."""
+
+    path: str
+    objects: str = ""  # the object set whose ids the rows must use
+
+    @property
+    def name(self) -> str:
+        return f"bop-csv:{self.path}"
+
+    def rows(self) -> list[bop.PoseResult]:
+        """Every row of the file, checked (cached per process while the file is unchanged)."""
+        return _load(self.path, self.objects, _stamp(self.path))[0]
+
+    def estimate(self, obs: Observation, seed: int) -> list[Estimate]:
+        """The file's rows for the frame (``seed`` unused): obj_id, T_cam_obj (m), score."""
+        frames = _load(self.path, self.objects, _stamp(self.path))[1]
+        return [Estimate(r.obj_id, r.T_cam_obj.copy(), r.score) for r in frames.get((obs.scene_id, obs.im_id), ())]
+
+
+def from_spec(args: str | None, objects: str = "") -> BopCsvProvider:
+    """The provider for ``--perception bop-csv:RESULTS.csv`` (``args``: the file), its rows checked."""
+    if not args:
+        raise UserError("perception 'bop-csv' needs a results file: bop-csv:RESULTS.csv")
+    provider = BopCsvProvider(str(Path(args).expanduser().resolve()), objects)
+    provider.rows()
+    return provider
+
+
+def check_rows(provider: object, episodes: int, task: str) -> None:
+    """A UserError when a ``BopCsvProvider``'s file has rows for frames no episode of a campaign of ``episodes``
+    episodes of ``task`` captures (any other provider: nothing to check)."""
+    if not isinstance(provider, BopCsvProvider):
+        return
+    ims = capture_ids(task)
+    for n, r in enumerate(provider.rows(), start=2):
+        if r.scene_id >= episodes or r.im_id not in ims:
+            raise UserError(f"{provider.path} line {n}: scene_id {r.scene_id}, im_id {r.im_id} is no frame of this "
+                            f"campaign (scene_id = episode, 0-{episodes - 1}; im_id {' or '.join(map(str, ims))} in "
+                            f"the {task} task); replay the file with the --episodes and --task it was exported with")
+
+
+def _stamp(path: str) -> tuple[int, int]:
+    try:
+        st = Path(path).stat()
+    except OSError:
+        raise UserError(f"results file {path} does not exist") from None
+    return st.st_mtime_ns, st.st_size
+
+
+@functools.lru_cache(maxsize=4)
+def _load(path: str, objects: str, stamp: tuple[int, int]
+          ) -> tuple[list[bop.PoseResult], dict[tuple[int, int], list[bop.PoseResult]]]:
+    """The checked rows of ``path`` and the rows of each frame (``stamp``: the file's mtime and size)."""
+    rows = bop.read_results_csv(path)
+    known = catalog_by_id(objects)
+    seen: dict[tuple, int] = {}
+    frames: dict[tuple[int, int], list[bop.PoseResult]] = {}
+    for n, r in enumerate(rows, start=2):
+        problem = _row_problem(r, known)
+        key = (r.scene_id, r.im_id, r.obj_id, r.T_cam_obj.tobytes())
+        if problem is None and key in seen:
+            problem = f"duplicates line {seen[key]} (same scene_id, im_id, obj_id, R and t)"
+        if problem:
+            raise UserError(f"{path} line {n}: {problem}")
+        seen[key] = n
+        frames.setdefault((r.scene_id, r.im_id), []).append(r)
+    return rows, frames
+
+
+def _row_problem(r: bop.PoseResult, known: dict) -> str | None:
+    """What makes one row unusable, or None."""
+    if r.obj_id not in known:
+        return f"obj_id {r.obj_id} is not in the object set (ids {', '.join(str(k) for k in sorted(known))})"
+    bad_R = rotation_problem(r.T_cam_obj[:3, :3], ROT_TOL)
+    if bad_R:
+        return f"R {bad_R}"
+    t_mm = r.T_cam_obj[:3, 3] / bop.MM
+    if t_mm[2] < MIN_Z_MM:
+        return (f"t = {' '.join(f'{v:.6g}' for v in t_mm)} is {t_mm[2]:.6g} mm in front of the camera (< {MIN_Z_MM:g}):"
+                " BOP results give t in mm, not metres")
+    if np.linalg.norm(t_mm) > MAX_TRANSLATION_M / bop.MM:
+        return f"t = {' '.join(f'{v:.6g}' for v in t_mm)} mm is over {MAX_TRANSLATION_M:g} m from the camera"
+    return None
