@@ -117,7 +117,10 @@ class SceneWriter:
             self._put(bop.image_path(d, "depth_clean", im_id), bop.encode_depth(frame.depth, self.depth_scale))
         gts, infos = [], []
         for i, (oid, T) in enumerate(zip(frame.obj_ids, frame.T_cam_obj)):
-            amodal, box, visib = frame.extra["amodal"][i], frame.extra["boxes"][i], frame.mask == i + 1
+            # visible = the scene render's pixels of block i within its silhouette: the two rasterisers (MuJoCo's
+            # scene, pyrender's model alone) can disagree on a single edge pixel of a thin imported part
+            amodal, box = frame.extra["amodal"][i], frame.extra["boxes"][i]
+            visib = (frame.mask == i + 1) & amodal
             info = bop.gt_info_from_masks(amodal, visib, depth, box, *frame.extra["beyond"][i])
             full_png = bop.encode_mask(amodal) if info.px_count_all else self._empty_mask(amodal.shape)
             same = info.px_count_visib == info.px_count_all and np.array_equal(visib, amodal)  # fully visible
