@@ -235,7 +235,7 @@ def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
 
 def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
     """The episode's settled scene for its task (settled with the scene defaults), then the trial's contact
-    settings."""
+    and solver settings (kitting and stack: noslip and sleeping islands)."""
     if cfg.task == "kitting":
         wc = kitting_scene(cfg, scene_seed, n_blocks)
     elif cfg.task == "stack":
@@ -247,6 +247,11 @@ def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workce
         wc.model.geom_solref[g, 0], wc.model.geom_solmix[g] = cfg.support_timeconst, 1e3
     wc.model.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.elliptic_cones else mujoco.mjtCone.mjCONE_PYRAMIDAL
     wc.model.opt.impratio = cfg.impratio
+    if cfg.task != "pick-place":
+        wc.model.opt.noslip_iterations = cfg.pose_noslip_iterations
+        if cfg.pose_sleep:
+            wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+            wc.model.opt.sleep_tolerance = cfg.pose_sleep_tolerance
     return wc
 
 

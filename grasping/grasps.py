@@ -13,6 +13,7 @@ surfaces, and (by the caller) IK reachability.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 
@@ -33,6 +34,10 @@ _BAND = (-0.008, 0.012)  # heights relative to the pinch point that the closing 
 _COLUMN_MARGIN = 0.005
 _SPAN_TOL = 0.003  # ... and the span must be that of the antipodal pair the candidate was made for, within this (m)
 _PAD_OVERLAP = 0.004  # a yaw-stable pinch's contact face reaches this far past fingers 2 and 3's inner edges (m)
+#: ... at the pinch height and this far above and below it (m), where the fingertips press ...
+_FACE_REACH = 0.003
+#: ... and of a block's grasps, those whose faces do not reach score this much less when any does.
+UNSTABLE_COST = 1.0
 #: The open hand in the gripper frame (m), from the jaco_hand meshes: each finger is a box from its pad
 #: (at half the opening along x) outward by _FINGER_OUTER, over its y span, from _TIP_BELOW past the pinch
 #: point (the tips curl past it when closing) upward; the palm is a box starting 7 cm above the pinch point.
@@ -46,7 +51,8 @@ _PALM = ((-0.06, -0.065, -1.0), (0.06, 0.035, -0.07))
 @dataclass(frozen=True)
 class Grasp:
     """One executable grasp: pinch-site pose (world), material span (m), hand clearance (m), tilt, the share
-    of the contact window lying on the two contact planes (flatness, 0-0.5) and the score (higher is better)."""
+    of the contact window lying on the two contact planes (flatness, 0-0.5) and the score (higher is better);
+    ``stable``: the contact face reaches the pads of fingers 2 and 3 (``plan_grasps``' ``yaw_stable``)."""
 
     T_world_gripper: np.ndarray
     width: float
@@ -54,6 +60,7 @@ class Grasp:
     tilt_deg: float
     support: float
     score: float
+    stable: bool = True
 
 
 def squeeze_axes(block: BlockType) -> list[int]:
@@ -104,13 +111,14 @@ def _surface_samples(block: BlockType, n: int, seed: int) -> tuple[np.ndarray, n
     return sample_surface(block, n, seed), idx
 
 
-def _flat_patch(pts: np.ndarray, normals: np.ndarray, contact: np.ndarray, normal: np.ndarray,
+def _flat_patch(pts: np.ndarray, normals: np.ndarray, tree, contact: np.ndarray, normal: np.ndarray,
                 cos_cone: float) -> bool:
     """Does the surface within ``_PATCH_RADIUS`` of ``contact`` and 2 mm of its tangent plane face ``normal``
     within the cone everywhere (a finger pad rests on it, not on a thin rim or a stud; a thin wall's inside is
-    not in the way)? ``pts``/``normals``: surface samples (m)."""
-    rel = pts - contact
-    near = (np.linalg.norm(rel, axis=1) < _PATCH_RADIUS) & (np.abs(rel @ normal) < 0.002)
+    not in the way)? ``pts``/``normals``: surface samples (m), ``tree`` a ``scipy.spatial.cKDTree`` of ``pts``."""
+    idx = np.asarray(tree.query_ball_point(contact, _PATCH_RADIUS), dtype=np.int64)
+    rel = pts[idx] - contact
+    near = idx[(np.linalg.norm(rel, axis=1) < _PATCH_RADIUS) & (np.abs(rel @ normal) < 0.002)]
     return bool(np.all(normals[near] @ normal >= cos_cone))
 
 
@@ -130,10 +138,12 @@ def antipodal_pairs(block: BlockType, n: int = _ANTIPODAL_SAMPLES, seed: int = 0
     10 deg of a kept one. Same block and seed, same pairs.
     """
     import trimesh
+    from scipy.spatial import cKDTree
 
     normals = _face_normals(block)
     pts, idx = _surface_samples(block, 10 * n, seed)  # the first n start rays, all check contact patches
     pt_n = normals[idx]
+    tree = cKDTree(pts)
     p1, d = pts[:n], -pt_n[:n]
     mesh = trimesh.Trimesh(np.asarray(block.vertices), np.asarray(block.faces), process=False)
     hits, ray, face = trimesh.ray.ray_triangle.RayMeshIntersector(mesh).intersects_location(
@@ -151,7 +161,7 @@ def antipodal_pairs(block: BlockType, n: int = _ANTIPODAL_SAMPLES, seed: int = 0
         ends = np.stack([p1[r], hits[h]])
         if (not min_width <= width <= max_width or normals[face[h]] @ axis < cos_cone
                 or np.abs(round_axes @ axis).max(initial=0.0) > cos_cone
-                or not all(_flat_patch(pts, pt_n, e, s * axis, cos_cone) for e, s in zip(ends, (-1.0, 1.0)))):
+                or not all(_flat_patch(pts, pt_n, tree, e, s * axis, cos_cone) for e, s in zip(ends, (-1.0, 1.0)))):
             continue
         mid = p1[r] + 0.5 * width * axis
         if any(np.linalg.norm(0.5 * (q[0] + q[1]) - mid) < 3e-3
@@ -267,7 +277,8 @@ def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarra
     The block's centre sits at ``HAND_Y`` along the gripper y axis; with ``yaw_stable`` it sits as near
     ``cfg.pose_hand_y`` as lets the contact faces reach the inner edges of both finger 2's and finger 3's pads
     (finger 1 against finger 3 alone is a couple that turns the block in the hand), or at ``HAND_Y`` if
-    the faces are too narrow for that.
+    the faces are too narrow for that; if some of the block's grasps are yaw-stable, the others score
+    ``UNSTABLE_COST`` less (an L-block pinched on its 25 mm end faces turned 10 deg in the hand, every time).
     """
     frames, spans = candidate_spans(block)
     C = np.einsum("ij,njk->nik", T_world_obj, frames)
@@ -296,6 +307,8 @@ def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarra
                           reach)
             if g is not None and not abs(g.width - span) > _SPAN_TOL:  # a mesh candidate pinches its own pair
                 grasps.append(g)
+    if any(g.stable for g in grasps):
+        grasps = [g if g.stable else dataclasses.replace(g, score=g.score - UNSTABLE_COST) for g in grasps]
     return sorted(grasps, key=lambda g: -g.score)
 
 
@@ -328,10 +341,12 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     if best is None:
         return None
     _, support, z_pinch, lo, hi = best
-    hand_y = HAND_Y
+    hand_y, stable = HAND_Y, True
     if yaw_stable:  # the contact face's span along y at the pinch height, shifted by hand_y, must cover both
         face = (np.abs(px - lo) < 0.0015) & (np.abs(h - z_pinch) < 0.004)  # inner pad edges of fingers 2, 3
         inner2, inner3 = _FINGER23_Y[0][1] - _PAD_OVERLAP, _FINGER23_Y[1][0] + _PAD_OVERLAP
+        narrowest = _face_span(px, py, h, lo, z_pinch)
+        stable = narrowest is not None and inner3 - narrowest[1] <= inner2 - narrowest[0]
         if face.any() and inner3 - py[face].max() <= inner2 - py[face].min():
             hand_y = float(np.clip(cfg.pose_hand_y, inner3 - py[face].max(), inner2 - py[face].min()))
     width = float(hi - lo)
@@ -353,4 +368,19 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     turn = abs(float(_wrap(np.arctan2(x[1], x[0]) - yaw_now)))
     score = (-0.01 * tilt - 30.0 * off_centre + 20.0 * min(clearance, 0.02) - 0.3 * turn - 2.0 * width
              + 2.0 * support)
-    return Grasp(T, width, clearance, tilt, float(support), float(score))
+    return Grasp(T, width, clearance, tilt, float(support), float(score), stable)
+
+
+def _face_span(px: np.ndarray, py: np.ndarray, h: np.ndarray, lo: float, z_pinch: float
+               ) -> tuple[float, float] | None:
+    """The y extent (m, gripper frame) that the contact face at ``px == lo`` covers both ``_FACE_REACH`` above
+    and below the pinch height (surface points within 1.5 mm of each), or None where it is missing: an L-block
+    pinched at its upright part's foot has a long face below and a short one above."""
+    on = np.abs(px - lo) < 0.0015
+    ends = []
+    for dz in (-_FACE_REACH, _FACE_REACH):
+        s = on & (np.abs(h - (z_pinch + dz)) < 0.0015)
+        if not s.any():
+            return None
+        ends.append((py[s].min(), py[s].max()))
+    return max(a for a, _ in ends), min(b for _, b in ends)
