@@ -80,11 +80,12 @@ class GraspConfig:
     pose_hand_y: float = -0.012
     pose_finger_wait: int = 10
     # The stack task also lets the arm stop swaying (5-8 mm after a fast descent) before closing and before
-    # setting the block down: the gripper within pose_settle_tol (m) of its target for 3 control periods in a
-    # row, at most pose_settle_time (s); and sets the block down from pose_place_gap (m) above its surface
-    # (guarded, slowly), so a block that slid down in the fingers touches the base slowly too. Kitting does
-    # not: an L-block turns in the hand while held (7-10 deg), and the longer hold took it past 10 deg.
-    pose_settle_tol: float = 0.001
+    # setting the block down: the gripper moving slower than pose_settle_speed (m/s) for 3 control periods in a
+    # row, at most pose_settle_time (s) (the controller keeps a steady offset of 1-1.5 mm from its target, so
+    # a distance to the target does not tell a still arm); and sets the block down from pose_place_gap (m)
+    # above its surface (guarded, slowly), so a block that slid down in the fingers touches the base slowly too.
+    # Kitting does not: an L-block turns in the hand while held (7-10 deg), and the longer hold took it past 10 deg.
+    pose_settle_speed: float = 0.005
     pose_settle_time: float = 1.0
     pose_place_gap: float = 0.02
     pose_approach_speed: float = 0.1  # stack: the approach and place descent (m/s; approach_speed sways the arm)

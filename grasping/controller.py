@@ -199,16 +199,17 @@ class ArmController:
             self._period(T_goal)
         return False
 
-    def settle(self, tol: float, timeout: float, periods: int = 3) -> bool:
-        """Track the current target until the measured gripper position has stayed within ``tol`` (m) of it for
-        ``periods`` control periods in a row (True) or ``timeout`` simulated seconds passed (False): after a
+    def settle(self, speed: float, timeout: float, periods: int = 3) -> bool:
+        """Track the current target until the measured gripper position has moved slower than ``speed`` (m/s)
+        for ``periods`` control periods in a row (True) or ``timeout`` simulated seconds passed (False): after a
         fast segment the arm sways by several millimetres, which a segment's ``pos_tol`` lets through."""
-        inside = 0
+        still, p = 0, self.wc.gripper_pose()[:3, 3]
         for _ in range(int(np.ceil(timeout / self.cfg.dt))):
-            inside = inside + 1 if self.pose_error(self.target)[0] < tol else 0
-            if inside >= periods:
-                return True
             self._period(self.target)
+            p, p_prev = self.wc.gripper_pose()[:3, 3], p
+            still = still + 1 if np.linalg.norm(p - p_prev) < speed * self.cfg.dt else 0
+            if still >= periods:
+                return True
         return False
 
     def hold(self, duration: float) -> None:

@@ -90,6 +90,7 @@ class _Episode:
     rec: EpisodeRecord
     log: _Log
     on_capture: Callable[[Workcell, Frame, int], None] | None = None  # gets each capture and its im_id
+    camera: CameraRenderer | None = None  # the hand camera's renderer, made at the first capture (stack has two)
 
     @property
     def cfg(self) -> TrialConfig:
@@ -299,7 +300,12 @@ def run_episode(task: EpisodeTask, on_capture: Callable[[Workcell, Frame, int], 
         rec.blocks = [inst.block.name for inst in wc.blocks]
         log.stop("scene", None)
         ctl = ArmController(wc, cfg.control, _look_q(wc))
-        _execute(_Episode(task, wc, ctl, rec, log, on_capture), percept_seed, place_offset)
+        ep = _Episode(task, wc, ctl, rec, log, on_capture)
+        try:
+            _execute(ep, percept_seed, place_offset)
+        finally:
+            if ep.camera is not None:
+                ep.camera.close()
     except _Failure as f:
         rec.failure = f.reason
     except PerceptionError as e:
@@ -415,7 +421,9 @@ def _goal(ep: _Episode, plan: _Plan, target_xy: np.ndarray, base: _Base | None) 
 def _capture(ep: _Episode, im_id: int) -> Frame:
     """The hand camera's frame at the arm's current pose, capture ``im_id`` of the episode (shown to
     ``ep.on_capture``)."""
-    frame = capture_look(ep.wc)
+    if ep.camera is None:
+        ep.camera = CameraRenderer.from_config(ep.wc, HAND_CAMERA, ep.wc.cfg.hand_camera, ep.wc.cfg.render)
+    frame = ep.camera.capture()
     if ep.on_capture is not None:
         ep.on_capture(ep.wc, frame, im_id)
     return frame
@@ -497,7 +505,7 @@ def _pick(ep: _Episode, plan: _Plan) -> None:
     if not reached:
         raise _Failure("collision" if hit else "timeout")
     if ep.cfg.task == "stack":  # the fingers close on the block where the plan put them, not mid-sway
-        ctl.settle(g_cfg.pose_settle_tol, g_cfg.pose_settle_time)
+        ctl.settle(g_cfg.pose_settle_speed, g_cfg.pose_settle_time)
     if not ctl.close(k, wait_all=0 if ep.cfg.task == "pick-place" else g_cfg.pose_finger_wait):
         raise _Failure("collision" if hit else "slip")
     ep.log.stop("close", ctl)
@@ -575,7 +583,7 @@ def _place(ep: _Episode, plan: _Plan, T_place: np.ndarray) -> None:
         ctl.move(T_place, speed=g_cfg.approach_speed)
     elif not ctl.move(T_place, speed=_approach_speed(ep.cfg), until=lambda: _block_supported(ep.wc, k)) or \
             not _block_supported(ep.wc, k):  # set down where the plan says, not mid-sway
-        ctl.settle(g_cfg.pose_settle_tol, g_cfg.pose_settle_time)
+        ctl.settle(g_cfg.pose_settle_speed, g_cfg.pose_settle_time)
     ctl.move(T_down, speed=g_cfg.place_descent_speed, until=lambda: _block_supported(ep.wc, k))
     if not ctl.finger_contacts(k).any():
         raise _Failure("drop")

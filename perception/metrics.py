@@ -2,7 +2,8 @@
 
 Poses are given as a rotation R (3, 3) and a translation t (3,) in metres, mapping model points
 (object frame, metres) into the camera frame. Distances are in metres, angles in degrees.
-Nearest neighbours are brute force in torch (``torch.cdist`` in chunks): no compiled extension.
+Nearest neighbours are exact, from a k-d tree (``scipy.spatial.cKDTree``); nothing here imports torch, so the
+grasp trials' workers score poses without loading it.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-import torch
+from scipy.spatial import cKDTree
 
 ADDSDirection = Literal["gt_to_est", "est_to_gt"]
 
@@ -20,17 +21,9 @@ def _apply(R: np.ndarray, t: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return np.asarray(pts, dtype=np.float64) @ np.asarray(R, dtype=np.float64).T + np.asarray(t, dtype=np.float64)
 
 
-def nearest_distances(query: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor,
-                      chunk: int = 4096) -> np.ndarray:
+def nearest_distances(query: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """For each query point (Q, 3), the Euclidean distance to its nearest point in ref (M, 3)."""
-    q = torch.as_tensor(np.asarray(query, dtype=np.float64))
-    r = torch.as_tensor(np.asarray(ref, dtype=np.float64))
-    out = torch.empty(q.shape[0], dtype=torch.float64)
-    for s in range(0, q.shape[0], chunk):
-        # exact differences (not the matmul expansion), so results match a naive loop to 1e-15
-        d = torch.cdist(q[s:s + chunk], r, compute_mode="donot_use_mm_for_euclid_dist")  # (q, M)
-        out[s:s + chunk] = d.min(dim=1).values
-    return out.numpy()
+    return cKDTree(np.asarray(ref, dtype=np.float64)).query(np.asarray(query, dtype=np.float64))[0]
 
 
 def add(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, pts: np.ndarray) -> float:

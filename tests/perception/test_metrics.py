@@ -38,7 +38,7 @@ def test_nearest_distances_matches_naive():
     rng = np.random.default_rng(1)
     q, r = rng.normal(size=(300, 3)), rng.normal(size=(200, 3))
     naive = np.linalg.norm(q[:, None] - r[None], axis=2).min(axis=1)
-    np.testing.assert_allclose(m.nearest_distances(q, r, chunk=64), naive, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(m.nearest_distances(q, r), naive, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("d, auc", [
