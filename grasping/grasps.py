@@ -18,6 +18,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from posegrasp.grasping.config import GraspConfig
 from posegrasp.catalog import BlockType, sample_surface, symmetry_transforms
@@ -111,11 +112,11 @@ def _surface_samples(block: BlockType, n: int, seed: int) -> tuple[np.ndarray, n
     return sample_surface(block, n, seed), idx
 
 
-def _flat_patch(pts: np.ndarray, normals: np.ndarray, tree, contact: np.ndarray, normal: np.ndarray,
+def _flat_patch(pts: np.ndarray, normals: np.ndarray, tree: cKDTree, contact: np.ndarray, normal: np.ndarray,
                 cos_cone: float) -> bool:
     """Does the surface within ``_PATCH_RADIUS`` of ``contact`` and 2 mm of its tangent plane face ``normal``
     within the cone everywhere (a finger pad rests on it, not on a thin rim or a stud; a thin wall's inside is
-    not in the way)? ``pts``/``normals``: surface samples (m), ``tree`` a ``scipy.spatial.cKDTree`` of ``pts``."""
+    not in the way)? ``pts``/``normals``: surface samples (m), ``tree`` a k-d tree of ``pts``."""
     idx = np.asarray(tree.query_ball_point(contact, _PATCH_RADIUS), dtype=np.int64)
     rel = pts[idx] - contact
     near = idx[(np.linalg.norm(rel, axis=1) < _PATCH_RADIUS) & (np.abs(rel @ normal) < 0.002)]
@@ -138,7 +139,6 @@ def antipodal_pairs(block: BlockType, n: int = _ANTIPODAL_SAMPLES, seed: int = 0
     10 deg of a kept one. Same block and seed, same pairs.
     """
     import trimesh
-    from scipy.spatial import cKDTree
 
     normals = _face_normals(block)
     pts, idx = _surface_samples(block, 10 * n, seed)  # the first n start rays, all check contact patches
