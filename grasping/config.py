@@ -145,14 +145,15 @@ class TrialConfig:
     hand_eye: str = str(HAND_EYE_JSON)  # calibrated T_gripper_cam used by the planner
     elliptic_cones: bool = True  # elliptic friction cones and ...
     impratio: float = 10.0  # ... a high impedance ratio stop grasped blocks from creeping out of the fingers
-    # Kitting and stack (the tasks where the block's yaw in the hand matters) also run MuJoCo's noslip solver
-    # (iterations per physics step; 0: off), which removes the slip the soft contacts still allow: without it a
-    # 2x2 brick pinched by its top edge slid 9 mm down the fingers and turned 10 deg during the carry (stack,
-    # seed 0: 7 of its 8 episodes failed); and MuJoCo's sleeping islands: bodies at rest (speeds below
-    # pose_sleep_tolerance, MuJoCo's default) are not simulated until something touches them, so blocks resting
-    # on the table cost nothing (the physics of a stack episode took half the time, and noslip only 15 % more).
-    # Pick-and-place keeps neither, so its records stay as they were (with noslip, 2-finger pinches of cubes
-    # dropped: 22 of 200).
+    # The tasks that hold the block firmly: the yaw-stable pinch (grasp.pose_hand_y, pose_finger_wait), MuJoCo's
+    # noslip solver (iterations per physics step; 0: off), which removes the slip the soft contacts still allow
+    # (without it a 2x2 brick pinched by its top edge slid 9 mm down the fingers and turned 10 deg during the
+    # carry: stack, seed 0, 7 of its 8 episodes failed), and MuJoCo's sleeping islands: bodies at rest (speeds
+    # below pose_sleep_tolerance, MuJoCo's default) are not simulated until something touches them, so blocks
+    # resting on the table cost nothing (the physics of a stack episode took half the time, noslip only 15 % more).
+    # Pick-and-place is not among them by default, so its records stay as they were (noslip alone, without the
+    # yaw-stable pinch, dropped cubes from its 2-finger pinches: 22 of 200).
+    firm_hold_tasks: tuple[str, ...] = ("kitting", "stack")
     pose_noslip_iterations: int = field(default=2, metadata=within(0, 1000))
     pose_sleep: bool = True
     pose_sleep_tolerance: float = field(default=1e-3, metadata=within(0.0, 1.0))
@@ -169,6 +170,11 @@ class TrialConfig:
     # a perception provider that has not answered a capture after this many wall seconds fails the episode with
     # "perception error" (0: no limit; the oracles are not timed)
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
+
+
+def firm_hold(cfg: TrialConfig) -> bool:
+    """Does the campaign's task hold the block firmly (``TrialConfig.firm_hold_tasks``)?"""
+    return cfg.task in cfg.firm_hold_tasks
 
 
 def load_trial_config(path: str | Path | None = None) -> TrialConfig:

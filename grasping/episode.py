@@ -25,7 +25,7 @@ import numpy as np
 from posegrasp.catalog import BlockType, catalog_by_id
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, look_at_R, make_T, transform_points
-from posegrasp.grasping.config import ControlConfig, ScoringConfig, TrialConfig
+from posegrasp.grasping.config import ControlConfig, ScoringConfig, TrialConfig, firm_hold
 from posegrasp.grasping.controller import ArmController, SimulationError, robot_workcell
 from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
 from posegrasp.grasping.perception import BASE_LOOK, PICK_LOOK, Estimate, PerceptionError, perceive
@@ -208,7 +208,7 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
         e, T = ests[j], poses[j]
         others = [c for i, c in enumerate(clouds) if i != j]
         nb = np.concatenate(others) if others else np.zeros((0, 3))
-        for g in plan_grasps(cat[e.obj_id], T, nb, g_cfg, yaw_now, yaw_stable=cfg.task != "pick-place")[
+        for g in plan_grasps(cat[e.obj_id], T, nb, g_cfg, yaw_now, yaw_stable=firm_hold(cfg))[
                 :g_cfg.grasps_per_block]:
             options.append((g.score + g_cfg.detection_weight * e.score, j, g))
     options.sort(key=lambda o: -o[0])
@@ -236,7 +236,7 @@ def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
 
 def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
     """The episode's settled scene for its task (settled with the scene defaults), then the trial's contact
-    and solver settings (kitting and stack: noslip and sleeping islands)."""
+    and solver settings (the tasks that hold firmly, ``config.firm_hold``: noslip and sleeping islands)."""
     if cfg.task == "kitting":
         wc = kitting_scene(cfg, scene_seed, n_blocks)
     elif cfg.task == "stack":
@@ -248,7 +248,7 @@ def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workce
         wc.model.geom_solref[g, 0], wc.model.geom_solmix[g] = cfg.support_timeconst, 1e3
     wc.model.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.elliptic_cones else mujoco.mjtCone.mjCONE_PYRAMIDAL
     wc.model.opt.impratio = cfg.impratio
-    if cfg.task != "pick-place":
+    if firm_hold(cfg):
         wc.model.opt.noslip_iterations = cfg.pose_noslip_iterations
         if cfg.pose_sleep:
             wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
@@ -506,7 +506,7 @@ def _pick(ep: _Episode, plan: _Plan) -> None:
         raise _Failure("collision" if hit else "timeout")
     if ep.cfg.task == "stack":  # the fingers close on the block where the plan put them, not mid-sway
         ctl.settle(g_cfg.pose_settle_speed, g_cfg.pose_settle_time)
-    if not ctl.close(k, wait_all=0 if ep.cfg.task == "pick-place" else g_cfg.pose_finger_wait):
+    if not ctl.close(k, wait_all=g_cfg.pose_finger_wait if firm_hold(ep.cfg) else 0):
         raise _Failure("collision" if hit else "slip")
     ep.log.stop("close", ctl)
 

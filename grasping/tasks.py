@@ -123,6 +123,9 @@ def check_task(cfg: TrialConfig) -> None:
     """UserError unless ``cfg.task`` is a task the scene's block types can serve."""
     if cfg.task not in TASKS:
         raise UserError(f"unknown task {cfg.task!r}; choose one of: {', '.join(TASKS)}")
+    unknown = [t for t in cfg.firm_hold_tasks if t not in TASKS]
+    if unknown:
+        raise UserError(f"firm_hold_tasks names unknown task(s) {unknown}; choose among: {', '.join(TASKS)}")
     types = task_types(cfg)
     names = ", ".join(b.name for b in types)
     if cfg.task == "kitting" and not any(b.upright_down is not None for b in types):

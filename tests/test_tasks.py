@@ -170,11 +170,15 @@ def test_yaw_stable_pinch_prefers_faces_that_reach_fingers_2_and_3():
     assert max(g.score for g in ends) < unpenalised - UNSTABLE_COST + 0.2  # the penalty, not the hand_y shift
 
 
-def test_pose_tasks_run_noslip_and_sleep_and_pick_place_does_not():
+def test_firm_hold_tasks_run_noslip_and_sleep_and_pick_place_does_not_by_default():
     from posegrasp.grasping.episode import episode_workcell
     import mujoco
 
     sleep = int(mujoco.mjtEnableBit.mjENBL_SLEEP)
-    for task, noslip in [("pick-place", 0), ("kitting", 2), ("stack", 2)]:
-        m = episode_workcell(TrialConfig(task=task), 3, 2).model
-        assert m.opt.noslip_iterations == noslip and bool(m.opt.enableflags & sleep) == (noslip > 0), task
+    for task, firm, noslip in [("pick-place", (), 0), ("kitting", (), 2), ("stack", (), 2),
+                               ("pick-place", ("pick-place",), 2), ("kitting", ("pick-place",), 0)]:
+        cfg = TrialConfig(task=task, firm_hold_tasks=firm) if firm else TrialConfig(task=task)
+        m = episode_workcell(cfg, 3, 2).model
+        assert m.opt.noslip_iterations == noslip and bool(m.opt.enableflags & sleep) == (noslip > 0), (task, firm)
+    with pytest.raises(UserError, match="firm_hold_tasks names unknown task"):
+        check_task(TrialConfig(firm_hold_tasks=("juggling",)))
