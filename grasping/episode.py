@@ -423,10 +423,21 @@ def _capture(ep: _Episode, im_id: int) -> Frame:
     ``ep.on_capture``)."""
     if ep.camera is None:
         ep.camera = CameraRenderer.from_config(ep.wc, HAND_CAMERA, ep.wc.cfg.hand_camera, ep.wc.cfg.render)
-    frame = ep.camera.capture()
+    frame = ep.camera.capture(images=_needs_images(ep))
     if ep.on_capture is not None:
         ep.on_capture(ep.wc, frame, im_id)
     return frame
+
+
+def _needs_images(ep: _Episode) -> bool:
+    """Do the episode's captures need RGB-D: for the capture hook (``--export-captures``) or a provider that
+    sees images? The oracles read only the labels."""
+    if ep.on_capture is not None:
+        return True
+    try:
+        return not hasattr(make_provider(ep.task.perception, ep.wc.cfg.objects), "estimate_truth")
+    except UserError:  # _perceive reports it
+        return True
 
 
 def _perceive(ep: _Episode, frame: Frame, seed: int, im_id: int) -> list[Estimate]:

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp.errors import UserError
+from posegrasp.executor import Executor
 from posegrasp.grasping.record import FAILURES
 from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, SUMMARY, read_campaign, read_json_object, read_records
 from posegrasp.sim.camera import Frame
@@ -40,6 +41,11 @@ class Look:
     labels: np.ndarray
     overview: np.ndarray
     objects: str = ""  # the object set's folder (``""``: the shipped blocks)
+
+
+def _resimulate_look_task(item: tuple[Path, dict]) -> Look | None:
+    """``resimulate_look(*item)``: a plain function of one argument, as executors (Ray too) take."""
+    return resimulate_look(*item)
 
 
 def resimulate_look(run_dir: Path, rec: dict) -> Look | None:
@@ -244,9 +250,10 @@ for(var i=0;i<im.length;i++){if(im[i].complete&&im[i].naturalWidth>0)n++;}
 document.title='images decoded: '+n+'/'+im.length;});</script>"""
 
 
-def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
+def write_report(run_dir: Path, samples: int = 4, strip: int = 6, executor: Executor | None = None) -> Path:
     """Write ``run_dir/report.html`` from its ``episodes.jsonl``, ``summary.json`` and ``campaign.json``;
-    ``samples`` episodes get Fig. 9-10 style frames, ``strip`` episodes an overview snapshot. Returns the path."""
+    ``samples`` episodes get Fig. 9-10 style frames, ``strip`` episodes an overview snapshot, re-simulated by
+    ``executor`` (a campaign's warm workers) or in this process. Returns the path."""
     from posegrasp.grasping.stats import summarise
     from posegrasp.io import atomic_write
 
@@ -264,6 +271,11 @@ def write_report(run_dir: Path, samples: int = 4, strip: int = 6) -> Path:
     perception = campaign.perception
 
     looks: dict[int, Look | None] = {}
+    if executor is not None:
+        shown = {r["episode"]: r for r in _pick_samples(records, samples) + records[:strip]}
+        recs = [shown[e] for e in sorted(shown)]
+        for i, lk in executor.imap(_resimulate_look_task, [(run_dir, r) for r in recs]):
+            looks[recs[i]["episode"]] = lk
 
     def look(rec: dict) -> Look | None:
         if rec["episode"] not in looks:

@@ -66,8 +66,8 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     perception = canonical_spec(perception)  # a plug-in file's path absolute, for the workers and the record
     check_rows(make_provider(perception, cfg.scene.workcell.objects), episodes, cfg.task)  # before any work starts
     console = console or Console(stderr=True)
-    with folder_lock(out), open_export(export, seed, cfg) as captures:
-        executor = make_executor(workers)  # Ray connects here, before anything is written
+    # Ray connects in make_executor, before anything is written; the pool's workers stay for the report's frames
+    with folder_lock(out), open_export(export, seed, cfg) as captures, make_executor(workers) as executor:
         recorded = read_records(out / EPISODES)
         if not recorded:  # a campaign binds once it has an episode: settings of a failed start are replaced
             (out / CAMPAIGN).unlink(missing_ok=True)
@@ -111,7 +111,7 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                              "episodes_per_min": 60 * ran / elapsed if ran and elapsed > 0 else None})
         write_json(out / SUMMARY, summary)
         print_summary(summary, console)
-        console.print(f"report -> {write_report(out)}")
+        console.print(f"report -> {write_report(out, executor=executor)}")
     return summary
 
 

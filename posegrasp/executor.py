@@ -4,7 +4,8 @@
 Results come back keyed by task index, so they never depend on how many workers ran them. Tasks return
 their results to the caller, which alone writes files: a worker needs no access to the output folder (a Ray
 node needs no shared filesystem), and a worker whose parent is gone has nothing to write. Pool workers also
-die with their parent, whatever kills it (``die_with_parent``).
+die with their parent, whatever kills it (``die_with_parent``). Inside a ``with`` block an executor keeps its
+workers between ``imap`` calls: a trial campaign's warm pool also re-simulates the frames of its report.
 """
 
 from __future__ import annotations
@@ -27,9 +28,14 @@ RAY_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM")
 
 
 class Executor(Protocol):
-    """Runs ``fn(item)`` for every item and yields ``(index, result)`` as tasks finish."""
+    """Runs ``fn(item)`` for every item and yields ``(index, result)`` as tasks finish. Used as a context
+    manager, it keeps its workers between ``imap`` calls (a pool's warm processes) until the block ends."""
 
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]: ...
+
+    def __enter__(self) -> "Executor": ...
+
+    def __exit__(self, *exc: object) -> None: ...
 
 
 class SerialExecutor:
@@ -38,6 +44,12 @@ class SerialExecutor:
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         for i, item in enumerate(items):
             yield i, fn(item)
+
+    def __enter__(self) -> "SerialExecutor":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
 
 
 def die_with_parent(parent: int) -> None:
@@ -60,19 +72,39 @@ class PoolExecutor:
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self.workers = workers
+        self._pool: ProcessPoolExecutor | None = None  # kept between imap calls inside a with block
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
+                                   initializer=die_with_parent, initargs=(os.getpid(),))
+
+    def __enter__(self) -> "PoolExecutor":
+        self._pool = self._new_pool()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
 
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
-        ctx = mp.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=die_with_parent,
-                                 initargs=(os.getpid(),)) as pool:
-            futures = {pool.submit(fn, item): i for i, item in enumerate(items)}
-            try:
-                for fut in as_completed(futures):
-                    yield futures[fut], fut.result()
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
+        if self._pool is not None:
+            yield from self._run(self._pool, fn, items)
+            return
+        with self._new_pool() as pool:
+            yield from self._run(pool, fn, items)
+
+    @staticmethod
+    def _run(pool: ProcessPoolExecutor, fn: Callable[[Any], Any], items: Sequence[Any]
+             ) -> Iterator[tuple[int, Any]]:
+        futures = {pool.submit(fn, item): i for i, item in enumerate(items)}
+        try:
+            for fut in as_completed(futures):
+                yield futures[fut], fut.result()
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
 
 
 def _check_reachable(address: str) -> None:
@@ -103,6 +135,12 @@ class RayExecutor:
             # worker logs stay in Ray's session folder, out of the progress bar's way
             ray.init(address=address, include_dashboard=False, log_to_driver=False)
         self._ray = ray
+
+    def __enter__(self) -> "RayExecutor":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
 
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         env = {k: os.environ[k] for k in RAY_ENV if k in os.environ}

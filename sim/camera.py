@@ -35,13 +35,14 @@ def intrinsics(width: int, height: int, fovy_deg: float) -> np.ndarray:
 class Frame:
     """One RGB-D capture with its labels.
 
-    rgb (H, W, 3) uint8; depth (H, W) float32 metres along the optical axis, 0 where invalid;
+    rgb (H, W, 3) uint8; depth (H, W) float32 metres along the optical axis, 0 where invalid (both None in a
+    labels-only capture, ``CameraRenderer.capture(images=False)``: what the oracles read);
     mask (H, W) uint16 with 0 background and k for scene block k; K (3, 3); T_world_cam (4, 4, OpenCV);
     T_cam_obj (K, 4, 4) for every block of the scene, visible or not; obj_ids (K,) catalogue ids.
     """
 
-    rgb: np.ndarray
-    depth: np.ndarray
+    rgb: np.ndarray | None
+    depth: np.ndarray | None
     mask: np.ndarray
     K: np.ndarray
     T_world_cam: np.ndarray
@@ -104,10 +105,12 @@ class CameraRenderer:
         ids = np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)
         return self.wc.geom_instance[ids].astype(np.uint16)
 
-    def capture(self) -> Frame:
-        """RGB, depth and mask of the current state, with K, the camera pose and every block's ``T_cam_obj``."""
+    def capture(self, images: bool = True) -> Frame:
+        """RGB, depth and mask of the current state, with K, the camera pose and every block's ``T_cam_obj``;
+        ``images=False``: the mask and the poses only (no RGB or depth is rendered)."""
         T_world_cam = self.wc.camera_pose(self.camera)
         T_cam_world = invert(T_world_cam)
         T_cam_obj = np.einsum("ij,kjl->kil", T_cam_world, self.wc.block_poses())
         obj_ids = np.array([b.block.obj_id for b in self.wc.blocks], dtype=int)
-        return Frame(self.rgb(), self.depth(), self.mask(), self.K.copy(), T_world_cam, T_cam_obj, obj_ids)
+        rgb, depth = (self.rgb(), self.depth()) if images else (None, None)
+        return Frame(rgb, depth, self.mask(), self.K.copy(), T_world_cam, T_cam_obj, obj_ids)

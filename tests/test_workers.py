@@ -125,3 +125,30 @@ def test_trials_workers_die_with_their_parent(tmp_path):
     run_trials(ref, 2, seed=4, perception="oracle", workers=1, cfg=TrialConfig(), progress=False)
     run_trials(out, 2, seed=4, perception="oracle", workers=1, cfg=TrialConfig(), progress=False)
     assert (out / EPISODES).read_bytes() == (ref / EPISODES).read_bytes()
+
+
+def test_a_pool_keeps_its_workers_inside_a_with_block_and_ends_them_after():
+    from posegrasp.executor import PoolExecutor
+
+    with PoolExecutor(2) as ex:
+        first = {pid for _, pid in ex.imap(_pid_after_a_moment, range(6))}
+        second = {pid for _, pid in ex.imap(_pid_after_a_moment, range(6))}
+        assert len(first) == 2 and second == first  # the same two warm processes served both calls
+    deadline = time.time() + 10
+    while time.time() < deadline and any(_alive(p) for p in first):
+        time.sleep(0.1)
+    assert not any(_alive(p) for p in first)
+    assert {pid for _, pid in PoolExecutor(2).imap(_pid_after_a_moment, range(2))}.isdisjoint(first)
+
+
+def _pid_after_a_moment(_: int) -> int:
+    time.sleep(0.2)  # long enough for both workers to take tasks
+    return os.getpid()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
