@@ -19,29 +19,19 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 from posegrasp import ASSETS
+from posegrasp.objects import examples
 from posegrasp.objects.config import ImportConfig
 from posegrasp.objects.decompose import convex_pieces
 from posegrasp.objects.importer import Workcell, import_object, sources
 
-TF = trimesh.transformations
-
 
 def _made_meshes(d: Path) -> list[Path]:
     """A U-channel, a mug with a handle and a capless cylinder, as PLY in metres under ``d``."""
-    parts = [trimesh.creation.box([0.06, 0.03, 0.01], TF.translation_matrix([0, 0, -0.015]))]
-    parts += [trimesh.creation.box([0.01, 0.03, 0.04], TF.translation_matrix([x, 0, 0])) for x in (-0.025, 0.025)]
-    u = trimesh.boolean.union(parts, engine="manifold")
-    cup = trimesh.boolean.difference([trimesh.creation.cylinder(0.03, 0.08, sections=32),
-                                      trimesh.creation.cylinder(0.025, 0.08, sections=32,
-                                                                transform=TF.translation_matrix([0, 0, 0.01]))],
-                                     engine="manifold")
-    upright_ring = TF.rotation_matrix(np.pi / 2, [1, 0, 0])
-    handle = trimesh.creation.annulus(0.012, 0.02, 0.01, sections=16, transform=upright_ring)
-    mug = trimesh.boolean.union([cup, handle.apply_translation([0.035, 0, 0])], engine="manifold")
+    u = examples.u_channel((0.06, 0.03, 0.01), -0.015, (0.01, 0.03, 0.04), 0.025)
+    mug = examples.mug(0.03, 0.025, 0.08, 0.01, (0.012, 0.02, 0.01, 0.035))
     cyl = trimesh.creation.cylinder(0.015, 0.05, sections=32)
     capless = trimesh.Trimesh(cyl.vertices, cyl.faces[cyl.face_normals[:, 2] < 0.5])
     out = []

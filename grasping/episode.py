@@ -28,7 +28,7 @@ from posegrasp.geometry import axis_angle_R, look_at_R, make_T, transform_points
 from posegrasp.grasping.config import ControlConfig, ScoringConfig, TrialConfig, firm_hold
 from posegrasp.grasping.controller import ArmController, SimulationError, robot_workcell
 from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
-from posegrasp.grasping.perception import BASE_LOOK, PICK_LOOK, Estimate, PerceptionError, perceive
+from posegrasp.grasping.perception import BASE_LOOK, PICK_LOOK, Estimate, PerceptionError, perceive, reads_labels
 from posegrasp.grasping.provider_registry import make_provider
 from posegrasp.grasping.record import BaseRecord, EpisodeRecord, EpisodeTimings, FalseTarget, PoseError, Target
 from posegrasp.grasping.support import rest_on_table
@@ -435,7 +435,7 @@ def _needs_images(ep: _Episode) -> bool:
     if ep.on_capture is not None:
         return True
     try:
-        return not hasattr(make_provider(ep.task.perception, ep.wc.cfg.objects), "estimate_truth")
+        return not reads_labels(make_provider(ep.task.perception, ep.wc.cfg.objects))
     except UserError:  # _perceive reports it
         return True
 

@@ -343,9 +343,10 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     _, support, z_pinch, lo, hi = best
     hand_y, stable = HAND_Y, True
     if yaw_stable:  # the contact face's span along y at the pinch height, shifted by hand_y, must cover both
-        face = (np.abs(px - lo) < 0.0015) & (np.abs(h - z_pinch) < 0.004)  # inner pad edges of fingers 2, 3
+        on_face = np.abs(px - lo) < 0.0015
+        face = on_face & (np.abs(h - z_pinch) < 0.004)  # inner pad edges of fingers 2, 3
         inner2, inner3 = _FINGER23_Y[0][1] - _PAD_OVERLAP, _FINGER23_Y[1][0] + _PAD_OVERLAP
-        narrowest = _face_span(px, py, h, lo, z_pinch)
+        narrowest = _face_span(on_face, py, h, z_pinch)
         stable = narrowest is not None and inner3 - narrowest[1] <= inner2 - narrowest[0]
         if face.any() and inner3 - py[face].max() <= inner2 - py[face].min():
             hand_y = float(np.clip(cfg.pose_hand_y, inner3 - py[face].max(), inner2 - py[face].min()))
@@ -371,12 +372,10 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     return Grasp(T, width, clearance, tilt, float(support), float(score), stable)
 
 
-def _face_span(px: np.ndarray, py: np.ndarray, h: np.ndarray, lo: float, z_pinch: float
-               ) -> tuple[float, float] | None:
-    """The y extent (m, gripper frame) that the contact face at ``px == lo`` covers both ``_FACE_REACH`` above
-    and below the pinch height (surface points within 1.5 mm of each), or None where it is missing: an L-block
-    pinched at its upright part's foot has a long face below and a short one above."""
-    on = np.abs(px - lo) < 0.0015
+def _face_span(on: np.ndarray, py: np.ndarray, h: np.ndarray, z_pinch: float) -> tuple[float, float] | None:
+    """The y extent (m, gripper frame) that the contact face (the surface points ``on`` it) covers both
+    ``_FACE_REACH`` above and below the pinch height (points within 1.5 mm of each), or None where it is missing:
+    an L-block pinched at its upright part's foot has a long face below and a short one above."""
     ends = []
     for dz in (-_FACE_REACH, _FACE_REACH):
         s = on & (np.abs(h - (z_pinch + dz)) < 0.0015)

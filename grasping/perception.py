@@ -92,6 +92,11 @@ class GroundTruthProvider(Protocol):
     def estimate_truth(self, frame: Frame, seed: int) -> list[Estimate]: ...
 
 
+def reads_labels(provider: Provider | GroundTruthProvider) -> bool:
+    """Is ``provider`` an oracle, reading the capture's labels (no RGB-D) rather than an ``Observation``?"""
+    return hasattr(provider, "estimate_truth")
+
+
 #: The hand camera's depth unit (mm): like a depth sensor's integer output, the depth a provider sees comes in steps
 #: of 0.1 mm (the unit of the training data's and of ``--export-captures``'s depth PNGs, so an export holds exactly
 #: the depth the live providers see).
@@ -126,7 +131,7 @@ def perceive(provider: Provider | GroundTruthProvider, frame: Frame, seed: int, 
     """
     name = str(getattr(provider, "name", type(provider).__name__))
     try:
-        if hasattr(provider, "estimate_truth"):
+        if reads_labels(provider):
             out = provider.estimate_truth(frame, seed)
         else:
             obs = observation(frame, scene_id, im_id)

@@ -23,21 +23,25 @@ def _box(size: tuple[float, float, float], at: tuple[float, float, float]) -> tr
     return trimesh.creation.box(size, _TF.translation_matrix(at))
 
 
-def u_channel() -> trimesh.Trimesh:
-    """A U-channel 60 x 40 x 30 mm: 8 mm base, two 8 mm walls, open along y (non-convex)."""
-    return _union([_box((0.06, 0.04, 0.008), (0, 0, -0.011))]
-                  + [_box((0.008, 0.04, 0.03), (x, 0, 0)) for x in (-0.026, 0.026)])
+def u_channel(base: tuple[float, float, float] = (0.06, 0.04, 0.008), base_z: float = -0.011,
+              wall: tuple[float, float, float] = (0.008, 0.04, 0.03), wall_x: float = 0.026) -> trimesh.Trimesh:
+    """A U-channel, by default 60 x 40 x 30 mm: 8 mm base, two 8 mm walls, open along y (non-convex); ``base``
+    and ``wall`` are box sizes (m), centred at ``base_z`` and at +-``wall_x``."""
+    return _union([_box(base, (0, 0, base_z))] + [_box(wall, (x, 0, 0)) for x in (-wall_x, wall_x)])
 
 
-def mug() -> trimesh.Trimesh:
-    """A mug: 56 mm across, 60 mm tall, 4 mm wall, 6 mm bottom, a ring handle on +x (no symmetry but a flip)."""
-    cup = trimesh.boolean.difference([trimesh.creation.cylinder(0.028, 0.06, sections=32),
-                                      trimesh.creation.cylinder(0.024, 0.06, sections=32,
-                                                                transform=_TF.translation_matrix([0, 0, 0.006]))],
+def mug(radius: float = 0.028, inner: float = 0.024, height: float = 0.06, bottom: float = 0.006,
+        handle: tuple[float, float, float, float] = (0.010, 0.017, 0.008, 0.033)) -> trimesh.Trimesh:
+    """A mug, by default 56 mm across, 60 mm tall, 4 mm wall, 6 mm bottom, with a ring handle on +x (no symmetry
+    but a flip); ``handle``: the ring's inner and outer radius, width and distance from the axis (m)."""
+    cup = trimesh.boolean.difference([trimesh.creation.cylinder(radius, height, sections=32),
+                                      trimesh.creation.cylinder(inner, height, sections=32,
+                                                                transform=_TF.translation_matrix([0, 0, bottom]))],
                                      engine="manifold")
     upright = _TF.rotation_matrix(np.pi / 2, [1, 0, 0])
-    ring = trimesh.creation.annulus(0.010, 0.017, 0.008, sections=16, transform=upright)
-    return _union([cup, ring.apply_translation([0.033, 0, 0])])
+    r_in, r_out, width, x = handle
+    ring = trimesh.creation.annulus(r_in, r_out, width, sections=16, transform=upright)
+    return _union([cup, ring.apply_translation([x, 0, 0])])
 
 
 def hex_nut() -> trimesh.Trimesh:

@@ -17,7 +17,7 @@ import signal
 import socket
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from typing import Any, Callable, Iterator, Protocol, Sequence
+from typing import Any, Callable, Iterator, Protocol, Self, Sequence
 
 from posegrasp.errors import UserError
 
@@ -38,18 +38,22 @@ class Executor(Protocol):
     def __exit__(self, *exc: object) -> None: ...
 
 
-class SerialExecutor:
+class _NothingToKeep:
+    """An executor without workers of its own to keep: its ``with`` block only hands it back."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+
+class SerialExecutor(_NothingToKeep):
     """Runs tasks in this process, in order."""
 
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         for i, item in enumerate(items):
             yield i, fn(item)
-
-    def __enter__(self) -> "SerialExecutor":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
 
 
 def die_with_parent(parent: int) -> None:
@@ -120,7 +124,7 @@ def _check_reachable(address: str) -> None:
                         "with 'ray start --head' or unset RAY_ADDRESS") from None
 
 
-class RayExecutor:
+class RayExecutor(_NothingToKeep):
     """Ray tasks on an existing cluster (``RAY_ADDRESS``, or ``ray.init`` called before) or a new local one.
     Results travel back to the driver through Ray's object store; the driver's ``MUJOCO_GL`` and
     ``PYOPENGL_PLATFORM`` go to the workers."""
@@ -135,12 +139,6 @@ class RayExecutor:
             # worker logs stay in Ray's session folder, out of the progress bar's way
             ray.init(address=address, include_dashboard=False, log_to_driver=False)
         self._ray = ray
-
-    def __enter__(self) -> "RayExecutor":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
 
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         env = {k: os.environ[k] for k in RAY_ENV if k in os.environ}
