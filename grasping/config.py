@@ -151,9 +151,10 @@ class TrialConfig:
     # carry: stack, seed 0, 7 of its 8 episodes failed), and MuJoCo's sleeping islands: bodies at rest (speeds
     # below pose_sleep_tolerance, MuJoCo's default) are not simulated until something touches them, so blocks
     # resting on the table cost nothing (the physics of a stack episode took half the time, noslip only 15 % more).
-    # Pick-and-place is not among them by default, so its records stay as they were (noslip alone, without the
-    # yaw-stable pinch, dropped cubes from its 2-finger pinches: 22 of 200).
-    firm_hold_tasks: tuple[str, ...] = ("kitting", "stack")
+    # None: the object set's choice (its manifest's ``firm_hold_tasks``: every task for imported sets), else
+    # DEFAULT_FIRM_HOLD_TASKS. The shipped blocks keep pick-and-place out, so its records stay as they were (noslip
+    # alone, without the yaw-stable pinch, dropped cubes from its 2-finger pinches: 22 of 200).
+    firm_hold_tasks: tuple[str, ...] | None = None
     pose_noslip_iterations: int = field(default=2, metadata=within(0, 1000))
     pose_sleep: bool = True
     pose_sleep_tolerance: float = field(default=1e-3, metadata=within(0.0, 1.0))
@@ -172,9 +173,23 @@ class TrialConfig:
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
 
 
+#: The tasks that hold firmly where neither the campaign nor its object set says.
+DEFAULT_FIRM_HOLD_TASKS = ("kitting", "stack")
+
+
+def firm_hold_tasks(cfg: TrialConfig) -> tuple[str, ...]:
+    """The tasks that hold the block firmly: ``cfg.firm_hold_tasks``, else the object set's, else the default."""
+    if cfg.firm_hold_tasks is not None:
+        return cfg.firm_hold_tasks
+    from posegrasp.catalog import set_firm_hold_tasks
+
+    tasks = set_firm_hold_tasks(cfg.scene.workcell.objects)
+    return DEFAULT_FIRM_HOLD_TASKS if tasks is None else tasks
+
+
 def firm_hold(cfg: TrialConfig) -> bool:
-    """Does the campaign's task hold the block firmly (``TrialConfig.firm_hold_tasks``)?"""
-    return cfg.task in cfg.firm_hold_tasks
+    """Does the campaign's task hold the block firmly (``firm_hold_tasks``)?"""
+    return cfg.task in firm_hold_tasks(cfg)
 
 
 def load_trial_config(path: str | Path | None = None) -> TrialConfig:
@@ -184,8 +199,10 @@ def load_trial_config(path: str | Path | None = None) -> TrialConfig:
 
 def with_set(cfg: TrialConfig, objects: str | Path | None = None) -> TrialConfig:
     """``cfg`` on the object set ``objects`` (None: the one ``cfg`` names; ``""``: the shipped blocks), its folder
-    made absolute and checked (``sim.config.with_objects``)."""
+    made absolute and checked (``sim.config.with_objects``), and its firm-hold tasks settled (``firm_hold_tasks``,
+    so the campaign records them)."""
     from posegrasp.sim.config import with_objects
 
-    scene = dataclasses.replace(cfg.scene, workcell=with_objects(cfg.scene.workcell, objects))
-    return dataclasses.replace(cfg, scene=scene)
+    cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, workcell=with_objects(cfg.scene.workcell,
+                                                                                               objects)))
+    return dataclasses.replace(cfg, firm_hold_tasks=firm_hold_tasks(cfg))

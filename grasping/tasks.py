@@ -22,7 +22,7 @@ import numpy as np
 from posegrasp.catalog import BlockType, load_catalog
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T, quat_to_R
-from posegrasp.grasping.config import TASKS, KittingConfig, StackConfig, TrialConfig
+from posegrasp.grasping.config import TASKS, KittingConfig, StackConfig, TrialConfig, firm_hold_tasks
 from posegrasp.grasping.upright import UprightError, symmetries, tilt_deg, upright_error
 
 #: Height (m) of the place pad's surface.
@@ -123,7 +123,7 @@ def check_task(cfg: TrialConfig) -> None:
     """UserError unless ``cfg.task`` is a task the scene's block types can serve."""
     if cfg.task not in TASKS:
         raise UserError(f"unknown task {cfg.task!r}; choose one of: {', '.join(TASKS)}")
-    unknown = [t for t in cfg.firm_hold_tasks if t not in TASKS]
+    unknown = [t for t in firm_hold_tasks(cfg) if t not in TASKS]
     if unknown:
         raise UserError(f"firm_hold_tasks names unknown task(s) {unknown}; choose among: {', '.join(TASKS)}")
     types = task_types(cfg)

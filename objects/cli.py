@@ -59,7 +59,7 @@ def run_import(args: argparse.Namespace) -> int:
                   enabled=not args.no_progress, transient=True) as bar:
         task = bar.add_task("import", total=len(srcs))
         objects = import_objects(srcs, cfg, cell, report)
-    write_object_set(args.out, objects)
+    write_object_set(args.out, objects, cfg.firm_hold_tasks)
     print("\n".join(lines))
     print(f"wrote object set {args.out} ({len(objects)} objects)")
     return 0

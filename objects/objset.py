@@ -99,6 +99,8 @@ class ObjectSet:
 
     root: Path
     objects: tuple[SetObject, ...]
+    firm_hold_tasks: tuple[str, ...] | None = None  # the trial tasks that hold these objects firmly (the
+    # manifest's ``firm_hold_tasks``; None where it names none: the trials' own default)
 
     def by_name(self) -> dict[str, SetObject]:
         """The objects keyed by name, in ``obj_id`` order."""
@@ -154,8 +156,9 @@ def _object_json(o: SetObject) -> dict[str, Any]:
     }
 
 
-def set_files(objects: list[SetObject]) -> dict[str, bytes]:
-    """Every file of a set holding ``objects`` (relative path -> bytes)."""
+def set_files(objects: list[SetObject], firm_hold_tasks: tuple[str, ...] | None = None) -> dict[str, bytes]:
+    """Every file of a set holding ``objects`` (relative path -> bytes); ``firm_hold_tasks`` goes into the
+    manifest when given."""
     if [o.obj_id for o in objects] != list(range(1, len(objects) + 1)):
         raise ValueError("object ids must run 1, 2, ... in order")
     files = {f"models/obj_{o.obj_id:06d}.ply": _ply_bytes(o.vertices, o.faces) for o in objects}
@@ -168,6 +171,8 @@ def set_files(objects: list[SetObject]) -> dict[str, bytes]:
         "frame": "origin at the centre of each model's bounding box",
         "objects": [{"obj_id": o.obj_id, "name": o.name, "file": f"objects/obj_{o.obj_id:06d}.json"}
                     for o in objects]}
+    if firm_hold_tasks is not None:
+        text[MANIFEST]["firm_hold_tasks"] = list(firm_hold_tasks)
     files.update({k: (dumps_json(v) + "\n").encode() for k, v in text.items()})
     return dict(sorted(files.items()))
 
@@ -178,12 +183,12 @@ def check_writable_set(out: Path) -> None:
         raise UserError(f"--out {out} exists and is not an object set; name a new folder (nothing was replaced)")
 
 
-def write_object_set(out: Path, objects: list[SetObject]) -> Path:
+def write_object_set(out: Path, objects: list[SetObject], firm_hold_tasks: tuple[str, ...] | None = None) -> Path:
     """Write the set atomically: built in a temporary folder beside ``out``, then renamed to ``out`` (an earlier
     set there is replaced only once the new one is complete)."""
     out = Path(out)
     check_writable_set(out)
-    files = set_files(objects)
+    files = set_files(objects, firm_hold_tasks)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     old = None
@@ -281,8 +286,13 @@ def load_object_set(root: str | Path) -> ObjectSet:
         raise UserError(f"{root / MANIFEST}: obj_ids must run 1, 2, ... in order; re-import the set")
     if len({e["name"] for e in entries}) != len(entries):
         raise UserError(f"{root / MANIFEST}: object names must be unique; re-import the set")
+    hold = man.get("firm_hold_tasks")
+    if hold is not None and not (isinstance(hold, list) and all(isinstance(t, str) for t in hold)):
+        raise UserError(f"{root / MANIFEST}: firm_hold_tasks must be a list of task names, not {hold!r}; "
+                        "re-import the set")
     info = load_models_info(root / "models" / "models_info.json")
     try:
-        return ObjectSet(root=root, objects=tuple(_parse_object(root, e, info) for e in entries))
+        return ObjectSet(root=root, objects=tuple(_parse_object(root, e, info) for e in entries),
+                         firm_hold_tasks=None if hold is None else tuple(hold))
     except (KeyError, TypeError, ValueError) as e:
         raise UserError(f"object set {root} has a malformed file ({type(e).__name__}: {e}); re-import it") from None

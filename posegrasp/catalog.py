@@ -104,10 +104,20 @@ def _block(o: Any) -> BlockType:
 
 
 @functools.lru_cache(maxsize=8)
-def _load(root: Path) -> tuple[BlockType, ...]:
+def _set(root: Path) -> Any:
     from posegrasp.objects.objset import load_object_set
 
-    return tuple(_block(o) for o in load_object_set(root).objects)
+    return load_object_set(root)
+
+
+@functools.lru_cache(maxsize=8)
+def _load(root: Path) -> tuple[BlockType, ...]:
+    return tuple(_block(o) for o in _set(root).objects)
+
+
+def set_firm_hold_tasks(objects: str | Path | None = "") -> tuple[str, ...] | None:
+    """The trial tasks the object set ``objects`` asks to hold its objects firmly (None: it names none)."""
+    return _set(set_root(objects)).firm_hold_tasks
 
 
 def load_catalog(objects: str | Path | None = "") -> dict[str, BlockType]:

@@ -41,6 +41,10 @@ def test_the_catalogue_loads_a_set_and_its_upright_data(parts):
     assert set_record()["path"] == str(DEFAULT_SET)
     roundabout = parts.parent / ".." / parts.parent.name / "parts"
     assert with_set(TrialConfig(), roundabout).scene.workcell.objects == str(parts)  # absolute, for the workers
+    # an imported set holds firmly in every task, the shipped blocks in kitting and stack; a campaign's own wins
+    assert with_set(TrialConfig(), parts).firm_hold_tasks == ("pick-place", "kitting", "stack")
+    assert with_set(TrialConfig()).firm_hold_tasks == ("kitting", "stack")
+    assert with_set(TrialConfig(firm_hold_tasks=("stack",)), parts).firm_hold_tasks == ("stack",)
 
 
 def test_scene_draws_from_the_set(parts, tmp_path):

@@ -229,6 +229,13 @@ def test_bad_set_folders_are_refused(capsys, imported: Path, tmp_path: Path) -> 
     info["2"]["size_x"] += 5.0
     (broken / "models" / "models_info.json").write_text(json.dumps(info))
     refused(capsys, ["objects", "show", broken, "--out", png], "does not match its models_info.json")
+    shutil.rmtree(broken)
+    shutil.copytree(imported, broken)
+    man = json.loads((broken / "objectset.json").read_text())
+    assert man["firm_hold_tasks"] == ["pick-place", "kitting", "stack"]
+    man["firm_hold_tasks"] = "kitting"
+    (broken / "objectset.json").write_text(json.dumps(man))
+    refused(capsys, ["objects", "show", broken, "--out", png], "firm_hold_tasks must be a list of task names")
     before = snapshot(ds)
     refused(capsys, ["objects", "import", imported / "models" / "obj_000001.ply", "--out", ds], "not an object set")
     assert snapshot(ds) == before and not png.exists()
