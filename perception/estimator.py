@@ -162,6 +162,7 @@ class Estimator:
         self.model_points: dict[int, np.ndarray] | None = None
         self.hypotheses: dict[int, np.ndarray] = {}
         self.grids: dict[int, NearestGrid] = {}
+        self.symmetries: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.surfaces: dict[int, ModelSurface] = {}
         if cfg.models is not None:
             self._load_models(cfg.models)
@@ -179,6 +180,9 @@ class Estimator:
                                                  [a for a, _ in infos[o].symmetries_continuous])
                            for o in self.obj_ids}
         self.grids = {o: NearestGrid(self.model_points[o]) for o in self.obj_ids}
+        self.symmetries = {o: (np.array([np.asarray(D)[:3, :3] for D in infos[o].symmetries_discrete]).reshape(-1, 3, 3),
+                               np.array([a for a, _ in infos[o].symmetries_continuous]).reshape(-1, 3))
+                           for o in self.obj_ids}
         if self.split_cfg.rounds > 0:
             self.surfaces = {o: ModelSurface(bop.sample_model_points(bop.load_model(models, o),
                                                                       self.split_cfg.model_points, seed=o))
@@ -252,7 +256,8 @@ class Estimator:
             observed.append(backproject(depth, K, box, idx))
         ids = [o for o, _ in masks]
         return [T for T, _ in refine_poses(poses, [self.model_points[o] for o in ids], observed, depth, K, self.icp,
-                                           [self.hypotheses[o] for o in ids], plane, [self.grids[o] for o in ids])]
+                                           [self.hypotheses[o] for o in ids], plane, [self.grids[o] for o in ids],
+                                           [self.symmetries[o] for o in ids])]
 
     @with_one_blas_thread
     @torch.no_grad()
