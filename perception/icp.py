@@ -20,10 +20,11 @@ search; points beyond the grid take the nearest point of its closest cell. The l
 exact nearest points (from a k-d tree of the model), for the ``polish`` hypotheses that score best by the grid's
 distances only; the final score is exact.
 A block resting on the table and seen from above constrains its turn about the table's normal least (a cube's top
-face fits its points at any yaw), so the hypotheses that score best after the first steps are turned about the
-plane's normal (the camera's optical axis without a plane), through the object's centre, by every ``yaw_step_deg``
-of the turn that maps the model onto itself about that axis (360 deg / the number of its symmetries about it), and
-fitted again before the exact steps: on the val split with ground-truth masks, the fit started at the true pose
+face fits its points at any yaw), so after the first steps the best hypothesis of each of the ``yaw_seeds`` best-scoring faces
+turned up (``up_face``: which object axis lies along the plane's normal) is turned about the plane's normal (the
+camera's optical axis without a plane), through the object's centre, by every ``yaw_step_deg`` of the turn that maps
+the model onto itself about that axis (360 deg / the number of its symmetries about it), and fitted again before the
+exact steps: on the val split with ground-truth masks, the fit started at the true pose
 scored better than the one found from the pose net's estimate in every one of the 85 instances turned more than
 15 deg, so the fit lacked starts, not a better score.
 Hypotheses that differ by a symmetry of the object start the same fit, so only one of them is run
@@ -61,8 +62,9 @@ class ICPConfig:
     best before them (with the grid's distances). max_points: observed points used (random subset).
     truncation (m): per-point distance cap in the score. violation_margin (m) and violation_weight (m per
     unit share): the free-space term. hypotheses: "cube" (24 rotations) or "identity" (plain ICP).
-    yaw_step_deg: the turns about the plane's normal tried from each object's ``yaw_seeds`` best hypotheses after
-    the first ``iterations - exact_steps`` steps, each fitted ``yaw_iterations`` more grid steps (0: none)."""
+    yaw_step_deg: the turns about the plane's normal tried from the best hypothesis of each of an object's
+    ``yaw_seeds`` best faces up after the first ``iterations - exact_steps`` steps, each fitted ``yaw_iterations``
+    more grid steps (0: none). The ``polish`` hypotheses are each turned at least 10 deg from the others."""
 
     iterations: int = 12
     exact_steps: int = 2
@@ -73,7 +75,7 @@ class ICPConfig:
     violation_weight: float = 0.01
     hypotheses: str = "cube"
     yaw_step_deg: float = 15.0
-    yaw_seeds: int = 2
+    yaw_seeds: int = 3
     yaw_iterations: int = 6
 
     def validate(self) -> None:
@@ -280,8 +282,9 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     for _ in range(cfg.iterations - exact):
         R, t = fit.fit(_columns(columns, grids.posed(po, R, t, obj)))
     if cfg.yaw_step_deg > 0:  # the best few turned about the plane's normal, and fitted on
-        keep = _best(_score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids), obj, cfg.yaw_seeds, R)
         normal = np.array([0.0, 0.0, 1.0]) if pl is None else pl[:3].double().numpy()
+        keep = _best(_score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids), obj, cfg.yaw_seeds,
+                     face=up_face(R, normal))
         R, obj, source = _turned(R[keep], obj[keep], normal, cfg.yaw_step_deg, symmetries)
         t = t[keep][source]
         po = p[obj].transpose(1, 2).contiguous()
@@ -307,28 +310,35 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     return out
 
 
-def _best(score: torch.Tensor, obj: torch.Tensor, n: int, R: torch.Tensor | None = None,
-          apart_deg: float = 10.0) -> torch.Tensor:
+def _best(score: torch.Tensor, obj: torch.Tensor, n: int, R: torch.Tensor | None = None, apart_deg: float = 10.0,
+          face: torch.Tensor | None = None) -> torch.Tensor:
     """Rows of the ``n`` lowest scores (H,) of each object ``obj`` (H,), object by object; given the rotations R
     (H, 3, 3), each kept row turned at least ``apart_deg`` from those kept before it (fits that converged to one
-    pose count once)."""
+    pose count once); given ``face`` (H,), each kept row with a face label of its own."""
     keep = []
     cos_apart = float(np.cos(np.radians(apart_deg)))
     for o in obj.unique():
         rows = torch.nonzero(obj == o)[:, 0]
         rows = rows[score[rows].argsort()]
-        if R is None:
-            keep.append(rows[:n])
-            continue
         kept = [int(rows[0])]
         for r in rows[1:].tolist():
             if len(kept) == n:
                 break
-            cos = (torch.einsum("kij,ij->k", R[kept], R[r]) - 1) / 2  # cos of the angle between R_k and R_r
-            if float(cos.max()) < cos_apart:
-                kept.append(r)
+            if face is not None:
+                if int(face[r]) not in face[kept].tolist():
+                    kept.append(r)
+            elif R is None or float(((torch.einsum("kij,ij->k", R[kept], R[r]) - 1) / 2).max()) < cos_apart:
+                kept.append(r)  # (the cosines of the angles between R_r and the kept rotations)
         keep.append(torch.tensor(kept))
     return torch.cat(keep)
+
+
+def up_face(R: torch.Tensor, normal: np.ndarray) -> torch.Tensor:
+    """Which of the object axes +x, -x, +y, -y, +z, -z (labels 0-5) lies closest to ``normal`` (3,, camera frame)
+    under each rotation R (H, 3, 3): the face an object resting on a plane with that normal shows the camera."""
+    a = R.transpose(1, 2) @ torch.as_tensor(normal, dtype=R.dtype)  # (H, 3): the normal in each object frame
+    axis = a.abs().argmax(dim=1)
+    return 2 * axis + (a.gather(1, axis[:, None])[:, 0] < 0).long()
 
 
 def yaw_turns(R: np.ndarray, normal: np.ndarray, step_deg: float, discrete: np.ndarray, axes: np.ndarray

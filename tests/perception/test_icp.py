@@ -207,3 +207,14 @@ def test_yaw_turns_find_a_cube_turned_on_the_table():
     T_plain, _ = refine_pose(T_est, model, obs, depth, K, ICPConfig(yaw_step_deg=0.0), hyps, plane, symmetries=syms)
     assert err(T_turns) < 5.0 and np.linalg.norm(T_turns[:3, 3] - T_gt[:3, 3]) < 0.002
     assert err(T_plain) > 10.0
+
+
+def test_up_face_names_the_object_axis_along_the_normal():
+    from posegrasp.perception.icp import up_face
+
+    up = np.array([0.0, 0.0, 1.0])
+    R = torch.from_numpy(np.stack([np.eye(3), axis_angle_R(np.array([1.0, 0.0, 0.0]), np.pi),
+                                   axis_angle_R(np.array([0.0, 1.0, 0.0]), np.pi / 2),
+                                   axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(100.0))]))
+    # +z up; -z up (upside down); -x up (R^T up = (-1, 0, 0)); +y up, tilted 10 deg off it
+    assert up_face(R, up).tolist() == [4, 5, 1, 2]
