@@ -218,3 +218,4 @@ def test_up_face_names_the_object_axis_along_the_normal():
                                    axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(100.0))]))
     # +z up; -z up (upside down); -x up (R^T up = (-1, 0, 0)); +y up, tilted 10 deg off it
     assert up_face(R, up).tolist() == [4, 5, 1, 2]
+
