@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=positive_int("--steps"), help="total optimisation steps (overrides the config)")
     p.add_argument("--seed", type=nonneg_int("--seed"), help="random seed (overrides the config)")
     p.add_argument("--resume", action="store_true", help="continue the checkpoint in RUN/<stage>")
-    p.add_argument("--init", type=Path, help="seg and pose: start from these weights (a run or its stage folder)")
+    p.add_argument("--init", type=Path, help="seg, pose and cls: start from these weights (a run or its stage folder)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_train)
 
@@ -88,7 +88,7 @@ def run_train(args: argparse.Namespace) -> int:
     cfg = load_toml(training.config, args.config, section=args.stage)
     if args.init is not None:
         if not training.fine_tunes:
-            raise UserError("--init is only for 'train seg' and 'train pose' (fine-tuning)")
+            raise UserError("--init is only for 'train seg', 'train pose' and 'train cls' (fine-tuning)")
         cfg = override(cfg, init=str(args.init))
     result = training.train(args.data, args.out, cfg, steps=args.steps, seed=args.seed, resume=args.resume,
                             progress=not args.no_progress)

@@ -29,7 +29,9 @@ class ClsTrainConfig(StageConfig):
     training images (when the run has one), labelled by the ground truth. ``background``: also learn a
     class 0, "not a block", from those segments that lie mostly on background (needs ``use_seg`` and the
     run's ``seg/``); the estimator drops the segments it wins. The learning rate rises
-    linearly over the first ``warmup`` of the steps, then follows a cosine to 0."""
+    linearly over the first ``warmup`` of the steps, then follows a cosine to 0. ``init``: a classifier checkpoint
+    (or a run holding ``cls/``) to start from (fine-tuning on more data); its ``[cls.model]`` settings (crop, the
+    height channel) come with it."""
 
     model: ClassifierConfig = field(default_factory=ClassifierConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -41,6 +43,7 @@ class ClsTrainConfig(StageConfig):
     warmup: float = 0.1
     use_seg: bool = True
     background: bool = False
+    init: str = ""
 
 
 def cls_lr(cfg: ClsTrainConfig, step: int) -> float:
@@ -55,7 +58,7 @@ class ClsTraining(StageTraining):
     """Cross-entropy on augmented crops (classes: ``obj_ids``, with 0 "not a block" first when ``background``);
     accuracy on ``val_split``. The crops are cached in ``RUN/cache/`` (a resumed run starts at once)."""
 
-    name, config = "cls", ClsTrainConfig
+    name, config, fine_tunes = "cls", ClsTrainConfig, True
     columns = ["step", "time_s", "loss", "acc", "lr", "val_acc"]
 
     def build(self) -> None:
@@ -66,7 +69,11 @@ class ClsTraining(StageTraining):
             raise UserError(f"[cls] background = true learns from the seg net's segments: train seg into {run.out} "
                             "first (and keep use_seg = true), or set background = false")
         obj_ids = ([0] if cfg.background else []) + obj_ids  # 0: "not a block"
-        self.model_cfg = dataclasses.replace(cfg.model, obj_ids=obj_ids)
+        model = cfg.model
+        if cfg.init:  # fine-tuning: the crop settings and channels come with the weights
+            src = Path(cfg.init)
+            model = ckpt_mod.load_model(src / "cls" if (src / "cls").is_dir() else src, "cls")[1]
+        self.model_cfg = dataclasses.replace(model, obj_ids=obj_ids)
         self.cfg = cfg = dataclasses.replace(cfg, model=self.model_cfg)
         self.model = build_model("cls", build_classifier, self.model_cfg)
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)

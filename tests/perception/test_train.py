@@ -157,3 +157,17 @@ def test_pose_fine_tuning_with_the_symmetry_loss(tiny_bop, tiny_run, tiny_config
     assert all(torch.allclose(after[k], start[k], atol=0.01) for k in learned)  # 2 Adam steps of lr 1e-3
     with pytest.raises(UserError, match="sym_loss"):
         train_pose(tiny_bop, tmp_path / "bad", dataclasses.replace(pose, sym_loss="add"), steps=1, progress=False)
+
+
+def test_cls_fine_tunes_from_init_weights_with_their_model_settings(tiny_bop, tiny_run, tiny_cls_config, tmp_path):
+    """``train cls --init``: the weights and the ``[cls.model]`` settings (here a height channel the config does not
+    name) come from the checkpoint; training moves the weights."""
+    from posegrasp.perception.train_cls import train_cls
+
+    start = load_file(tiny_run / "cls" / "model.safetensors")
+    cfg = dataclasses.replace(tiny_cls_config, init=str(tiny_run),
+                              model=dataclasses.replace(tiny_cls_config.model, height_range=0.08))
+    train_cls(tiny_bop, tmp_path / "ft", cfg, steps=2, progress=False)
+    after = load_file(tmp_path / "ft" / "cls" / "model.safetensors")
+    assert set(after) == set(start) and any(not torch.equal(after[k], start[k]) for k in start)
+    assert checkpoint.read_config(tmp_path / "ft" / "cls")["model"] == checkpoint.read_config(tiny_run / "cls")["model"]
