@@ -158,6 +158,8 @@ def _cube_on_table(yaw_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     import pyrender
     import trimesh
 
+    from posegrasp.gl import pyrender_renderer
+
     K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])
     tilt = axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(180.0 - 30.0))  # camera z looks down, 30 deg off
     T_world_cam = make_T(tilt, tilt @ np.array([0.0, 0.0, -0.35]))
@@ -168,14 +170,11 @@ def _cube_on_table(yaw_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     scene.add(cam, pose=T_world_cam @ np.diag([1.0, -1.0, -1.0, 1.0]))
     scene.add(pyrender.Mesh.from_trimesh(trimesh.creation.box((0.4, 0.4, 0.01))), pose=make_T(np.eye(3), [0, 0, -0.005]))
     cube = scene.add(pyrender.Mesh.from_trimesh(trimesh.creation.box((0.025,) * 3)), pose=T_world_obj)
-    renderer = pyrender.OffscreenRenderer(320, 240)
-    try:
-        depth = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
-        for node in scene.mesh_nodes:
-            node.mesh.is_visible = node is cube
-        alone = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
-    finally:
-        renderer.delete()
+    renderer = pyrender_renderer(320, 240)  # the process's (deleting one would end every pyrender context's display)
+    depth = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
+    for node in scene.mesh_nodes:
+        node.mesh.is_visible = node is cube
+    alone = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
     vs, us = np.nonzero((alone > 0) & (np.abs(alone - depth) < 1e-4))
     z = depth[vs, us].astype(np.float64)
     obs = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)
