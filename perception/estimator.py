@@ -176,13 +176,13 @@ class Estimator:
             raise UserError(f"models in {models} lack objects {missing} of the pose net")
         self.model_points = {o: bop.sample_model_points(bop.load_model(models, o), 500, seed=o)
                              for o in self.obj_ids}
-        self.hypotheses = {o: distinct_rotations(self.icp.rotations(), infos[o].symmetries_discrete,
-                                                 [a for a, _ in infos[o].symmetries_continuous])
-                           for o in self.obj_ids}
-        self.grids = {o: NearestGrid(self.model_points[o]) for o in self.obj_ids}
         self.symmetries = {o: (np.array([np.asarray(D)[:3, :3] for D in infos[o].symmetries_discrete]).reshape(-1, 3, 3),
                                np.array([a for a, _ in infos[o].symmetries_continuous]).reshape(-1, 3))
                            for o in self.obj_ids}
+        self.hypotheses = {o: distinct_rotations(self.icp.rotations(), list(self.symmetries[o][0]),
+                                                 list(self.symmetries[o][1]))
+                           for o in self.obj_ids}
+        self.grids = {o: NearestGrid(self.model_points[o]) for o in self.obj_ids}
         if self.split_cfg.rounds > 0:
             self.surfaces = {o: ModelSurface(bop.sample_model_points(bop.load_model(models, o),
                                                                       self.split_cfg.model_points, seed=o))

@@ -42,6 +42,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from posegrasp.geometry import axis_angle_R
+
 
 def cube_rotations() -> np.ndarray:
     """The 24 proper rotations that map the coordinate axes onto themselves, (24, 3, 3)."""
@@ -362,13 +364,10 @@ def _turned(R: torch.Tensor, obj: torch.Tensor, normal: np.ndarray, step_deg: fl
     """Each rotation R (H, 3, 3) of object obj (H,) turned about ``normal`` by its ``yaw_turns``: (H', 3, 3), their
     objects (H',) and the row of R each came from (H',)."""
     out, objs, source = [], [], []
-    n = normal / np.linalg.norm(normal)
-    cross = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
     for h, (Rh, o) in enumerate(zip(R.double().numpy(), obj.tolist())):
         disc, axes = symmetries[o] if symmetries is not None else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
-        for psi in yaw_turns(Rh, n, step_deg, disc, axes):
-            turn = np.eye(3) + np.sin(psi) * cross + (1 - np.cos(psi)) * cross @ cross  # Rodrigues
-            out.append(turn @ Rh)
+        for psi in yaw_turns(Rh, normal, step_deg, disc, axes):
+            out.append(axis_angle_R(normal, psi) @ Rh)
             objs.append(o)
             source.append(h)
     return torch.from_numpy(np.stack(out)).float(), torch.tensor(objs), torch.tensor(source)

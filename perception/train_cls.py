@@ -19,7 +19,7 @@ from posegrasp.perception.classifier import ClassifierConfig, build_classifier
 from posegrasp.perception.data import ClsDataset, DataConfig, collate
 from posegrasp.perception.segmenter import Segmenter
 from posegrasp.perception.training import (StageConfig, StageTraining, batch_keys, build_model, dataset_objects,
-                                           set_lr, split_exists, train_split)
+                                           init_checkpoint, set_lr, split_exists, train_split)
 
 
 @dataclass
@@ -71,8 +71,7 @@ class ClsTraining(StageTraining):
         obj_ids = ([0] if cfg.background else []) + obj_ids  # 0: "not a block"
         model = cfg.model
         if cfg.init:  # fine-tuning: the crop settings and channels come with the weights
-            src = Path(cfg.init)
-            model = ckpt_mod.load_model(src / "cls" if (src / "cls").is_dir() else src, "cls")[1]
+            model = ckpt_mod.load_model(init_checkpoint(Path(cfg.init), "cls"), "cls")[1]
         self.model_cfg = dataclasses.replace(model, obj_ids=obj_ids)
         self.cfg = cfg = dataclasses.replace(cfg, model=self.model_cfg)
         self.model = build_model("cls", build_classifier, self.model_cfg)

@@ -291,10 +291,15 @@ def restore(run: RunFolder, prior: dict[str, Any], model: torch.nn.Module, opt: 
     return prior["state"]
 
 
+def init_checkpoint(src: Path, stage: str) -> Path:
+    """The ``stage`` checkpoint folder that ``init`` names: a run's ``src/stage``, or ``src`` itself."""
+    return src / stage if (src / stage).is_dir() else src
+
+
 def init_from(model: torch.nn.Module, model_cfg: Any, src: Path, stage: str) -> None:
     """Load the weights of the ``stage`` checkpoint at ``src`` (or ``src/stage``) into ``model``. A seg net may have
     been trained at another input size (it is fully convolutional: fine-tuning adapts it to the new one)."""
-    ckpt = src / stage if (src / stage).is_dir() else src
+    ckpt = init_checkpoint(src, stage)
     if not ckpt_mod.exists(ckpt):
         raise UserError(f"init weights {src} hold no {stage} checkpoint: name a run or its {stage}/ folder")
     src_model, src_cfg, _ = ckpt_mod.load_model(ckpt, stage)
