@@ -69,7 +69,7 @@ class ICPConfig:
     more grid steps (0: none). The ``polish`` hypotheses are each turned at least 10 deg from the others."""
 
     iterations: int = 12
-    exact_steps: int = 2
+    exact_steps: int = 3
     polish: int = 4
     max_points: int = 300
     truncation: float = 0.01
@@ -78,7 +78,7 @@ class ICPConfig:
     hypotheses: str = "cube"
     yaw_step_deg: float = 15.0
     yaw_seeds: int = 3
-    yaw_iterations: int = 6
+    yaw_iterations: int = 10
 
     def validate(self) -> None:
         """Raise ValueError on an unusable configuration."""
