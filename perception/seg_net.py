@@ -181,7 +181,7 @@ def seg_loss(logits: torch.Tensor, labels: torch.Tensor, background_weight: floa
     """
     weight = None
     if background_weight != 1.0:
-        weight = torch.ones(logits.shape[1], dtype=logits.dtype)
+        weight = torch.ones(logits.shape[1], dtype=logits.dtype, device=logits.device)
         weight[0] = background_weight
     return F.cross_entropy(logits, labels, weight=weight)
 

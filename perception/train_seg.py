@@ -19,8 +19,8 @@ from posegrasp.errors import UserError
 from posegrasp.perception.data import DataConfig, SegDataset, collate
 from posegrasp.perception.metrics import confusion_matrix, segmentation_scores
 from posegrasp.perception.seg_net import SegNetConfig, build_seg_net, seg_loss
-from posegrasp.perception.training import (StageConfig, StageTraining, batch_keys, build_model, set_lr, split_exists,
-                                           train_split)
+from posegrasp.perception.training import (StageConfig, StageTraining, batch_stream, build_model, set_lr,
+                                           split_exists, train_split, training_device)
 
 
 @dataclass
@@ -28,7 +28,9 @@ class SegTrainConfig(StageConfig):
     """Segmentation training. ``model.num_classes`` is set from the dataset (max obj_id + 1).
     ``val_split`` is evaluated (on ``eval_images``) every ``eval_every`` steps when it exists.
     ``init`` names a seg checkpoint (or a run holding ``seg/``) whose weights the net starts from
-    (fine-tuning, fresh optimizer); empty = from scratch."""
+    (fine-tuning, fresh optimizer); empty = from scratch. ``device``: where the net trains ("cpu", or "cuda" on a
+    machine with an NVIDIA GPU; the checkpoint is the same either way). ``workers``: processes that prepare the
+    batches ahead (0: the training process itself); the batches do not depend on it."""
 
     model: SegNetConfig = field(default_factory=SegNetConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -43,6 +45,8 @@ class SegTrainConfig(StageConfig):
     eval_every: int = 2000
     eval_images: int = 50
     init: str = ""
+    device: str = "cpu"
+    workers: int = 0
 
 
 class SegTraining(StageTraining):
@@ -56,7 +60,8 @@ class SegTraining(StageTraining):
         infos = bop.load_models_info(self.data)
         self.model_cfg = dataclasses.replace(cfg.model, num_classes=max(infos) + 1)
         self.cfg = cfg = dataclasses.replace(cfg, model=self.model_cfg)
-        self.model = build_model("seg", build_seg_net, self.model_cfg)
+        self.device = training_device(cfg.device)
+        self.model = build_model("seg", build_seg_net, self.model_cfg).to(self.device)
         if cfg.optimizer not in ("sgd", "adam"):
             raise UserError(f"seg optimizer {cfg.optimizer!r} is not 'sgd' or 'adam'")
         params = self.model.parameters()
@@ -70,11 +75,13 @@ class SegTraining(StageTraining):
                              augment=True, seed=cfg.seed)
         self.val = (SegDataset(data, cfg.val_split, m.input_size, m.num_classes, cfg.data)
                     if split_exists(data, cfg.val_split) else None)
+        self.batches = batch_stream(self.ds.get, collate, len(self.ds), cfg.batch_size, cfg.seed,
+                                    int(self.state["step"]), cfg.steps, cfg.workers)
 
     def step(self, step: int) -> dict[str, float]:
         cfg = self.cfg
         self.model.train()
-        batch = collate([self.ds.get(i, key) for i, key in batch_keys(len(self.ds), step, cfg.batch_size, cfg.seed)])
+        batch = {k: v.to(self.device, non_blocking=True) for k, v in next(self.batches).items()}
         logits = self.model(batch["image"])  # (B, C, H, W)
         loss = seg_loss(logits, batch["label"], cfg.background_weight)
         self.opt.zero_grad(set_to_none=True)
@@ -105,10 +112,11 @@ def train_seg(data: str | Path, out: str | Path, cfg: SegTrainConfig | None = No
 def evaluate_seg(model: torch.nn.Module, ds: SegDataset, max_images: int = 0) -> dict[str, Any]:
     """mPA / mIoU (%) of the net on (up to ``max_images`` of) a dataset at the net's input size."""
     model.eval()
+    dev = next(model.parameters()).device
     n = len(ds) if not max_images else min(max_images, len(ds))
     conf = np.zeros((ds.num_classes, ds.num_classes), dtype=np.int64)
     for i in range(n):
         s = ds.get(i)
-        pred = model(s["image"][None]).argmax(1)[0]
+        pred = model(s["image"][None].to(dev)).argmax(1)[0].cpu()
         conf += confusion_matrix(pred.numpy(), s["label"].numpy(), ds.num_classes)
     return segmentation_scores(conf)

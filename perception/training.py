@@ -17,7 +17,7 @@ import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, Iterator
 
 import numpy as np
 import torch
@@ -57,6 +57,46 @@ def batch_keys(n: int, step: int, batch_size: int, seed: int) -> list[tuple[int,
             perms[e] = np.random.default_rng([seed, e]).permutation(n)
         out.append((int(perms[e][k]), g))
     return out
+
+
+class _Batches(torch.utils.data.Dataset):
+    """Batch ``start + i`` as item i: ``collate`` of ``get(index, key)`` over ``batch_keys``."""
+
+    def __init__(self, get: Callable[[int, int], dict], collate: Callable[[list[dict]], dict], n: int,
+                 batch_size: int, seed: int, start: int, total: int):
+        self.get, self.collate, self.n, self.batch_size, self.seed = get, collate, n, batch_size, seed
+        self.start, self.total = start, total
+
+    def __len__(self) -> int:
+        return max(0, self.total - self.start)
+
+    def __getitem__(self, i: int) -> dict:
+        keys = batch_keys(self.n, self.start + i, self.batch_size, self.seed)
+        return self.collate([self.get(j, key) for j, key in keys])
+
+
+def batch_stream(get: Callable[[int, int], dict], collate: Callable[[list[dict]], dict], n: int, batch_size: int,
+                 seed: int, start: int, total: int, workers: int = 0) -> Iterator[dict]:
+    """Batches ``start``..``total - 1`` in order, each a function of (seed, step) as ``batch_keys`` says, prepared by
+    ``workers`` processes ahead of the training (0: in this process, when asked for). The same batches either way."""
+    src = _Batches(get, collate, n, batch_size, seed, start, total)
+    if workers <= 0:
+        return (src[i] for i in range(len(src)))
+    return iter(torch.utils.data.DataLoader(src, batch_size=None, shuffle=False, num_workers=workers,
+                                            prefetch_factor=4, pin_memory=torch.cuda.is_available()))
+
+
+def training_device(name: str) -> torch.device:
+    """The torch device ``name`` ("cpu", "cuda", "cuda:N"); UserError when torch cannot use it."""
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"device {name!r} is not a torch device: use 'cpu' or 'cuda'") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"device {name!r}: this torch sees no CUDA GPU; set device = 'cpu'")
+    if dev.type not in ("cpu", "cuda"):
+        raise UserError(f"device {name!r}: only 'cpu' and 'cuda' are supported")
+    return dev
 
 
 class MetricsLog:

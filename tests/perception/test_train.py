@@ -122,6 +122,19 @@ def test_seg_resume_after_interrupted_save(tiny_bop, tiny_configs, tmp_path):
     assert out["step"] == 3
 
 
+def test_seg_batches_prepared_by_workers_train_the_same_weights(tiny_bop, tiny_configs, tmp_path):
+    seg, _, _ = tiny_configs
+    train_seg(tiny_bop, tmp_path / "here", seg, steps=3, progress=False)
+    train_seg(tiny_bop, tmp_path / "workers", dataclasses.replace(seg, workers=2), steps=3, progress=False)
+    wa, wb = (load_file(tmp_path / r / "seg" / "model.safetensors") for r in ("here", "workers"))
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    if not torch.cuda.is_available():
+        with pytest.raises(UserError, match="no CUDA GPU"):
+            train_seg(tiny_bop, tmp_path / "gpu", dataclasses.replace(seg, device="cuda"), steps=1, progress=False)
+    with pytest.raises(UserError, match="not a torch device"):
+        train_seg(tiny_bop, tmp_path / "bad", dataclasses.replace(seg, device="gpu0"), steps=1, progress=False)
+
+
 def test_seg_fine_tunes_from_init_weights(tiny_bop, tiny_run, tiny_configs, tmp_path):
     seg, _, _ = tiny_configs
     ds = SegDataset(tiny_bop, "train", seg.model.input_size, 4)
