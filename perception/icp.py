@@ -29,11 +29,7 @@ scored better than the one found from the pose net's estimate in every one of th
 15 deg, so the fit lacked starts, not a better score.
 Hypotheses that differ by a symmetry of the object start the same fit, so only one of them is run
 (``distinct_rotations``); given the plane, each also starts a second time moved along the plane's normal until
-the model rests on it (seen from above, an arch's top or a lying cylinder's side also fits 2 cm too deep). With
-``level_rests`` these resting starts are also levelled (``level``: the object axis nearest the normal turned onto it,
-so a face lies on the plane) and kept level and resting after every step: a free fit of a standing arch seen at a
-slant slid off to a tilted pose that scored worse than the standing one (val, ground-truth masks: 6 of 70 arches
-60-110 deg off, the fit from the true pose better in each; kept level, 3).
+the model rests on it (seen from above, an arch's top or a lying cylinder's side also fits 2 cm too deep).
 Points are camera-frame metres; K is the 3x3 intrinsic matrix.
 """
 
@@ -70,8 +66,7 @@ class ICPConfig:
     unit share): the free-space term. hypotheses: "cube" (24 rotations) or "identity" (plain ICP).
     yaw_step_deg: the turns about the plane's normal tried from the best hypothesis of each of an object's
     ``yaw_seeds`` best faces up after the first ``iterations - exact_steps`` steps, each fitted ``yaw_iterations``
-    more grid steps (0: none). The ``polish`` hypotheses are each turned at least 10 deg from the others.
-    level_rests: the starts moved to rest on the plane are also levelled and kept level and resting (module doc)."""
+    more grid steps (0: none). The ``polish`` hypotheses are each turned at least 10 deg from the others."""
 
     iterations: int = 12
     exact_steps: int = 3
@@ -84,7 +79,6 @@ class ICPConfig:
     yaw_step_deg: float = 15.0
     yaw_seeds: int = 3
     yaw_iterations: int = 10
-    level_rests: bool = True
 
     def validate(self) -> None:
         """Raise ValueError on an unusable configuration."""
@@ -278,52 +272,35 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     obj = torch.cat([torch.full((len(Q),), o) for o, Q in enumerate(rotations)])  # (H,): each hypothesis' object
     R = T[obj, :3, :3] @ torch.from_numpy(np.concatenate(rotations)).float()  # (H, 3, 3)
     t = T[obj, :3, 3]  # (H, 3)
-    held = torch.zeros(len(R), dtype=torch.bool)  # (H,): the hypotheses kept level and resting on the plane
     if pl is not None:  # each hypothesis also starts moved along the plane normal to rest on the plane
-        R2 = level(R, pl[:3]) if cfg.level_rests else R
-        R, t, obj = torch.cat([R, R2]), torch.cat([t, resting(R2, t, m, m_ok, obj, pl)]), torch.cat([obj, obj])
-        held = torch.cat([held, torch.full((len(R2),), cfg.level_rests)])
-
-    if held.any():  # each model's extent along its axes (O, 3), for the resting height of a levelled pose
-        lo = m.masked_fill(~m_ok[..., None], torch.inf).min(dim=1).values
-        hi = m.masked_fill(~m_ok[..., None], -torch.inf).max(dim=1).values
-
-    def step(src: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # one fit, the held ones put back level
-        R, t = fit.fit(src)
-        if held.any():  # levelled, R^T n = s e_k: the lowest point's height is s x_k's least + n . t + d
-            Rh, th, oh = level(R[held], pl[:3]), t[held], obj[held]
-            a = Rh.transpose(1, 2) @ pl[:3]
-            k = a.abs().argmax(dim=1)
-            up = a.gather(1, k[:, None])[:, 0] > 0
-            low = torch.where(up, lo[oh, k], -hi[oh, k]) + th @ pl[:3] + pl[3]
-            R[held], t[held] = Rh, th - low[:, None] * pl[:3]
-        return R, t
-
+        height = (m[obj] @ R.transpose(1, 2) + t[:, None]) @ pl[:3] + pl[3]  # (H, M)
+        lowest = height.masked_fill(~m_ok[obj], torch.inf).min(dim=1).values  # (H,)
+        R, t, obj = torch.cat([R, R]), torch.cat([t, t - lowest[:, None] * pl[:3]]), torch.cat([obj, obj])
     columns = m.reshape(-1, 3).T.contiguous()  # (3, O M): the stacked models, as ``grids`` indexes them
     w = p_ok.float()
     exact = min(cfg.exact_steps, cfg.iterations)
     po = p[obj]  # (H, N, 3)
     po, fit = po.transpose(1, 2).contiguous(), _Kabsch(po, w[obj])  # (H, 3, N)
     for _ in range(cfg.iterations - exact):
-        R, t = step(_columns(columns, grids.posed(po, R, t, obj)))
+        R, t = fit.fit(_columns(columns, grids.posed(po, R, t, obj)))
     if cfg.yaw_step_deg > 0:  # the best few turned about the plane's normal, and fitted on
         normal = np.array([0.0, 0.0, 1.0]) if pl is None else pl[:3].double().numpy()
         keep = _best(_score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids), obj, cfg.yaw_seeds,
                      face=up_face(R, normal))
         R, obj, source = _turned(R[keep], obj[keep], normal, cfg.yaw_step_deg, symmetries)
-        t, held = t[keep][source], held[keep][source]
+        t = t[keep][source]
         po = p[obj].transpose(1, 2).contiguous()
         fit = _Kabsch(p[obj], w[obj])
         for _ in range(cfg.yaw_iterations):
-            R, t = step(_columns(columns, grids.posed(po, R, t, obj)))
+            R, t = fit.fit(_columns(columns, grids.posed(po, R, t, obj)))
     if 0 < cfg.polish < int(torch.bincount(obj).max()):  # only each object's best hypotheses by the grid's score go on
         keep = _best(_score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids), obj, cfg.polish, R)
-        R, t, obj, held = R[keep], t[keep], obj[keep], held[keep]
+        R, t, obj = R[keep], t[keep], obj[keep]
     po, mo = p[obj], m[obj]
     fit = _Kabsch(po, w[obj])
     for _ in range(exact):  # exact matches for the last steps (a k-d tree of each model's real points)
         nn = grids.exact((po - t[:, None]) @ R, obj)[1]  # (H, N)
-        R, t = step(mo[torch.arange(len(obj))[:, None], nn].transpose(1, 2))
+        R, t = fit.fit(mo[torch.arange(len(obj))[:, None], nn].transpose(1, 2))
     score = _score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids, exact=True)
     out = []
     for o in range(len(estimates)):
@@ -356,36 +333,6 @@ def _best(score: torch.Tensor, obj: torch.Tensor, n: int, R: torch.Tensor | None
                 kept.append(r)  # (the cosines of the angles between R_r and the kept rotations)
         keep.append(torch.tensor(kept))
     return torch.cat(keep)
-
-
-def level(R: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """Each rotation R (H, 3, 3) (object to camera) turned by the least rotation that lays the object axis nearest
-    ``normal`` (3,, camera frame, unit) onto it: with a = R^T n and e the signed axis nearest a, R Q with Q the turn
-    about e x a by the angle between e and a (Q e = a, so R Q e = n)."""
-    a = R.transpose(1, 2) @ normal.to(R.dtype)  # (H, 3): the normal in each object frame
-    k = a.abs().argmax(dim=1)
-    rows = torch.arange(len(k))
-    e = torch.zeros_like(a)
-    e[rows, k] = torch.sign(a[rows, k])
-    axis = torch.cross(e, a, dim=1)
-    s = axis.norm(dim=1)
-    u = axis / s.clamp(min=1e-12)[:, None]
-    angle = torch.atan2(s, (e * a).sum(dim=1))
-    X = torch.zeros_like(R)  # the cross-product matrices of u
-    X[:, 0, 1], X[:, 0, 2], X[:, 1, 2] = -u[:, 2], u[:, 1], -u[:, 0]
-    X[:, 1, 0], X[:, 2, 0], X[:, 2, 1] = u[:, 2], -u[:, 1], u[:, 0]
-    Q = torch.eye(3, dtype=R.dtype) + torch.sin(angle)[:, None, None] * X + \
-        (1 - torch.cos(angle))[:, None, None] * (X @ X)  # Rodrigues
-    return R @ Q
-
-
-def resting(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tensor, obj: torch.Tensor,
-            plane: torch.Tensor) -> torch.Tensor:
-    """The translations t (H, 3) moved along the plane's normal until the lowest valid model point (m (O, M, 3),
-    m_ok (O, M), of objects obj (H,)) under R (H, 3, 3) lies on the plane (4,: n . x + d = 0, n unit)."""
-    height = (m[obj] @ R.transpose(1, 2) + t[:, None]) @ plane[:3] + plane[3]  # (H, M)
-    lowest = height.masked_fill(~m_ok[obj], torch.inf).min(dim=1).values  # (H,)
-    return t - lowest[:, None] * plane[:3]
 
 
 def up_face(R: torch.Tensor, normal: np.ndarray) -> torch.Tensor:

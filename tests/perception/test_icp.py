@@ -1,7 +1,5 @@
 """Depth refinement: ICP from rotation hypotheses recovers a block turned onto a near-symmetry."""
 
-import itertools
-
 import numpy as np
 
 import pytest
@@ -220,25 +218,3 @@ def test_up_face_names_the_object_axis_along_the_normal():
     # +z up; -z up (upside down); -x up (R^T up = (-1, 0, 0)); +y up, tilted 10 deg off it
     assert up_face(R, up).tolist() == [4, 5, 1, 2]
 
-
-
-def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
-    from posegrasp.perception.icp import level, resting
-
-    rng = np.random.default_rng(0)
-    n = torch.tensor([0.0, -0.6, -0.8], dtype=torch.float64)
-    R = torch.from_numpy(np.stack([axis_angle_R(rng.normal(size=3), rng.uniform(0, np.pi)) for _ in range(50)]))
-    L = level(R, n)
-    a, b = R.transpose(1, 2) @ n, L.transpose(1, 2) @ n  # the normal in each object frame, before and after
-    assert torch.allclose(b.abs().max(dim=1).values, torch.ones(50, dtype=torch.float64), atol=1e-9)
-    assert torch.equal(a.abs().argmax(dim=1), b.abs().argmax(dim=1))  # the same face down
-    turned = torch.arccos(((torch.einsum("hij,hij->h", R, L) - 1) / 2).clamp(-1, 1))
-    assert torch.allclose(turned, torch.arccos(a.abs().max(dim=1).values), atol=1e-6)  # the least turn
-    assert torch.allclose(level(L, n), L, atol=1e-9)
-    # a 2 cm cube levelled and set on the plane n . x + 0.5 = 0: its lowest corner on it, its top face 2 cm above
-    corners = torch.tensor(list(itertools.product((-0.01, 0.01), repeat=3)), dtype=torch.float64)[None]
-    plane = torch.cat([n, torch.tensor([0.5], dtype=torch.float64)])
-    t = resting(L[:1], torch.zeros(1, 3, dtype=torch.float64), corners, torch.ones(1, 8, dtype=torch.bool),
-                torch.zeros(1, dtype=torch.long), plane)
-    height = (corners[0] @ L[0].T + t[0]) @ n + 0.5
-    assert float(height.min()) == pytest.approx(0.0, abs=1e-9) and float(height.max()) == pytest.approx(0.02, abs=1e-9)
