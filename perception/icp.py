@@ -8,14 +8,17 @@ rotations of the cube group, in the object frame) so that it can leave a wrong b
 
     for each hypothesis h:  repeat `iterations` times: match each observed point p_i to its nearest model
                             point m_j under (R_h, t_h); (R_h, t_h) <- Kabsch(m_j -> p_i)
-    score_h = mean_i min(d_i, truncation) + violation_weight * v_h
+    score_h = mean_i min(d_i, truncation) + violation_weight * v_h + float_weight * f_h
 
 d_i: distance of observed point i to the model at the final pose; v_h: the share of model points that
 project onto valid depth pixels and lie more than ``violation_margin`` in front of the observed surface
 (the model would fill space the camera sees through), plus, given the supporting plane, the share of model
-points more than ``violation_margin`` beneath it (sunk into the table). The hypothesis with the lowest score
-wins. The nearest model point is looked up in a voxel grid around the model (``NearestGrid``: the nearest point
-of every cell centre, computed once per model), so a step costs O(H N) instead of the O(H N M) of an exhaustive
+points more than ``violation_margin`` beneath it (sunk into the table); f_h, given the plane: the height of the
+lowest model point above it, less ``float_margin``, in cm, within [0, 1] (a block resting on nothing: an arch standing
+on the stack task's 3 mm pad was fitted lying on a side with its top where the seen top is, floating 6-9 mm up).
+The hypothesis with the lowest score wins. The nearest model point is looked up in a voxel grid around the model
+(``NearestGrid``: the nearest point of every cell centre, computed once per model), so a step costs O(H N) instead
+of the O(H N M) of an exhaustive
 search; points beyond the grid take the nearest point of its closest cell. The last ``exact_steps`` steps take the
 exact nearest points (from a k-d tree of the model), for the ``polish`` hypotheses that score best by the grid's
 distances only; the final score is exact.
@@ -63,7 +66,9 @@ class ICPConfig:
     model points instead of the voxel grid, and only for the ``polish`` hypotheses (0: all) that score
     best before them (with the grid's distances). max_points: observed points used (random subset).
     truncation (m): per-point distance cap in the score. violation_margin (m) and violation_weight (m per
-    unit share): the free-space term. hypotheses: "cube" (24 rotations) or "identity" (plain ICP).
+    unit share): the free-space term. float_margin (m) and float_weight (m): given the plane, a pose whose lowest
+    model point lies more than float_margin above it costs float_weight x (height - margin) / 1 cm, at most
+    float_weight (a block resting on nothing; 0: off). hypotheses: "cube" (24 rotations) or "identity" (plain ICP).
     yaw_step_deg: the turns about the plane's normal tried from the best hypothesis of each of an object's
     ``yaw_seeds`` best faces up after the first ``iterations - exact_steps`` steps, each fitted ``yaw_iterations``
     more grid steps (0: none). The ``polish`` hypotheses are each turned at least 10 deg from the others."""
@@ -75,6 +80,8 @@ class ICPConfig:
     truncation: float = 0.01
     violation_margin: float = 0.005
     violation_weight: float = 0.01
+    float_margin: float = 0.005
+    float_weight: float = 0.01
     hypotheses: str = "cube"
     yaw_step_deg: float = 15.0
     yaw_seeds: int = 3
@@ -91,9 +98,11 @@ class ICPConfig:
                              f"must be >= 0 and yaw_seeds ({self.yaw_seeds}) >= 1")
         if self.max_points < 3:
             raise ValueError(f"ICP max_points must be >= 3 (a rigid fit needs 3 points), got {self.max_points}")
-        if self.truncation <= 0 or self.violation_margin < 0 or self.violation_weight < 0:
+        if self.truncation <= 0 or min(self.violation_margin, self.violation_weight, self.float_margin,
+                                       self.float_weight) < 0:
             raise ValueError(f"ICP truncation ({self.truncation}) must be positive, violation_margin "
-                             f"({self.violation_margin}) and violation_weight ({self.violation_weight}) >= 0")
+                             f"({self.violation_margin}), violation_weight ({self.violation_weight}), float_margin "
+                             f"({self.float_margin}) and float_weight ({self.float_weight}) >= 0")
 
     def rotations(self) -> np.ndarray:
         """The starting rotations Q (H, 3, 3), object frame."""
@@ -378,7 +387,8 @@ def _score(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tensor
            grids: _Grids, exact: bool = False) -> torch.Tensor:
     """Score (H,) of the poses (R (H, 3, 3), t (H, 3)) of objects ``obj`` (H,): truncated fit of their observed points
     p (O, N, 3) (weights w (O, N), 0 for padding) to their model points m (O, M, 3) (valid where m_ok) plus the
-    weighted shares of model points in free space against ``depth`` (H, W) and beneath the plane (4,) if given, m.
+    weighted shares of model points in free space against ``depth`` (H, W) and beneath the plane (4,) if given, and
+    the floating term (``ICPConfig.float_weight``) above it, m.
     The fit's distances are to the exact nearest model points, or (not ``exact``) to the grid's matches
     (approximate, at most a cell diagonal long)."""
     mo, ok, po, wo = m[obj], m_ok[obj], p[obj], w[obj]
@@ -393,7 +403,10 @@ def _score(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tensor
     inside = ok & (u >= 0) & (u < w_img) & (v >= 0) & (v < h)
     dz = depth[v.clamp(0, h - 1), u.clamp(0, w_img - 1)]
     viol = (inside & (dz > 0) & (z < dz - cfg.violation_margin)).sum(dim=1) / inside.sum(dim=1).clamp(min=1)
+    score = fit
     if plane is not None:
-        below = ok & (mc @ plane[:3] + plane[3] < -cfg.violation_margin)
-        viol = viol + below.sum(dim=1) / ok.sum(dim=1)
-    return fit + cfg.violation_weight * viol
+        height = mc @ plane[:3] + plane[3]  # (H, M)
+        viol = viol + (ok & (height < -cfg.violation_margin)).sum(dim=1) / ok.sum(dim=1)
+        lowest = height.masked_fill(~ok, torch.inf).min(dim=1).values  # (H,)
+        score = score + cfg.float_weight * ((lowest - cfg.float_margin) / 0.01).clamp(0, 1)
+    return score + cfg.violation_weight * viol

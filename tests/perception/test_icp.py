@@ -1,5 +1,7 @@
 """Depth refinement: ICP from rotation hypotheses recovers a block turned onto a near-symmetry."""
 
+import itertools
+
 import numpy as np
 
 import pytest
@@ -32,6 +34,7 @@ def test_distinct_rotations_drop_hypotheses_equal_under_symmetry():
 @pytest.mark.parametrize("bad, message", [(dict(polish=-1), "polish .-1. must be >= 0"),
                                           (dict(max_points=2), "max_points must be >= 3 .*got 2"),
                                           (dict(truncation=0.0), "truncation .0.0. must be positive"),
+                                          (dict(float_weight=-1.0), "float_weight .-1.0. >= 0"),
                                           (dict(hypotheses="sphere"), "'cube' or 'identity', got 'sphere'")])
 def test_icp_config_names_the_bad_value(bad, message):
     ICPConfig().validate()
@@ -218,3 +221,26 @@ def test_up_face_names_the_object_axis_along_the_normal():
     # +z up; -z up (upside down); -x up (R^T up = (-1, 0, 0)); +y up, tilted 10 deg off it
     assert up_face(R, up).tolist() == [4, 5, 1, 2]
 
+
+
+def test_a_pose_floating_above_the_plane_costs_the_floating_term():
+    """``_score``'s floating term: a 2 cm cube and its observed points lifted 2, 8 and 30 mm above the table plane
+    score the same fit, plus float_weight x (height - margin) / 1 cm, capped at float_weight."""
+    from posegrasp.perception.icp import _Grids, _score
+
+    corners = np.array(list(itertools.product((-0.01, 0.01), repeat=3)))
+    model = np.concatenate([corners, np.random.default_rng(0).uniform(-0.01, 0.01, (300, 3))])
+    m, m_ok = torch.from_numpy(model).float()[None], torch.ones(1, len(model), dtype=torch.bool)
+    K = np.array([[500.0, 0, 32], [0, 500.0, 32], [0, 0, 1]])
+    depth = torch.zeros(64, 64)  # no depth seen: no free-space term
+    plane = torch.tensor([0.0, 0.0, -1.0, 0.5])  # the table 0.5 m from the camera, its normal towards the camera
+    grids = _Grids([NearestGrid(model)], len(model))
+    R, obj, w = torch.eye(3)[None], torch.zeros(1, dtype=torch.long), torch.ones(1, len(model))
+    costs = []
+    for lift in (0.002, 0.008, 0.030):
+        t = torch.tensor([[0.0, 0.0, 0.49 - lift]])  # the cube's lowest face ``lift`` above the table
+        p = m + t[:, None]
+        on, off = (_score(R, t, m, m_ok, p, w, obj, depth, K, cfg, plane, grids, exact=True)
+                   for cfg in (ICPConfig(), ICPConfig(float_weight=0.0)))
+        costs.append(float(on - off))
+    np.testing.assert_allclose(costs, [0.0, 0.01 * 0.3, 0.01], atol=1e-6)
