@@ -187,8 +187,9 @@ def _cube_on_table(yaw_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
 
 def test_yaw_turns_find_a_cube_turned_on_the_table():
-    """Seen from above, a cube's top face fits its points at almost any yaw, and ICP keeps much of a yaw error it
-    starts from (35 deg -> 16 deg measured); the turns about the table's normal find the true yaw back (2.3 deg)."""
+    """Seen from above, a cube's top face fits its points at almost any yaw, and free ICP keeps much of a yaw error
+    it starts from (35 deg -> 16 deg measured); the turns about the table's normal find the true yaw back (2.3 deg),
+    and so do, without them, the fits held level with the final yaw search (2.3 deg)."""
     import trimesh
 
     T_gt, obs, depth, K, plane = _cube_on_table(20.0)
@@ -206,9 +207,11 @@ def test_yaw_turns_find_a_cube_turned_on_the_table():
 
     hyps = distinct_rotations(Q, list(Q[1:]), [])
     T_turns, _ = refine_pose(T_est, model, obs, depth, K, ICPConfig(), hyps, plane, symmetries=syms)
-    T_plain, _ = refine_pose(T_est, model, obs, depth, K, ICPConfig(yaw_step_deg=0.0), hyps, plane, symmetries=syms)
+    plain = ICPConfig(yaw_step_deg=0.0, level_rests=False, yaw_search_deg=0.0)
+    T_plain, _ = refine_pose(T_est, model, obs, depth, K, plain, hyps, plane, symmetries=syms)
+    T_held, _ = refine_pose(T_est, model, obs, depth, K, ICPConfig(yaw_step_deg=0.0), hyps, plane, symmetries=syms)
     assert err(T_turns) < 5.0 and np.linalg.norm(T_turns[:3, 3] - T_gt[:3, 3]) < 0.002
-    assert err(T_plain) > 10.0
+    assert err(T_plain) > 10.0 and err(T_held) < 5.0
 
 
 def test_up_face_names_the_object_axis_along_the_normal():
@@ -243,4 +246,44 @@ def test_a_pose_floating_above_the_plane_costs_the_floating_term():
         on, off = (_score(R, t, m, m_ok, p, w, obj, depth, K, cfg, plane, grids, exact=True)
                    for cfg in (ICPConfig(), ICPConfig(float_weight=0.0)))
         costs.append(float(on - off))
-    np.testing.assert_allclose(costs, [0.0, 0.01 * 0.3, 0.01], atol=1e-6)
+    np.testing.assert_allclose(costs, [0.0, 0.01 * 0.4, 0.01], atol=1e-6)
+
+
+def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
+    from posegrasp.perception.icp import level, resting
+
+    rng = np.random.default_rng(0)
+    n = torch.tensor([0.0, -0.6, -0.8], dtype=torch.float64)
+    R = torch.from_numpy(np.stack([axis_angle_R(rng.normal(size=3), rng.uniform(0, np.pi)) for _ in range(50)]))
+    L = level(R, n)
+    a, b = R.transpose(1, 2) @ n, L.transpose(1, 2) @ n  # the normal in each object frame, before and after
+    assert torch.allclose(b.abs().max(dim=1).values, torch.ones(50, dtype=torch.float64), atol=1e-9)
+    assert torch.equal(a.abs().argmax(dim=1), b.abs().argmax(dim=1))  # the same face down
+    turned = torch.arccos(((torch.einsum("hij,hij->h", R, L) - 1) / 2).clamp(-1, 1))
+    assert torch.allclose(turned, torch.arccos(a.abs().max(dim=1).values), atol=1e-6)  # the least turn
+    assert torch.allclose(level(L, n), L, atol=1e-9)
+    # a 2 cm cube levelled and set on the plane n . x + 0.5 = 0: its lowest corner on it, its top face 2 cm above
+    corners = torch.tensor(list(itertools.product((-0.01, 0.01), repeat=3)), dtype=torch.float64)[None]
+    plane = torch.cat([n, torch.tensor([0.5], dtype=torch.float64)])
+    t = resting(L[:1], torch.zeros(1, 3, dtype=torch.float64), corners, torch.ones(1, 8, dtype=torch.bool),
+                torch.zeros(1, dtype=torch.long), plane)
+    height = (corners[0] @ L[0].T + t[0]) @ n + 0.5
+    assert float(height.min()) == pytest.approx(0.0, abs=1e-9) and float(height.max()) == pytest.approx(0.02, abs=1e-9)
+
+
+def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squares_pose():
+    """``_Kabsch.turn``: targets made by turning R0 m about the normal n by 0.4 rad and shifting give back that turn
+    and shift exactly; the turned rotations keep R0's tilt to n."""
+    from posegrasp.perception.icp import _Kabsch
+
+    rng = np.random.default_rng(0)
+    n = np.array([0.0, -0.6, -0.8])
+    src = rng.normal(scale=0.02, size=(2, 3, 50))
+    R0 = np.stack([np.eye(3), axis_angle_R(np.array([1.0, 0.0, 0.0]), 0.3)])
+    G, shift = axis_angle_R(n, 0.4), np.array([0.1, 0.2, 0.5])
+    dst = np.einsum("ij,hjk,hkn->hni", G, R0, src) + shift  # (2, N, 3)
+    f = lambda a: torch.from_numpy(a).float()  # noqa: E731
+    fit = _Kabsch(f(dst), torch.ones(2, 50))
+    R, t = fit.turn(f(src), f(R0), f(n), torch.tensor([True, True]))
+    np.testing.assert_allclose(R.numpy(), G @ R0, atol=1e-5)
+    np.testing.assert_allclose(t.numpy(), np.tile(shift, (2, 1)), atol=1e-5)
