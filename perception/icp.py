@@ -228,36 +228,49 @@ class _Kabsch:
     >= 0 (0: a padding point); ``fit(src)`` (H, 3, N) (any strides) -> R (H, 3, 3), t (H, 3). With the weights
     normalised to sum to 1 and the targets' weighted centroid c_d, the cross-covariance is
     sum_i w_i (s_i - c_s)(d_i - c_d)^T = S^T (w (D - c_d)), since the centred targets' weighted sum is 0; the right
-    factor is computed once."""
+    factor is computed once. Rows ``held`` are fitted as turns of their R0 about the unit normal n only:
+    with q_i = R0 s_i and C = sum_i w_i q_i (d_i - c_d)^T, sum_i w_i G(a) q_i . (d_i - c_d) is cos(a) A + sin(a) B,
+    A = tr C - n^T C n, B = n . (C_yz - C_zy, C_zx - C_xz, C_xy - C_yx), so the turn is a = atan2(B, A)."""
 
     def __init__(self, dst: torch.Tensor, w: torch.Tensor):
         self.w = (w / w.sum(dim=1, keepdim=True))[:, None, :]  # (H, 1, N)
         self.cd = (self.w @ dst)[:, 0]  # (H, 3)
         self.wd = self.w.transpose(1, 2) * (dst - self.cd[:, None])  # (H, N, 3)
 
-    def fit(self, src: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def fit(self, src: torch.Tensor, held: torch.Tensor | None = None, R0: torch.Tensor | None = None,
+            n: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The fits of every row; the rows ``held`` (H,) as turns of R0 (H, 3, 3) about n (3,) (class doc)."""
         cs = (src * self.w).sum(dim=2)  # (H, 3)
-        U, _, Vt = torch.linalg.svd(torch.bmm(src, self.wd))  # of the (H, 3, 3) cross-covariance
-        d = torch.sign(torch.linalg.det(Vt.transpose(1, 2) @ U.transpose(1, 2)))
-        D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=1))
-        R = Vt.transpose(1, 2) @ D @ U.transpose(1, 2)
+        C = torch.bmm(src, self.wd)  # (H, 3, 3) cross-covariance
+        if held is None or not bool(held.any()):
+            R = _svd_rotation(C)
+        else:
+            R = torch.empty_like(C)
+            free = ~held
+            if bool(free.any()):
+                R[free] = _svd_rotation(C[free])
+            Rh = R0[held]
+            Ch = Rh @ C[held]
+            A = Ch.diagonal(dim1=1, dim2=2).sum(dim=1) - (Ch @ n) @ n
+            B = torch.stack([Ch[:, 1, 2] - Ch[:, 2, 1], Ch[:, 2, 0] - Ch[:, 0, 2], Ch[:, 0, 1] - Ch[:, 1, 0]], 1) @ n
+            R[held] = turns_about(n, torch.atan2(B, A)) @ Rh
         return R, self.cd - (R @ cs[:, :, None])[:, :, 0]
 
-    def turn(self, src: torch.Tensor, R0: torch.Tensor, n: torch.Tensor, sel: torch.Tensor
-             ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The fits of the hypotheses ``sel`` (H,) restricted to R = G R0[sel], G a turn about the unit normal n (3,):
-        with q_i = R0 s_i and the cross-covariance C = sum_i w_i q_i (d_i - c_d)^T, G q . d summed is
-        cos(a) A + sin(a) B, A = tr C - n^T C n and B = n . (q x d) summed, so a = atan2(B, A)."""
-        C = R0[sel] @ torch.bmm(src[sel], self.wd[sel])  # (h, 3, 3)
-        A = C.diagonal(dim1=1, dim2=2).sum(dim=1) - torch.einsum("i,hij,j->h", n, C, n)
-        B = torch.stack([C[:, 1, 2] - C[:, 2, 1], C[:, 2, 0] - C[:, 0, 2], C[:, 0, 1] - C[:, 1, 0]], dim=1) @ n
-        a = torch.atan2(B, A)
-        N = torch.zeros(3, 3, dtype=n.dtype)
-        N[0, 1], N[0, 2], N[1, 2], N[1, 0], N[2, 0], N[2, 1] = -n[2], n[1], -n[0], n[2], -n[1], n[0]
-        G = torch.eye(3) + torch.sin(a)[:, None, None] * N + (1 - torch.cos(a))[:, None, None] * (N @ N)
-        R = G @ R0[sel]
-        cs = (src[sel] * self.w[sel]).sum(dim=2)
-        return R, self.cd[sel] - (R @ cs[:, :, None])[:, :, 0]
+
+def _svd_rotation(C: torch.Tensor) -> torch.Tensor:
+    """The rotations (H, 3, 3) that maximise tr(R C) for cross-covariances C (H, 3, 3) (Kabsch, no reflection)."""
+    U, _, Vt = torch.linalg.svd(C)
+    d = torch.sign(torch.linalg.det(Vt.transpose(1, 2) @ U.transpose(1, 2)))
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=1))
+    return Vt.transpose(1, 2) @ D @ U.transpose(1, 2)
+
+
+def turns_about(n: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
+    """Rotations (S, 3, 3) by ``angles`` (S,) (rad) about the unit axis n (3,): I + sin(a) N + (1 - cos(a)) N^2,
+    N the cross-product matrix of n (Rodrigues)."""
+    N = torch.linalg.cross(n.expand(3, 3), torch.eye(3, dtype=n.dtype)).T  # N e_i = n x e_i
+    return torch.eye(3, dtype=n.dtype) + torch.sin(angles)[:, None, None] * N + \
+        (1 - torch.cos(angles))[:, None, None] * (N @ N)
 
 
 def _rows(table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -329,15 +342,16 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
         hi = m.masked_fill(~m_ok[..., None], -torch.inf).max(dim=1).values
 
     def step(src: torch.Tensor, R0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # one fit, the held ones level
-        R, t = fit.fit(src)
-        if held.any():  # levelled, R^T n = s e_k: the lowest point's height is s x_k's least + n . t + d
-            Rh, th = fit.turn(src, R0, pl[:3], held)
-            Rh, oh = level(Rh, pl[:3]), obj[held]  # (level again: float32 drift over the steps)
-            a = Rh.transpose(1, 2) @ pl[:3]
-            k = a.abs().argmax(dim=1)
-            up = a.gather(1, k[:, None])[:, 0] > 0
-            low = torch.where(up, lo[oh, k], -hi[oh, k]) + th @ pl[:3] + pl[3]
-            R[held], t[held] = Rh, th - low[:, None] * pl[:3]
+        if not bool(held.any()):
+            return fit.fit(src)
+        R, t = fit.fit(src, held, R0, pl[:3])
+        # the held ones set back resting: with R^T n = s e_k, the lowest point's height is s x_k's least + n . t + d
+        Rh, th, oh = R[held], t[held], obj[held]
+        a = Rh.transpose(1, 2) @ pl[:3]
+        k = a.abs().argmax(dim=1)
+        up = a.gather(1, k[:, None])[:, 0] > 0
+        low = torch.where(up, lo[oh, k], -hi[oh, k]) + th @ pl[:3] + pl[3]
+        t[held] = th - low[:, None] * pl[:3]
         return R, t
 
     columns = m.reshape(-1, 3).T.contiguous()  # (3, O M): the stacked models, as ``grids`` indexes them
@@ -368,9 +382,10 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     score = _score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids, exact=True)
     if cfg.yaw_search_deg > 0:  # each object's best fit turned about the normal through its centre, the best kept
         best = torch.stack([torch.nonzero(obj == o)[:, 0][score[obj == o].argmin()] for o in obj.unique()])
-        normal = np.array([0.0, 0.0, 1.0]) if pl is None else pl[:3].double().numpy()
-        angles = np.radians(np.arange(-cfg.yaw_search_deg, cfg.yaw_search_deg + 1e-9, cfg.yaw_search_step_deg))
-        G = torch.from_numpy(np.stack([axis_angle_R(normal, a) for a in angles])).float()  # (S, 3, 3)
+        normal = torch.tensor([0.0, 0.0, 1.0]) if pl is None else pl[:3]
+        angles = torch.from_numpy(np.radians(np.arange(-cfg.yaw_search_deg, cfg.yaw_search_deg + 1e-9,
+                                                       cfg.yaw_search_step_deg))).float()
+        G = turns_about(normal, angles)  # (S, 3, 3)
         Rs = (G[None] @ R[best][:, None]).reshape(-1, 3, 3)
         ts, os_ = t[best].repeat_interleave(len(angles), 0), obj[best].repeat_interleave(len(angles), 0)
         ss = _score(Rs, ts, m, m_ok, p, w, os_, dz, K, cfg, pl, grids, exact=True)

@@ -272,9 +272,9 @@ def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
 
 
 def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squares_pose():
-    """``_Kabsch.turn``: targets made by turning R0 m about the normal n by 0.4 rad and shifting give back that turn
-    and shift exactly; the turned rotations keep R0's tilt to n."""
-    from posegrasp.perception.icp import _Kabsch
+    """``_Kabsch.fit`` with rows held: targets made by turning R0 m about the normal n by 0.4 rad and shifting give
+    back that turn and shift exactly (a free row the same), and ``turns_about`` is Rodrigues' formula."""
+    from posegrasp.perception.icp import _Kabsch, turns_about
 
     rng = np.random.default_rng(0)
     n = np.array([0.0, -0.6, -0.8])
@@ -284,6 +284,9 @@ def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squar
     dst = np.einsum("ij,hjk,hkn->hni", G, R0, src) + shift  # (2, N, 3)
     f = lambda a: torch.from_numpy(a).float()  # noqa: E731
     fit = _Kabsch(f(dst), torch.ones(2, 50))
-    R, t = fit.turn(f(src), f(R0), f(n), torch.tensor([True, True]))
-    np.testing.assert_allclose(R.numpy(), G @ R0, atol=1e-5)
-    np.testing.assert_allclose(t.numpy(), np.tile(shift, (2, 1)), atol=1e-5)
+    for held in ([True, True], [False, True]):
+        R, t = fit.fit(f(src), torch.tensor(held), f(R0), f(n))
+        np.testing.assert_allclose(R.numpy(), G @ R0, atol=1e-5)
+        np.testing.assert_allclose(t.numpy(), np.tile(shift, (2, 1)), atol=1e-5)
+    turns = turns_about(f(n), torch.tensor([0.4, -1.0]))
+    np.testing.assert_allclose(turns.numpy(), [G, axis_angle_R(n, -1.0)], atol=1e-6)
