@@ -19,8 +19,7 @@ on the stack task's 3 mm pad was fitted lying on a side with its top where the s
 margin, 4 mm, lets a block stand on the pad).
 The hypothesis with the lowest score wins. The nearest model point is looked up in a voxel grid around the model
 (``NearestGrid``: the nearest point of every cell centre, computed once per model), so a step costs O(H N) instead
-of the O(H N M) of an exhaustive
-search; points beyond the grid take the nearest point of its closest cell. The last ``exact_steps`` steps take the
+of the O(H N M) of an exhaustive search; points beyond the grid take the nearest point of its closest cell. The last ``exact_steps`` steps take the
 exact nearest points (from a k-d tree of the model), for the ``polish`` hypotheses that score best by the grid's
 distances only; the final score is exact.
 A block resting on the table and seen from above constrains its turn about the table's normal least (a cube's top
@@ -36,15 +35,16 @@ Hypotheses that differ by a symmetry of the object start the same fit, so only o
 the model rests on it (seen from above, an arch's top or a lying cylinder's side also fits 2 cm too deep). With
 ``level_rests`` these resting starts are also levelled (``level``: the object axis nearest the normal turned onto it,
 so a face lies on the plane) and fitted with that held: each step solves for a turn about the normal n and a shift
-along the plane only (``_Kabsch.turn``: with q_i = R m_i, the turn by a maximising sum_i w_i G(a) q_i . (p_i - c_p),
-a = atan2(sum w n . (q x p), sum w (q . p - (n . q)(n . p)))), then sets the model back resting on the plane. A free
+along the plane only (``_Kabsch``'s held rows: with q_i = R m_i, the turn by a maximising sum_i w_i G(a) q_i .
+(p_i - c_p), a = atan2(sum w n . (q x p), sum w (q . p - (n . q)(n . p)))), then sets the model back resting on the
+plane. A free
 fit of a standing arch seen at a slant slid off to a tilted pose that scored worse than the standing one, and a fit
 levelled after each free step drifted in yaw (val, ground-truth masks: AR 0.854 free, 0.875 levelled after each
 step, 0.923 with the turn fit). Last, each object's best fit is turned about the normal through its centre by every
 3 ``yaw_search_step_deg`` within +-``yaw_search_deg``, then by one step each side of the best, and the best-scoring
-turn kept: seen from above, a cube's side
-faces give the fit little to turn it by, but a model a degree off in yaw sticks out of the observed silhouette,
-which the free-space term sees (the stack task's looks: the cube's median yaw error 2.4 -> 1.2 deg).
+turn kept: seen from above, a cube's side faces give the fit little to turn it by, but a model a degree off in yaw
+sticks out of the observed silhouette, which the free-space term sees (the stack task's looks: the cube's median yaw
+error 2.4 -> 1.2 deg).
 Points are camera-frame metres; K is the 3x3 intrinsic matrix.
 """
 
