@@ -267,9 +267,12 @@ def _svd_rotation(C: torch.Tensor) -> torch.Tensor:
 
 
 def turns_about(n: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
-    """Rotations (S, 3, 3) by ``angles`` (S,) (rad) about the unit axis n (3,): I + sin(a) N + (1 - cos(a)) N^2,
-    N the cross-product matrix of n (Rodrigues)."""
-    N = torch.linalg.cross(n.expand(3, 3), torch.eye(3, dtype=n.dtype)).T  # N e_i = n x e_i
+    """Rotations (S, 3, 3) by ``angles`` (S,) (rad) about the unit axis n (3,), or about each of the axes n (S, 3):
+    I + sin(a) N + (1 - cos(a)) N^2, N the cross-product matrix of the axis (Rodrigues)."""
+    u = n.expand(len(angles), 3)
+    N = torch.zeros(len(angles), 3, 3, dtype=n.dtype)  # N v = u x v
+    N[:, 0, 1], N[:, 0, 2], N[:, 1, 2] = -u[:, 2], u[:, 1], -u[:, 0]
+    N[:, 1, 0], N[:, 2, 0], N[:, 2, 1] = u[:, 2], -u[:, 1], u[:, 0]
     return torch.eye(3, dtype=n.dtype) + torch.sin(angles)[:, None, None] * N + \
         (1 - torch.cos(angles))[:, None, None] * (N @ N)
 
@@ -382,10 +385,10 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
         R, t = step(mo[torch.arange(len(obj))[:, None], nn].transpose(1, 2), R)
     score = _score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids, exact=True)
     steps = ((cfg.yaw_search_deg, 3 * cfg.yaw_search_step_deg), (cfg.yaw_search_step_deg,) * 2)
+    normal = torch.tensor([0.0, 0.0, 1.0]) if pl is None else pl[:3]
     for span, by in steps if cfg.yaw_search_deg > 0 else ():  # each object's best fit turned about the normal through
         # its centre by +-by, +-2 by, ... up to span, the best kept: every 3 steps, then one step each side of the best
         best = torch.stack([torch.nonzero(obj == o)[:, 0][score[obj == o].argmin()] for o in obj.unique()])
-        normal = torch.tensor([0.0, 0.0, 1.0]) if pl is None else pl[:3]
         angles = np.arange(by, span + 1e-9, by)
         G = turns_about(normal, torch.from_numpy(np.radians(np.concatenate([-angles, angles]))).float())  # (S, 3, 3)
         Rs = (G[None] @ R[best][:, None]).reshape(-1, 3, 3)
@@ -436,14 +439,7 @@ def level(R: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
     e[rows, k] = torch.sign(a[rows, k])
     axis = torch.cross(e, a, dim=1)
     s = axis.norm(dim=1)
-    u = axis / s.clamp(min=1e-12)[:, None]
-    angle = torch.atan2(s, (e * a).sum(dim=1))
-    X = torch.zeros_like(R)  # the cross-product matrices of u
-    X[:, 0, 1], X[:, 0, 2], X[:, 1, 2] = -u[:, 2], u[:, 1], -u[:, 0]
-    X[:, 1, 0], X[:, 2, 0], X[:, 2, 1] = u[:, 2], -u[:, 1], u[:, 0]
-    Q = torch.eye(3, dtype=R.dtype) + torch.sin(angle)[:, None, None] * X + \
-        (1 - torch.cos(angle))[:, None, None] * (X @ X)  # Rodrigues
-    return R @ Q
+    return R @ turns_about(axis / s.clamp(min=1e-12)[:, None], torch.atan2(s, (e * a).sum(dim=1)))
 
 
 def resting(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tensor, obj: torch.Tensor,
