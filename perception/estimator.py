@@ -37,6 +37,7 @@ from posegrasp.perception.crop import backproject, mask_bbox, padded_box
 from posegrasp.perception.ensemble import ClassifierEnsemble
 from posegrasp.perception.guided import GuidedConfig, refine_labels
 from posegrasp.perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
+from posegrasp.perception.rests import Rests
 from posegrasp.perception.inputs import prepare_pose_input, segment_components
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from posegrasp.perception.refiner import refine
@@ -163,6 +164,7 @@ class Estimator:
         self.hypotheses: dict[int, np.ndarray] = {}
         self.grids: dict[int, NearestGrid] = {}
         self.symmetries: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.rests: dict[int, Rests] = {}
         self.surfaces: dict[int, ModelSurface] = {}
         if cfg.models is not None:
             self._load_models(cfg.models)
@@ -174,17 +176,18 @@ class Estimator:
         missing = [o for o in self.obj_ids if o not in infos]
         if missing:
             raise UserError(f"models in {models} lack objects {missing} of the pose net")
-        self.model_points = {o: bop.sample_model_points(bop.load_model(models, o), 500, seed=o)
-                             for o in self.obj_ids}
+        meshes = {o: bop.load_model(models, o) for o in self.obj_ids}
+        self.model_points = {o: bop.sample_model_points(meshes[o], 500, seed=o) for o in self.obj_ids}
         self.symmetries = {o: (np.array([np.asarray(D)[:3, :3] for D in infos[o].symmetries_discrete]).reshape(-1, 3, 3),
                                np.array([a for a, _ in infos[o].symmetries_continuous]).reshape(-1, 3))
                            for o in self.obj_ids}
+        self.rests = {o: Rests.of_mesh(meshes[o], *self.symmetries[o]) for o in self.obj_ids}
         self.hypotheses = {o: distinct_rotations(self.icp.rotations(), list(self.symmetries[o][0]),
                                                  list(self.symmetries[o][1]))
                            for o in self.obj_ids}
         self.grids = {o: NearestGrid(self.model_points[o]) for o in self.obj_ids}
         if self.split_cfg.rounds > 0:
-            self.surfaces = {o: ModelSurface(bop.sample_model_points(bop.load_model(models, o),
+            self.surfaces = {o: ModelSurface(bop.sample_model_points(meshes[o],
                                                                       self.split_cfg.model_points, seed=o))
                              for o in self.obj_ids}
 
@@ -257,7 +260,7 @@ class Estimator:
         ids = [o for o, _ in masks]
         return [T for T, _ in refine_poses(poses, [self.model_points[o] for o in ids], observed, depth, K, self.icp,
                                            [self.hypotheses[o] for o in ids], plane, [self.grids[o] for o in ids],
-                                           [self.symmetries[o] for o in ids])]
+                                           [self.symmetries[o] for o in ids], [self.rests[o] for o in ids])]
 
     @with_one_blas_thread
     @torch.no_grad()
