@@ -177,7 +177,7 @@ class Estimator:
         if missing:
             raise UserError(f"models in {models} lack objects {missing} of the pose net")
         meshes = {o: bop.load_model(models, o) for o in self.obj_ids}
-        self.model_points = {o: bop.sample_model_points(meshes[o], 500, seed=o) for o in self.obj_ids}
+        self.model_points = {o: bop.sample_model_points(meshes[o], self.icp.model_points, seed=o) for o in self.obj_ids}
         self.symmetries = {o: (np.array([np.asarray(D)[:3, :3] for D in infos[o].symmetries_discrete]).reshape(-1, 3, 3),
                                np.array([a for a, _ in infos[o].symmetries_continuous]).reshape(-1, 3))
                            for o in self.obj_ids}

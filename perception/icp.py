@@ -61,7 +61,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from posegrasp.geometry import axis_angle_R
-from posegrasp.perception.rests import Rests
+from posegrasp.perception.rests import Rests, up_classes
 
 
 def cube_rotations() -> np.ndarray:
@@ -91,7 +91,10 @@ class ICPConfig:
     level_rests: the starts moved to rest on the plane are also levelled, and fitted as turns about its normal
     and shifts along it, resting (module doc). yaw_search_deg and yaw_search_step_deg: each object's best fit at the
     end is turned about the normal through its centre by every third step within +-yaw_search_deg, then by one step
-    each side of the best, and the best-scoring turn kept (0: off)."""
+    each side of the best, and the best-scoring turn kept (0: off). model_points: surface points sampled on each model
+    (``Estimator``; in random order); rank_points: the first of them, for the free-space, plane and floating terms of
+    the scores that rank the many hypotheses before the exact steps (those terms cost O(H M), the fit's grid lookups
+    O(H N)); the exact scores take them all."""
 
     iterations: int = 12
     exact_steps: int = 3
@@ -109,6 +112,8 @@ class ICPConfig:
     level_rests: bool = True
     yaw_search_deg: float = 15.0
     yaw_search_step_deg: float = 1.0
+    model_points: int = 1500
+    rank_points: int = 500
 
     def validate(self) -> None:
         """Raise ValueError on an unusable configuration."""
@@ -122,6 +127,9 @@ class ICPConfig:
         if self.yaw_search_deg < 0 or self.yaw_search_step_deg <= 0:
             raise ValueError(f"ICP yaw_search_deg ({self.yaw_search_deg}) must be >= 0 and yaw_search_step_deg "
                              f"({self.yaw_search_step_deg}) positive")
+        if self.model_points < 3 or not 1 <= self.rank_points <= self.model_points:
+            raise ValueError(f"ICP model_points ({self.model_points}) must be >= 3 and rank_points "
+                             f"({self.rank_points}) within [1, model_points]")
         if self.max_points < 3:
             raise ValueError(f"ICP max_points must be >= 3 (a rigid fit needs 3 points), got {self.max_points}")
         if self.truncation <= 0 or min(self.violation_margin, self.violation_weight, self.float_margin,
@@ -342,10 +350,14 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     obj = torch.cat([torch.full((len(Q),), o) for o, Q in enumerate(rotations)])  # (H,): each hypothesis' object
     R = T[obj, :3, :3] @ torch.from_numpy(np.concatenate(rotations)).float()  # (H, 3, 3)
     t = T[obj, :3, 3]  # (H, 3)
-    ups, labels = _stacked(rests or [Rests.axes()] * len(estimates))  # (O, U, 3), (O, U)
+    if rests is None:  # the object axes, as classes under the objects' symmetries
+        rests = [Rests.axes()] * len(estimates) if symmetries is None else \
+            [Rests(Rests.axes().ups, up_classes(Rests.axes().ups, *sym)) for sym in symmetries]
+    ups, labels = _stacked(rests)  # (O, U, 3), (O, U)
     held = torch.zeros(len(R), dtype=torch.bool)  # (H,): the hypotheses kept level and resting on the plane
     if pl is not None:  # each hypothesis also starts moved along the plane normal to rest on the plane
-        R2, src = rest_starts(R, obj, pl[:3], ups, labels) if cfg.level_rests else (R, torch.arange(len(R)))
+        R2, src = rest_starts(R, obj, pl[:3], ups, labels, symmetries=symmetries) if cfg.level_rests \
+            else (R, torch.arange(len(R)))
         R, t = torch.cat([R, R2]), torch.cat([t, resting(R2, t[src], m, m_ok, obj[src], pl)])
         obj, held = torch.cat([obj, obj[src]]), torch.cat([held, torch.full((len(R2),), cfg.level_rests)])
 
@@ -370,7 +382,7 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     if cfg.yaw_step_deg > 0:  # the best few turned about the plane's normal, and fitted on
         normal = np.array([0.0, 0.0, 1.0]) if pl is None else pl[:3].double().numpy()
         keep = _best(_score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids), obj, cfg.yaw_seeds,
-                     face=up_face(R, normal))
+                     face=up_face(R, normal, ups[obj]))
         R, obj, source = _turned(R[keep], obj[keep], normal, cfg.yaw_step_deg, symmetries)
         t, held, low = t[keep][source], held[keep][source], low[keep][source]
         po = p[obj].transpose(1, 2).contiguous()
@@ -452,25 +464,30 @@ def level(R: torch.Tensor, normal: torch.Tensor, ups: torch.Tensor | None = None
     return R @ turns_about(axis / s.clamp(min=1e-12)[:, None], torch.atan2(s, (e * a).sum(dim=1)))
 
 
-def rest_starts(R: torch.Tensor, obj: torch.Tensor, normal: torch.Tensor, ups: torch.Tensor, labels: torch.Tensor
+def rest_starts(R: torch.Tensor, obj: torch.Tensor, normal: torch.Tensor, ups: torch.Tensor, labels: torch.Tensor,
+                turn_deg: float = 60.0, symmetries: list[tuple[np.ndarray, np.ndarray]] | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The levelled starts of the hypotheses R (H, 3, 3) of objects obj (H,) with rests ups (O, U, 3) and labels
     (O, U): each ``level``led onto its nearest rest, and for each rest class of an object that none of them reaches
     (an L-block's inverted V lies 45 deg from every object axis), the hypothesis nearest a rest of that class turned
-    onto it. Returns the rotations (H', 3, 3) and the row of R each came from (H',)."""
+    onto it, and that turned about the normal by every ``turn_deg`` (``yaw_turns``, with the object's symmetries):
+    its yaw is a guess. Returns the rotations (H', 3, 3) and the row of R each came from (H',)."""
     a, _, k = _nearest_up(R, normal, ups[obj])
     out, src = [level(R, normal, ups[obj])], [torch.arange(len(R))]
     for o in obj.unique().tolist():
         rows = torch.nonzero(obj == o)[:, 0]
         cos = a[rows] @ ups[o].to(a.dtype).T  # (rows, U)
+        disc, axes = symmetries[o] if symmetries is not None else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
         for c in labels[o].unique().tolist():
             in_c = labels[o] == c
             if bool(in_c[k[rows]].any()):
                 continue
             best = int(cos[:, in_c].max(dim=1).values.argmax())
             u = int(torch.nonzero(in_c)[:, 0][cos[best, in_c].argmax()])
-            out.append(level(R[rows[best]][None], normal, ups[o, u][None, None]))
-            src.append(rows[best][None])
+            Rl = level(R[rows[best]][None], normal, ups[o, u][None, None])
+            psi = yaw_turns(Rl[0].double().numpy(), normal.double().numpy(), turn_deg, disc, axes)
+            out.append(turns_about(normal.to(R.dtype), torch.from_numpy(psi).to(R.dtype)) @ Rl)
+            src.append(rows[best].repeat(len(psi)))
     return torch.cat(out), torch.cat(src)
 
 
@@ -494,13 +511,11 @@ def resting(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tenso
     return t - lowest[:, None] * plane[:3]
 
 
-def up_face(R: torch.Tensor, normal: np.ndarray, ups: torch.Tensor | None = None,
-            labels: torch.Tensor | None = None) -> torch.Tensor:
-    """The label (H,) of the rest nearest ``normal`` (3,, camera frame) under each rotation R (H, 3, 3): the face an
-    object resting on a plane with that normal shows the camera. ups (H, U, 3) and labels (H, U): each row's rests
-    (``perception.rests``); None: the axes +x, -x, +y, -y, +z, -z, labels 0-5."""
-    k = _nearest_up(R, torch.as_tensor(normal), ups)[2]
-    return k if labels is None else labels[torch.arange(len(R)), k]
+def up_face(R: torch.Tensor, normal: np.ndarray, ups: torch.Tensor | None = None) -> torch.Tensor:
+    """Which rest (H,) lies nearest ``normal`` (3,, camera frame) under each rotation R (H, 3, 3): the face an object
+    resting on a plane with that normal shows the camera. ups (H, U, 3): each row's rests (``perception.rests``), the
+    index into them; None: the axes +x, -x, +y, -y, +z, -z, 0-5."""
+    return _nearest_up(R, torch.as_tensor(normal), ups)[2]
 
 
 def yaw_turns(R: np.ndarray, normal: np.ndarray, step_deg: float, discrete: np.ndarray, axes: np.ndarray
@@ -542,8 +557,9 @@ def _score(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tensor
     the floating term (``ICPConfig.float_weight``) above it, m.
     The fit's distances are to the exact nearest model points, or (not ``exact``) to the grid's matches
     (approximate, at most a cell diagonal long)."""
-    mo, ok, po, wo = m[obj], m_ok[obj], p[obj], w[obj]
-    mc = mo @ R.transpose(1, 2) + t[:, None]  # (H, M, 3)
+    k = m.shape[1] if exact else cfg.rank_points
+    mo, ok, po, wo = m[obj, :k], m_ok[obj, :k], p[obj], w[obj]
+    mc = mo @ R.transpose(1, 2) + t[:, None]  # (H, k, 3)
     local = (po - t[:, None]) @ R  # (H, N, 3), object frame
     dist = grids.exact(local, obj)[0] if exact else (local - _rows(m.reshape(-1, 3), grids(local, obj))).norm(dim=2)
     fit = (dist.clamp(max=cfg.truncation) * wo).sum(dim=1) / wo.sum(dim=1)

@@ -10,7 +10,7 @@ studs (u 36 deg off its -z axis). The depth refinement lays its resting starts o
 
 Two rests are one for the fit when a symmetry of the model maps one up onto the other: S u_i = u_j for a discrete
 symmetry S (or the identity), or (S u_i) . c = u_j . c for a continuous symmetry axis c (a turn about c then maps
-S u_i onto u_j). ``labels`` numbers these classes, so a lying cylinder's 48 hull sides are one rest.
+S u_i onto u_j). ``labels`` numbers these classes, so a lying cylinder's 48 hull sides are one rest class.
 """
 
 from __future__ import annotations

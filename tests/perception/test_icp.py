@@ -35,6 +35,7 @@ def test_distinct_rotations_drop_hypotheses_equal_under_symmetry():
                                           (dict(max_points=2), "max_points must be >= 3 .*got 2"),
                                           (dict(truncation=0.0), "truncation .0.0. must be positive"),
                                           (dict(float_weight=-1.0), "float_weight .-1.0. >= 0"),
+                                          (dict(rank_points=2000), r"rank_points .2000. within \[1, model_points\]"),
                                           (dict(hypotheses="sphere"), "'cube' or 'identity', got 'sphere'")])
 def test_icp_config_names_the_bad_value(bad, message):
     ICPConfig().validate()

@@ -35,7 +35,7 @@ def test_the_l_block_also_stands_as_an_inverted_v():
     assert len(set(rests.labels.tolist())) == 4
 
 
-def test_a_lying_cylinders_hull_sides_are_one_rest():
+def test_a_lying_cylinders_hull_sides_are_one_rest_class():
     rests = Rests.of_mesh(bop.load_model("assets/blocks", 5), *_symmetries(5))
     side = np.abs(rests.ups[:, 2]) < 1e-6
     assert side.sum() == 48 and len(set(rests.labels[side].tolist())) == 1
