@@ -24,7 +24,7 @@ exact nearest points (from a k-d tree of the model), for the ``polish`` hypothes
 distances only; the final score is exact.
 A block resting on the table and seen from above constrains its turn about the table's normal least (a cube's top
 face fits its points at any yaw), so after the first steps the best hypothesis of each of the ``yaw_seeds`` best-scoring faces
-turned up (``up_face``: which object axis lies along the plane's normal) is turned about the plane's normal (the
+turned up (``up_face``: which of the model's rests lies nearest the plane's normal) is turned about the plane's normal (the
 camera's optical axis without a plane), through the object's centre, by every ``yaw_step_deg`` of the turn that maps
 the model onto itself about that axis (360 deg / the number of its symmetries about it), and fitted again before the
 exact steps: on the val split with ground-truth masks, the fit started at the true pose
@@ -98,7 +98,7 @@ class ICPConfig:
 
     iterations: int = 12
     exact_steps: int = 3
-    polish: int = 4
+    polish: int = 3
     max_points: int = 300
     truncation: float = 0.01
     violation_margin: float = 0.005
@@ -224,13 +224,14 @@ class _Grids:
         ijk = torch.minimum(cells.round_().clamp_(min=0), self.max[obj, :, None])  # (H, 3, N), whole numbers
         return torch.take(self.index, (ijk * self.strides[obj]).sum(dim=1).long() + self.start[obj, None])
 
-    def exact(self, points: torch.Tensor, obj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def exact(self, points: torch.Tensor, obj: torch.Tensor, bound: float = np.inf) -> tuple[torch.Tensor, torch.Tensor]:
         """The exact nearest model points of points (H, N, 3), row h in the frame of object obj[h]: their distances
-        (H, N) float32 and their rows in each object's model (H, N)."""
+        (H, N) float32 and their rows in each object's model (H, N); a point farther than ``bound`` (m) from every
+        model point gets distance inf and row len(model) (the search stops sooner)."""
         dist, idx = torch.empty(points.shape[:2]), torch.empty(points.shape[:2], dtype=torch.long)
         for o in obj.unique().tolist():
             h = obj == o
-            d, i = self.trees[o].query(points[h].reshape(-1, 3).numpy())
+            d, i = self.trees[o].query(points[h].reshape(-1, 3).numpy(), distance_upper_bound=bound)
             dist[h], idx[h] = torch.from_numpy(d.astype(np.float32)).view(-1, points.shape[1]), \
                 torch.from_numpy(i).view(-1, points.shape[1])
         return dist, idx
@@ -561,7 +562,8 @@ def _score(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tensor
     mo, ok, po, wo = m[obj, :k], m_ok[obj, :k], p[obj], w[obj]
     mc = mo @ R.transpose(1, 2) + t[:, None]  # (H, k, 3)
     local = (po - t[:, None]) @ R  # (H, N, 3), object frame
-    dist = grids.exact(local, obj)[0] if exact else (local - _rows(m.reshape(-1, 3), grids(local, obj))).norm(dim=2)
+    dist = grids.exact(local, obj, cfg.truncation)[0] if exact else \
+        (local - _rows(m.reshape(-1, 3), grids(local, obj))).norm(dim=2)
     fit = (dist.clamp(max=cfg.truncation) * wo).sum(dim=1) / wo.sum(dim=1)
     z = mc[..., 2].clamp(min=1e-6)
     u = torch.round(mc[..., 0] * float(K[0, 0]) / z + float(K[0, 2])).long()
