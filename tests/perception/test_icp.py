@@ -35,6 +35,7 @@ def test_distinct_rotations_drop_hypotheses_equal_under_symmetry():
                                           (dict(max_points=2), "max_points must be >= 3 .*got 2"),
                                           (dict(truncation=0.0), "truncation .0.0. must be positive"),
                                           (dict(float_weight=-1.0), "float_weight .-1.0. >= 0"),
+                                          (dict(pattern_fits=0), r"pattern_fits .0. >= 1"),
                                           (dict(rank_points=2000), r"rank_points .2000. within \[1, model_points\]"),
                                           (dict(hypotheses="sphere"), "'cube' or 'identity', got 'sphere'")])
 def test_icp_config_names_the_bad_value(bad, message):
@@ -324,3 +325,30 @@ def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squar
         np.testing.assert_allclose(t.numpy(), np.tile(shift, (2, 1)), atol=1e-5)
     turns = turns_about(f(n), torch.tensor([0.4, -1.0]))
     np.testing.assert_allclose(turns.numpy(), [G, axis_angle_R(n, -1.0)], atol=1e-6)
+
+
+def test_the_pattern_search_walks_a_pose_down_its_score_along_the_plane():
+    """``_pattern_search`` on a score that is the distance (m) to a target pose's position plus its turn about the
+    normal (rad, scaled 10 cm per rad): from 3.4 mm and 3 deg off, in 2 rounds per scale, it ends within the last
+    scale's steps (0.5 mm, 0.5 deg), keeps the pose's height over the plane and appends the moved pose."""
+    from posegrasp.perception.icp import _pattern_search
+
+    n = torch.tensor([0.0, -0.6, -0.8], dtype=torch.float64)
+    R_goal = torch.from_numpy(axis_angle_R(np.array([0.3, 0.2, 0.9]), 0.7))
+    t_goal = torch.tensor([0.05, -0.02, 0.5], dtype=torch.float64)
+    turn = torch.from_numpy(axis_angle_R(n.numpy(), np.radians(3.0)))
+    e = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    along = e - (e @ n) * n  # a shift along the plane
+    R0, t0 = turn @ R_goal, t_goal + 0.0034 * along / along.norm()
+
+    def score_of(R, t, obj):
+        cos = ((torch.einsum("hij,ij->h", R, R_goal) - 1) / 2).clamp(-1, 1)
+        return (t - t_goal).norm(dim=1) + 0.1 * torch.arccos(cos)
+
+    score = score_of(R0[None], t0[None], torch.zeros(1, dtype=torch.long))
+    R, t, obj, s = _pattern_search(R0[None], t0[None], torch.zeros(1, dtype=torch.long), score, n,
+                                   torch.tensor([[[0.0, 0.0, 1.0]]], dtype=torch.float64), 1, 2, score_of)
+    assert len(R) == 2 and torch.equal(R[0], R0) and float(s[1]) < float(s[0])
+    assert float((t[1] - t_goal).norm()) < 0.0005 * np.sqrt(2) + 1e-9
+    assert float(torch.arccos(((torch.trace(R[1].T @ R_goal) - 1) / 2).clamp(-1, 1))) < np.radians(0.5) + 1e-9
+    assert float((t[1] - t0) @ n) == pytest.approx(0.0, abs=1e-12)  # moved along the plane only
