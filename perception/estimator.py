@@ -178,9 +178,7 @@ class Estimator:
             raise UserError(f"models in {models} lack objects {missing} of the pose net")
         meshes = {o: bop.load_model(models, o) for o in self.obj_ids}
         self.model_points = {o: bop.sample_model_points(meshes[o], self.icp.model_points, seed=o) for o in self.obj_ids}
-        self.symmetries = {o: (np.array([np.asarray(D)[:3, :3] for D in infos[o].symmetries_discrete]).reshape(-1, 3, 3),
-                               np.array([a for a, _ in infos[o].symmetries_continuous]).reshape(-1, 3))
-                           for o in self.obj_ids}
+        self.symmetries = {o: infos[o].symmetry_rotations() for o in self.obj_ids}
         self.rests = {o: Rests.of_mesh(meshes[o], *self.symmetries[o]) for o in self.obj_ids}
         self.hypotheses = {o: distinct_rotations(self.icp.rotations(), list(self.symmetries[o][0]),
                                                  list(self.symmetries[o][1]))

@@ -65,7 +65,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from posegrasp.geometry import axis_angle_R
-from posegrasp.perception.rests import Rests, up_classes
+from posegrasp.perception.rests import Rests
 
 
 def cube_rotations() -> np.ndarray:
@@ -364,8 +364,7 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     R = T[obj, :3, :3] @ torch.from_numpy(np.concatenate(rotations)).float()  # (H, 3, 3)
     t = T[obj, :3, 3]  # (H, 3)
     if rests is None:  # the object axes, as classes under the objects' symmetries
-        rests = [Rests.axes()] * len(estimates) if symmetries is None else \
-            [Rests(Rests.axes().ups, up_classes(Rests.axes().ups, *sym)) for sym in symmetries]
+        rests = [Rests.axes()] * len(estimates) if symmetries is None else [Rests.axes(*sym) for sym in symmetries]
     ups, labels = _stacked(rests)  # (O, U, 3), (O, U)
     held = torch.zeros(len(R), dtype=torch.bool)  # (H,): the hypotheses kept level and resting on the plane
     if pl is not None:  # each hypothesis also starts moved along the plane normal to rest on the plane
@@ -496,7 +495,7 @@ def _best(score: torch.Tensor, obj: torch.Tensor, n: int, R: torch.Tensor | None
     return torch.cat(keep)
 
 
-_AXES = torch.tensor([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])  # Rests.axes()'s ups
+_AXES = torch.from_numpy(Rests.axes().ups)  # +x, -x, +y, -y, +z, -z
 
 
 def level(R: torch.Tensor, normal: torch.Tensor, ups: torch.Tensor | None = None) -> torch.Tensor:
@@ -505,6 +504,11 @@ def level(R: torch.Tensor, normal: torch.Tensor, ups: torch.Tensor | None = None
     ``perception.rests``; None: the six object axes) nearest a, R Q with Q the turn about e x a by the angle between
     e and a (Q e = a, so R Q e = n)."""
     a, e, _ = _nearest_up(R, normal, ups)
+    return _turned_onto(R, a, e)
+
+
+def _turned_onto(R: torch.Tensor, a: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
+    """R (H, 3, 3) Q, Q the least turn that maps the object-frame directions e (H, 3) onto a (H, 3) (``level``)."""
     axis = torch.cross(e, a, dim=1)
     s = axis.norm(dim=1)
     return R @ turns_about(axis / s.clamp(min=1e-12)[:, None], torch.atan2(s, (e * a).sum(dim=1)))
@@ -518,8 +522,8 @@ def rest_starts(R: torch.Tensor, obj: torch.Tensor, normal: torch.Tensor, ups: t
     (an L-block's inverted V lies 45 deg from every object axis), the hypothesis nearest a rest of that class turned
     onto it, and that turned about the normal by every ``turn_deg`` (``yaw_turns``, with the object's symmetries):
     its yaw is a guess. Returns the rotations (H', 3, 3) and the row of R each came from (H',)."""
-    a, _, k = _nearest_up(R, normal, ups[obj])
-    out, src = [level(R, normal, ups[obj])], [torch.arange(len(R))]
+    a, e, k = _nearest_up(R, normal, ups[obj])
+    out, src = [_turned_onto(R, a, e)], [torch.arange(len(R))]
     for o in obj.unique().tolist():
         rows = torch.nonzero(obj == o)[:, 0]
         cos = a[rows] @ ups[o].to(a.dtype).T  # (rows, U)

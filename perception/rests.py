@@ -36,9 +36,10 @@ class Rests:
             raise ValueError(f"Rests ups must be unit vectors, got norms {np.linalg.norm(ups, axis=1)}")
 
     @classmethod
-    def axes(cls) -> Rests:
-        """The six object axes as rests, each its own class: a box's."""
-        return cls(np.concatenate([np.eye(3), -np.eye(3)], axis=1).reshape(6, 3), np.arange(6))
+    def axes(cls, discrete: np.ndarray = np.zeros((0, 3, 3)), axes: np.ndarray = np.zeros((0, 3))) -> Rests:
+        """The six object axes as rests, a box's, labelled by the symmetries (``of_mesh``; none: each its own class)."""
+        ups = np.concatenate([np.eye(3), -np.eye(3)], axis=1).reshape(6, 3)
+        return cls(ups, up_classes(ups, discrete, axes))
 
     @classmethod
     def of_mesh(cls, mesh, discrete: np.ndarray, axes: np.ndarray, tol_deg: float = 2.0) -> Rests:

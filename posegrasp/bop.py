@@ -134,6 +134,11 @@ class ObjectInfo:
         """Whether the model has any (discrete or continuous) symmetry: ADD-S applies."""
         return bool(self.symmetries_discrete or self.symmetries_continuous)
 
+    def symmetry_rotations(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rotation parts (S, 3, 3) of the discrete symmetries and the continuous axes (A, 3), object frame."""
+        return (np.array([np.asarray(D)[:3, :3] for D in self.symmetries_discrete]).reshape(-1, 3, 3),
+                np.array([a for a, _ in self.symmetries_continuous]).reshape(-1, 3))
+
 
 @dataclass
 class GTInfo:

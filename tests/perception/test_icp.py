@@ -241,8 +241,7 @@ def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
     from posegrasp.perception.rests import Rests
 
     mesh = bop.load_model("assets/blocks", 8)
-    info = bop.load_models_info("assets/blocks")[8]
-    syms = (np.array([np.asarray(D)[:3, :3] for D in info.symmetries_discrete]).reshape(-1, 3, 3), np.zeros((0, 3)))
+    syms = bop.load_models_info("assets/blocks")[8].symmetry_rotations()
     rests = Rests.of_mesh(mesh, *syms)
     R_world_obj = axis_angle_R(np.array([0.0, 1.0, 0.0]), np.radians(135.0))  # object (-1, 0, -1) / sqrt 2 up
     lowest = (mesh.vertices @ R_world_obj.T)[:, 2].min()

@@ -10,9 +10,7 @@ from posegrasp.perception.rests import Rests, up_classes
 
 
 def _symmetries(obj_id: int) -> tuple[np.ndarray, np.ndarray]:
-    info = bop.load_models_info("assets/blocks")[obj_id]
-    return (np.array([np.asarray(D)[:3, :3] for D in info.symmetries_discrete]).reshape(-1, 3, 3),
-            np.array([a for a, _ in info.symmetries_continuous]).reshape(-1, 3))
+    return bop.load_models_info("assets/blocks")[obj_id].symmetry_rotations()
 
 
 def test_a_box_rests_on_its_six_faces():
