@@ -36,6 +36,7 @@ from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.crop import backproject, mask_bbox, padded_box
 from posegrasp.perception.ensemble import ClassifierEnsemble
 from posegrasp.perception.guided import GuidedConfig, refine_labels
+from posegrasp.perception.distance_field import DistanceField
 from posegrasp.perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
 from posegrasp.perception.rests import Rests
 from posegrasp.perception.inputs import prepare_pose_input, segment_components
@@ -183,7 +184,9 @@ class Estimator:
         self.hypotheses = {o: distinct_rotations(self.icp.rotations(), list(self.symmetries[o][0]),
                                                  list(self.symmetries[o][1]))
                            for o in self.obj_ids}
-        self.grids = {o: NearestGrid(self.model_points[o]) for o in self.obj_ids}
+        self.grids = {o: NearestGrid(self.model_points[o], field=DistanceField.of_mesh(meshes[o], seed=o,
+                                                                             margin=self.icp.truncation))
+                      for o in self.obj_ids}
         if self.split_cfg.rounds > 0:
             self.surfaces = {o: ModelSurface(bop.sample_model_points(meshes[o],
                                                                       self.split_cfg.model_points, seed=o))

@@ -21,7 +21,10 @@ The hypothesis with the lowest score wins. The nearest model point is looked up 
 (``NearestGrid``: the nearest point of every cell centre, computed once per model), so a step costs O(H N) instead
 of the O(H N M) of an exhaustive search; points beyond the grid take the nearest point of its closest cell. The last ``exact_steps`` steps take the
 exact nearest points (from a k-d tree of the model), for the ``polish`` hypotheses that score best by the grid's
-distances only; the final score is exact.
+distances only. The final scores are fine: their fit term takes each observed point's distance from the model's
+surface, interpolated in a 1 mm grid of it (``perception.distance_field``; within 0.01-0.03 mm on average near a
+block, where the nearest of the 1500 model points lies 0.7 mm off, and without a k-d search), and their other terms
+all the model points.
 A block resting on the table and seen from above constrains its turn about the table's normal least (a cube's top
 face fits its points at any yaw), so after the first steps the best hypothesis of each of the ``yaw_seeds`` best-scoring faces
 turned up (``up_face``: which of the model's rests lies nearest the plane's normal) is turned about the plane's normal (the
@@ -47,8 +50,8 @@ step, 0.923 with the turn fit). Last, each object's best fit is turned about the
 3 ``yaw_search_step_deg`` within +-``yaw_search_deg``, then by one step each side of the best, and the best-scoring
 turn kept: seen from above, a cube's side faces give the fit little to turn it by, but a model a degree off in yaw
 sticks out of the observed silhouette, which the free-space term sees (the stack task's looks: the cube's median yaw
-error 2.4 -> 1.2 deg). Optionally (``pattern_rounds``, off by default for its cost), each object's best fits on
-``pattern_fits`` different rests are then moved by a pattern search on the exact score (``_pattern_search``: shifts of
+error 2.4 -> 1.2 deg). Then (``pattern_rounds``) each object's best fits on
+``pattern_fits`` different rests are moved by a pattern search on the fine score (``_pattern_search``: shifts of
 +-2, 1, 0.5 mm along two axes of the plane and turns of as many degrees about its normal, the best move of each round
 kept where it lowers the score): seen from straight above, a flat face's points pin neither its shift nor its turn,
 and ICP stops where the squared distances balance.
@@ -64,7 +67,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from posegrasp.geometry import axis_angle_R
+from posegrasp.perception.distance_field import DistanceField, Fields
 from posegrasp.perception.rests import Rests
 
 
@@ -96,12 +99,12 @@ class ICPConfig:
     and shifts along it, resting (module doc). yaw_search_deg and yaw_search_step_deg: each object's best fit at the
     end is turned about the normal through its centre by every third step within +-yaw_search_deg, then by one step
     each side of the best, and the best-scoring turn kept (0: off). pattern_rounds: then each object's best fits on
-    ``pattern_fits`` different rests are moved by a pattern search on the exact score, that many rounds per scale
-    (``_pattern_search``; 0: off, the default: 2 rounds raised AR on val 0.883 -> 0.912 and on test 0.878 -> 0.904,
-    but cost the bench frame's depth refinement 63 ms). model_points: surface points sampled on each model (``Estimator``;
+    ``pattern_fits`` different rests are moved by a pattern search on the fine score, that many rounds per scale
+    (``_pattern_search``; 0: off; 1 raised AR on val 0.884 -> 0.908 and on test 0.878 -> 0.900, 2 gave 0.915 and
+    0.899). model_points: surface points sampled on each model (``Estimator``;
     in random order); rank_points: the first of them, for the free-space, plane and floating terms of
     the scores that rank the many hypotheses before the exact steps (those terms cost O(H M), the fit's grid lookups
-    O(H N)); the exact scores take them all."""
+    O(H N)); the fine scores take them all."""
 
     iterations: int = 12
     exact_steps: int = 3
@@ -119,7 +122,7 @@ class ICPConfig:
     level_rests: bool = True
     yaw_search_deg: float = 15.0
     yaw_search_step_deg: float = 1.0
-    pattern_rounds: int = 0
+    pattern_rounds: int = 1
     pattern_fits: int = 2
     model_points: int = 1500
     rank_points: int = 500
@@ -187,9 +190,11 @@ def distinct_rotations(Q: np.ndarray, discrete: list[np.ndarray], axes: list[np.
 class NearestGrid:
     """The nearest of the model points (M, 3) (object frame, m) to every cell centre of a voxel grid of side
     ``cell`` (m) over the model's bounding box widened by ``margin`` (m): ``grid(points)`` gives the index of an
-    (approximately, within half a cell diagonal) nearest model point of each point (N, 3), object frame."""
+    (approximately, within half a cell diagonal) nearest model point of each point (N, 3), object frame. ``field``:
+    the model's ``DistanceField``, for the scores' fit term (None: that of the model points, unsigned)."""
 
-    def __init__(self, model: np.ndarray, cell: float = 0.002, margin: float = 0.02):
+    def __init__(self, model: np.ndarray, cell: float = 0.002, margin: float = 0.02,
+                 field: DistanceField | None = None):
         if cell <= 0 or margin < 0:
             raise ValueError(f"NearestGrid needs cell > 0 and margin >= 0, got cell={cell}, margin={margin}")
         model = np.asarray(model, dtype=np.float64)
@@ -199,6 +204,7 @@ class NearestGrid:
         self.tree = cKDTree(model)  # for exact matches
         centres = self.lo + np.stack(np.meshgrid(*[np.arange(n) for n in self.shape], indexing="ij"), -1) * cell
         self.index = torch.from_numpy(self.tree.query(centres.reshape(-1, 3))[1].astype(np.int64))  # C order
+        self.field = field or DistanceField(model)
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         return _Grids([self], 0)(points[None], torch.zeros(1, dtype=torch.long))[0]
@@ -208,10 +214,11 @@ class _Grids:
     """Several objects' ``NearestGrid``s as one lookup: model o's points start at row o x ``stride`` of the stacked
     models, and ``grids(points, obj)`` maps points (H, N, 3), row h in the frame of object obj[h], to rows of them;
     ``grids.posed(p, R, t, obj)`` does the same for camera-frame points p (H, 3, N) (coordinates first: batched
-    products with 3-long rows are ~8x slower on a CPU) of objects at poses (R, t)."""
+    products with 3-long rows are ~8x slower on a CPU) of objects at poses (R, t). ``fields``: their distance fields."""
 
     def __init__(self, grids: list[NearestGrid], stride: int):
         self.trees = [g.tree for g in grids]
+        self.fields = Fields([g.field for g in grids])
         self.index = torch.cat([g.index + o * stride for o, g in enumerate(grids)])
         self.start = torch.tensor([0] + [len(g.index) for g in grids[:-1]]).cumsum(0)  # (O,)
         self.lo = torch.tensor(np.stack([g.lo for g in grids]), dtype=torch.float32)  # (O, 3)
@@ -222,7 +229,11 @@ class _Grids:
                                     dtype=torch.float32)[..., None]
 
     def __call__(self, points: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
-        return self._lookup(((points - self.lo[obj, None]) / self.cell[obj, None, None]).transpose(1, 2), obj)
+        return self.local(points.transpose(1, 2), obj)
+
+    def local(self, points: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
+        """Rows (H, N) of the nearest model points of points (H, 3, N) in their objects' frames."""
+        return self._lookup((points - self.lo[obj, :, None]) / self.cell[obj, None, None], obj)
 
     def posed(self, p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
         """Rows (H, N) of the nearest model points of p (H, 3, N) in the frames R (H, 3, 3), t (H, 3): cell
@@ -236,17 +247,15 @@ class _Grids:
         ijk = torch.minimum(cells.round_().clamp_(min=0), self.max[obj, :, None])  # (H, 3, N), whole numbers
         return torch.take(self.index, (ijk * self.strides[obj]).sum(dim=1).long() + self.start[obj, None])
 
-    def exact(self, points: torch.Tensor, obj: torch.Tensor, bound: float = np.inf) -> tuple[torch.Tensor, torch.Tensor]:
-        """The exact nearest model points of points (H, N, 3), row h in the frame of object obj[h]: their distances
-        (H, N) float32 and their rows in each object's model (H, N); a point farther than ``bound`` (m) from every
-        model point gets distance inf and row len(model) (the search stops sooner)."""
-        dist, idx = torch.empty(points.shape[:2]), torch.empty(points.shape[:2], dtype=torch.long)
+    def exact(self, points: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
+        """The rows (H, N) in each object's model of the exact nearest model points of points (H, N, 3), row h in the
+        frame of object obj[h] (searched on torch's CPU threads)."""
+        idx = torch.empty(points.shape[:2], dtype=torch.long)
         for o in obj.unique().tolist():
             h = obj == o
-            d, i = self.trees[o].query(points[h].reshape(-1, 3).numpy(), distance_upper_bound=bound)
-            dist[h], idx[h] = torch.from_numpy(d.astype(np.float32)).view(-1, points.shape[1]), \
-                torch.from_numpy(i).view(-1, points.shape[1])
-        return dist, idx
+            i = self.trees[o].query(points[h].reshape(-1, 3).numpy())[1]
+            idx[h] = torch.from_numpy(i).view(-1, points.shape[1])
+        return idx
 
 
 class _Kabsch:
@@ -300,11 +309,6 @@ def turns_about(n: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
     N[:, 1, 0], N[:, 2, 0], N[:, 2, 1] = u[:, 2], -u[:, 1], u[:, 0]
     return torch.eye(3, dtype=n.dtype) + torch.sin(angles)[:, None, None] * N + \
         (1 - torch.cos(angles))[:, None, None] * (N @ N)
-
-
-def _rows(table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """``table[idx]`` for a (R, 3) table and any index shape, by ``index_select`` (3x faster on a CPU)."""
-    return table.index_select(0, idx.reshape(-1)).view(*idx.shape, 3)
 
 
 def _columns(table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -407,9 +411,9 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     po, mo = p[obj], m[obj]
     fit = _Kabsch(po, w[obj])
     for _ in range(exact):  # exact matches for the last steps (a k-d tree of each model's real points)
-        nn = grids.exact((po - t[:, None]) @ R, obj)[1]  # (H, N)
+        nn = grids.exact((po - t[:, None]) @ R, obj)  # (H, N)
         R, t = step(mo[torch.arange(len(obj))[:, None], nn].transpose(1, 2), R)
-    score = _score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids, exact=True)
+    score = _score(R, t, m, m_ok, p, w, obj, dz, K, cfg, pl, grids, fine=True)
     steps = ((cfg.yaw_search_deg, 3 * cfg.yaw_search_step_deg), (cfg.yaw_search_step_deg,) * 2)
     normal = torch.tensor([0.0, 0.0, 1.0]) if pl is None else pl[:3]
     for span, by in steps if cfg.yaw_search_deg > 0 else ():  # each object's best fit turned about the normal through
@@ -419,12 +423,12 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
         G = turns_about(normal, torch.from_numpy(np.radians(np.concatenate([-angles, angles]))).float())  # (S, 3, 3)
         Rs = (G[None] @ R[best][:, None]).reshape(-1, 3, 3)
         ts, os_ = t[best].repeat_interleave(len(G), 0), obj[best].repeat_interleave(len(G), 0)
-        ss = _score(Rs, ts, m, m_ok, p, w, os_, dz, K, cfg, pl, grids, exact=True)
+        ss = _score(Rs, ts, m, m_ok, p, w, os_, dz, K, cfg, pl, grids, fine=True)
         R, t, obj, score = torch.cat([R, Rs]), torch.cat([t, ts]), torch.cat([obj, os_]), torch.cat([score, ss])
     if cfg.pattern_rounds > 0:
         R, t, obj, score = _pattern_search(
             R, t, obj, score, normal, ups, cfg.pattern_fits, cfg.pattern_rounds,
-            lambda Rm, tm, om: _score(Rm, tm, m, m_ok, p, w, om, dz, K, cfg, pl, grids, exact=True))
+            lambda Rm, tm, om: _score(Rm, tm, m, m_ok, p, w, om, dz, K, cfg, pl, grids, fine=True))
     out = []
     for o in range(len(estimates)):
         i = torch.nonzero(obj == o)[:, 0]
@@ -588,42 +592,47 @@ def _turned(R: torch.Tensor, obj: torch.Tensor, normal: np.ndarray, step_deg: fl
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Each rotation R (H, 3, 3) of object obj (H,) turned about ``normal`` by its ``yaw_turns``: (H', 3, 3), their
     objects (H',) and the row of R each came from (H',)."""
-    out, objs, source = [], [], []
-    for h, (Rh, o) in enumerate(zip(R.double().numpy(), obj.tolist())):
+    Rd = R.double()
+    psi = []
+    for Rh, o in zip(Rd.numpy(), obj.tolist()):
         disc, axes = symmetries[o] if symmetries is not None else (np.zeros((0, 3, 3)), np.zeros((0, 3)))
-        for psi in yaw_turns(Rh, normal, step_deg, disc, axes):
-            out.append(axis_angle_R(normal, psi) @ Rh)
-            objs.append(o)
-            source.append(h)
-    return torch.from_numpy(np.stack(out)).float(), torch.tensor(objs), torch.tensor(source)
+        psi.append(yaw_turns(Rh, normal, step_deg, disc, axes))
+    source = torch.repeat_interleave(torch.tensor([len(x) for x in psi]))
+    turned = turns_about(torch.from_numpy(normal).double(), torch.from_numpy(np.concatenate(psi))) @ Rd[source]
+    return turned.float(), obj[source], source
 
 
 def _score(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tensor, p: torch.Tensor, w: torch.Tensor,
            obj: torch.Tensor, depth: torch.Tensor, K: np.ndarray, cfg: ICPConfig, plane: torch.Tensor | None,
-           grids: _Grids, exact: bool = False) -> torch.Tensor:
+           grids: _Grids, fine: bool = False) -> torch.Tensor:
     """Score (H,) of the poses (R (H, 3, 3), t (H, 3)) of objects ``obj`` (H,): truncated fit of their observed points
     p (O, N, 3) (weights w (O, N), 0 for padding) to their model points m (O, M, 3) (valid where m_ok) plus the
     weighted shares of model points in free space against ``depth`` (H, W) and beneath the plane (4,) if given, and
     the floating term (``ICPConfig.float_weight``) above it, m.
-    The fit's distances are to the exact nearest model points, or (not ``exact``) to the grid's matches
-    (approximate, at most a cell diagonal long)."""
-    k = m.shape[1] if exact else cfg.rank_points
-    mo, ok, po, wo = m[obj, :k], m_ok[obj, :k], p[obj], w[obj]
-    mc = mo @ R.transpose(1, 2) + t[:, None]  # (H, k, 3)
-    local = (po - t[:, None]) @ R  # (H, N, 3), object frame
-    dist = grids.exact(local, obj, cfg.truncation)[0] if exact else \
-        (local - _rows(m.reshape(-1, 3), grids(local, obj))).norm(dim=2)
+    The fit's distances are the ``fine`` ones, from the model's surface (the grids' distance fields), or those to the
+    grid's matches among the model points (approximate, at most a cell diagonal long); the other terms take all the
+    model points when ``fine``, else the first ``cfg.rank_points``."""
+    k = m.shape[1] if fine else cfg.rank_points
+    ok, wo = m_ok[obj, :k], w[obj]
+    # coordinates first, (H, 3, k) and (H, 3, N): batched products with 3-long rows are ~8x slower on a CPU
+    mc = torch.baddbmm(t[:, :, None], R, m[:, :k].transpose(1, 2)[obj])  # (H, 3, k), camera frame
+    Rt = R.transpose(1, 2)
+    local = torch.baddbmm(-(Rt @ t[:, :, None]), Rt, p.transpose(1, 2)[obj])  # (H, 3, N), object frame
+    if fine:
+        dist = grids.fields(local, obj)
+    else:  # (the sum of squares: torch's norm along a 3-long dim of a (H, 3, N) tensor is ~20x slower)
+        dist = ((local - _columns(m.reshape(-1, 3).T, grids.local(local, obj))) ** 2).sum(dim=1).sqrt()
     fit = (dist.clamp(max=cfg.truncation) * wo).sum(dim=1) / wo.sum(dim=1)
-    z = mc[..., 2].clamp(min=1e-6)
-    u = torch.round(mc[..., 0] * float(K[0, 0]) / z + float(K[0, 2])).long()
-    v = torch.round(mc[..., 1] * float(K[1, 1]) / z + float(K[1, 2])).long()
+    z = mc[:, 2].clamp(min=1e-6)
+    u = torch.round(mc[:, 0] * float(K[0, 0]) / z + float(K[0, 2])).long()
+    v = torch.round(mc[:, 1] * float(K[1, 1]) / z + float(K[1, 2])).long()
     h, w_img = depth.shape
     inside = ok & (u >= 0) & (u < w_img) & (v >= 0) & (v < h)
-    dz = depth[v.clamp(0, h - 1), u.clamp(0, w_img - 1)]
+    dz = torch.take(depth, v.clamp(0, h - 1) * w_img + u.clamp(0, w_img - 1))
     viol = (inside & (dz > 0) & (z < dz - cfg.violation_margin)).sum(dim=1) / inside.sum(dim=1).clamp(min=1)
     score = fit
     if plane is not None:
-        height = mc @ plane[:3] + plane[3]  # (H, M)
+        height = (mc * plane[:3, None]).sum(dim=1) + plane[3]  # (H, k)
         viol = viol + (ok & (height < -cfg.violation_margin)).sum(dim=1) / ok.sum(dim=1)
         lowest = height.masked_fill(~ok, torch.inf).min(dim=1).values  # (H,)
         score = score + cfg.float_weight * ((lowest - cfg.float_margin) / 0.01).clamp(0, 1)
