@@ -23,7 +23,7 @@ of the O(H N M) of an exhaustive search; points beyond the grid take the nearest
 exact nearest points (from a k-d tree of the model), for the ``polish`` hypotheses that score best by the grid's
 distances only. The final scores are fine: their fit term takes each observed point's distance from the model's
 surface, interpolated in a 1 mm grid of it (``perception.distance_field``; within 0.01-0.03 mm on average near a
-block, where the nearest of the 1500 model points lies 0.7 mm off, and without a k-d search), and their other terms
+block, where the nearest of the 1500 model points lies 0.45-0.73 mm off, and without a k-d search), and their other terms
 all the model points.
 A block resting on the table and seen from above constrains its turn about the table's normal least (a cube's top
 face fits its points at any yaw), so after the first steps the best hypothesis of each of the ``yaw_seeds`` best-scoring faces

@@ -22,7 +22,7 @@ def field() -> DistanceField:
 
 def test_the_field_gives_a_box_its_distances(field):
     """Near the surface, outside and inside, the trilinear field is within 0.05 mm of the exact distance on average
-    (the nearest of 1500 surface points: 0.7 mm); on a face's plane it is 0 but by its edges (the nodes next to the
+    (the nearest of 1500 surface points: tenths of a mm); on a face's plane it is 0 but by its edges (the nodes next to the
     face take the distance to its plane, and the signed field is linear across it), and beyond the grid it is the
     margin."""
     rng = np.random.default_rng(0)
