@@ -360,7 +360,12 @@ def refine_poses(estimates: list[np.ndarray], models: list[np.ndarray], observed
     rotations = rotations or [cfg.rotations()] * len(estimates)
     m, m_ok = _padded(models, 1e3)  # (O, M, 3); padding far off, never a nearest point
     p, p_ok = _padded(observed)  # (O, N, 3)
-    grids = _Grids(grids or [NearestGrid(x) for x in models], m.shape[1])
+    grids = grids or [NearestGrid(x, field=DistanceField(x, margin=cfg.truncation)) for x in models]
+    short = [g.field.margin for g in grids if g.field.margin < cfg.truncation]
+    if short:  # beyond its grid a field gives its margin: the fit term would stop short of the truncation
+        raise ValueError(f"ICP truncation ({cfg.truncation} m) exceeds a model's distance field margin ({min(short)} m); "
+                         f"build the fields with margin >= truncation")
+    grids = _Grids(grids, m.shape[1])
     dz = torch.from_numpy(np.asarray(depth, dtype=np.float32))
     pl = None if plane is None else torch.from_numpy(np.asarray(plane, dtype=np.float32))
     T = torch.from_numpy(np.stack(estimates).astype(np.float32))  # (O, 4, 4)

@@ -58,6 +58,9 @@ def test_nearest_grid_matches_within_half_a_cell_diagonal():
     assert np.mean(np.isclose(d_grid, d_true)) > 0.6  # most are exact
     with pytest.raises(ValueError, match="cell > 0"):
         NearestGrid(model, cell=0.0)
+    with pytest.raises(ValueError, match="truncation"):  # a field that stops short of the score's truncation
+        refine_poses([np.eye(4)], [model], [model[:50]], np.zeros((8, 8)), np.eye(3), ICPConfig(truncation=0.02),
+                     grids=[grid])
 
 
 def test_grids_posed_and_exact_lookups():
