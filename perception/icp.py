@@ -249,7 +249,7 @@ class _Grids:
 
     def exact(self, points: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
         """The rows (H, N) in each object's model of the exact nearest model points of points (H, N, 3), row h in the
-        frame of object obj[h] (searched on torch's CPU threads)."""
+        frame of object obj[h]."""
         idx = torch.empty(points.shape[:2], dtype=torch.long)
         for o in obj.unique().tolist():
             h = obj == o
