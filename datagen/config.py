@@ -89,7 +89,7 @@ class DistractorConfig:
 
 @dataclass(frozen=True)
 class DepthNoiseConfig:
-    """Structured-light depth sensor model (REFERENCE section 7).
+    """Structured-light depth sensor model.
 
     Projector shadows and dropout at depth edges, lateral jitter (``pixel_shift`` px), axial noise
     ``sigma = sigma_base + sigma_quad (z - z_ref)^2 + sigma_angle / sqrt(z) theta^2 / (pi/2 - theta)^2``,

@@ -1,6 +1,6 @@
 """Sensor models applied to rendered images: a structured-light depth camera and colour camera effects.
 
-Depth (REFERENCE section 7): the projector sits ``baseline`` to the right of the camera, so background just
+Depth (structured light): the projector sits ``baseline`` to the right of the camera, so background just
 left of a nearer surface is in its shadow (no measurement); pixels are sampled with a small random lateral
 shift; axial Gaussian noise grows with distance and at grazing angles (Nguyen et al. 2012); depth is
 quantised in disparity (1/8 px); pixels at depth edges and a few random ones drop out. Depth in metres along

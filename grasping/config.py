@@ -93,7 +93,7 @@ class GraspConfig:
 
 @dataclass(frozen=True)
 class ScoringConfig:
-    """Success criteria (REFERENCE section 8) and the failure taxonomy thresholds."""
+    """Success criteria and the failure taxonomy thresholds."""
 
     lift_min: float = 0.05  # grasp success: block bottom at least this high ...
     hold_time: float = 1.0  # ... for this long

@@ -9,7 +9,7 @@ from typing import Iterable
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval for ``k`` successes in ``n`` trials (REFERENCE section 8); (0, 1) when n = 0.
+    """Wilson score interval for ``k`` successes in ``n`` trials (Wilson 1927); (0, 1) when n = 0.
 
     (p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)
     """

@@ -1,4 +1,4 @@
-"""BOP 2019 pose metrics: VSD, MSSD, MSPD and their average recall AR, as bop_toolkit defines them (REFERENCE §9).
+"""BOP 2019 pose metrics: VSD, MSSD, MSPD and their average recall AR, as bop_toolkit defines them (Hodan et al. 2020).
 
 Units: metres for poses, model points, depth and distances (bop_toolkit works in mm: every threshold here is
 the same fraction of the object's diameter, or the same 15 mm), pixels for MSPD. Poses are 4x4 ``T_cam_obj``

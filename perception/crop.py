@@ -1,4 +1,4 @@
-"""DenseFusion's crop rule and point sampling (REFERENCE §2).
+"""DenseFusion's crop rule and point sampling (Wang et al. 2019).
 
 Boxes are (rmin, rmax, cmin, cmax) in pixels, max exclusive. ``choose`` holds flat indices into a
 crop (row-major) of the pixels that are in the mask and have valid depth.

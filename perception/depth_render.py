@@ -1,4 +1,4 @@
-"""Depth images of object models at given poses, rendered with pyrender (for VSD, REFERENCE §9).
+"""Depth images of object models at given poses, rendered with pyrender (for VSD, as bop_toolkit renders them).
 
 Camera frame OpenCV (x right, y down, z forward), K in pixels with pixel centres at integer coordinates (as the
 dataset's images); depth in metres along the optical axis, 0 where the model is not. One pyrender scene holds

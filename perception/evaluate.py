@@ -1,4 +1,4 @@
-"""Evaluation of a trained run on a BOP split, measured as the field does (REFERENCE §3).
+"""Evaluation of a trained run on a BOP split, measured as the field does (ADD(-S), AUC, BOP 2019 AR).
 
 Writes into ``out``: ``metrics.json`` (segmentation mPA / mIoU, per object and overall ADD, ADD-S,
 AUC, < 2 cm accuracy, accuracy at 0.1 x diameter, time per stage, the ablation flags),

@@ -1,4 +1,6 @@
-"""Pose and segmentation metrics, exactly as the field computes them (REFERENCE §3).
+"""Pose and segmentation metrics, exactly as the field computes them.
+
+ADD and ADD-S as Hinterstoisser et al. 2012 define them, the AUC of their accuracy curve as PoseCNN's (Xiang et al. 2018).
 
 Poses are given as a rotation R (3, 3) and a translation t (3,) in metres, mapping model points
 (object frame, metres) into the camera frame. Distances are in metres, angles in degrees.

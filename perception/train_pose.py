@@ -1,7 +1,7 @@
 """Training of the pose net (``perception.pose_net``) on a BOP dataset: ``train_pose`` writes ``RUN/pose/``; also the
 pose samples, forward pass and evaluation the refiner's training shares (``perception.train_refine``).
 
-Defaults follow the paper (REFERENCE §1): Adam lr 1e-4, batch 8, lr x0.3 and confidence weight w x0.3 once the
+Defaults follow the paper (Liang et al. 2021): Adam lr 1e-4, batch 8, lr x0.3 and confidence weight w x0.3 once the
 evaluation mean distance drops under 0.016 m, refinement ready under 0.013 m.
 """
 

@@ -1,6 +1,6 @@
 """Training of the segmentation net (``perception.seg_net``) on a BOP dataset: ``train_seg`` writes ``RUN/seg/``.
 
-Defaults follow the paper (REFERENCE §1): SGD, momentum 0.9, batch 4, lr x0.8 every 5000 steps. The lr default is
+Defaults follow the paper (Liang et al. 2021): SGD, momentum 0.9, batch 4, lr x0.8 every 5000 steps. The lr default is
 1e-2 rather than the paper's 1e-4 because the net trains from scratch (no ImageNet weights).
 """
 

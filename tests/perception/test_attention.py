@@ -1,4 +1,4 @@
-"""PAM / CAM / GFEM: the REFERENCE §3 CAM vector and identity at gamma 0."""
+"""PAM / CAM / GFEM: a hand-computed CAM vector and identity at gamma 0."""
 
 import torch
 

@@ -1,4 +1,4 @@
-"""DenseFusion crop rule (REFERENCE §2 examples) and point sampling."""
+"""DenseFusion crop rule (its worked examples) and point sampling."""
 
 import numpy as np
 import pytest

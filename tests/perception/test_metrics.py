@@ -1,4 +1,4 @@
-"""REFERENCE §3 test vectors and the segmentation scores."""
+"""ADD, ADD-S and AUC test vectors (Hinterstoisser et al. 2012, Xiang et al. 2018) and the segmentation scores."""
 
 import numpy as np
 import pytest
