@@ -15,7 +15,7 @@ import numpy as np
 
 from posegrasp.datagen.appearance import Look, light_tint, sample_look
 from posegrasp.datagen.config import DatagenConfig
-from posegrasp.catalog import BlockType
+from posegrasp.catalog import PartType
 from posegrasp.errors import UserError
 from posegrasp.sim.scene import SceneConfig, area_capacity, choose_types, drop_and_settle, randomise_lights
 from posegrasp.sim.workcell import BlockInstance, Workcell
@@ -43,7 +43,7 @@ def check_capacity(cfg: DatagenConfig) -> None:
         raise UserError(f"{cfg.blocks[1]} blocks do not fit in the pick area (at most {cap}); lower --blocks")
 
 
-def stack_drops(poses: list[np.ndarray], types: list[BlockType]) -> list[np.ndarray]:
+def stack_drops(poses: list[np.ndarray], types: list[PartType]) -> list[np.ndarray]:
     """Raise drop poses whose bounding spheres overlap an earlier block's in the plane above it, so blocks
     dropped closer than their size start apart and land on each other (piles) instead of interpenetrating."""
     out: list[np.ndarray] = []

@@ -22,7 +22,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
-from posegrasp.catalog import BlockType, catalog_by_id
+from posegrasp.catalog import PartType, catalog_by_id
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, look_at_R, make_T, transform_points
 from posegrasp.grasping.config import ControlConfig, ScoringConfig, TrialConfig, firm_hold
@@ -30,7 +30,7 @@ from posegrasp.grasping.controller import ArmController, SimulationError, robot_
 from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
 from posegrasp.grasping.perception import BASE_LOOK, PICK_LOOK, Estimate, PerceptionError, perceive, reads_labels
 from posegrasp.grasping.provider_registry import make_provider
-from posegrasp.grasping.record import BaseRecord, EpisodeRecord, EpisodeTimings, FalseTarget, PoseError, Target
+from posegrasp.grasping.record import BaseRecord, EpisodeRecord, EpisodeTimings, FalseTarget, PoseDeviation, Target
 from posegrasp.grasping.support import rest_on_table
 from posegrasp.grasping.task_scenes import kitting_scene, stack_scene
 from posegrasp.grasping.tasks import (BASE_MOVED, MISALIGNED, NO_BASE, NO_UPRIGHT, PAD_TOP, WRONG_FACE, believed_upright, can_stack, kit_targets,
@@ -103,10 +103,10 @@ class _Plan:
     and estimated type ``est_block`` (``block`` is its true type)."""
 
     k: int
-    block: BlockType
+    block: PartType
     grasp: Grasp
     T_world_obj: np.ndarray
-    est_block: BlockType | None = None
+    est_block: PartType | None = None
 
     def height_range(self) -> tuple[float, float]:
         """Bottom and top (world z, m) of the block at its estimated pose."""
@@ -130,7 +130,7 @@ class _Base:
 
     k: int
     T_start: np.ndarray
-    block: BlockType | None = None
+    block: PartType | None = None
     T_est: np.ndarray | None = None
 
 
@@ -165,7 +165,7 @@ def _hand_block_distance(wc: Workcell, k: int, ctl: ArmController, dmax: float) 
     return float(best)
 
 
-def pose_errors(block: BlockType, T_est: np.ndarray, T_gt: np.ndarray, n_points: int = 500) -> PoseError:
+def pose_errors(block: PartType, T_est: np.ndarray, T_gt: np.ndarray, n_points: int = 500) -> PoseDeviation:
     """Translation (m), rotation (deg), ADD and ADD-S (m, over ``n_points`` surface samples) of an estimate
     ``T_est`` against ``T_gt`` (both world_obj); ``err`` is ADD-S for symmetric blocks, else ADD."""
     from posegrasp.perception.metrics import add, adds, rotation_error_deg, translation_error
@@ -174,7 +174,7 @@ def pose_errors(block: BlockType, T_est: np.ndarray, T_gt: np.ndarray, n_points:
     a = add(T_est[:3, :3], T_est[:3, 3], T_gt[:3, :3], T_gt[:3, 3], pts)
     s = adds(T_est[:3, :3], T_est[:3, 3], T_gt[:3, :3], T_gt[:3, 3], pts)
     symmetric = bool(block.symmetries_discrete or block.symmetries_continuous)
-    return PoseError(translation_error(T_est[:3, 3], T_gt[:3, 3]), rotation_error_deg(T_est[:3, :3], T_gt[:3, :3]),
+    return PoseDeviation(translation_error(T_est[:3, 3], T_gt[:3, 3]), rotation_error_deg(T_est[:3, :3], T_gt[:3, :3]),
                      a, s, "ADD-S" if symmetric else "ADD", s if symmetric else a)
 
 
@@ -192,7 +192,7 @@ def _yaw(T: np.ndarray) -> float:
 
 
 def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, yaw_now: float,
-            accept: Callable[[BlockType, np.ndarray], bool] | None = None) -> tuple[int, Grasp, np.ndarray] | None:
+            accept: Callable[[PartType, np.ndarray], bool] | None = None) -> tuple[int, Grasp, np.ndarray] | None:
     """Target estimate index, its best reachable grasp and estimated ``T_world_obj`` (levelled by
     ``rest_on_table``), among the estimates ``accept(block, T_world_obj)`` allows (all without it); None if
     none is feasible; ``_Failure(NO_UPRIGHT)`` if it allows none."""
@@ -358,7 +358,7 @@ def _execute(ep: _Episode, percept_seed: int, place_offset: np.ndarray) -> None:
         _settle_and_judge(ep, plan, target_xy, base)
 
 
-def _acceptor(cfg: TrialConfig, base: _Base | None) -> Callable[[BlockType, np.ndarray], bool] | None:
+def _acceptor(cfg: TrialConfig, base: _Base | None) -> Callable[[PartType, np.ndarray], bool] | None:
     """Which estimates the task may pick: kitting, those believed upright; stack, those believed upright that
     can stand on the perceived base; pick-and-place, all (None)."""
     if cfg.task == "kitting":
@@ -469,7 +469,7 @@ def _look_and_perceive(ep: _Episode, percept_seed: int) -> list[Estimate]:
     return ests
 
 
-def _plan(ep: _Episode, ests: list[Estimate], accept: Callable[[BlockType, np.ndarray], bool] | None) -> _Plan:
+def _plan(ep: _Episode, ests: list[Estimate], accept: Callable[[PartType, np.ndarray], bool] | None) -> _Plan:
     """Choose the target (among the estimates ``accept`` allows) and its grasp; record the target and its
     estimate's pose error."""
     T_world_cam = ep.wc.gripper_pose() @ np.asarray(ep.task.T_gripper_cam)

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from posegrasp.grasping.config import GraspConfig
-from posegrasp.catalog import BlockType, sample_surface, symmetry_transforms
+from posegrasp.catalog import PartType, sample_surface, symmetry_transforms
 from posegrasp.geometry import make_T, transform_points
 
 #: Where the grasped block's centre sits along the gripper y axis (m): between finger 1 and finger 3.
@@ -64,7 +64,7 @@ class Grasp:
     stable: bool = True
 
 
-def squeeze_axes(block: BlockType) -> list[int]:
+def squeeze_axes(block: PartType) -> list[int]:
     """Object axes (0, 1, 2) the fingers may squeeze along.
 
     Excluded: the axis of a continuous symmetry (a lying cylinder squeezed on its end discs slips out in
@@ -96,14 +96,14 @@ _APPROACHES = 12
 _PATCH_RADIUS = 0.005  # the surface this close to a contact must face the finger (m)
 
 
-def _face_normals(block: BlockType) -> np.ndarray:
+def _face_normals(block: PartType) -> np.ndarray:
     """(M, 3) outward unit normals of the block's triangles (object frame)."""
     tri = block.vertices[block.faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
-def _surface_samples(block: BlockType, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def _surface_samples(block: PartType, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """``sample_surface``'s (n, 3) points (m, object frame) and the index of the triangle of each (its first
     draw, repeated)."""
     tri = block.vertices[block.faces]
@@ -124,7 +124,7 @@ def _flat_patch(pts: np.ndarray, normals: np.ndarray, tree: cKDTree, contact: np
 
 
 @functools.lru_cache(maxsize=32)
-def antipodal_pairs(block: BlockType, n: int = _ANTIPODAL_SAMPLES, seed: int = 0,
+def antipodal_pairs(block: PartType, n: int = _ANTIPODAL_SAMPLES, seed: int = 0,
                     cone_deg: float = ANTIPODAL_CONE_DEG, min_width: float = GraspConfig.min_width,
                     max_width: float = GraspConfig.max_width) -> np.ndarray:
     """(K, 2, 3) antipodal contact pairs ``[finger-side contact, far contact]`` (object frame, m).
@@ -189,7 +189,7 @@ def _pair_frames(pairs: np.ndarray) -> list[np.ndarray]:
 
 
 @functools.lru_cache(maxsize=32)
-def faces_fit(block: BlockType) -> bool:
+def faces_fit(block: PartType) -> bool:
     """Do the face-based candidates suit this shape: does every one of its ``antipodal_pairs`` squeeze along a
     bounding-box axis (within the friction cone), moved by any of its symmetries?"""
     pairs = antipodal_pairs(block)
@@ -200,14 +200,14 @@ def faces_fit(block: BlockType) -> bool:
 
 
 @functools.lru_cache(maxsize=32)
-def object_candidates(block: BlockType, n_continuous: int = 36) -> np.ndarray:
+def object_candidates(block: PartType, n_continuous: int = 36) -> np.ndarray:
     """(N, 4, 4) grasp frames ``T_obj_grasp`` (object frame, m): z = approach direction, x = squeeze axis
     (``candidate_spans`` gives the span each was made for)."""
     return candidate_spans(block, n_continuous)[0]
 
 
 @functools.lru_cache(maxsize=32)
-def candidate_spans(block: BlockType, n_continuous: int = 36) -> tuple[np.ndarray, np.ndarray]:
+def candidate_spans(block: PartType, n_continuous: int = 36) -> tuple[np.ndarray, np.ndarray]:
     """``object_candidates``' (N, 4, 4) frames and (N,) the span (m) of the antipodal pair each was made for
     (NaN for a face-based one).
 
@@ -251,7 +251,7 @@ def candidate_spans(block: BlockType, n_continuous: int = 36) -> tuple[np.ndarra
 
 
 @functools.lru_cache(maxsize=32)
-def surface_points(block: BlockType, n: int = 1500) -> np.ndarray:
+def surface_points(block: PartType, n: int = 1500) -> np.ndarray:
     """(n, 3) surface samples of a block (object frame, m) used for width and clearance checks."""
     return np.concatenate([sample_surface(block, n, seed=0), block.vertices])
 
@@ -268,7 +268,7 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def plan_grasps(block: BlockType, T_world_obj: np.ndarray, neighbours: np.ndarray, cfg: GraspConfig,
+def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray, cfg: GraspConfig,
                 yaw_now: float, opening_margin: float = 0.03, yaw_stable: bool = False) -> list[Grasp]:
     """Feasible top-down grasps on a block at its estimated pose, best first.
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from posegrasp.grasping.upright import UprightError
+from posegrasp.grasping.upright import UprightDeviation
 from posegrasp.io import jsonable
 
 #: Failure reasons, in the order the summary lists them (the last five only in the kitting and stack tasks).
@@ -44,7 +44,7 @@ class FalseTarget:
 
 
 @dataclass(frozen=True)
-class PoseError:
+class PoseDeviation:
     """The target estimate's error against ground truth: translation (m), rotation (deg), ADD and ADD-S (m);
     ``err`` is the one named by ``metric`` (ADD-S for symmetric blocks)."""
 
@@ -63,7 +63,7 @@ class BaseRecord:
 
     instance: int
     type: str
-    estimate_error: UprightError | None = None
+    estimate_error: UprightDeviation | None = None
     shift: float | None = None
 
 
@@ -82,14 +82,14 @@ class EpisodeRecord:
     failure: str | None = None  # one of FAILURES
     grasped: bool = False
     placed: bool = False
-    pose_error: PoseError | None = None
+    pose_error: PoseDeviation | None = None
     place_error: float | None = None  # the block's xy distance from its place target (m)
     detected: int = 0  # estimates the provider returned
     sim_time: float = 0.0
     phases: dict[str, float] = field(default_factory=dict)  # simulated seconds per phase
     task: str | None = None  # "kitting" or "stack" (None: pick-and-place)
-    estimate_error: UprightError | None = None  # the target's estimate against ground truth, modulo symmetries
-    final_error: UprightError | None = None  # the placed block against the task's target, modulo symmetries
+    estimate_error: UprightDeviation | None = None  # the target's estimate against ground truth, modulo symmetries
+    final_error: UprightDeviation | None = None  # the placed block against the task's target, modulo symmetries
     base: BaseRecord | None = None  # stack: the base block
     perception_error: str | None = None  # "perception error": what the provider did wrong (one line)
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from posegrasp.catalog import BlockType
+from posegrasp.catalog import PartType
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 
 
@@ -36,7 +36,7 @@ class RestConfig:
 
 
 @functools.lru_cache(maxsize=32)
-def rest_normals(block: BlockType, min_face_share: float = 0.04) -> np.ndarray:
+def rest_normals(block: PartType, min_face_share: float = 0.04) -> np.ndarray:
     """(F, 3) outward unit normals (object frame) of the block's convex-hull faces it can lie on: coplanar
     hull triangles merged, faces of at least ``min_face_share`` of the hull's area."""
     hull = ConvexHull(block.vertices)
@@ -48,7 +48,7 @@ def rest_normals(block: BlockType, min_face_share: float = 0.04) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def _leveling(block: BlockType, R: np.ndarray, min_face_share: float) -> tuple[float, np.ndarray]:
+def _leveling(block: PartType, R: np.ndarray, min_face_share: float) -> tuple[float, np.ndarray]:
     """Smallest correction (angle rad, rotation) that brings ``R`` (world_obj) into a resting pose."""
     down = np.array([0.0, 0.0, -1.0])
     best = (np.inf, np.eye(3))
@@ -66,7 +66,7 @@ def _leveling(block: BlockType, R: np.ndarray, min_face_share: float) -> tuple[f
     return best
 
 
-def rest_on_table(block: BlockType, T_world_obj: np.ndarray, cfg: RestConfig = RestConfig(),
+def rest_on_table(block: PartType, T_world_obj: np.ndarray, cfg: RestConfig = RestConfig(),
                   surface_z: float = 0.0) -> np.ndarray:
     """``T_world_obj`` (m) levelled into the nearest resting pose and set onto the table (or a horizontal
     surface at height ``surface_z``, m) if close to both; otherwise a copy of it unchanged."""

@@ -15,7 +15,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from posegrasp.catalog import BlockType
+from posegrasp.catalog import PartType
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.config import GraspConfig, TrialConfig
 from posegrasp.grasping.grasps import plan_grasps, surface_points
@@ -27,7 +27,7 @@ from posegrasp.sim.workcell import BlockInstance, Workcell
 MAX_DROPS = 20
 
 
-def _workcell(cfg: TrialConfig, types: list[BlockType], rng: np.random.Generator) -> Workcell:
+def _workcell(cfg: TrialConfig, types: list[PartType], rng: np.random.Generator) -> Workcell:
     """A workcell with ``types`` in random palette colours and random lights (as ``sim.scene.make_scene``)."""
     scfg = cfg.scene
     colours = [scfg.palette[i] for i in rng.integers(0, len(scfg.palette), size=len(types))]
@@ -36,7 +36,7 @@ def _workcell(cfg: TrialConfig, types: list[BlockType], rng: np.random.Generator
     return wc
 
 
-def _standing(block: BlockType, xy: np.ndarray, surface_z: float, rng: np.random.Generator) -> np.ndarray:
+def _standing(block: PartType, xy: np.ndarray, surface_z: float, rng: np.random.Generator) -> np.ndarray:
     """The block standing upright at a random yaw over ``xy`` (m), 1 mm above a surface at ``surface_z`` (a
     block dropped from higher up may topple: a standing cylinder did, scene after scene)."""
     yaw = axis_angle_R(np.array([0.0, 0.0, 1.0]), rng.uniform(0.0, 2.0 * np.pi))
@@ -69,7 +69,7 @@ def kitting_scene(cfg: TrialConfig, seed: int, n_blocks: int) -> Workcell:
     wc = _workcell(cfg, types, rng)
     candidates = [k for k, b in enumerate(types, start=1) if b.upright_down is not None]
 
-    def arrange(poses: list[np.ndarray], blocks: list[BlockType]) -> list[np.ndarray]:
+    def arrange(poses: list[np.ndarray], blocks: list[PartType]) -> list[np.ndarray]:
         poses[u] = _standing(blocks[u], poses[u][:2, 3], 0.0, rng)
         return poses
 

@@ -19,11 +19,11 @@ import functools
 
 import numpy as np
 
-from posegrasp.catalog import BlockType, load_catalog
+from posegrasp.catalog import PartType, load_catalog
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T, quat_to_R
 from posegrasp.grasping.config import TASKS, KittingConfig, StackConfig, TrialConfig, firm_hold_tasks
-from posegrasp.grasping.upright import UprightError, symmetries, tilt_deg, upright_error
+from posegrasp.grasping.upright import UprightDeviation, symmetries, tilt_deg, upright_error
 
 #: Height (m) of the place pad's surface.
 PAD_TOP = 0.003
@@ -32,27 +32,27 @@ NO_UPRIGHT, WRONG_FACE, MISALIGNED, BASE_MOVED, NO_BASE = (
     "no upright block", "wrong face up", "misaligned", "base moved", "no base seen")
 
 
-def standing_R(block: BlockType) -> np.ndarray:
+def standing_R(block: PartType) -> np.ndarray:
     """Rotation (world_obj) that stands the block on its upright face at the kit's yaw (``R d = -z``): the
     object set's ``upright.quat``."""
     return quat_to_R(block.upright_quat)
 
 
 @functools.lru_cache(maxsize=32)
-def standing_extent(block: BlockType) -> tuple[float, float]:
+def standing_extent(block: PartType) -> tuple[float, float]:
     """Lowest and highest z (m) of the block's vertices in its standing frame (origin at its centre)."""
     z = (block.vertices @ standing_R(block).T)[:, 2]
     return float(z.min()), float(z.max())
 
 
 @functools.lru_cache(maxsize=32)
-def footprint(block: BlockType) -> tuple[float, float]:
+def footprint(block: PartType) -> tuple[float, float]:
     """The standing block's extents (m) along its horizontal axes, longest first."""
     ext = np.ptp(block.vertices @ standing_R(block).T, axis=0)[:2]
     return float(ext.max()), float(ext.min())
 
 
-def can_stack(base: BlockType, block: BlockType, overhang: float = 1.0) -> bool:
+def can_stack(base: PartType, block: PartType, overhang: float = 1.0) -> bool:
     """Can ``block`` stand upright on ``base`` standing upright: a flat top under a flat bottom, the block's
     footprint at most ``overhang`` times the base's, side for side? A block wider than its base tips over as the
     fingers let go: a long cuboid knocked a cylinder 4 cm off the pad; a 2x2 brick (31.8 mm) on a standing
@@ -62,13 +62,13 @@ def can_stack(base: BlockType, block: BlockType, overhang: float = 1.0) -> bool:
     return all(a <= overhang * b for a, b in zip(footprint(block), footprint(base)))
 
 
-def kit_targets(block: BlockType, xy: np.ndarray, surface_z: float, cfg: KittingConfig) -> np.ndarray:
+def kit_targets(block: PartType, xy: np.ndarray, surface_z: float, cfg: KittingConfig) -> np.ndarray:
     """(1, 4, 4) the kit pose: standing on the surface at height ``surface_z`` over ``xy`` at the kit's yaw."""
     R = axis_angle_R(np.array([0.0, 0.0, 1.0]), np.radians(cfg.kit_yaw_deg)) @ standing_R(block)
     return make_T(R, (xy[0], xy[1], surface_z - standing_extent(block)[0]))[None]
 
 
-def stack_targets(base: BlockType, T_base: np.ndarray, block: BlockType) -> np.ndarray:
+def stack_targets(base: PartType, T_base: np.ndarray, block: PartType) -> np.ndarray:
     """(M, 4, 4) poses of ``block`` standing centred on the top of ``base`` at ``T_base``, one per symmetric
     copy of the base's frame that keeps it standing (so the block's yaw is compared modulo the base's
     symmetries too)."""
@@ -79,12 +79,12 @@ def stack_targets(base: BlockType, T_base: np.ndarray, block: BlockType) -> np.n
     return frames @ lift
 
 
-def believed_upright(block: BlockType, T_world_obj: np.ndarray, tol_deg: float) -> bool:
+def believed_upright(block: PartType, T_world_obj: np.ndarray, tol_deg: float) -> bool:
     """Does the (estimated) pose stand the block upright, within ``tol_deg``?"""
     return tilt_deg(block, T_world_obj[:3, :3]) <= tol_deg
 
 
-def verdict(err: UprightError, pos_tol: float, yaw_tol_deg: float, upright_tol_deg: float) -> str | None:
+def verdict(err: UprightDeviation, pos_tol: float, yaw_tol_deg: float, upright_tol_deg: float) -> str | None:
     """Failure reason of a placed block's error against its target, or None on success."""
     if err.tilt_deg > upright_tol_deg:
         return WRONG_FACE
@@ -95,15 +95,15 @@ def verdict(err: UprightError, pos_tol: float, yaw_tol_deg: float, upright_tol_d
     return None
 
 
-def kitting_verdict(block: BlockType, T_final: np.ndarray, xy: np.ndarray, surface_z: float,
-                    cfg: KittingConfig) -> tuple[UprightError, str | None]:
+def kitting_verdict(block: PartType, T_final: np.ndarray, xy: np.ndarray, surface_z: float,
+                    cfg: KittingConfig) -> tuple[UprightDeviation, str | None]:
     """The kitted block's final pose against the kit pose over ``xy``, and the failure reason (None: kitted)."""
     err = upright_error(block, T_final, kit_targets(block, xy, surface_z, cfg))
     return err, verdict(err, cfg.pos_tol, cfg.yaw_tol_deg, cfg.upright_tol_deg)
 
 
-def stack_verdict(base: BlockType, T_base_start: np.ndarray, T_base_final: np.ndarray, block: BlockType,
-                  T_final: np.ndarray, cfg: StackConfig) -> tuple[UprightError, float, str | None]:
+def stack_verdict(base: PartType, T_base_start: np.ndarray, T_base_final: np.ndarray, block: PartType,
+                  T_final: np.ndarray, cfg: StackConfig) -> tuple[UprightDeviation, float, str | None]:
     """The stacked block's final pose against the base's top (as the base ends), how far the base moved (m)
     and the failure reason (None: stacked)."""
     err = upright_error(block, T_final, stack_targets(base, T_base_final, block))
@@ -113,7 +113,7 @@ def stack_verdict(base: BlockType, T_base_start: np.ndarray, T_base_final: np.nd
     return err, shift, reason
 
 
-def task_types(cfg: TrialConfig) -> list[BlockType]:
+def task_types(cfg: TrialConfig) -> list[PartType]:
     """The block types the task's scenes draw from (the scene's ``block_types``, or its whole object set)."""
     cat = load_catalog(cfg.scene.workcell.objects)
     return [cat[n] for n in cfg.scene.block_types if n in cat] if cfg.scene.block_types else list(cat.values())

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posegrasp.catalog import BlockType, symmetry_transforms
+from posegrasp.catalog import PartType, symmetry_transforms
 
 #: Continuous symmetries are sampled every 360 / this degrees.
 N_CONTINUOUS = 360
@@ -29,7 +29,7 @@ DOWN = np.array([0.0, 0.0, -1.0])
 
 
 @dataclass(frozen=True)
-class UprightError:
+class UprightDeviation:
     """A pose against its target, modulo symmetries: xy distance and height difference (m), rotation angle,
     yaw about the vertical and tilt of the upright face (deg)."""
 
@@ -41,7 +41,7 @@ class UprightError:
 
 
 @functools.lru_cache(maxsize=32)
-def symmetries(block: BlockType) -> np.ndarray:
+def symmetries(block: PartType) -> np.ndarray:
     """(K, 4, 4) symmetry transforms of a block (identity first, continuous ones every 1 deg)."""
     return symmetry_transforms(block, N_CONTINUOUS)
 
@@ -60,7 +60,7 @@ def yaw_between(R_from: np.ndarray, R_to: np.ndarray) -> float:
     return float(np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1]))
 
 
-def standing_copies(block: BlockType, T_world_obj: np.ndarray) -> np.ndarray:
+def standing_copies(block: PartType, T_world_obj: np.ndarray) -> np.ndarray:
     """(K, 4, 4) the symmetric copies ``T S`` of a pose that stand on the upright face (within 45 deg of
     down), or all of them if none does: an L-block's copy flipped onto its leg is nearer a target in angle
     than the upright copy turned by 114 deg, but turning it about the vertical cannot get it there."""
@@ -71,8 +71,8 @@ def standing_copies(block: BlockType, T_world_obj: np.ndarray) -> np.ndarray:
     return cands[up] if up.any() else cands
 
 
-def upright_error(block: BlockType, T_world_obj: np.ndarray, targets: np.ndarray,
-                  standing: bool = True) -> UprightError:
+def upright_error(block: PartType, T_world_obj: np.ndarray, targets: np.ndarray,
+                  standing: bool = True) -> UprightDeviation:
     """Error of ``T_world_obj`` against the nearest of the target frames ``targets`` (M, 4, 4), modulo the
     block's symmetries (module docstring); ``standing=False`` compares every copy (an estimate against the
     ground truth, which need not stand)."""
@@ -82,12 +82,12 @@ def upright_error(block: BlockType, T_world_obj: np.ndarray, targets: np.ndarray
     Tc, Tt = cands[i], np.asarray(targets).reshape(-1, 4, 4)[j]
     d = DOWN if block.upright_down is None else block.upright_down
     tilt = np.arccos(np.clip((Tc[:3, :3] @ d) @ (Tt[:3, :3] @ d), -1.0, 1.0))
-    return UprightError(float(np.linalg.norm(Tc[:2, 3] - Tt[:2, 3])), float(Tc[2, 3] - Tt[2, 3]),
+    return UprightDeviation(float(np.linalg.norm(Tc[:2, 3] - Tt[:2, 3])), float(Tc[2, 3] - Tt[2, 3]),
                         float(np.degrees(angle)), float(np.degrees(yaw_between(Tt[:3, :3], Tc[:3, :3]))),
                         float(np.degrees(tilt)))
 
 
-def tilt_deg(block: BlockType, R_world_obj: np.ndarray) -> float:
+def tilt_deg(block: PartType, R_world_obj: np.ndarray) -> float:
     """Angle (deg) between straight down and the nearest symmetric copy of the block's upright face normal:
     0 for a block standing upright; 180 if the type has no upright pose."""
     if block.upright_down is None:

@@ -28,9 +28,9 @@ DEFAULT_SET = ASSETS / "blocks"
 
 
 @dataclass(frozen=True, eq=False)
-class BlockType:
+class PartType:
     """One object type of a set, in metres, in its object frame (compared and hashed by identity; read-only
-    arrays). The name is historical: any object of any set is a ``BlockType``.
+    arrays).
 
     Attributes:
         obj_id: BOP object id (1-based).
@@ -75,6 +75,10 @@ class BlockType:
     flat_bottom: bool = False
 
 
+#: The former name of ``PartType``, kept so plug-ins written against it still import.
+BlockType = PartType
+
+
 def _frozen(a: Any, dtype: Any = np.float64) -> np.ndarray:
     out = np.array(a, dtype=dtype)
     out.flags.writeable = False
@@ -86,8 +90,8 @@ def set_root(objects: str | Path | None = "") -> Path:
     return DEFAULT_SET if objects in ("", None) else Path(objects).expanduser().resolve()
 
 
-def _block(o: Any) -> BlockType:
-    """A ``BlockType`` from an ``objset.SetObject`` (the file's rounded rotations made orthonormal again)."""
+def _block(o: Any) -> PartType:
+    """A ``PartType`` from an ``objset.SetObject`` (the file's rounded rotations made orthonormal again)."""
     disc = []
     for T in o.symmetries_discrete:
         T = np.array(T, np.float64)
@@ -95,7 +99,7 @@ def _block(o: Any) -> BlockType:
         T[:3, :3] = U @ Vt
         disc.append(_frozen(T))
     down = np.asarray(o.upright_down, float)
-    return BlockType(
+    return PartType(
         obj_id=o.obj_id, name=o.name, vertices=_frozen(o.vertices), faces=_frozen(o.faces, np.int64), mass=o.mass,
         collision=o.collision, diameter=o.diameter, extents=_frozen(o.extents), symmetries_discrete=tuple(disc),
         symmetries_continuous=tuple((_frozen(a), _frozen(c)) for a, c in o.symmetries_continuous),
@@ -111,7 +115,7 @@ def _set(root: Path) -> Any:
 
 
 @functools.lru_cache(maxsize=8)
-def _load(root: Path) -> tuple[BlockType, ...]:
+def _load(root: Path) -> tuple[PartType, ...]:
     return tuple(_block(o) for o in _set(root).objects)
 
 
@@ -120,7 +124,7 @@ def set_firm_hold_tasks(objects: str | Path | None = "") -> tuple[str, ...] | No
     return _set(set_root(objects)).firm_hold_tasks
 
 
-def load_catalog(objects: str | Path | None = "") -> dict[str, BlockType]:
+def load_catalog(objects: str | Path | None = "") -> dict[str, PartType]:
     """Every object type of the set ``objects`` (a set folder; ``""``: the shipped blocks), keyed by name,
     ordered by ``obj_id`` (cached per folder).
 
@@ -131,7 +135,7 @@ def load_catalog(objects: str | Path | None = "") -> dict[str, BlockType]:
     return {b.name: b for b in _load(set_root(objects))}
 
 
-def catalog_by_id(objects: str | Path | None = "") -> dict[int, BlockType]:
+def catalog_by_id(objects: str | Path | None = "") -> dict[int, PartType]:
     """``load_catalog(objects)`` keyed by ``obj_id``."""
     return {b.obj_id: b for b in _load(set_root(objects))}
 
@@ -156,7 +160,7 @@ def set_record(objects: str | Path | None = "") -> dict[str, str]:
     return {"name": root.name, "path": str(root), "sha256": _digest(root)}
 
 
-def symmetry_transforms(block: BlockType, n_continuous: int = 36) -> np.ndarray:
+def symmetry_transforms(block: PartType, n_continuous: int = 36) -> np.ndarray:
     """(K, 4, 4) transforms ``T`` (m) with ``T``-moved block == block, identity first.
 
     Discrete symmetries plus identity; each continuous symmetry is sampled every ``360 / n_continuous``
@@ -173,7 +177,7 @@ def symmetry_transforms(block: BlockType, n_continuous: int = 36) -> np.ndarray:
     return np.stack(out)
 
 
-def sample_surface(block: BlockType, n: int, seed: int = 0) -> np.ndarray:
+def sample_surface(block: PartType, n: int, seed: int = 0) -> np.ndarray:
     """(n, 3) points (m, object frame) drawn uniformly over the block's surface; same seed, same points."""
     rng = np.random.default_rng(seed)
     tri = block.vertices[block.faces]  # (M, 3, 3)

@@ -11,7 +11,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
-from posegrasp.catalog import BlockType, load_catalog, set_root
+from posegrasp.catalog import PartType, load_catalog, set_root
 from posegrasp.errors import UserError
 from posegrasp.geometry import make_T, quat_to_R
 from posegrasp.sim.config import WorkcellConfig
@@ -55,7 +55,7 @@ def check_block_types(names: tuple[str, ...] | list[str], objects: str = "") -> 
                         f"{', '.join(cat)}")
 
 
-def choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[BlockType]:
+def choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[PartType]:
     """``n`` object types drawn from ``cfg.block_types`` (all of the workcell's object set when empty)."""
     cat = load_catalog(cfg.workcell.objects)
     names = list(cfg.block_types) or list(cat)
@@ -87,7 +87,7 @@ class Scene:
         return np.all(np.abs(xy - a.center) <= np.add(a.half_size, margin), axis=1)
 
 
-def drop_poses(cfg: SceneConfig, blocks: list[BlockType], rng: np.random.Generator) -> list[np.ndarray]:
+def drop_poses(cfg: SceneConfig, blocks: list[PartType], rng: np.random.Generator) -> list[np.ndarray]:
     """Poses above the pick area, random orientation, at least ``min_spacing`` apart in the plane."""
     a = cfg.workcell.pick_area
     placed: list[np.ndarray] = []
@@ -138,9 +138,9 @@ def randomise_lights(workcell: Workcell, cfg: SceneConfig, rng: np.random.Genera
     m.vis.headlight.diffuse[:] = rng.uniform(0.2, 0.45)
 
 
-def drop_and_settle(workcell: Workcell, cfg: SceneConfig, types: list[BlockType], rng: np.random.Generator,
+def drop_and_settle(workcell: Workcell, cfg: SceneConfig, types: list[PartType], rng: np.random.Generator,
                     max_drops: int = 20, margin: float = 0.0,
-                    arrange: Callable[[list[np.ndarray], list[BlockType]], list[np.ndarray]] | None = None) -> int:
+                    arrange: Callable[[list[np.ndarray], list[PartType]], list[np.ndarray]] | None = None) -> int:
     """Drop every block (poses from ``rng``, optionally rearranged by ``arrange``) and settle, until all rest
     inside the pick area grown by ``margin`` m; returns the number of drops used, raises after ``max_drops``."""
     scene = Scene(workcell, 0, cfg)

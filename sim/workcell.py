@@ -16,7 +16,7 @@ import numpy as np
 from dm_control import mjcf
 from dm_control.entities.manipulators.kinova import JacoArm, JacoHand
 
-from posegrasp.catalog import BlockType
+from posegrasp.catalog import PartType
 from posegrasp.errors import UserError
 from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
 from posegrasp.sim.camera import T_CV_MJ, rpy_deg_to_R
@@ -40,7 +40,7 @@ PARKING_Y, PARKING_GAP = 2.0, 0.25  # m: block k waits at (0, PARKING_Y + k PARK
 class BlockInstance:
     """One block in a scene: its type, colour (RGBA in [0, 1]) and body name (``block_<k>``, k from 1)."""
 
-    block: BlockType
+    block: PartType
     rgba: tuple[float, float, float, float]
 
 

@@ -12,7 +12,7 @@ import trimesh
 from scipy.spatial import ConvexHull, cKDTree
 
 from posegrasp import ASSETS
-from posegrasp.catalog import BlockType, load_catalog, sample_surface, symmetry_transforms
+from posegrasp.catalog import PartType, load_catalog, sample_surface, symmetry_transforms
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T, quat_to_R, transform_points
 
@@ -21,11 +21,11 @@ NAMES = ["cube", "long_cuboid", "brick_2x4", "brick_2x2", "cylinder", "triangula
 
 
 @pytest.fixture(scope="module")
-def catalog() -> dict[str, BlockType]:
+def catalog() -> dict[str, PartType]:
     return load_catalog()
 
 
-def _mesh(b: BlockType) -> trimesh.Trimesh:
+def _mesh(b: PartType) -> trimesh.Trimesh:
     return trimesh.Trimesh(b.vertices, b.faces, process=False)
 
 
