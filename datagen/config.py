@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp.config import load_toml
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError
 from posegrasp.sim.config import WorkcellConfig, with_objects
 from posegrasp.sim.scene import PALETTE, check_block_types
 
@@ -160,46 +160,47 @@ RGB_FORMATS = ("auto", "jpg", "png")
 
 def _check_range(name: str, r: tuple, lo: float | None = None) -> None:
     if len(r) != 2 or r[0] > r[1]:
-        raise UserError(f"{name} must be a [min, max] pair with min <= max, got {list(r)}")
+        raise ConfigError(f"{name} must be a [min, max] pair with min <= max, got {list(r)}")
     if lo is not None and r[0] < lo:
-        raise UserError(f"{name} must be >= {lo}, got {list(r)}")
+        raise ConfigError(f"{name} must be >= {lo}, got {list(r)}")
 
 
 def validate(cfg: DatagenConfig) -> DatagenConfig:
-    """Check value types and ranges, raising a one-line UserError naming the bad setting; returns ``cfg`` (its
+    """Check value types and ranges, raising a one-line ConfigError naming the bad setting; returns ``cfg`` (its
     object set's folder made absolute and checked: ``sim.config.with_objects``)."""
     cfg = dataclasses.replace(cfg, workcell=with_objects(cfg.workcell))
     _check_range("blocks", cfg.blocks, 1)
     check_block_types(cfg.block_types, cfg.workcell.objects)
     if not 0.01 <= cfg.min_spacing <= 0.2:
-        raise UserError(f"min_spacing {cfg.min_spacing} m is out of range: use 0.01-0.2")
+        raise ConfigError(f"min_spacing {cfg.min_spacing} m is out of range: use 0.01-0.2")
     v = cfg.views
     _check_range("views.distance", v.distance, 0.05)
     _check_range("views.elevation_deg", v.elevation_deg, 0.0)
     _check_range("views.azimuth_deg", v.azimuth_deg)
     if v.elevation_deg[1] > 89.5:
-        raise UserError(f"views.elevation_deg must stay below 89.5 degrees, got {list(v.elevation_deg)}")
+        raise ConfigError(f"views.elevation_deg must stay below 89.5 degrees, got {list(v.elevation_deg)}")
     if v.ik_iters < 1 or v.attempts_per_view < 1:
-        raise UserError("views.ik_iters and views.attempts_per_view must be >= 1")
+        raise ConfigError("views.ik_iters and views.attempts_per_view must be >= 1")
     _check_range("lights.extra", cfg.lights.extra, 0)
     if cfg.lights.extra[1] > 6:
-        raise UserError(f"lights.extra allows at most 6 extra lights (OpenGL renders 8), got {cfg.lights.extra[1]}")
+        raise ConfigError(f"lights.extra allows at most 6 extra lights (OpenGL renders 8), got {cfg.lights.extra[1]}")
     _check_range("distractors.count", cfg.distractors.count, 0)
     _check_range("distractors.size", cfg.distractors.size, 0.002)
     _check_range("distractors.band", cfg.distractors.band, 0.0)
     bad = sorted(set(cfg.textures.kinds) - set(TEXTURE_KINDS))
     if bad or not cfg.textures.kinds:
-        raise UserError(f"textures.kinds {list(cfg.textures.kinds)} must be a non-empty subset of {list(TEXTURE_KINDS)}")
+        raise ConfigError(f"textures.kinds {list(cfg.textures.kinds)} must be a non-empty subset of "
+                          f"{list(TEXTURE_KINDS)}")
     if not cfg.colours.palette:
-        raise UserError("colours.palette must hold at least one RGB colour")
+        raise ConfigError("colours.palette must hold at least one RGB colour")
     if cfg.rgb_format not in RGB_FORMATS:
-        raise UserError(f"rgb_format {cfg.rgb_format!r} must be one of {', '.join(RGB_FORMATS)}")
+        raise ConfigError(f"rgb_format {cfg.rgb_format!r} must be one of {', '.join(RGB_FORMATS)}")
     if not 0.01 <= cfg.depth_scale <= 10.0:
-        raise UserError(f"depth_scale {cfg.depth_scale} is out of range: use 0.01-10 (png value x depth_scale = mm)")
+        raise ConfigError(f"depth_scale {cfg.depth_scale} is out of range: use 0.01-10 (png value x depth_scale = mm)")
     if cfg.msaa not in (0, 2, 4, 8):
-        raise UserError(f"msaa must be 0, 2, 4 or 8 samples per pixel, got {cfg.msaa}")
+        raise ConfigError(f"msaa must be 0, 2, 4 or 8 samples per pixel, got {cfg.msaa}")
     if not 1 <= cfg.jpg_quality <= 100:
-        raise UserError(f"jpg_quality must be 1-100, got {cfg.jpg_quality}")
+        raise ConfigError(f"jpg_quality must be 1-100, got {cfg.jpg_quality}")
     return cfg
 
 

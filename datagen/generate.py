@@ -27,7 +27,7 @@ from posegrasp.datagen.views import ViewStats, visit_views
 from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root
 from posegrasp import bop
 from posegrasp import io as pio
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError, SceneUnsettled, UserError
 from posegrasp.executor import make_executor
 from posegrasp.lock import folder_lock
 from posegrasp.sim.camera import intrinsics
@@ -67,8 +67,8 @@ def generate_scene(job: SceneJob) -> SceneWriter:
     s_scene, s_views, s_noise = np.random.SeedSequence([job.seed, job.scene_id]).spawn(3)
     try:
         gs = build_scene(cfg, np.random.default_rng(s_scene))
-    except RuntimeError as e:
-        raise RuntimeError(f"scene {job.scene_id}: {e}; lower --blocks or raise min_spacing / area_margin") from None
+    except SceneUnsettled as e:
+        raise SceneUnsettled(f"scene {job.scene_id}: {e}; lower --blocks or raise min_spacing / area_margin") from None
     wc = gs.workcell
     c = cfg.workcell.hand_camera
     renderer = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far,
@@ -108,8 +108,8 @@ def check_settings(path: Path, settings: dict[str, Any], binding: bool) -> None:
             have = None
         if have != want:
             diff = sorted(k for k in want if not isinstance(have, dict) or have.get(k) != want[k])
-            raise UserError(f"{path.parent} was generated with other settings (differing: {', '.join(diff)}); "
-                            "use a new --out or the original options")
+            raise DatasetError(f"{path.parent} was generated with other settings (differing: {', '.join(diff)}); "
+                               "use a new --out or the original options")
         return
     pio.write_json(path, want)
 

@@ -16,7 +16,7 @@ import numpy as np
 from posegrasp.datagen.appearance import Look, light_tint, sample_look
 from posegrasp.datagen.config import DatagenConfig
 from posegrasp.catalog import PartType
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError
 from posegrasp.sim.scene import SceneConfig, area_capacity, choose_types, drop_and_settle, randomise_lights
 from posegrasp.sim.workcell import BlockInstance, Workcell
 
@@ -37,10 +37,10 @@ def scene_config(cfg: DatagenConfig) -> SceneConfig:
 
 
 def check_capacity(cfg: DatagenConfig) -> None:
-    """Raise a UserError if the largest block count does not fit in the pick area."""
+    """Raise a ConfigError if the largest block count does not fit in the pick area."""
     cap = area_capacity(scene_config(cfg))
     if cfg.blocks[1] > cap:
-        raise UserError(f"{cfg.blocks[1]} blocks do not fit in the pick area (at most {cap}); lower --blocks")
+        raise ConfigError(f"{cfg.blocks[1]} blocks do not fit in the pick area (at most {cap}); lower --blocks")
 
 
 def stack_drops(poses: list[np.ndarray], types: list[PartType]) -> list[np.ndarray]:

@@ -26,7 +26,7 @@ import numpy as np
 from posegrasp import bop
 from posegrasp import io as pio
 from posegrasp.catalog import set_root
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError
 from posegrasp.geometry import invert
 from posegrasp.sim.camera import Frame
 
@@ -49,7 +49,7 @@ def _set_models(objects: str) -> dict[str, bytes]:
 def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
     """Write ``models/`` (the object set ``objects``'s BOP models, byte for byte; ``""``: the shipped blocks) and
     ``camera.json``; remove leftovers of killed writes. Models of another set or a ``camera.json`` for another
-    camera are a UserError (one dataset, one set, one camera) once a scene was completed with them; before that
+    camera are a DatasetError (one dataset, one set, one camera) once a scene was completed with them; before that
     (a failed start) they are replaced."""
     for tmp in [*root.glob(".*.tmp"), *root.glob("models/.*.tmp"), *root.glob("models_eval/.*.tmp")]:
         tmp.unlink(missing_ok=True)
@@ -57,8 +57,8 @@ def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
     have = {p.name for p in bop.models_dir(root).glob("*") if p.suffix in (".ply", ".json")}
     if has_scenes(root) and (have != set(models) or any((bop.models_dir(root) / n).read_bytes() != b
                                                         for n, b in models.items())):
-        raise UserError(f"{root} was generated from another object set (its models/ differ from those of "
-                        f"{set_root(objects)}); use a new --out or the original --objects")
+        raise DatasetError(f"{root} was generated from another object set (its models/ differ from those of "
+                           f"{set_root(objects)}); use a new --out or the original --objects")
     for name in sorted(have - set(models)):  # a failed start with another set
         for d in (bop.models_dir(root), bop.models_eval_dir(root)):
             (d / name).unlink(missing_ok=True)
@@ -70,8 +70,8 @@ def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
         old = bop.load_camera(cam_file)
         if (old.width, old.height) != (camera.width, camera.height) or not np.allclose(old.K, camera.K) \
                 or old.depth_scale != camera.depth_scale:
-            raise UserError(f"{cam_file} describes another camera ({old.width}x{old.height}, depth_scale "
-                            f"{old.depth_scale}); use a new --out or the same --resolution and depth_scale")
+            raise DatasetError(f"{cam_file} describes another camera ({old.width}x{old.height}, depth_scale "
+                               f"{old.depth_scale}); use a new --out or the same --resolution and depth_scale")
     bop.write_camera(root, camera)
 
 

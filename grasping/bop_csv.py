@@ -5,7 +5,7 @@ CSV (``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm); this provi
 ``(scene_id, im_id)`` = (episode, ``PICK_LOOK`` or ``BASE_LOOK``) it returns that frame's rows as estimates
 (``T_cam_obj`` in metres), in file order; a frame without rows is a frame where nothing was detected.
 
-The file is checked when the campaign starts (``read_rows``, ``check_rows``), a one-line UserError naming the line
+The file is checked when the campaign starts (``read_rows``, ``check_rows``), a one-line DatasetError naming the line
 for: a wrong header, a field that is not a number or not finite (NaN), an R that is not a rotation (orthonormal,
 det +1, within 1e-3), a translation less than ``MIN_Z_MM`` in front of the camera (metres written instead of mm;
 or behind the camera) or farther than ``grasping.perception.MAX_TRANSLATION_M``, an obj_id not in the object set,
@@ -25,7 +25,7 @@ import numpy as np
 from posegrasp import bop
 from posegrasp.bop_check import rotation_problem
 from posegrasp.catalog import catalog_by_id
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError, ProviderError
 from posegrasp.grasping.perception import MAX_TRANSLATION_M, ROT_TOL, Estimate, Observation, capture_ids
 
 #: A row whose translation is less than this far in front of the camera (mm) is refused: no camera sees an object
@@ -57,30 +57,30 @@ class BopCsvProvider:
 def from_spec(args: str | None, objects: str = "") -> BopCsvProvider:
     """The provider for ``--perception bop-csv:RESULTS.csv`` (``args``: the file), its rows checked."""
     if not args:
-        raise UserError("perception 'bop-csv' needs a results file: bop-csv:RESULTS.csv")
+        raise ProviderError("perception 'bop-csv' needs a results file: bop-csv:RESULTS.csv")
     provider = BopCsvProvider(str(Path(args).expanduser().resolve()), objects)
     provider.rows()
     return provider
 
 
 def check_rows(provider: object, episodes: int, task: str) -> None:
-    """A UserError when a ``BopCsvProvider``'s file has rows for frames no episode of a campaign of ``episodes``
+    """A DatasetError when a ``BopCsvProvider``'s file has rows for frames no episode of a campaign of ``episodes``
     episodes of ``task`` captures (any other provider: nothing to check)."""
     if not isinstance(provider, BopCsvProvider):
         return
     ims = capture_ids(task)
     for n, r in enumerate(provider.rows(), start=2):
         if r.scene_id >= episodes or r.im_id not in ims:
-            raise UserError(f"{provider.path} line {n}: scene_id {r.scene_id}, im_id {r.im_id} is no frame of this "
-                            f"campaign (scene_id = episode, 0-{episodes - 1}; im_id {' or '.join(map(str, ims))} in "
-                            f"the {task} task); replay the file with the --episodes and --task it was exported with")
+            raise DatasetError(f"{provider.path} line {n}: scene_id {r.scene_id}, im_id {r.im_id} is no frame of this "
+                               f"campaign (scene_id = episode, 0-{episodes - 1}; im_id {' or '.join(map(str, ims))} in "
+                               f"the {task} task); replay the file with the --episodes and --task it was exported with")
 
 
 def _stamp(path: str) -> tuple[int, int]:
     try:
         st = Path(path).stat()
     except OSError:
-        raise UserError(f"results file {path} does not exist") from None
+        raise DatasetError(f"results file {path} does not exist") from None
     return st.st_mtime_ns, st.st_size
 
 
@@ -98,7 +98,7 @@ def _load(path: str, objects: str, stamp: tuple[int, int]
         if problem is None and key in seen:
             problem = f"duplicates line {seen[key]} (same scene_id, im_id, obj_id, R and t)"
         if problem:
-            raise UserError(f"{path} line {n}: {problem}")
+            raise DatasetError(f"{path} line {n}: {problem}")
         seen[key] = n
         frames.setdefault((r.scene_id, r.im_id), []).append(r)
     return rows, frames

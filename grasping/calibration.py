@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError, DatasetError, UserError
 from posegrasp.geometry import axis_angle_R, invert, look_at_R, make_T, rotation_angle
 from posegrasp.io import write_json
 from posegrasp.sim.camera import CameraRenderer
@@ -59,7 +59,7 @@ def make_board(cfg: BoardConfig) -> cv2.aruco.CharucoBoard:
     try:
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, cfg.dictionary))
     except AttributeError:
-        raise UserError(f"unknown ArUco dictionary {cfg.dictionary!r}; use e.g. DICT_5X5_100") from None
+        raise ConfigError(f"unknown ArUco dictionary {cfg.dictionary!r}; use e.g. DICT_5X5_100") from None
     return cv2.aruco.CharucoBoard(cfg.squares, cfg.square, cfg.marker, dictionary)
 
 
@@ -216,9 +216,9 @@ def load_hand_eye(path: str | Path) -> np.ndarray:
     try:
         T = np.asarray(json.loads(p.read_text())["T_gripper_cam"], dtype=float)
     except FileNotFoundError:
-        raise UserError(f"hand-eye calibration {p} does not exist; run `posegrasp calibrate --out {p}`") from None
+        raise DatasetError(f"hand-eye calibration {p} does not exist; run `posegrasp calibrate --out {p}`") from None
     except (json.JSONDecodeError, KeyError, TypeError, ValueError):
-        raise UserError(f"hand-eye calibration {p} is not a calibration JSON with a 4x4 T_gripper_cam") from None
+        raise DatasetError(f"hand-eye calibration {p} is not a calibration JSON with a 4x4 T_gripper_cam") from None
     if T.shape != (4, 4) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6):
-        raise UserError(f"hand-eye calibration {p}: T_gripper_cam is not a 4x4 rigid transform")
+        raise DatasetError(f"hand-eye calibration {p}: T_gripper_cam is not a 4x4 rigid transform")
     return T

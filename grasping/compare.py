@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.table import Table
 
 from posegrasp.arguments import number, out_file
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError, UserError
 from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, read_campaign, read_records
 from posegrasp.grasping.stats import rate_row
 from posegrasp.io import write_json
@@ -41,12 +41,12 @@ def _success(rec: dict) -> bool:
 
 
 def load_run(path: str | Path) -> dict[int, dict]:
-    """Episode records of a trial run folder (or its episodes.jsonl), by episode index; UserError if none."""
+    """Episode records of a trial run folder (or its episodes.jsonl), by episode index; DatasetError if none."""
     p = Path(path)
     f = p / EPISODES if p.is_dir() else p
     recs = read_records(f)
     if not recs:
-        raise UserError(f"{path} holds no trial episodes (expected {EPISODES} written by 'posegrasp trials')")
+        raise DatasetError(f"{path} holds no trial episodes (expected {EPISODES} written by 'posegrasp trials')")
     return recs
 
 

@@ -16,6 +16,7 @@ import mink
 import mujoco
 import numpy as np
 
+from posegrasp.errors import SimulationError
 from posegrasp.grasping.config import ControlConfig
 from posegrasp.geometry import make_T, rotation_angle
 from posegrasp.sim.config import WorkcellConfig
@@ -26,10 +27,6 @@ _SITE = f"jaco_arm/jaco_hand/{GRIPPER_SITE}"
 _GUARDED_BODIES = ("b_4", "b_5", "b_6", "jaco_hand/hand", "jaco_hand/b_finger_1", "jaco_hand/b_finger_tip_1",
                    "jaco_hand/b_finger_2", "jaco_hand/b_finger_tip_2", "jaco_hand/b_finger_3",
                    "jaco_hand/b_finger_tip_3")
-
-
-class SimulationError(RuntimeError):
-    """The physics went unstable (NaN, runaway velocities or a MuJoCo warning)."""
 
 
 @functools.lru_cache(maxsize=4)

@@ -310,11 +310,7 @@ def run_episode(task: EpisodeTask, on_capture: Callable[[Workcell, Frame, int], 
         rec.failure = f.reason
     except PerceptionError as e:
         rec.failure, rec.perception_error = "perception error", str(e)
-    except SimulationError:
-        rec.failure = "simulation error"
-    except RuntimeError as e:  # a scene that never settles
-        if "did not come to rest" not in str(e):
-            raise
+    except SimulationError:  # unstable physics, or a scene that never settles (SceneUnsettled)
         rec.failure = "simulation error"
     _judge(rec, cfg.scoring)
     rec.sim_time = round(sum(log.sim.values()), 3)

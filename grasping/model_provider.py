@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 from posegrasp.grasping.perception import Estimate, Observation, visible_enough
 from posegrasp import ASSETS
 from posegrasp.catalog import set_root
-from posegrasp.errors import UserError
+from posegrasp.errors import WeightsError
 
 if TYPE_CHECKING:  # torch is imported only when a model is asked for
     from posegrasp.perception.estimator import EstimateResult, Estimator
@@ -68,6 +68,7 @@ def from_spec(args: str | None, objects: str = "") -> ModelProvider:
     the object set ``objects``."""
     path = Path(args) if args else SHIPPED_MODEL
     if not (path / "seg").is_dir() or not (path / "pose").is_dir():
-        raise UserError(f"model weights {path} must hold seg/ and pose/ checkpoints (a 'posegrasp train' run folder)")
+        raise WeightsError(f"model weights {path} must hold seg/ and pose/ checkpoints "
+                           "(a 'posegrasp train' run folder)")
     load_estimator(str(path), objects)  # fail early, in this process, on corrupt or mismatched weights
     return ModelProvider(str(path), objects=objects)

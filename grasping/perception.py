@@ -25,7 +25,7 @@ from typing import Callable, Collection, Protocol, TypeVar
 import numpy as np
 
 from posegrasp import bop
-from posegrasp.errors import UserError
+from posegrasp.errors import PerceptionError, ProviderError
 from posegrasp.geometry import axis_angle_R
 from posegrasp.sim.camera import Frame
 
@@ -107,11 +107,6 @@ def observation(frame: Frame, scene_id: int = 0, im_id: int = 0) -> Observation:
     """What a provider may see of a captured ``frame``: its RGB image, its depth in ``DEPTH_SCALE`` steps,
     intrinsics, and the capture's ids."""
     return Observation(frame.rgb, bop.quantise_depth(frame.depth, DEPTH_SCALE), frame.K, scene_id, im_id)
-
-
-class PerceptionError(Exception):
-    """A provider raised, hung past its time limit or returned what the planner cannot use; the message is one
-    line saying what was wrong (the episode fails with "perception error" and records it)."""
 
 
 #: Bounds of a usable estimate: rotation orthonormality and determinant (``ROT_TOL``), translation norm (m).
@@ -301,7 +296,7 @@ class NoisyOracleProvider:
 def oracle_from_spec(args: str | None) -> OracleProvider:
     """The oracle for ``--perception oracle`` (``args``: the text after ``oracle:``, which must be empty)."""
     if args:
-        raise UserError(f"perception 'oracle' takes no parameters, got 'oracle:{args}'")
+        raise ProviderError(f"perception 'oracle' takes no parameters, got 'oracle:{args}'")
     return OracleProvider()
 
 
@@ -312,7 +307,8 @@ def noisy_oracle_from_spec(args: str | None) -> NoisyOracleProvider:
     try:
         t, r = (float(v) for v in args.split(","))
     except ValueError:
-        raise UserError(f"noisy-oracle parameters {args!r} are not TRANS_M,ROT_DEG, e.g. noisy-oracle:0.005,5") from None
+        raise ProviderError(f"noisy-oracle parameters {args!r} are not TRANS_M,ROT_DEG, "
+                            "e.g. noisy-oracle:0.005,5") from None
     if not (0 <= t <= 0.2 and 0 <= r <= 180):
-        raise UserError(f"noisy-oracle noise {args!r} out of range: TRANS_M in [0, 0.2] m, ROT_DEG in [0, 180]")
+        raise ProviderError(f"noisy-oracle noise {args!r} out of range: TRANS_M in [0, 0.2] m, ROT_DEG in [0, 180]")
     return NoisyOracleProvider(t, r)

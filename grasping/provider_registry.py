@@ -26,7 +26,7 @@ from types import ModuleType
 from typing import Callable
 
 from posegrasp.catalog import set_root
-from posegrasp.errors import UserError
+from posegrasp.errors import ProviderError, UserError
 from posegrasp.grasping.perception import Provider, noisy_oracle_from_spec, oracle_from_spec
 
 
@@ -59,7 +59,7 @@ ENTRY_POINT_GROUP = "posegrasp.perception"
 def make_provider(spec: str, objects: str = "") -> Provider:
     """A provider from ``name[:ARGS]`` (``oracle``, ``noisy-oracle:0.005,5``, ``model:RUN``,
     ``py:MODULE_OR_FILE:FACTORY[:ARGS]`` or an installed name) for scenes of the object set ``objects`` (a set
-    folder; ``""``: the shipped blocks). Raises a one-line UserError when it cannot be built."""
+    folder; ``""``: the shipped blocks). Raises a one-line ProviderError when it cannot be built."""
     name, _, args = spec.partition(":")
     if name in FACTORIES:
         return FACTORIES[name](args or None, objects)
@@ -69,8 +69,8 @@ def make_provider(spec: str, objects: str = "") -> Provider:
     if name in installed_providers():
         return _plugin(spec, objects)
     installed = ", ".join(sorted(installed_providers())) or f"none (entry-point group {ENTRY_POINT_GROUP})"
-    raise UserError(f"unknown perception {spec!r}; choose one of: {', '.join(sorted(FACTORIES))}, "
-                    f"py:MODULE_OR_FILE:FACTORY[:ARGS]; installed: {installed}")
+    raise ProviderError(f"unknown perception {spec!r}; choose one of: {', '.join(sorted(FACTORIES))}, "
+                        f"py:MODULE_OR_FILE:FACTORY[:ARGS]; installed: {installed}")
 
 
 def canonical_spec(spec: str) -> str:
@@ -97,8 +97,8 @@ def _plugin_parts(spec: str) -> tuple[str, str, str | None]:
     target, _, rest = spec[3:].partition(":")
     factory, sep, args = rest.partition(":")
     if not target or not factory.isidentifier():
-        raise UserError(f"perception {spec!r} is not py:MODULE_OR_FILE:FACTORY[:ARGS], e.g. "
-                        "py:examples/providers/depth_only.py:make_provider")
+        raise ProviderError(f"perception {spec!r} is not py:MODULE_OR_FILE:FACTORY[:ARGS], e.g. "
+                            "py:examples/providers/depth_only.py:make_provider")
     return target, factory, args if sep else None
 
 
@@ -115,13 +115,13 @@ def _plugin(spec: str, objects: str) -> Provider:
         module = _load_file(spec, target) if _is_file(target) else _import(spec, target)
         factory = getattr(module, attr, None)
         if not callable(factory):
-            raise UserError(f"perception {spec!r}: {target} has no callable {attr!r}")
+            raise ProviderError(f"perception {spec!r}: {target} has no callable {attr!r}")
     else:
         try:
             factory = installed_providers()[name].load()
         except Exception as e:
-            raise UserError(f"perception {spec!r}: loading the installed entry point "
-                            f"{installed_providers()[name].value!r} failed: {_why(e)}") from None
+            raise ProviderError(f"perception {spec!r}: loading the installed entry point "
+                                f"{installed_providers()[name].value!r} failed: {_why(e)}") from None
     try:
         kw = {"objects": str(set_root(objects))} if "objects" in inspect.signature(factory).parameters else {}
     except (TypeError, ValueError):  # no signature to read (a builtin): ARGS only
@@ -129,12 +129,12 @@ def _plugin(spec: str, objects: str) -> Provider:
     try:
         provider = factory(args or None, **kw)
     except UserError as e:
-        raise UserError(f"perception {spec!r}: {e}") from None
+        raise ProviderError(f"perception {spec!r}: {e}") from None
     except Exception as e:
-        raise UserError(f"perception {spec!r}: its factory raised {_why(e)}") from None
+        raise ProviderError(f"perception {spec!r}: its factory raised {_why(e)}") from None
     if not callable(getattr(provider, "estimate", None)) or not isinstance(getattr(provider, "name", None), str):
-        raise UserError(f"perception {spec!r}: the factory returned a {type(provider).__name__}, not a provider "
-                        "(it needs a str 'name' and an 'estimate(obs, seed)' method; docs/estimators.md)")
+        raise ProviderError(f"perception {spec!r}: the factory returned a {type(provider).__name__}, not a provider "
+                            "(it needs a str 'name' and an 'estimate(obs, seed)' method; docs/estimators.md)")
     return provider
 
 
@@ -149,18 +149,18 @@ def _import(spec: str, module: str) -> ModuleType:
         return importlib.import_module(module)
     except ModuleNotFoundError as e:
         if e.name is not None and (module == e.name or module.startswith(e.name + ".")):
-            raise UserError(f"perception {spec!r}: no module named {module!r}; install it, add its folder to "
-                            "PYTHONPATH or give the path of its .py file") from None
-        raise UserError(f"perception {spec!r}: importing {module} failed: {_why(e)}") from None
+            raise ProviderError(f"perception {spec!r}: no module named {module!r}; install it, add its folder to "
+                                "PYTHONPATH or give the path of its .py file") from None
+        raise ProviderError(f"perception {spec!r}: importing {module} failed: {_why(e)}") from None
     except Exception as e:
-        raise UserError(f"perception {spec!r}: importing {module} failed: {_why(e)}") from None
+        raise ProviderError(f"perception {spec!r}: importing {module} failed: {_why(e)}") from None
 
 
 def _load_file(spec: str, target: str) -> ModuleType:
     """The module of the ``.py`` file ``target``, loaded once per process under a name made from its path."""
     path = Path(target).expanduser().resolve()
     if not path.is_file():
-        raise UserError(f"perception {spec!r}: no file {path}; give the path of a .py file or an importable module")
+        raise ProviderError(f"perception {spec!r}: no file {path}; give the path of a .py file or an importable module")
     name = f"posegrasp_plugin_{hashlib.sha256(str(path).encode()).hexdigest()[:12]}"
     if name in sys.modules:
         return sys.modules[name]
@@ -171,5 +171,5 @@ def _load_file(spec: str, target: str) -> ModuleType:
         exec(compile(path.read_bytes(), str(path), "exec"), module.__dict__)
     except Exception as e:
         del sys.modules[name]
-        raise UserError(f"perception {spec!r}: importing {path} failed: {_why(e)}") from None
+        raise ProviderError(f"perception {spec!r}: importing {path} failed: {_why(e)}") from None
     return module

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError, SimulationError, UserError
 from posegrasp.executor import Executor
 from posegrasp.grasping.record import FAILURES
 from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, SUMMARY, read_campaign, read_json_object, read_records
@@ -63,11 +63,11 @@ def resimulate_look(run_dir: Path, rec: dict) -> Look | None:
                        campaign.T_gripper_cam)
     n_blocks, scene_seed, percept_seed, _ = episode_draws(task)
     if scene_seed != rec["scene_seed"]:
-        raise UserError(f"episode {rec['episode']} of {run_dir} does not re-simulate (scene seed {scene_seed} "
-                        f"!= recorded {rec['scene_seed']}): the code changed since the run; rerun the trials")
+        raise DatasetError(f"episode {rec['episode']} of {run_dir} does not re-simulate (scene seed {scene_seed} "
+                           f"!= recorded {rec['scene_seed']}): the code changed since the run; rerun the trials")
     try:
         wc = episode_workcell(task.cfg, scene_seed, n_blocks)
-    except RuntimeError:  # a scene that never settles (recorded as a simulation error)
+    except SimulationError:  # a scene that never settles (recorded as a simulation error)
         return None
     if not drive_to_look(wc, task.cfg.control):
         return None
@@ -260,12 +260,12 @@ def write_report(run_dir: Path, samples: int = 4, strip: int = 6, executor: Exec
     run_dir = Path(run_dir)
     for name in (EPISODES, CAMPAIGN):
         if not (run_dir / name).is_file():
-            raise UserError(f"{run_dir} has no {name}: give a folder written by 'posegrasp trials --out'")
+            raise DatasetError(f"{run_dir} has no {name}: give a folder written by 'posegrasp trials --out'")
     if samples < 0 or strip < 0:
         raise UserError(f"--samples and --strip must be >= 0, got {samples} and {strip}")
     records = [r for _, r in sorted(read_records(run_dir / EPISODES).items())]
     if not records:
-        raise UserError(f"{run_dir / EPISODES} holds no finished episode: run (or resume) the trials first")
+        raise DatasetError(f"{run_dir / EPISODES} holds no finished episode: run (or resume) the trials first")
     campaign = read_campaign(run_dir)
     s = read_json_object(run_dir / SUMMARY) if (run_dir / SUMMARY).is_file() else summarise(records)
     perception = campaign.perception

@@ -17,7 +17,7 @@ from typing import IO, Iterable
 
 from posegrasp.catalog import set_record
 from posegrasp.config import from_dict
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.io import atomic_write, dumps_json, write_json
 
@@ -29,7 +29,7 @@ def _line(rec: dict) -> str:
 
 
 def read_records(path: Path) -> dict[int, dict]:
-    """Complete records of a (possibly torn) JSON-lines file, by episode index; a UserError naming the line
+    """Complete records of a (possibly torn) JSON-lines file, by episode index; a DatasetError naming the line
     for a complete line that is not a record."""
     out: dict[int, dict] = {}
     if not path.exists():
@@ -37,7 +37,7 @@ def read_records(path: Path) -> dict[int, dict]:
     try:
         lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
     except (OSError, UnicodeDecodeError) as e:
-        raise UserError(f"cannot read {path}: {getattr(e, 'strerror', None) or 'not UTF-8 text'}") from None
+        raise DatasetError(f"cannot read {path}: {getattr(e, 'strerror', None) or 'not UTF-8 text'}") from None
     for n, line in enumerate(lines, start=1):
         if not line.endswith("\n"):
             break  # torn last line of a killed run
@@ -47,8 +47,8 @@ def read_records(path: Path) -> dict[int, dict]:
             rec = None
         episode = rec.get("episode") if isinstance(rec, dict) else None
         if not isinstance(episode, int) or isinstance(episode, bool) or episode < 0:
-            raise UserError(f"{path} line {n} is not an episode record (a JSON object with an integer "
-                            f"\"episode\"); the file is corrupt: rerun the trials into a new --out")
+            raise DatasetError(f"{path} line {n} is not an episode record (a JSON object with an integer "
+                               f"\"episode\"); the file is corrupt: rerun the trials into a new --out")
         out[episode] = rec
     return out
 
@@ -95,24 +95,24 @@ def read_campaign(run_dir: Path) -> Campaign:
         if len(mount) != 4 or any(len(row) != 4 for row in mount):
             raise ValueError
         objects = data.get("objects")  # absent in runs made before object sets: the shipped blocks
-        return Campaign(int(data["seed"]), str(data["perception"]),
-                        from_dict(TrialConfig, data["config"], where=f"{path} config"), mount,
-                        dict(objects) if isinstance(objects, dict) else None)
+        seed, perception, config = int(data["seed"]), str(data["perception"]), data["config"]
     except (KeyError, TypeError, ValueError):
-        raise UserError(f"{path} is corrupt (needs seed, perception, config and a 4x4 T_gripper_cam); "
-                        "rerun the trials into a new --out") from None
+        raise DatasetError(f"{path} is corrupt (needs seed, perception, config and a 4x4 T_gripper_cam); "
+                           "rerun the trials into a new --out") from None
+    return Campaign(seed, perception, from_dict(TrialConfig, config, where=f"{path} config"), mount,
+                    dict(objects) if isinstance(objects, dict) else None)
 
 
 def read_json_object(path: Path) -> dict:
-    """The JSON object in ``path``, or a UserError naming the file."""
+    """The JSON object in ``path``, or a DatasetError naming the file."""
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise UserError(f"{path} is missing: give a folder written by 'posegrasp trials --out'") from None
+        raise DatasetError(f"{path} is missing: give a folder written by 'posegrasp trials --out'") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise UserError(f"{path} is not readable JSON ({e}); rerun the trials into a new --out") from None
+        raise DatasetError(f"{path} is not readable JSON ({e}); rerun the trials into a new --out") from None
     if not isinstance(data, dict):
-        raise UserError(f"{path} is not a JSON object; rerun the trials into a new --out")
+        raise DatasetError(f"{path} is not a JSON object; rerun the trials into a new --out")
     return data
 
 
@@ -130,9 +130,9 @@ def check_campaign(out: Path, campaign: Campaign) -> None:
     old = json.loads(dumps_json(old))
     was = old["objects"] if isinstance(old["objects"], dict) else {}
     if was.get("sha256") != new["objects"]["sha256"]:
-        raise UserError(f"{out} holds a campaign on the object set {was.get('name')} ({was.get('path')}), not on "
-                        f"{new['objects']['path']}; use another --out, or --objects {was.get('path')} to resume")
+        raise DatasetError(f"{out} holds a campaign on the object set {was.get('name')} ({was.get('path')}), not on "
+                           f"{new['objects']['path']}; use another --out, or --objects {was.get('path')} to resume")
     if old != new:
         keys = sorted(k for k in new if old.get(k) != new[k])
-        raise UserError(f"{out} holds a different campaign (differs in {', '.join(keys)}); "
-                        "use another --out or the same settings to resume")
+        raise DatasetError(f"{out} holds a different campaign (differs in {', '.join(keys)}); "
+                           "use another --out or the same settings to resume")

@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 
 from posegrasp.catalog import PartType
+from posegrasp.errors import SceneUnsettled
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.config import GraspConfig, TrialConfig
 from posegrasp.grasping.grasps import plan_grasps, surface_points
@@ -77,7 +78,7 @@ def kitting_scene(cfg: TrialConfig, seed: int, n_blocks: int) -> Workcell:
         drop_and_settle(wc, cfg.scene, types, rng, arrange=arrange)
         if _any_upright(wc, candidates, cfg.kitting.upright_tol_deg, cfg.grasp):
             return wc
-    raise RuntimeError(f"blocks did not come to rest with one upright after {MAX_DROPS} drops")
+    raise SceneUnsettled(f"blocks did not come to rest with one upright after {MAX_DROPS} drops")
 
 
 def stack_scene(cfg: TrialConfig, seed: int, n_blocks: int) -> Workcell:
@@ -112,4 +113,4 @@ def stack_scene(cfg: TrialConfig, seed: int, n_blocks: int) -> Workcell:
             wc.data.qvel[:] = 0.0
             wc.data.time = 0.0
             return wc
-    raise RuntimeError(f"blocks did not come to rest with one upright after {MAX_DROPS} drops")
+    raise SceneUnsettled(f"blocks did not come to rest with one upright after {MAX_DROPS} drops")

@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError, UserError
 from posegrasp.executor import make_executor
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.bop_csv import check_rows
@@ -50,7 +50,7 @@ def campaign_settings(episodes: int, cfg: TrialConfig) -> tuple[TrialConfig, tup
     if episodes < 1:
         raise UserError(f"--episodes must be at least 1, got {episodes}")
     if not 1 <= cfg.min_blocks <= cfg.max_blocks:
-        raise UserError(f"need 1 <= min_blocks <= max_blocks, got {cfg.min_blocks} and {cfg.max_blocks}")
+        raise ConfigError(f"need 1 <= min_blocks <= max_blocks, got {cfg.min_blocks} and {cfg.max_blocks}")
     cfg = with_set(cfg)
     check_task(cfg)
     return cfg, tuple(tuple(float(v) for v in row) for row in load_hand_eye(cfg.hand_eye))

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from posegrasp.bop import load_model, load_models_info
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError, UserError
 from posegrasp.geometry import quat_to_R
 from posegrasp.io import dumps_json
 
@@ -219,17 +219,17 @@ def write_object_set(out: Path, objects: list[SetObject], firm_hold_tasks: tuple
 
 def _read(path: Path, what: str) -> Any:
     if not path.is_file():
-        raise UserError(f"object set file {path} is missing ({what}); re-import the set")
+        raise DatasetError(f"object set file {path} is missing ({what}); re-import the set")
     try:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise UserError(f"object set file {path} is not valid JSON ({e}); re-import the set") from None
+        raise DatasetError(f"object set file {path} is not valid JSON ({e}); re-import the set") from None
 
 
-def _not_a_set(root: Path) -> UserError:
+def _not_a_set(root: Path) -> DatasetError:
     if (root / "models").is_dir() and ((root / "camera.json").is_file() or any(root.glob("train*"))):
-        return UserError(f"{root} is a BOP dataset, not an object set; make one from its models with "
-                         f"`posegrasp objects import {root / 'models'} --out SET`")
+        return DatasetError(f"{root} is a BOP dataset, not an object set; make one from its models with "
+                            f"`posegrasp objects import {root / 'models'} --out SET`")
     return UserError(f"{root} is not an object set (no {MANIFEST}); make one with `posegrasp objects import`")
 
 
@@ -238,24 +238,24 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
     d = _read(root / entry["file"], f"object {name}")
     where = root / entry["file"]
     if d.get("obj_id") != oid or d.get("name") != name:
-        raise UserError(f"{where} says obj_id {d.get('obj_id')} {d.get('name')!r}, the manifest {oid} {name!r}; "
-                        "re-import the set")
+        raise DatasetError(f"{where} says obj_id {d.get('obj_id')} {d.get('name')!r}, the manifest {oid} {name!r}; "
+                           "re-import the set")
     if oid not in info:
-        raise UserError(f"{root / 'models/models_info.json'} has no entry for obj_id {oid}; re-import the set")
+        raise DatasetError(f"{root / 'models/models_info.json'} has no entry for obj_id {oid}; re-import the set")
     mesh = load_model(root / d["model"])
     mi = info[oid]
     if np.abs(mesh.bounds[0] - mi.min_xyz).max() > 1e-5 or np.abs(mesh.extents - mi.size_xyz).max() > 1e-5:
-        raise UserError(f"{root / d['model']} does not match its models_info.json entry (bounding box); "
-                        "re-import the set")
+        raise DatasetError(f"{root / d['model']} does not match its models_info.json entry (bounding box); "
+                           "re-import the set")
     pieces = tuple(d["collision"])
     if not pieces or d["mass_kg"] <= 0 or d["density"] <= 0:
-        raise UserError(f"{where}: needs a positive mass and density and at least one collision piece; "
-                        "re-import the set")
+        raise DatasetError(f"{where}: needs a positive mass and density and at least one collision piece; "
+                           "re-import the set")
     up = d["upright"]
     quat, down = np.asarray(up["quat"], np.float64), np.asarray(up["down"], np.float64)
     if abs(np.linalg.norm(quat) - 1.0) > 1e-6 or np.abs(quat_to_R(quat) @ down - [0.0, 0.0, -1.0]).max() > 1e-6:
-        raise UserError(f"{where}: upright.quat {quat.tolist()} is not a unit quaternion turning upright.down "
-                        f"{down.tolist()} to -z; re-import the set")
+        raise DatasetError(f"{where}: upright.quat {quat.tolist()} is not a unit quaternion turning upright.down "
+                           f"{down.tolist()} to -z; re-import the set")
     return SetObject(
         obj_id=oid, name=name, vertices=np.asarray(mesh.vertices, np.float64), faces=np.asarray(mesh.faces),
         mass=float(d["mass_kg"]), density=float(d["density"]), friction=tuple(d["friction"]),
@@ -269,30 +269,30 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
 
 
 def load_object_set(root: str | Path) -> ObjectSet:
-    """The object set in folder ``root``, every file checked (a one-line ``UserError`` naming the bad one)."""
+    """The object set in folder ``root``, every file checked (a one-line ``DatasetError`` naming the bad one)."""
     root = Path(root)
     if not root.is_dir():
-        raise UserError(f"object set {root} does not exist (or is not a folder)")
+        raise DatasetError(f"object set {root} does not exist (or is not a folder)")
     if not (root / MANIFEST).is_file():
         raise _not_a_set(root)
     man = _read(root / MANIFEST, "the manifest")
     if man.get("format") != FORMAT or man.get("version") != VERSION:
-        raise UserError(f"{root / MANIFEST}: format {man.get('format')!r} version {man.get('version')!r} is not "
-                        f"{FORMAT!r} version {VERSION}; re-import the set")
+        raise DatasetError(f"{root / MANIFEST}: format {man.get('format')!r} version {man.get('version')!r} is not "
+                           f"{FORMAT!r} version {VERSION}; re-import the set")
     entries = man.get("objects") or []
     if not all(isinstance(e, dict) and {"obj_id", "name", "file"} <= set(e) for e in entries):
-        raise UserError(f"{root / MANIFEST}: each object needs obj_id, name and file; re-import the set")
+        raise DatasetError(f"{root / MANIFEST}: each object needs obj_id, name and file; re-import the set")
     if [int(e["obj_id"]) for e in entries] != list(range(1, len(entries) + 1)):
-        raise UserError(f"{root / MANIFEST}: obj_ids must run 1, 2, ... in order; re-import the set")
+        raise DatasetError(f"{root / MANIFEST}: obj_ids must run 1, 2, ... in order; re-import the set")
     if len({e["name"] for e in entries}) != len(entries):
-        raise UserError(f"{root / MANIFEST}: object names must be unique; re-import the set")
+        raise DatasetError(f"{root / MANIFEST}: object names must be unique; re-import the set")
     hold = man.get("firm_hold_tasks")
     if hold is not None and not (isinstance(hold, list) and all(isinstance(t, str) for t in hold)):
-        raise UserError(f"{root / MANIFEST}: firm_hold_tasks must be a list of task names, not {hold!r}; "
-                        "re-import the set")
+        raise DatasetError(f"{root / MANIFEST}: firm_hold_tasks must be a list of task names, not {hold!r}; "
+                           "re-import the set")
     info = load_models_info(root / "models" / "models_info.json")
     try:
         return ObjectSet(root=root, objects=tuple(_parse_object(root, e, info) for e in entries),
                          firm_hold_tasks=None if hold is None else tuple(hold))
     except (KeyError, TypeError, ValueError) as e:
-        raise UserError(f"object set {root} has a malformed file ({type(e).__name__}: {e}); re-import it") from None
+        raise DatasetError(f"object set {root} has a malformed file ({type(e).__name__}: {e}); re-import it") from None

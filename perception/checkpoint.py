@@ -29,7 +29,7 @@ from torch import nn
 
 from posegrasp import io as pio
 from posegrasp.config import from_dict
-from posegrasp.errors import UserError
+from posegrasp.errors import UserError, WeightsError
 from posegrasp.perception.classifier import ClassifierConfig, build_classifier
 from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
 from posegrasp.perception.refiner import RefinerConfig, build_refiner
@@ -109,13 +109,13 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
     try:
         data = path.read_bytes()
     except FileNotFoundError:
-        raise UserError(f"weights file {path} does not exist") from None
+        raise WeightsError(f"weights file {path} does not exist") from None
     try:
         tensors = st_load(data)
         n = int.from_bytes(data[:8], "little")
         meta = json.loads(data[8:8 + n]).get("__metadata__", {}) or {}
     except (SafetensorError, ValueError, json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise UserError(_one_line(f"weights file {path} is corrupt or not safetensors: {e}")) from None
+        raise WeightsError(_one_line(f"weights file {path} is corrupt or not safetensors: {e}")) from None
     return tensors, meta
 
 
@@ -125,11 +125,11 @@ def read_config(ckpt: Path) -> dict[str, Any]:
     try:
         cfg = json.loads(p.read_text())
     except FileNotFoundError:
-        raise UserError(f"{p} does not exist: {ckpt} is not a trained checkpoint") from None
+        raise WeightsError(f"{p} does not exist: {ckpt} is not a trained checkpoint") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise UserError(_one_line(f"{p} is corrupt: {e}")) from None
+        raise WeightsError(_one_line(f"{p} is corrupt: {e}")) from None
     if not isinstance(cfg, dict) or cfg.get("format") != FORMAT or cfg.get("stage") not in STAGES:
-        raise UserError(f"{p} is not a {FORMAT} config")
+        raise WeightsError(f"{p} is not a {FORMAT} config")
     return cfg
 
 
@@ -139,40 +139,44 @@ def read_state(ckpt: Path) -> dict[str, Any]:
     try:
         return json.loads(p.read_text())
     except FileNotFoundError:
-        raise UserError(f"{p} does not exist") from None
+        raise WeightsError(f"{p} does not exist") from None
     except json.JSONDecodeError as e:
-        raise UserError(_one_line(f"{p} is corrupt: {e}")) from None
+        raise WeightsError(_one_line(f"{p} is corrupt: {e}")) from None
 
 
 def load_model(ckpt: Path, stage: str | None = None) -> tuple[nn.Module, Any, dict[str, Any]]:
     """Build the model described by ``config.json`` and load ``model.safetensors`` into it.
 
     Returns (model in eval mode, model config dataclass, the whole config dict). Missing, corrupt
-    or mismatched files raise UserError with a one-line message.
+    or mismatched files raise WeightsError with a one-line message.
     """
     ckpt = resolve(Path(ckpt))
     cfg = read_config(ckpt)
     if stage is not None and cfg["stage"] != stage:
-        raise UserError(f"{ckpt} holds a {cfg['stage']} model, expected {stage}")
+        raise WeightsError(f"{ckpt} holds a {cfg['stage']} model, expected {stage}")
     cls, builder = STAGES[cfg["stage"]]
+    where = ckpt / "config.json"
     try:
-        model_cfg = from_dict(cls, cfg["model"], where=str(ckpt / "config.json"))
+        model_cfg = from_dict(cls, cfg["model"], where=str(where))  # an unknown key or bad type: its ConfigError
+    except (TypeError, KeyError) as e:
+        raise WeightsError(_one_line(f"{where} describes an invalid model: {e}")) from None
+    try:
         model = builder(model_cfg)
     except (ValueError, TypeError, KeyError) as e:
-        raise UserError(_one_line(f"{ckpt / 'config.json'} describes an invalid model: {e}")) from None
+        raise WeightsError(_one_line(f"{where} describes an invalid model: {e}")) from None
     load_weights(ckpt, model)
     return model.eval(), model_cfg, cfg
 
 
 def load_weights(ckpt: Path, model: nn.Module) -> None:
-    """Load the checkpoint's ``model.safetensors`` into ``model`` (one-line UserError when missing, corrupt or not
+    """Load the checkpoint's ``model.safetensors`` into ``model`` (one-line WeightsError when missing, corrupt or not
     matching)."""
     path = resolve(Path(ckpt)) / "model.safetensors"
     load_state(model, _read_safetensors(path)[0], path)
 
 
 def load_state(model: nn.Module, tensors: dict[str, torch.Tensor], where: Path) -> None:
-    """``load_state_dict`` with a one-line UserError on any mismatch of names or shapes."""
+    """``load_state_dict`` with a one-line WeightsError on any mismatch of names or shapes."""
     own = model.state_dict()
     missing = sorted(set(own) - set(tensors))
     unexpected = sorted(set(tensors) - set(own))
@@ -187,7 +191,7 @@ def load_state(model: nn.Module, tensors: dict[str, torch.Tensor], where: Path) 
             k = shapes[0]
             parts.append(f"{len(shapes)} with wrong shape (e.g. {k}: {tuple(tensors[k].shape)} vs "
                          f"{tuple(own[k].shape)})")
-        raise UserError(_one_line(f"weights {where} do not match the model in config.json: " + ", ".join(parts)))
+        raise WeightsError(_one_line(f"weights {where} do not match the model in config.json: " + ", ".join(parts)))
     model.load_state_dict(tensors, strict=True)
 
 
@@ -199,7 +203,7 @@ def load_optimizer(ckpt: Path, optimizer: torch.optim.Optimizer) -> None:
         groups = json.loads(meta["param_groups"])
         scalars = json.loads(meta.get("scalars", "{}"))
     except (KeyError, json.JSONDecodeError):
-        raise UserError(f"{path} lacks the optimizer metadata") from None
+        raise WeightsError(f"{path} lacks the optimizer metadata") from None
     state: dict[int, dict[str, Any]] = {}
     for key, v in tensors.items():
         if key.startswith("state."):
@@ -210,7 +214,7 @@ def load_optimizer(ckpt: Path, optimizer: torch.optim.Optimizer) -> None:
     try:
         optimizer.load_state_dict({"state": state, "param_groups": groups})
     except (ValueError, KeyError, RuntimeError) as e:
-        raise UserError(_one_line(f"{path} does not match the optimizer: {e}")) from None
+        raise WeightsError(_one_line(f"{path} does not match the optimizer: {e}")) from None
     if "rng.torch" in tensors:
         torch.set_rng_state(tensors["rng.torch"])
 

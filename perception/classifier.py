@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from posegrasp.errors import ConfigError
 from posegrasp.perception.seg_net import ConvBNReLU
 
 IN_CHANNELS = 6  # RGB (normalised), mask, relative depth, valid depth (+ height above the plane, optional)
@@ -51,17 +52,17 @@ class ClassifierConfig:
         return IN_CHANNELS + (self.height_range > 0)
 
     def validate(self) -> None:
-        """Raise ValueError on an unusable configuration."""
+        """Raise ConfigError (a ValueError) on an unusable configuration."""
         if not self.obj_ids:
-            raise ValueError("obj_ids must name at least one object")
+            raise ConfigError("obj_ids must name at least one object")
         if not self.widths or min(self.widths) < 1:
-            raise ValueError(f"widths must be positive channel counts, got {self.widths}")
+            raise ConfigError(f"widths must be positive channel counts, got {self.widths}")
         if self.crop_size < 2 ** (len(self.widths) - 1):
-            raise ValueError(f"crop_size {self.crop_size} is too small for {len(self.widths)} pooled stages")
+            raise ConfigError(f"crop_size {self.crop_size} is too small for {len(self.widths)} pooled stages")
         if self.crop_side <= 0 or self.depth_range <= 0:
-            raise ValueError(f"crop_side ({self.crop_side}) and depth_range ({self.depth_range}) must be positive")
+            raise ConfigError(f"crop_side ({self.crop_side}) and depth_range ({self.depth_range}) must be positive")
         if self.height_range < 0:
-            raise ValueError(f"height_range must be >= 0 m (0: no height channel), got {self.height_range}")
+            raise ConfigError(f"height_range must be >= 0 m (0: no height channel), got {self.height_range}")
 
 
 class CropClassifier(nn.Module):

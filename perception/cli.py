@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from posegrasp.arguments import in_dir, nonneg_int, number, out_dir, positive_int
 from posegrasp.config import load_toml, override
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError, UserError, WeightsError
 
 if TYPE_CHECKING:
     from posegrasp.perception.training import StageTraining
@@ -118,16 +118,16 @@ def run_eval(args: argparse.Namespace) -> int:
 
 
 def check_ground_truth(data: Path, split: str, max_images: int | None) -> None:
-    """Refuse (UserError) a dataset whose labels ``dataset check`` would flag (schema, rotations, units,
+    """Refuse (DatasetError) a dataset whose labels ``dataset check`` would flag (schema, rotations, units,
     object ids), before any scoring: a bad label would silently lower the score instead."""
     from posegrasp.bop_check import check_dataset
 
     if not (data / "models").is_dir():
-        raise UserError(f"--data {data} is not a BOP dataset (no models/ folder)")
+        raise DatasetError(f"--data {data} is not a BOP dataset (no models/ folder)")
     report = check_dataset(data, split, max_images=max_images, max_problems=10, labels_only=True)
     if report.problems:
-        raise UserError(f"--data {data}: {report.problems[0]} ({len(report.problems)} problem(s) in its models and "
-                        f"labels; 'posegrasp dataset check {data}' lists them)")
+        raise DatasetError(f"--data {data}: {report.problems[0]} ({len(report.problems)} problem(s) in its models and "
+                           f"labels; 'posegrasp dataset check {data}' lists them)")
 
 
 def run_perturb(args: argparse.Namespace) -> int:
@@ -139,7 +139,7 @@ def run_perturb(args: argparse.Namespace) -> int:
     if bad or not stages:
         raise UserError(f"--stages {args.stages!r}: name one or more of {', '.join(STAGES)}")
     if not (args.weights / "pose").is_dir():
-        raise UserError(f"--weights {args.weights} holds no pose/ checkpoint")
+        raise WeightsError(f"--weights {args.weights} holds no pose/ checkpoint")
     if args.out.exists() and any(args.out.iterdir()):
         raise UserError(f"--out {args.out} is not empty: choose a new folder")
     print(perturb_run(args.weights, args.out, args.rel_sigma, stages, args.seed))

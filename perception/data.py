@@ -17,7 +17,7 @@ import torch
 from torch.utils.data import Dataset
 
 from posegrasp import bop
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError
 from posegrasp.perception.crop_cache import fingerprint, read_crop_cache, write_crop_cache
 from posegrasp.perception.inputs import (normalize_cls_input, normalize_rgb, prepare_cls_input, prepare_pose_input,
                                          segment_components)
@@ -74,10 +74,10 @@ def _rng(seed: int, index: int, key: int | None) -> np.random.Generator:
 
 
 def load_records(root: str | Path, split: str) -> list[bop.ImageRecord]:
-    """All image records of a split; UserError when there is none."""
+    """All image records of a split; DatasetError when there is none."""
     recs = list(bop.iter_scene_images(root, split))
     if not recs:
-        raise UserError(f"BOP split {Path(root) / split} has no images")
+        raise DatasetError(f"BOP split {Path(root) / split} has no images")
     return recs
 
 
@@ -86,8 +86,8 @@ def label_map(rec: bop.ImageRecord, shape: tuple[int, int], num_classes: int | N
     lab = np.zeros(shape, dtype=np.int64)
     for inst in rec.instances:
         if num_classes is not None and inst.obj_id >= num_classes:
-            raise UserError(f"object id {inst.obj_id} in {rec.scene_dir} does not fit a model with "
-                            f"{num_classes} classes")
+            raise DatasetError(f"object id {inst.obj_id} in {rec.scene_dir} does not fit a model with "
+                               f"{num_classes} classes")
         p = rec.mask_path(inst.gt_index)
         if p.exists():
             lab[rec.load_mask(inst.gt_index)] = inst.obj_id
@@ -196,7 +196,7 @@ class ClsDataset(Dataset):
         if cached is None:
             crops, labels = self._crops(records, split, segmenter, (size, side, depth_range, height_range), progress)
             if not crops:
-                raise UserError(f"no usable object instance in {Path(root) / split} for the classifier")
+                raise DatasetError(f"no usable object instance in {Path(root) / split} for the classifier")
             cached = write_crop_cache(Path(cache), key, crops, labels) if cache is not None else (crops, labels)
         self.crops = cached[0]  # (C, S, S) float16 each: a list, or a read-only memory map of the cache
         self.labels = np.asarray(cached[1], dtype=np.int64)
@@ -270,7 +270,7 @@ class PoseDataset(Dataset):
         self.obj_ids = list(obj_ids)
         missing = [o for o in self.obj_ids if o not in self.models.infos]
         if missing:
-            raise UserError(f"object ids {missing} are not in {bop.models_info_path(root)}")
+            raise DatasetError(f"object ids {missing} are not in {bop.models_info_path(root)}")
         self.num_points, self.crop_size = num_points, crop_size
         self.augment = augment and self.cfg.augment
         self.seed = seed
@@ -283,8 +283,8 @@ class PoseDataset(Dataset):
             self.index += [(ri, inst.gt_index) for inst in rec.instances
                            if inst.obj_id in self.obj_ids and usable(inst, self.cfg)]
         if not self.index:
-            raise UserError(f"no usable object instance in {self.root / split} (min_visib_fract "
-                            f"{self.cfg.min_visib_fract}, min_points {self.cfg.min_points})")
+            raise DatasetError(f"no usable object instance in {self.root / split} (min_visib_fract "
+                               f"{self.cfg.min_visib_fract}, min_points {self.cfg.min_points})")
         self.num_sym = 1 + max(len(self.models.infos[o].symmetries_discrete) for o in self.obj_ids)
 
     def __len__(self) -> int:
@@ -307,7 +307,7 @@ class PoseDataset(Dataset):
             s = self._sample((index + k) % len(self.index), key)
             if s is not None:
                 return s
-        raise UserError(f"no instance in {self.root / self.split} has {self.cfg.min_points} valid depth points")
+        raise DatasetError(f"no instance in {self.root / self.split} has {self.cfg.min_points} valid depth points")
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor | int | bool]:
         return self.get(index)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from posegrasp.errors import UserError
+from posegrasp.errors import WeightsError
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.classifier import ClassifierConfig
 from posegrasp.perception.inputs import normalize_cls_input, prepare_cls_input
@@ -25,8 +25,8 @@ class ClassifierEnsemble:
 
     @classmethod
     def load(cls, weights: Path) -> "ClassifierEnsemble":
-        """The run ``weights``'s ``cls/`` and its further members ``cls_<name>/`` (by name); UserError when they differ
-        in their objects, crop settings or height ranges."""
+        """The run ``weights``'s ``cls/`` and its further members ``cls_<name>/`` (by name); WeightsError when they
+        differ in their objects, crop settings or height ranges."""
         dirs = [weights / "cls"] + sorted(p for p in weights.glob("cls_*") if p.is_dir())
         models, cfgs = [], []
         for d in dirs:
@@ -36,12 +36,12 @@ class ClassifierEnsemble:
         key = [(list(c.obj_ids), c.crop_size, c.crop_side, c.depth_range) for c in cfgs]
         for d, k in zip(dirs[1:], key[1:]):
             if k != key[0]:
-                raise UserError(f"classifier {d} differs from {dirs[0]} in its objects or crop settings ({k} vs "
-                                f"{key[0]}): an ensemble's members must share them")
+                raise WeightsError(f"classifier {d} differs from {dirs[0]} in its objects or crop settings ({k} vs "
+                                   f"{key[0]}): an ensemble's members must share them")
         heights = sorted({c.height_range for c in cfgs if c.height_range > 0})
         if len(heights) > 1:
-            raise UserError(f"the classifiers in {weights} use height ranges {heights}: an ensemble's members share "
-                            "one")
+            raise WeightsError(f"the classifiers in {weights} use height ranges {heights}: an ensemble's members share "
+                               "one")
         return cls(models, dataclasses.replace(cfgs[0], height_range=heights[0] if heights else 0.0))
 
     @torch.no_grad()

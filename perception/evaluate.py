@@ -27,7 +27,7 @@ import numpy as np
 
 from posegrasp import bop
 from posegrasp import io as pio
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError
 from posegrasp.lock import folder_lock
 from posegrasp.perception import bop19 as B
 from posegrasp.perception import metrics as M
@@ -163,7 +163,7 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
 
     cfg = cfg or EvalConfig()
     if cfg.masks not in ("pred", "gt"):
-        raise UserError(f"eval masks must be 'pred' or 'gt', got {cfg.masks!r}")
+        raise ConfigError(f"eval masks must be 'pred' or 'gt', got {cfg.masks!r}")
     data, out = Path(data), Path(out)
     est = Estimator(weights, EstimatorConfig(
         refine_iterations=None if cfg.refine_iterations < 0 else cfg.refine_iterations,

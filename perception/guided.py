@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from posegrasp.errors import ConfigError
 from posegrasp.perception.crop import padded_box
 
 
@@ -35,13 +36,13 @@ class GuidedConfig:
     subsample: int = 4
 
     def validate(self) -> None:
-        """Raise ValueError on an unusable configuration."""
+        """Raise ConfigError (a ValueError) on an unusable configuration."""
         if self.radius < 0:
-            raise ValueError(f"guided radius must be >= 0 px, got {self.radius}")
+            raise ConfigError(f"guided radius must be >= 0 px, got {self.radius}")
         if self.eps <= 0:
-            raise ValueError(f"guided eps must be positive, got {self.eps}")
+            raise ConfigError(f"guided eps must be positive, got {self.eps}")
         if self.subsample < 1:
-            raise ValueError(f"guided subsample must be >= 1, got {self.subsample}")
+            raise ConfigError(f"guided subsample must be >= 1, got {self.subsample}")
 
 
 def _box(x: np.ndarray, r: int) -> np.ndarray:

@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from posegrasp.errors import ConfigError
 from posegrasp.perception.attention import CAM, GFEM, PAM
 
 
@@ -58,13 +59,13 @@ class PoseNetConfig:
         return 2 * self.point_widths[0] + 2 * self.point_widths[1] + self.global_widths[1]
 
     def validate(self) -> None:
-        """Raise ValueError on an unusable configuration."""
+        """Raise ConfigError (a ValueError) on an unusable configuration."""
         if len(self.obj_ids) == 0 or len(set(self.obj_ids)) != len(self.obj_ids):
-            raise ValueError("obj_ids must be a non-empty list of distinct BOP object ids")
+            raise ConfigError("obj_ids must be a non-empty list of distinct BOP object ids")
         if len(self.symmetric) != len(self.obj_ids):
-            raise ValueError("symmetric needs one flag per object id")
+            raise ConfigError("symmetric needs one flag per object id")
         if self.num_points < 1 or self.crop_size < 8 or self.crop_size % 8:
-            raise ValueError("num_points must be >= 1 and crop_size a multiple of 8 (>= 8)")
+            raise ConfigError("num_points must be >= 1 and crop_size a multiple of 8 (>= 8)")
 
     def index_of(self, obj_id: int) -> int:
         """Head index of a BOP object id."""

@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from posegrasp.errors import ConfigError
+
 #: VGG16's 13 convs, then this model's 3 extra bottleneck convs; "M" = 2x2 max-pool.
 VGG16_PLAN: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M",
                                      512, 512, 512, "M", 512, 512, 512, "M")
@@ -54,14 +56,14 @@ class SegNetConfig:
         return max(4, int(round(c * self.width)))
 
     def validate(self) -> None:
-        """Raise ValueError on an unusable configuration."""
+        """Raise ConfigError (a ValueError) on an unusable configuration."""
         h, w = self.input_size
         if h < 32 or w < 32:
-            raise ValueError(f"input_size {self.input_size} must be at least 32 x 32 px")
+            raise ConfigError(f"input_size {self.input_size} must be at least 32 x 32 px")
         if self.num_classes < 2:
-            raise ValueError("num_classes must count background plus at least one object")
+            raise ConfigError("num_classes must count background plus at least one object")
         if self.width <= 0:
-            raise ValueError("width must be positive")
+            raise ConfigError("width must be positive")
 
 
 class ConvBNReLU(nn.Sequential):

@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from posegrasp.errors import UserError
+from posegrasp.errors import WeightsError
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.classifier import ClassifierConfig, build_classifier
 from posegrasp.perception.data import ClsDataset, DataConfig, collate
@@ -66,8 +66,8 @@ class ClsTraining(StageTraining):
         _, obj_ids = dataset_objects(self.data, cfg.obj_ids)
         self.has_seg = cfg.use_seg and ckpt_mod.exists(run.out / "seg")
         if cfg.background and not self.has_seg:
-            raise UserError(f"[cls] background = true learns from the seg net's segments: train seg into {run.out} "
-                            "first (and keep use_seg = true), or set background = false")
+            raise WeightsError(f"[cls] background = true learns from the seg net's segments: train seg into {run.out} "
+                               "first (and keep use_seg = true), or set background = false")
         obj_ids = ([0] if cfg.background else []) + obj_ids  # 0: "not a block"
         model = cfg.model
         if cfg.init:  # fine-tuning: the crop settings and channels come with the weights

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError
 from posegrasp.perception.data import DataConfig, ObjectModels, PoseDataset, collate
 from posegrasp.perception.losses import pose_loss, refine_loss
 from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
@@ -64,7 +64,7 @@ class PoseTraining(StageTraining):
         self.state = {"step": 0, "lr": cfg.lr, "w": cfg.w, "decayed": False, "refine_ready": False,
                       "best_val_dis": None}
         if cfg.sym_loss not in ("adds", "min_sym"):
-            raise UserError(f"pose sym_loss {cfg.sym_loss!r} is not 'adds' or 'min_sym'")
+            raise ConfigError(f"pose sym_loss {cfg.sym_loss!r} is not 'adds' or 'min_sym'")
 
     def prepare(self, progress: bool) -> None:
         m = self.model_cfg

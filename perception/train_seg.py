@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from posegrasp import bop
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError
 from posegrasp.perception.data import DataConfig, SegDataset, collate
 from posegrasp.perception.metrics import confusion_matrix, segmentation_scores
 from posegrasp.perception.seg_net import SegNetConfig, build_seg_net, seg_loss
@@ -63,7 +63,7 @@ class SegTraining(StageTraining):
         self.device = training_device(cfg.device)
         self.model = build_model("seg", build_seg_net, self.model_cfg).to(self.device)
         if cfg.optimizer not in ("sgd", "adam"):
-            raise UserError(f"seg optimizer {cfg.optimizer!r} is not 'sgd' or 'adam'")
+            raise ConfigError(f"seg optimizer {cfg.optimizer!r} is not 'sgd' or 'adam'")
         params = self.model.parameters()
         self.opt = (torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
                     if cfg.optimizer == "sgd" else torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay))

@@ -24,7 +24,7 @@ import torch
 
 from posegrasp import bop
 from posegrasp import io as pio
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError, UserError, WeightsError
 from posegrasp.lock import folder_lock
 from posegrasp.perception import checkpoint as ckpt_mod
 
@@ -87,15 +87,15 @@ def batch_stream(get: Callable[[int, int], dict], collate: Callable[[list[dict]]
 
 
 def training_device(name: str) -> torch.device:
-    """The torch device ``name`` ("cpu", "cuda", "cuda:N"); UserError when torch cannot use it."""
+    """The torch device ``name`` ("cpu", "cuda", "cuda:N"); ConfigError when torch cannot use it."""
     try:
         dev = torch.device(name)
     except RuntimeError:
-        raise UserError(f"device {name!r} is not a torch device: use 'cpu' or 'cuda'") from None
+        raise ConfigError(f"device {name!r} is not a torch device: use 'cpu' or 'cuda'") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"device {name!r}: this torch sees no CUDA GPU; set device = 'cpu'")
+        raise ConfigError(f"device {name!r}: this torch sees no CUDA GPU; set device = 'cpu'")
     if dev.type not in ("cpu", "cuda"):
-        raise UserError(f"device {name!r}: only 'cpu' and 'cuda' are supported")
+        raise ConfigError(f"device {name!r}: only 'cpu' and 'cuda' are supported")
     return dev
 
 
@@ -205,8 +205,8 @@ class StageTraining(ABC):
         logged metrics, the step and ``summary()``."""
         data, run = Path(data), RunFolder(Path(out), cls.name, resume)
         if cls.needs and not ckpt_mod.exists(run.out / cls.needs):
-            raise UserError(f"{run.out / cls.needs} holds no {cls.needs} net: run 'train {cls.needs}' with --out "
-                            f"{run.out} first")
+            raise WeightsError(f"{run.out / cls.needs} holds no {cls.needs} net: run 'train {cls.needs}' with --out "
+                               f"{run.out} first")
         with folder_lock(run.out):  # one process writes a run folder at a time
             prior = run.prepare()
             t = cls(data, run, resumed_cfg(cls.config, prior, cfg or cls.config(), {"steps": steps, "seed": seed}))
@@ -284,11 +284,12 @@ def loop(run: RunFolder, total: int, start: int, step_fn: Callable[[int], dict[s
 
 
 def build_model(stage: str, build: Callable[[Any], torch.nn.Module], model_cfg: Any) -> torch.nn.Module:
-    """``build(model_cfg)``, with an unusable ``[stage.model]`` setting (its ``validate()``) as a one-line UserError."""
+    """``build(model_cfg)``, with an unusable ``[stage.model]`` setting (its ``validate()``) as a one-line
+    ConfigError."""
     try:
         return build(model_cfg)
     except ValueError as e:
-        raise UserError(f"[{stage}.model] {e}") from None
+        raise ConfigError(f"[{stage}.model] {e}") from None
 
 
 def split_exists(root: Path, split: str) -> bool:
@@ -319,7 +320,7 @@ def dataset_objects(data: Path, wanted: list[int]) -> tuple[dict[int, bop.Object
     obj_ids = list(wanted) or sorted(infos)
     unknown = [o for o in obj_ids if o not in infos]
     if unknown:
-        raise UserError(f"obj_ids {unknown} are not in {bop.models_info_path(data)}")
+        raise ConfigError(f"obj_ids {unknown} are not in {bop.models_info_path(data)}")
     return infos, obj_ids
 
 
@@ -341,11 +342,11 @@ def init_from(model: torch.nn.Module, model_cfg: Any, src: Path, stage: str) -> 
     been trained at another input size (it is fully convolutional: fine-tuning adapts it to the new one)."""
     ckpt = init_checkpoint(src, stage)
     if not ckpt_mod.exists(ckpt):
-        raise UserError(f"init weights {src} hold no {stage} checkpoint: name a run or its {stage}/ folder")
+        raise WeightsError(f"init weights {src} hold no {stage} checkpoint: name a run or its {stage}/ folder")
     src_model, src_cfg, _ = ckpt_mod.load_model(ckpt, stage)
     if stage == "seg":
         src_cfg = dataclasses.replace(src_cfg, input_size=model_cfg.input_size)
     if src_cfg != model_cfg:
-        raise UserError(f"init weights {ckpt} were trained with another {stage} model config than this run's: "
-                        f"use the same [{stage}.model] settings and dataset objects")
+        raise WeightsError(f"init weights {ckpt} were trained with another {stage} model config than this run's: "
+                           f"use the same [{stage}.model] settings and dataset objects")
     model.load_state_dict(src_model.state_dict())

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from posegrasp import io as pio
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError
 
 MM = 1e-3  # metres per millimetre
 TEST_TARGETS_FILE = "test_targets_bop19.json"
@@ -220,16 +220,16 @@ def _read_image(path: Path) -> np.ndarray:
     try:
         return pio.read_image(path)
     except OSError as e:
-        raise UserError(str(e)) from None
+        raise DatasetError(str(e)) from None
 
 
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(Path(path).read_text())
     except FileNotFoundError:
-        raise UserError(f"BOP file {path} does not exist") from None
+        raise DatasetError(f"BOP file {path} does not exist") from None
     except json.JSONDecodeError as e:
-        raise UserError(f"BOP file {path} is not valid JSON: {e}") from None
+        raise DatasetError(f"BOP file {path} is not valid JSON: {e}") from None
 
 
 def pose_from_bop(R: list[float], t_mm: list[float]) -> np.ndarray:
@@ -299,7 +299,7 @@ def list_scenes(root: str | Path, split: str) -> list[int]:
     """Scene ids present in ``<root>/<split>`` (sorted)."""
     d = split_dir(root, split)
     if not d.is_dir():
-        raise UserError(f"BOP split directory {d} does not exist")
+        raise DatasetError(f"BOP split directory {d} does not exist")
     return sorted(int(p.name) for p in d.iterdir() if p.is_dir() and p.name.isdigit())
 
 
@@ -327,11 +327,11 @@ def load_model(root_or_file: str | Path, obj_id: int | None = None):
 
     p = model_path(root_or_file, obj_id) if obj_id is not None else Path(root_or_file)
     if not p.exists():
-        raise UserError(f"model file {p} does not exist")
+        raise DatasetError(f"model file {p} does not exist")
     try:
         mesh = trimesh.load(p, force="mesh", process=False)
     except Exception as e:  # trimesh raises many types on corrupt files
-        raise UserError(f"cannot read model {p}: {e}") from None
+        raise DatasetError(f"cannot read model {p}: {e}") from None
     mesh.apply_scale(MM)
     return mesh
 
@@ -535,7 +535,8 @@ def load_test_targets(root: str | Path) -> list[EvalTarget] | None:
     try:
         return [EvalTarget(int(r["scene_id"]), int(r["im_id"]), int(r["obj_id"]), int(r["inst_count"])) for r in rows]
     except (KeyError, TypeError, ValueError) as e:
-        raise UserError(f"BOP file {p}: each entry needs integer scene_id, im_id, obj_id, inst_count ({e})") from None
+        raise DatasetError(f"BOP file {p}: each entry needs integer scene_id, im_id, obj_id, inst_count "
+                           f"({e})") from None
 
 
 # ---------------------------------------------------------------------------- results
@@ -569,19 +570,20 @@ def write_results_csv(path: str | Path, results: Iterable[PoseResult]) -> Path:
 
 def read_results_csv(path: str | Path) -> list[PoseResult]:
     """A BOP results CSV (header ``scene_id,im_id,obj_id,score,R,t,time``; t in mm) as PoseResults (m), in file
-    order. A UserError naming the line for a wrong header, a missing field, a negative or non-integer id or a
+    order. A DatasetError naming the line for a wrong header, a missing field, a negative or non-integer id or a
     number that does not parse or is not finite; R is not checked to be a rotation here."""
     p = Path(path)
     try:
         lines = p.read_text(encoding="utf-8").splitlines()
     except FileNotFoundError:
-        raise UserError(f"results file {p} does not exist") from None
+        raise DatasetError(f"results file {p} does not exist") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise UserError(f"cannot read results file {p}: {getattr(e, 'strerror', None) or 'not UTF-8 text'}") from None
+        why = getattr(e, "strerror", None) or "not UTF-8 text"
+        raise DatasetError(f"cannot read results file {p}: {why}") from None
     header = [h.strip() for h in lines[0].split(",")] if lines else []
     if tuple(header) != RESULTS_HEADER:
-        raise UserError(f"{p} line 1: the header must be {','.join(RESULTS_HEADER)} (BOP results format), got "
-                        f"{','.join(header)!r}")
+        raise DatasetError(f"{p} line 1: the header must be {','.join(RESULTS_HEADER)} (BOP results format), got "
+                           f"{','.join(header)!r}")
     while len(lines) > 1 and not lines[-1].strip():  # blank lines at the end
         lines.pop()
     out = []
@@ -589,7 +591,7 @@ def read_results_csv(path: str | Path) -> list[PoseResult]:
         try:
             out.append(_result(row))
         except ValueError as e:
-            raise UserError(f"{p} line {n}: {e}") from None
+            raise DatasetError(f"{p} line {n}: {e}") from None
     return out
 
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from posegrasp import bop
 from posegrasp import io as pio
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError, UserError
 from posegrasp.geometry import invert
 
 #: Required keys and their kinds: "num" a number, "int" an integer, ("nums", n) a list of n numbers.
@@ -427,14 +427,14 @@ def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: floa
 
     root = Path(root)
     if not root.is_dir():
-        raise UserError(f"dataset folder {root} does not exist")
+        raise DatasetError(f"dataset folder {root} does not exist")
     c = _Checker(root, depth_tol_mm, max_problems, labels_only)
     c.models()
     shape = c.camera()
     splits = find_splits(root)
     if split is not None:
         if split not in splits:
-            raise UserError(f"split {split!r} not found in {root} (splits with scenes: {splits or 'none'})")
+            raise DatasetError(f"split {split!r} not found in {root} (splits with scenes: {splits or 'none'})")
         splits = [split]
     c.report.splits = splits
     if not splits:

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from posegrasp.arguments import nonneg_int, number, out_file, positive_int
-from posegrasp.errors import UserError
+from posegrasp.errors import DatasetError, UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,12 +44,12 @@ def run_show(args: argparse.Namespace) -> int:
 
     root = Path(args.dir)
     if not root.is_dir():
-        raise UserError(f"dataset folder {root} does not exist")
+        raise DatasetError(f"dataset folder {root} does not exist")
     split = args.split
     if split is None:
         splits = find_splits(root)
         if len(splits) != 1:
-            raise UserError(f"{root} has splits {splits or 'none'}; choose one with --split")
+            raise DatasetError(f"{root} has splits {splits or 'none'}; choose one with --split")
         split = splits[0]
     panel = show_image(root, split, args.scene, args.im)
     try:

@@ -129,7 +129,7 @@ def load_catalog(objects: str | Path | None = "") -> dict[str, PartType]:
     ordered by ``obj_id`` (cached per folder).
 
     Raises:
-        UserError: one line naming the folder or file, when it is no object set or a file of it is missing or
+        DatasetError: one line naming the folder or file, when it is no object set or a file of it is missing or
             inconsistent (``objects.objset.load_object_set`` checks every file).
     """
     return {b.name: b for b in _load(set_root(objects))}

@@ -9,7 +9,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError
 
 C = TypeVar("C")
 
@@ -17,12 +17,12 @@ C = TypeVar("C")
 def from_dict(cls: type[C], data: dict[str, Any], where: str = "config") -> C:
     """Build dataclass ``cls`` from a (nested) dict, checking key names and value types."""
     if not isinstance(data, dict):
-        raise UserError(f"{where}: expected a table, got {type(data).__name__}")
+        raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise UserError(f"{where}: unknown key(s) {unknown}; valid keys are {sorted(names)}")
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys are {sorted(names)}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
@@ -37,13 +37,13 @@ def within(lo: float, hi: float) -> dict[str, Any]:
 
 
 def check_range(f: dataclasses.Field, value: Any, where: str) -> Any:
-    """``value`` of field ``f`` if it lies in the field's ``within`` bounds (if any), else a UserError."""
+    """``value`` of field ``f`` if it lies in the field's ``within`` bounds (if any), else a ConfigError."""
     lo, hi = f.metadata.get("range", (None, None))
     if lo is None or value is None:
         return value
     values = value if isinstance(value, (list, tuple)) else [value]
     if not all(lo <= v <= hi for v in values):
-        raise UserError(f"{where} = {value!r} is out of range: use {lo:g} to {hi:g}")
+        raise ConfigError(f"{where} = {value!r} is out of range: use {lo:g} to {hi:g}")
     return value
 
 
@@ -58,17 +58,17 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
         return _coerce(args[0], value, where)
     if origin in (tuple, list):
         if not isinstance(value, (list, tuple)):
-            raise UserError(f"{where}: expected a list, got {value!r}")
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
         args = typing.get_args(tp)
         inner = args[0] if args else Any
         out = [_coerce(inner, v, where) for v in value]
         return tuple(out) if origin is tuple else out
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise UserError(f"{where}: expected a finite number, got {value!r}")
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if tp in (int, str, bool) and not isinstance(value, tp) or (tp is int and isinstance(value, bool)):
-        raise UserError(f"{where}: expected {tp.__name__}, got {value!r}")
+        raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}")
     return value
 
 
@@ -78,17 +78,17 @@ def load_toml(cls: type[C], path: str | Path | None, section: str | None = None)
         return cls()
     path = Path(path)
     if not path.exists():
-        raise UserError(f"config file {path} does not exist")
+        raise ConfigError(f"config file {path} does not exist")
     if not path.is_file():
-        raise UserError(f"config file {path} is not a file; name a TOML file")
+        raise ConfigError(f"config file {path} is not a file; name a TOML file")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as e:
-        raise UserError(f"cannot read config file {path}: {e.strerror}") from None
+        raise ConfigError(f"cannot read config file {path}: {e.strerror}") from None
     except UnicodeDecodeError:
-        raise UserError(f"config file {path} is not UTF-8 text; save it as a UTF-8 TOML file") from None
+        raise ConfigError(f"config file {path} is not UTF-8 text; save it as a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as e:
-        raise UserError(f"config file {path} is not valid TOML: {e}") from None
+        raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
     if section is not None:
         data = data.get(section, {})
     return from_dict(cls, data, where=str(path))

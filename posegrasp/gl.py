@@ -19,6 +19,8 @@ import functools
 
 import mujoco
 
+from posegrasp.errors import ConfigError
+
 
 @functools.lru_cache(maxsize=1)
 def _context() -> "mujoco.GLContext":
@@ -33,10 +35,10 @@ def make_current() -> None:
 
 
 def check_offscreen_size(model: mujoco.MjModel, width: int, height: int) -> None:
-    """Raise ValueError unless ``width`` x ``height`` px fits the model's offscreen buffer."""
+    """Raise ConfigError (a ValueError) unless ``width`` x ``height`` px fits the model's offscreen buffer."""
     g = model.vis.global_
     if width > g.offwidth or height > g.offheight:
-        raise ValueError(f"{width}x{height} exceeds the model's offscreen buffer {g.offwidth}x{g.offheight}")
+        raise ConfigError(f"{width}x{height} exceeds the model's offscreen buffer {g.offwidth}x{g.offheight}")
 
 
 def bind_offscreen(con: mujoco.MjrContext) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 
 from posegrasp.arguments import nonneg_int, out_dir, positive_int
 from posegrasp.config import check_range
-from posegrasp.errors import UserError
+from posegrasp.errors import SimulationError, UserError
 from posegrasp.sim.config import CameraConfig
 
 
@@ -53,7 +53,7 @@ def run_scene(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     wc = scene.workcell
     if not wc.drive_arm(wc.look_q):
-        raise RuntimeError("the arm did not reach the look pose")
+        raise SimulationError("the arm did not reach the look pose")
     c = wcfg.hand_camera
     hand = CameraRenderer.from_config(wc, HAND_CAMERA, c, wcfg.render)
     frame = hand.capture()

@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 
 from posegrasp.catalog import PartType, load_catalog, set_root
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError, SceneUnsettled, UserError
 from posegrasp.geometry import make_T, quat_to_R
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.workcell import BlockInstance, Workcell
@@ -47,12 +47,12 @@ def area_capacity(cfg: SceneConfig) -> int:
 
 
 def check_block_types(names: tuple[str, ...] | list[str], objects: str = "") -> None:
-    """Raise a UserError naming the ``names`` that are not object types of the set ``objects``."""
+    """Raise a ConfigError naming the ``names`` that are not object types of the set ``objects``."""
     cat = load_catalog(objects)
     unknown = [t for t in names if t not in cat]
     if unknown:
-        raise UserError(f"unknown block type(s) {unknown}; the object set {set_root(objects).name} has: "
-                        f"{', '.join(cat)}")
+        raise ConfigError(f"unknown block type(s) {unknown}; the object set {set_root(objects).name} has: "
+                          f"{', '.join(cat)}")
 
 
 def choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[PartType]:
@@ -154,8 +154,8 @@ def drop_and_settle(workcell: Workcell, cfg: SceneConfig, types: list[PartType],
             workcell.data.qvel[:] = 0.0
             workcell.data.time = 0.0
             return drop
-    raise RuntimeError(f"blocks did not come to rest inside the pick area after {max_drops} drops; "
-                       "use fewer blocks or a larger pick area")
+    raise SceneUnsettled(f"blocks did not come to rest inside the pick area after {max_drops} drops; "
+                         "use fewer blocks or a larger pick area")
 
 
 def make_scene(seed: int, n_blocks: int, cfg: SceneConfig | None = None, max_drops: int = 20) -> Scene:

@@ -17,7 +17,7 @@ from dm_control import mjcf
 from dm_control.entities.manipulators.kinova import JacoArm, JacoHand
 
 from posegrasp.catalog import PartType
-from posegrasp.errors import UserError
+from posegrasp.errors import ConfigError
 from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
 from posegrasp.sim.camera import T_CV_MJ, rpy_deg_to_R
 from posegrasp.sim.config import WorkcellConfig
@@ -305,6 +305,6 @@ def _look_q(cfg: WorkcellConfig) -> np.ndarray:
     wc = Workcell(cfg)
     q, dp, dr = wc.solve_camera_ik(wc.look_camera_pose(), np.asarray(cfg.home_qpos))
     if dp > 1e-3 or dr > 1e-2:
-        raise UserError(f"look pose unreachable: residual {dp:.4f} m, {np.rad2deg(dr):.2f} deg; "
-                        "lower look_height or move the pick area closer to the arm")
+        raise ConfigError(f"look pose unreachable: residual {dp:.4f} m, {np.rad2deg(dr):.2f} deg; "
+                          "lower look_height or move the pick area closer to the arm")
     return q
