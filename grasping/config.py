@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp import ASSETS
+from posegrasp.grasping.hand import TIP_BELOW
 from posegrasp.grasping.support import RestConfig
 from posegrasp.config import load_toml, within
 from posegrasp.sim.scene import SceneConfig
@@ -44,35 +45,95 @@ class ControlConfig:
 
 
 @dataclass(frozen=True)
+class GraspScoreConfig:
+    """Weights of the grasp score that ranks a block's feasible grasps (higher is better)::
+
+        score = support * s - tilt * tilt_deg - off_centre * d - turn * yaw_turn - width * w
+                + clearance * min(c, clearance_cap)
+
+    ``s``: the share of the contact window on the two contact planes (0-0.5), ``d``: the pinch point's
+    horizontal distance (m) from the block's centre, ``w``: the span (m) across the fingers, ``c``: the open
+    hand's clearance (m) from the neighbours' surfaces (``grasping.grasps.plan_grasps``)."""
+
+    #: Reward per unit of flat-contact share (0-0.5): the fingers rest on flat faces, not on studs or curves.
+    support: float = 2.0
+    #: Penalty per degree (1/deg) the approach leans from straight down.
+    tilt: float = 0.01
+    #: Penalty per metre (1/m) the pinch point lies off the block's centre, horizontally (less torque).
+    off_centre: float = 30.0
+    #: Penalty per radian (1/rad) the wrist turns from its current yaw.
+    turn: float = 0.3
+    #: Penalty per metre (1/m) of span across the fingers.
+    width: float = 2.0
+    #: Reward per metre (1/m) of the open hand's clearance from the neighbours, up to ``clearance_cap``.
+    clearance: float = 20.0
+    #: Clearance (m) beyond which more earns nothing.
+    clearance_cap: float = 0.02
+    #: Score taken off a block's grasps that are not yaw-stable when some are (the tasks that hold firmly).
+    unstable: float = 1.0
+    #: Of the ``contact_depths``, the pinch height is the one with the most flat-contact share less this
+    #: per metre (1/m) between it and the block centre's height.
+    pinch_height: float = 5.0
+
+
+@dataclass(frozen=True)
 class GraspConfig:
     """Grasp candidates, their filters and scores; the place and scoring rules."""
 
-    max_width: float = 0.085  # widest graspable span across the fingers (m)
-    min_width: float = 0.012  # narrowest
-    contact_depths: tuple[float, ...] = (0.010, 0.018, 0.026, 0.034)  # pinch point this far below the block's
-    # top (m): the one with the flattest contact faces nearest the block centre's height ...
-    min_pinch_height: float = 0.014  # ... but at least this high above the table (fingertips clear it)
-    max_tilt_deg: float = 50.0  # candidate approach directions within this angle of straight down
-    clearance_min: float = 0.004  # neighbours' surfaces at least this far from the finger box (m)
-    reach_tol: float = 0.004  # IK position residual (m) accepted as reachable
-    grasps_per_block: int = 4  # the best this many grasps of each estimated block compete ...
-    detection_weight: float = 0.2  # ... ranked by grasp score + this x the estimate's confidence ...
-    ik_checks: int = 8  # ... and the best this many are checked for reachability, in rank order
-    neighbour_points: int = 300  # surface points per neighbouring estimate for the clearance check
-    pregrasp_height: float = 0.08  # approach starts this far above the grasp (m)
-    finger_margin: float = 0.03  # the fingers pre-shape, and open on release, this much wider than the grasp (m)
-    approach_speed: float = 0.25  # peak speed of the approach and of the place descent (m/s)
-    carry_speed: float = 0.5  # peak speed while carrying (m/s; the joint speed limits usually bind first)
-    release_time: float = 0.6  # the fingers open for at most this long before the retreat (s)
-    release_push: float = 0.008  # while opening, the hand pushes this far down (m)
-    lift_height: float = 0.10  # the block's bottom is lifted to this height (m)
-    place_gap: float = 0.004  # the block is brought this far above the place pad (m), then lowered ...
-    place_press: float = 0.003  # ... until it touches, at most this far into the pad (m), and released
-    place_descent_speed: float = 0.03  # peak speed of that last descent until the block touches (m/s)
-    place_approach: float = 0.03  # the carry ends this far above the place pose; the last part is slow (m)
-    retreat_height: float = 0.055  # after releasing, the fingertips rise this far above the block's top (m)
-    fingertip_depth: float = 0.012  # the fingertips reach this far below the pinch point (m)
-    place_jitter: float = 0.02  # random offset of the place target from the pad centre (m)
+    #: Widest graspable span across the fingers (m).
+    max_width: float = 0.085
+    #: Narrowest graspable span across the fingers (m).
+    min_width: float = 0.012
+    #: Pinch heights tried, this far below the block's top (m); the one with the flattest contact faces nearest
+    #: the block centre's height wins (``score.pinch_height``).
+    contact_depths: tuple[float, ...] = (0.010, 0.018, 0.026, 0.034)
+    #: Lowest pinch height above the table (m), so the fingertips clear it.
+    min_pinch_height: float = 0.014
+    #: Approach directions within this angle of straight down are candidates (deg).
+    max_tilt_deg: float = 50.0
+    #: Neighbours' estimated surfaces keep at least this distance from the open hand (m).
+    clearance_min: float = 0.004
+    #: IK position residual accepted as reachable (m).
+    reach_tol: float = 0.004
+    #: The best this many grasps of each estimated block compete for the pick.
+    grasps_per_block: int = 4
+    #: Those grasps are ranked by grasp score plus this times the estimate's confidence.
+    detection_weight: float = 0.2
+    #: The best this many ranked grasps are checked for reachability, in rank order.
+    ik_checks: int = 8
+    #: Surface points sampled per neighbouring estimate for the clearance check.
+    neighbour_points: int = 300
+    #: Height of the pre-grasp pose above the grasp, where the approach starts (m).
+    pregrasp_height: float = 0.08
+    #: The fingers pre-shape, and open on release, this much wider than the grasp (m); the clearance check
+    #: models the hand open this wide.
+    finger_margin: float = 0.03
+    #: Peak speed of the approach and of the place descent (m/s).
+    approach_speed: float = 0.25
+    #: Peak speed while carrying (m/s; the joint speed limits usually bind first).
+    carry_speed: float = 0.5
+    #: The fingers open for at most this long before the retreat (s).
+    release_time: float = 0.6
+    #: While the fingers open, the hand pushes this far down (m).
+    release_push: float = 0.008
+    #: The block's bottom is lifted to this height (m).
+    lift_height: float = 0.10
+    #: The carried block is brought this far above the place pad (m), then lowered until it touches.
+    place_gap: float = 0.004
+    #: The last descent goes at most this far into the pad (m) before the release.
+    place_press: float = 0.003
+    #: Peak speed of the last descent until the block touches (m/s).
+    place_descent_speed: float = 0.03
+    #: The carry ends this far above the place pose; the last part is slow (m).
+    place_approach: float = 0.03
+    #: After the release, the fingertips rise this far above the block's top (m).
+    retreat_height: float = 0.055
+    #: The fingertips reach this far below the pinch point (m; the hand's ``grasping.hand.TIP_BELOW``).
+    fingertip_depth: float = TIP_BELOW
+    #: Random offset of the place target from the pad centre (m).
+    place_jitter: float = 0.02
+    #: Weights of the grasp score.
+    score: GraspScoreConfig = field(default_factory=GraspScoreConfig)
     # The kitting and stack tasks, where the block's yaw in the hand matters, pinch yaw-stably: the block's
     # centre near this far along the gripper y axis (m; pick-and-place: grasps.HAND_Y, -5 mm), between the
     # pads of fingers 2 and 3 (grasps.plan_grasps), and the fingers close up to this many control periods

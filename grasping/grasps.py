@@ -2,9 +2,10 @@
 
 A grasp is a gripper (pinch-site) pose ``T_world_gripper``: z is the approach direction (straight down),
 x the squeeze axis (finger 1 on +x opposes fingers 2 and 3 on -x), and the block's material centre sits at
-``HAND_Y`` along the gripper y axis, between finger 1 and finger 3. Candidates are made per block type in
-the object frame (every face as the top, both in-plane axes as the squeeze axis, a few offsets along the
-face) where those suit the shape (``faces_fit``: boxes, prisms, round parts, the shipped blocks), else from
+``hand.HAND_Y`` along the gripper y axis, between finger 1 and finger 3 (the hand's geometry: ``grasping.hand``;
+the score's weights: ``config.GraspScoreConfig``). Candidates are made per block type in the object frame
+(every face as the top, both in-plane axes as the squeeze axis, a few offsets along the face) where those suit
+the shape (``faces_fit``: boxes, prisms, round parts, the shipped blocks), else from
 the mesh's own antipodal pairs (``antipodal_pairs``: any imported shape), expanded by the block's symmetries,
 moved into the world by the ESTIMATED pose, then checked on the estimated geometry: the material span across
 the fingers at the pinch height, the table, the clearance of the open hand from the neighbours' estimated
@@ -21,32 +22,18 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from posegrasp.grasping.config import GraspConfig
+from posegrasp.grasping.hand import (CONTACT_BAND, FACE_REACH, FINGER23_Y, HAND_Y, ON_PLANE_TOL, PAD_FACE_HEIGHT,
+                                     PAD_HALF_WIDTH, PAD_OVERLAP, hand_boxes)
 from posegrasp.catalog import PartType, sample_surface, symmetry_transforms
 from posegrasp.geometry import make_T, transform_points
 
-#: Where the grasped block's centre sits along the gripper y axis (m): between finger 1 and finger 3.
-HAND_Y = -0.005
-#: Half width (m) of a finger pad along the gripper y axis, and the contact band around the pinch height.
-_PAD_HALF = 0.012
-_BAND = (-0.008, 0.012)  # heights relative to the pinch point that the closing fingertips touch
 #: On shapes with mesh-made candidates (``faces_fit`` false) the span is measured this far past the widest
 #: opening on each side, so that material reaching past it (a handle beside the pinched body) makes the span
 #: too wide instead of going unseen (m).
 _COLUMN_MARGIN = 0.005
 _SPAN_TOL = 0.003  # ... and the span must be that of the antipodal pair the candidate was made for, within this (m)
-_PAD_OVERLAP = 0.004  # a yaw-stable pinch's contact face reaches this far past fingers 2 and 3's inner edges (m)
-#: ... at the pinch height and this far above and below it (m), where the fingertips press ...
-_FACE_REACH = 0.003
-#: ... and of a block's grasps, those whose faces do not reach score this much less when any does.
-UNSTABLE_COST = 1.0
-#: The open hand in the gripper frame (m), from the jaco_hand meshes: each finger is a box from its pad
-#: (at half the opening along x) outward by _FINGER_OUTER, over its y span, from _TIP_BELOW past the pinch
-#: point (the tips curl past it when closing) upward; the palm is a box starting 7 cm above the pinch point.
-_TIP_BELOW = 0.012
-_FINGER_OUTER = 0.03
-_FINGER1_Y = ((-0.032, 0.002),)
-_FINGER23_Y = ((-0.062, -0.022), (-0.002, 0.032))
-_PALM = ((-0.06, -0.065, -1.0), (0.06, 0.035, -0.07))
+#: The clearance a grasp records when no neighbour comes closer (m).
+_CLEAR = 0.05
 
 
 @dataclass(frozen=True)
@@ -269,16 +256,17 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray, cfg: GraspConfig,
-                yaw_now: float, opening_margin: float = 0.03, yaw_stable: bool = False) -> list[Grasp]:
+                yaw_now: float, yaw_stable: bool = False) -> list[Grasp]:
     """Feasible top-down grasps on a block at its estimated pose, best first.
 
     ``neighbours``: (M, 3) world points (m) on the other blocks' estimated surfaces; ``yaw_now``: the
     gripper's current yaw (rad, angle of its x axis in the world xy plane), to prefer small wrist turns.
-    The block's centre sits at ``HAND_Y`` along the gripper y axis; with ``yaw_stable`` it sits as near
+    The block's centre sits at ``hand.HAND_Y`` along the gripper y axis; with ``yaw_stable`` it sits as near
     ``cfg.pose_hand_y`` as lets the contact faces reach the inner edges of both finger 2's and finger 3's pads
     (finger 1 against finger 3 alone is a couple that turns the block in the hand), or at ``HAND_Y`` if
     the faces are too narrow for that; if some of the block's grasps are yaw-stable, the others score
-    ``UNSTABLE_COST`` less (an L-block pinched on its 25 mm end faces turned 10 deg in the hand, every time).
+    ``cfg.score.unstable`` less (an L-block pinched on its 25 mm end faces turned 10 deg in the hand, every time).
+    The open hand of the clearance check is ``cfg.finger_margin`` wider than the grasp.
     """
     frames, spans = candidate_spans(block)
     C = np.einsum("ij,njk->nik", T_world_obj, frames)
@@ -303,18 +291,17 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
             if key in seen:
                 continue
             seen.add(key)
-            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, opening_margin, yaw_stable,
-                          reach)
+            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, yaw_stable, reach)
             if g is not None and not abs(g.width - span) > _SPAN_TOL:  # a mesh candidate pinches its own pair
                 grasps.append(g)
     if any(g.stable for g in grasps):
-        grasps = [g if g.stable else dataclasses.replace(g, score=g.score - UNSTABLE_COST) for g in grasps]
+        grasps = [g if g.stable else dataclasses.replace(g, score=g.score - cfg.score.unstable) for g in grasps]
     return sorted(grasps, key=lambda g: -g.score)
 
 
 def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray, centre: np.ndarray,
-              neighbours: np.ndarray, cfg: GraspConfig, yaw_now: float, opening_margin: float,
-              yaw_stable: bool = False, reach: float | None = None) -> Grasp | None:
+              neighbours: np.ndarray, cfg: GraspConfig, yaw_now: float, yaw_stable: bool = False,
+              reach: float | None = None) -> Grasp | None:
     """A straight-down grasp with squeeze axis ``x`` through ``entry_xy``, checked on the estimated geometry;
     the span is measured on the surface points within ``reach`` (m; default half the widest opening) of the
     entry along ``x``."""
@@ -323,19 +310,19 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     R = np.stack([x, y, z], 1)
     rel = pts - np.array([entry_xy[0], entry_xy[1], 0.0])
     px, py, h = rel @ x, rel @ y, pts[:, 2]
-    column = (np.abs(px) < (cfg.max_width / 2 if reach is None else reach)) & (np.abs(py) < _PAD_HALF)
+    column = (np.abs(px) < (cfg.max_width / 2 if reach is None else reach)) & (np.abs(py) < PAD_HALF_WIDTH)
     if not column.any():
         return None
     best = None
     for depth in cfg.contact_depths:  # the pinch height with the flattest contact faces ...
         z_pinch = max(h[column].max() - depth, cfg.min_pinch_height)
-        band = column & (h > z_pinch + _BAND[0]) & (h < z_pinch + _BAND[1])
+        band = column & (h > z_pinch + CONTACT_BAND[0]) & (h < z_pinch + CONTACT_BAND[1])
         if not band.any():
             continue
         lo, hi = px[band].min(), px[band].max()
         # Flat contact faces: the share of the window's points on each extreme plane (studs, curves: few).
-        support = min((px[band] < lo + 0.0015).sum(), (px[band] > hi - 0.0015).sum()) / band.sum()
-        merit = support - 5.0 * abs(z_pinch - centre[2])  # and close to the centre's height (less torque)
+        support = min((px[band] < lo + ON_PLANE_TOL).sum(), (px[band] > hi - ON_PLANE_TOL).sum()) / band.sum()
+        merit = support - cfg.score.pinch_height * abs(z_pinch - centre[2])  # near the centre's height: less torque
         if best is None or merit > best[0]:
             best = (merit, support, z_pinch, lo, hi)
     if best is None:
@@ -343,9 +330,9 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     _, support, z_pinch, lo, hi = best
     hand_y, stable = HAND_Y, True
     if yaw_stable:  # the contact face's span along y at the pinch height, shifted by hand_y, must cover both
-        on_face = np.abs(px - lo) < 0.0015
-        face = on_face & (np.abs(h - z_pinch) < 0.004)  # inner pad edges of fingers 2, 3
-        inner2, inner3 = _FINGER23_Y[0][1] - _PAD_OVERLAP, _FINGER23_Y[1][0] + _PAD_OVERLAP
+        on_face = np.abs(px - lo) < ON_PLANE_TOL
+        face = on_face & (np.abs(h - z_pinch) < PAD_FACE_HEIGHT)  # inner pad edges of fingers 2, 3
+        inner2, inner3 = FINGER23_Y[0][1] - PAD_OVERLAP, FINGER23_Y[1][0] + PAD_OVERLAP
         narrowest = _face_span(on_face, py, h, z_pinch)
         stable = narrowest is not None and inner3 - narrowest[1] <= inner2 - narrowest[0]
         if face.any() and inner3 - py[face].max() <= inner2 - py[face].min():
@@ -355,30 +342,29 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
         return None
     grasp_point = np.array([entry_xy[0], entry_xy[1], z_pinch]) + 0.5 * (lo + hi) * x
     T = make_T(R, grasp_point - hand_y * y)
-    clearance = 0.05
+    clearance = _CLEAR
     if len(neighbours):
         local = (neighbours - T[:3, 3]) @ R  # gripper frame
-        o = width / 2 + opening_margin / 2
-        boxes = [((o, y0, -1.0), (o + _FINGER_OUTER, y1, _TIP_BELOW)) for y0, y1 in _FINGER1_Y] + \
-                [((-o - _FINGER_OUTER, y0, -1.0), (-o, y1, _TIP_BELOW)) for y0, y1 in _FINGER23_Y] + [_PALM]
+        boxes = hand_boxes(width / 2 + cfg.finger_margin / 2)
         clearance = min(clearance, min(float(_box_distance(local, np.array(lo), np.array(hi)).min())
                                        for lo, hi in boxes))
         if clearance < cfg.clearance_min:
             return None
     off_centre = float(np.linalg.norm(grasp_point[:2] - centre[:2]))
     turn = abs(float(_wrap(np.arctan2(x[1], x[0]) - yaw_now)))
-    score = (-0.01 * tilt - 30.0 * off_centre + 20.0 * min(clearance, 0.02) - 0.3 * turn - 2.0 * width
-             + 2.0 * support)
+    w = cfg.score
+    score = (-w.tilt * tilt - w.off_centre * off_centre + w.clearance * min(clearance, w.clearance_cap)
+             - w.turn * turn - w.width * width + w.support * support)
     return Grasp(T, width, clearance, tilt, float(support), float(score), stable)
 
 
 def _face_span(on: np.ndarray, py: np.ndarray, h: np.ndarray, z_pinch: float) -> tuple[float, float] | None:
     """The y extent (m, gripper frame) that the contact face (the surface points ``on`` it) covers both
-    ``_FACE_REACH`` above and below the pinch height (points within 1.5 mm of each), or None where it is missing:
-    an L-block pinched at its upright part's foot has a long face below and a short one above."""
+    ``FACE_REACH`` above and below the pinch height (points within ``ON_PLANE_TOL`` of each), or None where it is
+    missing: an L-block pinched at its upright part's foot has a long face below and a short one above."""
     ends = []
-    for dz in (-_FACE_REACH, _FACE_REACH):
-        s = on & (np.abs(h - (z_pinch + dz)) < 0.0015)
+    for dz in (-FACE_REACH, FACE_REACH):
+        s = on & (np.abs(h - (z_pinch + dz)) < ON_PLANE_TOL)
         if not s.any():
             return None
         ends.append((py[s].min(), py[s].max()))

@@ -155,7 +155,7 @@ def test_yaw_stable_pinch_prefers_faces_that_reach_fingers_2_and_3():
     # an L-block pinched on its 25 mm end faces (finger 1 against finger 3 alone) turned 10 deg in the hand;
     # across its 50 mm long side faces it stays put (docs/tasks.md)
     from posegrasp.grasping.config import GraspConfig
-    from posegrasp.grasping.grasps import UNSTABLE_COST, plan_grasps
+    from posegrasp.grasping.grasps import plan_grasps
 
     lb = load_catalog()["l_block"]
     T = make_T(np.eye(3), (0.4, 0.0, -standing_extent(lb)[0]))
@@ -167,7 +167,7 @@ def test_yaw_stable_pinch_prefers_faces_that_reach_fingers_2_and_3():
     assert ends and not any(g.stable for g in ends)
     assert max(g.score for g in ends) < stable[0].score
     unpenalised = max(g.score for g in plan_grasps(lb, T, np.zeros((0, 3)), GraspConfig(), 0.0) if g.width > 0.04)
-    assert max(g.score for g in ends) < unpenalised - UNSTABLE_COST + 0.2  # the penalty, not the hand_y shift
+    assert max(g.score for g in ends) < unpenalised - GraspConfig().score.unstable + 0.2  # the penalty, not the hand_y shift
 
 
 def test_firm_hold_tasks_run_noslip_and_sleep_and_pick_place_does_not_by_default():

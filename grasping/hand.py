@@ -1,0 +1,41 @@
+"""The Jaco hand as the grasp planner models it: where a block sits in the hand, the finger pads, and the open
+hand's boxes for the clearance check, from the jaco_hand meshes.
+
+Lengths in metres, in the gripper frame of the pinch site (``grasping.grasps``): origin at the pinch point,
+z the approach direction (down into the block), x the squeeze axis (finger 1 on +x, fingers 2 and 3 on -x).
+"""
+
+from __future__ import annotations
+
+#: Where the grasped block's centre sits along the gripper y axis (m): between finger 1 and finger 3.
+HAND_Y = -0.005
+#: Half width (m) of a finger pad along the gripper y axis: the pads squeeze the block's surface within it.
+PAD_HALF_WIDTH = 0.012
+#: Heights (m, along z: negative above) relative to the pinch point that the closing fingertips touch.
+CONTACT_BAND = (-0.008, 0.012)
+#: A surface point within this distance (m) of a plane lies on it: of a contact face (the block's extreme
+#: plane along the squeeze axis), or of a height the contact face must reach (``FACE_REACH``).
+ON_PLANE_TOL = 0.0015
+#: Fingertips reach this far (m) past the pinch point along z (they curl past it when closing).
+TIP_BELOW = 0.012
+#: Thickness (m) of a finger, outward along x from its pad (at half the opening).
+FINGER_THICKNESS = 0.03
+#: Extent (m) along the gripper y axis of finger 1, and of fingers 2 and 3 (one span each).
+FINGER1_Y = ((-0.032, 0.002),)
+FINGER23_Y = ((-0.062, -0.022), (-0.002, 0.032))
+#: The palm: an axis-aligned box (m, (min corner, max corner)) starting 7 cm above the pinch point.
+PALM = ((-0.06, -0.065, -1.0), (0.06, 0.035, -0.07))
+#: A yaw-stable pinch's contact face reaches this far (m) past the inner pad edges of fingers 2 and 3 ...
+PAD_OVERLAP = 0.004
+#: ... within this height (m) of the pinch point ...
+PAD_FACE_HEIGHT = 0.004
+#: ... and this far (m) above and below the pinch point, where the fingertips press.
+FACE_REACH = 0.003
+
+
+def hand_boxes(o: float) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
+    """The open hand as axis-aligned boxes (min corner, max corner; m, gripper frame): the three fingers, their
+    pads ``o`` m either side of the pinch point along x (half the opening), each from ``TIP_BELOW`` past the
+    pinch point up out of reach, and the palm."""
+    return ([((o, y0, -1.0), (o + FINGER_THICKNESS, y1, TIP_BELOW)) for y0, y1 in FINGER1_Y]
+            + [((-o - FINGER_THICKNESS, y0, -1.0), (-o, y1, TIP_BELOW)) for y0, y1 in FINGER23_Y] + [PALM])
