@@ -184,7 +184,6 @@ class Estimator:
         return self.segmenter(rgb)
 
     @with_one_blas_thread
-    @torch.no_grad()
     def estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
                  mask_scores: list[float] | None = None, plane: np.ndarray | None = None
                  ) -> tuple[list[Detection], dict[str, float]]:
@@ -193,6 +192,14 @@ class Estimator:
         carries the very mask array it was given. plane: the supporting plane for the depth refinement
         (fitted here when None and ``support_plane`` is on). Returns the detections and the seconds spent on
         stages ``pose``, ``refine`` and ``icp``."""
+        _, dets, stages = self._estimate(rgb, depth, K, masks, mask_scores, plane)
+        return dets, stages
+
+    @torch.no_grad()
+    def _estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
+                  mask_scores: list[float] | None, plane: np.ndarray | None
+                  ) -> tuple[list[int], list[Detection], dict[str, float]]:
+        """``estimate``, and first the index in ``masks`` of each detection's mask."""
         t0 = time.perf_counter()
         if plane is None and self.support_plane and self.objects:
             plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
@@ -210,7 +217,7 @@ class Estimator:
             items.append(prep)
             kept.append(k)
         if not items:
-            return [], {"pose": time.perf_counter() - t0, "refine": 0.0, "icp": 0.0}
+            return [], [], {"pose": time.perf_counter() - t0, "refine": 0.0, "icp": 0.0}
         img = torch.from_numpy(np.stack([i[0] for i in items]))  # (B, 3, S, S)
         choose = torch.from_numpy(np.stack([i[1] for i in items]))  # (B, N)
         points = torch.from_numpy(np.stack([i[2] for i in items]))  # (B, N, 3)
@@ -227,7 +234,7 @@ class Estimator:
         out = [Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, mask=masks[k][1],
                          score=float((1.0 if mask_scores is None else mask_scores[k]) * float(conf[j])))
                for j, (k, T_j) in enumerate(zip(kept, poses))]
-        return out, {"pose": t1 - t0, "refine": t2 - t1, "icp": time.perf_counter() - t2}
+        return kept, out, {"pose": t1 - t0, "refine": t2 - t1, "icp": time.perf_counter() - t2}
 
     def _depth_refine(self, poses: list[np.ndarray], masks: list[tuple[int, np.ndarray]], depth: np.ndarray,
                       K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None) -> list[np.ndarray]:
@@ -352,14 +359,15 @@ class Estimator:
             for d, ps in split:
                 rest = d.mask & ~np.any(ps, axis=0)
                 types = [next(all_types) for _ in ps]
-                groups.append((d, rest, ps, [o for o, _ in types]))
+                groups.append((d, len(masks), ps, [o for o, _ in types]))  # the rest's mask at that index, then ps
                 masks += [(d.obj_id, rest)] + [(o, p) for p, (o, _) in zip(ps, types)]
                 scores += [d.score] + [float((1.0 - prob[..., 0][p]).mean()) * pc for p, (_, pc) in zip(ps, types)]
-            fitted = {id(f.mask): f for f in self.estimate(rgb, depth, K, masks, scores, plane)[0]}
+            kept, fits, _ = self._estimate(rgb, depth, K, masks, scores, plane)
+            fitted = dict(zip(kept, fits))  # index in masks -> its detection
             labels = labels.copy()
-            for d, rest, ps, types in groups:
-                new = [fitted[id(p)] for p in ps if id(p) in fitted]
-                first = [fitted[id(rest)]] if id(rest) in fitted else []
+            for d, i, ps, types in groups:
+                new = [fitted[j] for j in range(i + 1, i + 1 + len(ps)) if j in fitted]
+                first = [fitted[i]] if i in fitted else []
                 if any(self._same_block(n, f) for n in new for f in first):
                     done.append(d)  # one block: keep the first fit, its mask whole
                     continue
