@@ -17,7 +17,7 @@ class StartConfig:
     """Where the fits start (``perception.refine.starts``)."""
 
     #: Start rotations Q applied to the estimate, object frame: "cube" (the 24 rotations of the cube group) or
-    #: "identity" (plain ICP from the estimate).
+    #: "identity" (plain ICP from the estimate); an ``ObjectModel`` keeps those distinct under its symmetries.
     hypotheses: str = "cube"
     #: Given the supporting plane, the starts moved to rest on it are also laid on their nearest rest and fitted as
     #: turns about the plane's normal and shifts along the plane, kept resting on it.
