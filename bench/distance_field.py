@@ -4,8 +4,8 @@
 
 Points near each catalogue block's surface (surface samples moved by a Gaussian of ``--spread`` m per axis) get their
 exact distance from the mesh (``trimesh.proximity.signed_distance``) and two estimates: the ``DistanceField`` the
-fine scores use (``perception.distance_field``) and the distance to the nearest of the 1500 model points the fits use
-(a k-d search, what the scores took before the field). Prints mean, 95th percentile and worst error (mm) per block,
+fine scores use (``perception.refine.distance_field``) and the distance to the nearest of the 1500 model points the
+fits use (a k-d search, what the scores took before the field). Prints mean, 95th percentile and worst error (mm) per block,
 and the field's build time.
 """
 
@@ -21,7 +21,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from posegrasp import ASSETS, bop
-from posegrasp.perception.distance_field import DistanceField
+from posegrasp.perception.refine.distance_field import DistanceField
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,7 +12,7 @@ softmax and argmax; cls = the instance classifier on the 5 objects' segments (wh
 pose = crops, point sampling and the pose net on the 5 objects as one batch;
 refine = the refiner's iterations on the 5 objects; plane = the supporting plane's RANSAC fit and mask cleanup;
 icp = the depth refinement of the 5 estimates
-(``perception.icp``, with the block catalogue's meshes); split = the test of the 5 masks against their fitted
+(``perception.refine``, with the block catalogue's meshes); split = the test of the 5 masks against their fitted
 models and the fits of any parts split off (``perception.split``). Prints a table and a JSON line.
 """
 

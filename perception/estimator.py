@@ -10,7 +10,7 @@ Several blocks of one type are told apart as the connected components of their c
 run has an instance classifier (``cls/``, ``perception.classifier``; with further ensemble members ``cls_<name>/``,
 ``perception.ensemble``), every connected segment of the class map is re-labelled by it before the
 instances are formed. With block models (``EstimatorConfig.models``) every
-estimate is refined against the depth image (``perception.icp``) and the parts of a mask its fitted model leaves
+estimate is refined against the depth image (``perception.refine``) and the parts of a mask its fitted model leaves
 unexplained become detections of their own (``perception.split``: touching blocks segmented as one).
 Last, the outlines of the class map and of the detections' masks are snapped to the colour image's edges
 (``perception.guided``); the poses stay those fitted to the masks before.
@@ -36,15 +36,13 @@ from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.crop import backproject, mask_bbox, padded_box
 from posegrasp.perception.ensemble import ClassifierEnsemble
 from posegrasp.perception.guided import GuidedConfig, refine_labels
-from posegrasp.perception.distance_field import DistanceField
-from posegrasp.perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
-from posegrasp.perception.rests import Rests
 from posegrasp.perception.inputs import prepare_pose_input, segment_components
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
+from posegrasp.perception.refine import ObjectModel, RefineConfig, refine_poses
 from posegrasp.perception.refiner import refine
 from posegrasp.perception.runtime import for_inference, with_one_blas_thread
 from posegrasp.perception.segmenter import Segmenter
-from posegrasp.perception.split import ModelSurface, SplitConfig, unexplained_parts
+from posegrasp.perception.split import SplitConfig, unexplained_parts
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 
 #: The pose net's points per object and crop side (px) when its estimates are refined against the depth image.
@@ -64,7 +62,7 @@ class EstimatorConfig:
     pipeline); True = required.
     min_valid_points: minimum valid-depth pixels per object. models: a BOP dataset root whose
     ``models/`` hold the objects' meshes; with it every estimate is refined against the depth image by
-    ICP from rotation hypotheses (``perception.icp``, settings ``icp``); None skips that step.
+    ICP from rotation hypotheses (``perception.refine``, settings ``icp``); None skips that step.
     support_plane: fit the frame's dominant plane (``perception.plane``); segmented pixels on it become
     background and ICP hypotheses sunk into it lose.
     split: with ``models``, the part of a detection's mask its fitted model leaves unexplained becomes a
@@ -86,7 +84,7 @@ class EstimatorConfig:
     seed: int = 0
     classify: bool | None = None
     models: str | Path | None = None
-    icp: ICPConfig = field(default_factory=ICPConfig)
+    icp: RefineConfig = field(default_factory=RefineConfig)
     support_plane: bool = True
     split: SplitConfig = field(default_factory=SplitConfig)
     guided: GuidedConfig = field(default_factory=GuidedConfig)
@@ -161,36 +159,20 @@ class Estimator:
         self.split_cfg = cfg.split
         self.guided_cfg = cfg.guided
         self.guided_cfg.validate()
-        self.model_points: dict[int, np.ndarray] | None = None
-        self.hypotheses: dict[int, np.ndarray] = {}
-        self.grids: dict[int, NearestGrid] = {}
-        self.symmetries: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self.rests: dict[int, Rests] = {}
-        self.surfaces: dict[int, ModelSurface] = {}
+        self.objects: dict[int, ObjectModel] = {}  # by obj_id; empty without ``models``
         if cfg.models is not None:
             self._load_models(cfg.models)
 
     def _load_models(self, models: str | Path) -> None:
-        """Model points, ICP rotation hypotheses, nearest-point grids and (for splitting) surfaces of every object of
-        the pose net, from the BOP dataset root ``models``."""
+        """The ``ObjectModel`` of every object of the pose net (with its split surface when splitting is on), from the
+        BOP dataset root ``models``."""
         infos = bop.load_models_info(models)
         missing = [o for o in self.obj_ids if o not in infos]
         if missing:
             raise UserError(f"models in {models} lack objects {missing} of the pose net")
-        meshes = {o: bop.load_model(models, o) for o in self.obj_ids}
-        self.model_points = {o: bop.sample_model_points(meshes[o], self.icp.model_points, seed=o) for o in self.obj_ids}
-        self.symmetries = {o: infos[o].symmetry_rotations() for o in self.obj_ids}
-        self.rests = {o: Rests.of_mesh(meshes[o], *self.symmetries[o]) for o in self.obj_ids}
-        self.hypotheses = {o: distinct_rotations(self.icp.rotations(), list(self.symmetries[o][0]),
-                                                 list(self.symmetries[o][1]))
-                           for o in self.obj_ids}
-        self.grids = {o: NearestGrid(self.model_points[o], field=DistanceField.of_mesh(meshes[o], seed=o,
-                                                                             margin=self.icp.truncation))
-                      for o in self.obj_ids}
-        if self.split_cfg.rounds > 0:
-            self.surfaces = {o: ModelSurface(bop.sample_model_points(meshes[o],
-                                                                      self.split_cfg.model_points, seed=o))
-                             for o in self.obj_ids}
+        surface = self.split_cfg.model_points if self.split_cfg.rounds > 0 else 0
+        self.objects = {o: ObjectModel.of_mesh(bop.load_model(models, o), infos[o].symmetry_rotations(), self.icp,
+                                               seed=o, surface_points=surface) for o in self.obj_ids}
 
     @property
     def obj_ids(self) -> list[int]:
@@ -202,7 +184,6 @@ class Estimator:
         return self.segmenter(rgb)
 
     @with_one_blas_thread
-    @torch.no_grad()
     def estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
                  mask_scores: list[float] | None = None, plane: np.ndarray | None = None
                  ) -> tuple[list[Detection], dict[str, float]]:
@@ -211,8 +192,16 @@ class Estimator:
         carries the very mask array it was given. plane: the supporting plane for the depth refinement
         (fitted here when None and ``support_plane`` is on). Returns the detections and the seconds spent on
         stages ``pose``, ``refine`` and ``icp``."""
+        _, dets, stages = self._estimate(rgb, depth, K, masks, mask_scores, plane)
+        return dets, stages
+
+    @torch.no_grad()
+    def _estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
+                  mask_scores: list[float] | None, plane: np.ndarray | None
+                  ) -> tuple[list[int], list[Detection], dict[str, float]]:
+        """``estimate``, and first the index in ``masks`` of each detection's mask."""
         t0 = time.perf_counter()
-        if plane is None and self.support_plane and self.model_points is not None:
+        if plane is None and self.support_plane and self.objects:
             plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
         rng = np.random.default_rng(self.seed)
         cfg = self.pose_cfg
@@ -228,7 +217,7 @@ class Estimator:
             items.append(prep)
             kept.append(k)
         if not items:
-            return [], {"pose": time.perf_counter() - t0, "refine": 0.0, "icp": 0.0}
+            return [], [], {"pose": time.perf_counter() - t0, "refine": 0.0, "icp": 0.0}
         img = torch.from_numpy(np.stack([i[0] for i in items]))  # (B, 3, S, S)
         choose = torch.from_numpy(np.stack([i[1] for i in items]))  # (B, N)
         points = torch.from_numpy(np.stack([i[2] for i in items]))  # (B, N, 3)
@@ -240,28 +229,26 @@ class Estimator:
             T = refine(self.refiner, T, points, emb, obj, self.refine_iterations)
             t2 = time.perf_counter()
         poses = [T[j].double().numpy() for j in range(len(kept))]
-        if self.model_points is not None:
+        if self.objects:
             poses = self._depth_refine(poses, [masks[k] for k in kept], depth, K, rng, plane)
         out = [Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, mask=masks[k][1],
                          score=float((1.0 if mask_scores is None else mask_scores[k]) * float(conf[j])))
                for j, (k, T_j) in enumerate(zip(kept, poses))]
-        return out, {"pose": t1 - t0, "refine": t2 - t1, "icp": time.perf_counter() - t2}
+        return kept, out, {"pose": t1 - t0, "refine": t2 - t1, "icp": time.perf_counter() - t2}
 
     def _depth_refine(self, poses: list[np.ndarray], masks: list[tuple[int, np.ndarray]], depth: np.ndarray,
                       K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None) -> list[np.ndarray]:
-        """``perception.icp.refine_poses`` of the estimates (4x4 each) on (up to ``icp.max_points`` of) their masks'
-        valid depth points (obj_id, (H, W) bool each)."""
+        """``perception.refine.refine_poses`` of the estimates (4x4 each) on (up to ``icp.fit.max_points`` of) their
+        masks' valid depth points (obj_id, (H, W) bool each)."""
         observed = []
         for _, m in masks:  # (each mask has valid depth: ``estimate`` keeps no other)
             r0, r1, c0, c1 = box = mask_bbox(m)
             idx = np.flatnonzero(m[r0:r1, c0:c1] & (depth[r0:r1, c0:c1] > 0))  # raster order, as in the image
-            if idx.size > self.icp.max_points:
-                idx = idx[np.sort(rng.choice(idx.size, self.icp.max_points, replace=False))]
+            if idx.size > self.icp.fit.max_points:
+                idx = idx[np.sort(rng.choice(idx.size, self.icp.fit.max_points, replace=False))]
             observed.append(backproject(depth, K, box, idx))
-        ids = [o for o, _ in masks]
-        return [T for T, _ in refine_poses(poses, [self.model_points[o] for o in ids], observed, depth, K, self.icp,
-                                           [self.hypotheses[o] for o in ids], plane, [self.grids[o] for o in ids],
-                                           [self.symmetries[o] for o in ids], [self.rests[o] for o in ids])]
+        models = [self.objects[o] for o, _ in masks]
+        return [T for T, _ in refine_poses(poses, models, observed, depth, K, self.icp, plane)]
 
     @with_one_blas_thread
     @torch.no_grad()
@@ -313,7 +300,7 @@ class Estimator:
         timings = {"seg": time.perf_counter() - t0 - t_cls, "cls": t_cls}
         dets, stages = self.estimate(rgb, depth, K, masks, scores, plane)
         t4 = time.perf_counter()
-        if self.surfaces:
+        if self.objects and self.split_cfg.rounds > 0:
             dets, labels = self.split_merged(rgb, depth, K, dets, prob, plane, labels)
             dets = self.drop_duplicates(dets)
         t5, t_guided = time.perf_counter(), 0.0
@@ -359,7 +346,7 @@ class Estimator:
         for _ in range(cfg.rounds):
             split: list[tuple[Detection, list[np.ndarray]]] = []
             for d in dets:
-                explained = self.surfaces[d.obj_id].explained(d.T_cam_obj, d.mask, depth, K, cfg.tol)
+                explained = self.objects[d.obj_id].surface.explained(d.T_cam_obj, d.mask, depth, K, cfg.tol)
                 ps = unexplained_parts(d.mask, explained, depth, cfg)
                 if ps:
                     split.append((d, ps))
@@ -372,14 +359,15 @@ class Estimator:
             for d, ps in split:
                 rest = d.mask & ~np.any(ps, axis=0)
                 types = [next(all_types) for _ in ps]
-                groups.append((d, rest, ps, [o for o, _ in types]))
+                groups.append((d, len(masks), ps, [o for o, _ in types]))  # the rest's mask at that index, then ps
                 masks += [(d.obj_id, rest)] + [(o, p) for p, (o, _) in zip(ps, types)]
                 scores += [d.score] + [float((1.0 - prob[..., 0][p]).mean()) * pc for p, (_, pc) in zip(ps, types)]
-            fitted = {id(f.mask): f for f in self.estimate(rgb, depth, K, masks, scores, plane)[0]}
+            kept, fits, _ = self._estimate(rgb, depth, K, masks, scores, plane)
+            fitted = dict(zip(kept, fits))  # index in masks -> its detection
             labels = labels.copy()
-            for d, rest, ps, types in groups:
-                new = [fitted[id(p)] for p in ps if id(p) in fitted]
-                first = [fitted[id(rest)]] if id(rest) in fitted else []
+            for d, i, ps, types in groups:
+                new = [fitted[j] for j in range(i + 1, i + 1 + len(ps)) if j in fitted]
+                first = [fitted[i]] if i in fitted else []
                 if any(self._same_block(n, f) for n in new for f in first):
                     done.append(d)  # one block: keep the first fit, its mask whole
                     continue
@@ -393,11 +381,11 @@ class Estimator:
         """``dets`` without those fitted where a detection of the same type with a larger mask sits: their centres
         closer than ``split_cfg.duplicate`` x the block's smallest side, which two blocks cannot be (one block
         seen as two segments, or split in two)."""
-        if self.split_cfg.duplicate <= 0 or self.model_points is None:  # (the blocks' sizes come with the models)
+        if self.split_cfg.duplicate <= 0 or not self.objects:  # (the blocks' sizes come with the models)
             return dets
         kept: list[Detection] = []
         for d in sorted(dets, key=lambda d: -int(d.mask.sum())):
-            side = float(np.ptp(self.model_points[d.obj_id], axis=0).min())
+            side = self.objects[d.obj_id].smallest_side
             if all(k.obj_id != d.obj_id or np.linalg.norm(k.T_cam_obj[:3, 3] - d.T_cam_obj[:3, 3]) >=
                    self.split_cfg.duplicate * side for k in kept):
                 kept.append(d)
@@ -408,8 +396,8 @@ class Estimator:
         model points (placed at its pose) to ``b``'s placed surface below ``split_cfg.same_block``."""
         if a.obj_id != b.obj_id:
             return False
-        pts = self.model_points[a.obj_id] @ a.T_cam_obj[:3, :3].T + a.T_cam_obj[:3, 3]  # camera frame
-        dist, _ = self.surfaces[b.obj_id].tree.query((pts - b.T_cam_obj[:3, 3]) @ b.T_cam_obj[:3, :3])
+        pts = self.objects[a.obj_id].points @ a.T_cam_obj[:3, :3].T + a.T_cam_obj[:3, 3]  # camera frame
+        dist, _ = self.objects[b.obj_id].surface.tree.query((pts - b.T_cam_obj[:3, 3]) @ b.T_cam_obj[:3, :3])
         return float(np.median(dist)) < self.split_cfg.same_block
 
     def _part_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[np.ndarray],

@@ -48,7 +48,7 @@ class EvalConfig:
     """split: BOP split to evaluate. masks: "pred" (full pipeline) or "gt" (ground-truth visible
     masks, pose stage only). refine_iterations: -1 = as trained, 0 = no refinement. classify: re-label
     segments with the run's instance classifier when it has one (false: the paper's pipeline). icp: refine
-    every estimate against the depth image (``perception.icp``, with the dataset's models). plane: use the
+    every estimate against the depth image (``perception.refine``, with the dataset's models). plane: use the
     frame's supporting plane (``perception.plane``: segmented pixels on it dropped; an ICP prior). guided: snap the
     class map's outlines to the colour edges (``perception.guided``). split_merged: split
     off the parts of a mask its fitted model leaves unexplained (``perception.split``; needs icp).

@@ -77,7 +77,7 @@ _FILE_PATH = re.compile(r"(?<![\w/.-])((?:sim|datagen|perception|grasping|posegr
 @pytest.mark.parametrize("page", [p for p in PAGES if p.name != "perception_releases.md"],
                          ids=lambda p: str(p.relative_to(ROOT)))
 def test_named_source_files_exist(page: Path) -> None:
-    """Source and settings files the docs name (`perception/icp.py`) exist; the release history may name old ones."""
+    """Source and settings files the docs name (`perception/plane.py`) exist; the release history may name old ones."""
     named = set(_FILE_PATH.findall(page.read_text(encoding="utf-8")))
     missing = sorted(p for p in named if not (ROOT / p).exists())
     assert not missing, f"{page.name} names files that do not exist: {missing}"

@@ -19,8 +19,8 @@ import posegrasp
 ROOT = Path(__file__).resolve().parents[1]
 #: Package name -> folder, as pyproject.toml maps them.
 PACKAGES = {"posegrasp": "posegrasp", "posegrasp.sim": "sim", "posegrasp.datagen": "datagen",
-            "posegrasp.perception": "perception", "posegrasp.grasping": "grasping", "posegrasp.objects": "objects",
-            "posegrasp.assets": "assets"}
+            "posegrasp.perception": "perception", "posegrasp.perception.refine": "perception/refine",
+            "posegrasp.grasping": "grasping", "posegrasp.objects": "objects", "posegrasp.assets": "assets"}
 PARTS = ("sim", "datagen", "perception", "grasping", "objects")
 
 
@@ -85,7 +85,8 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     src = tmp_path_factory.mktemp("src")
     shutil.copy(ROOT / "pyproject.toml", src)
     for folder in PACKAGES.values():
-        shutil.copytree(ROOT / folder, src / folder, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        shutil.copytree(ROOT / folder, src / folder, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"),
+                        dirs_exist_ok=True)  # (a subpackage's folder lies inside its parent's)
     out = tmp_path_factory.mktemp("wheel")
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(out),
                         str(src)], capture_output=True, text=True, timeout=600)
@@ -97,8 +98,8 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_wheel_holds_one_package_and_its_assets(wheel: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     assert {n.split("/")[0] for n in names} == {"posegrasp", "posegrasp-0.1.0.dist-info"}
-    for part in PARTS:
-        assert f"posegrasp/{part}/__init__.py" in names
+    for pkg in PACKAGES:
+        assert f"{pkg.replace('.', '/')}/__init__.py" in names
     assets = {n.removeprefix("posegrasp/assets/") for n in names if n.startswith("posegrasp/assets/")}
     shipped = {str(p.relative_to(posegrasp.ASSETS)) for p in posegrasp.ASSETS.rglob("*")
                if p.is_file() and "__pycache__" not in p.parts}

@@ -9,7 +9,7 @@ It is built from the project's own classical pieces and shows what a plug-in rec
 2. the pixels standing more than ``min_height`` above it, cut at depth edges, as connected blobs (one per
    object, unless two touch at the same height);
 3. for each blob, every model of the object set whose size can explain it is fitted by ICP from the 24
-   axis-aligned starting rotations about the blob's principal axes (``posegrasp.perception.icp.refine_poses``,
+   axis-aligned starting rotations about the blob's principal axes (``posegrasp.perception.refine.refine_poses``,
    with the free-space and below-the-plane penalties); the model and pose with the lowest ICP score win. Depth
    alone cannot tell apart objects of the same shape and size: the ICP score picks among them.
 
@@ -31,18 +31,17 @@ from posegrasp import bop
 from posegrasp.errors import UserError
 from posegrasp.grasping.perception import Estimate, Observation
 from posegrasp.perception.crop import backproject
-from posegrasp.perception.icp import ICPConfig, NearestGrid, distinct_rotations, refine_poses
+from posegrasp.perception.refine import (FitConfig, NearestGrid, ObjectModel, RefineConfig, distinct_rotations,
+                                         refine_poses)
 from posegrasp.perception.plane import fit_support_plane, plane_distance
 
 
 @dataclass
 class _Model:
-    """One object of the set: id, surface points (object frame, m), ICP start rotations, grid, size (m)."""
+    """One object of the set: id, its shape for the ICP, size (m)."""
 
     obj_id: int
-    points: np.ndarray
-    rotations: np.ndarray
-    grid: NearestGrid
+    model: ObjectModel
     extents: np.ndarray  # bounding-box size, sorted ascending
     diameter: float
 
@@ -58,7 +57,7 @@ class DepthOnlyProvider:
     min_px: int = 150  # blobs with fewer pixels (at 640x480) are dropped
     size_tol: float = 0.008  # a model is tried when its size matches the blob's within this (m)
     score_scale: float = 0.004  # score = exp(-ICP score / this)
-    icp: ICPConfig = field(default_factory=lambda: ICPConfig(max_points=200))
+    icp: RefineConfig = field(default_factory=lambda: RefineConfig(fit=FitConfig(max_points=200)))
     name: str = "depth-only"
 
     def __post_init__(self) -> None:
@@ -68,8 +67,8 @@ class DepthOnlyProvider:
             pts = bop.sample_model_points(bop.load_model(self.models, o), 500, seed=o)
             rots = distinct_rotations(self.icp.rotations(), info.symmetries_discrete,
                                       [a for a, _ in info.symmetries_continuous])
-            self._models.append(_Model(o, pts, rots, NearestGrid(pts), np.sort(np.ptp(pts, axis=0)),
-                                       float(info.diameter)))
+            self._models.append(_Model(o, ObjectModel.of_points(pts, self.icp, rots, grid=NearestGrid(pts)),
+                                       np.sort(np.ptp(pts, axis=0)), float(info.diameter)))
 
     def estimate(self, obs: Observation, seed: int) -> list[Estimate]:
         """Pose estimates (OpenCV camera frame, m) of the objects standing on the frame's supporting plane."""
@@ -82,14 +81,13 @@ class DepthOnlyProvider:
         for b, idx in enumerate(self._blobs(depth, K, plane)):
             pts = backproject(depth, K, (0, depth.shape[0], 0, depth.shape[1]), idx)
             T, fit = self._candidates(pts, plane)
-            sub = pts[np.sort(rng.choice(len(pts), min(len(pts), self.icp.max_points), replace=False))]
+            sub = pts[np.sort(rng.choice(len(pts), min(len(pts), self.icp.fit.max_points), replace=False))]
             blob += [b] * len(fit)
             starts += [T] * len(fit)
             models += fit
             observed += [sub] * len(fit)
         torch.set_num_threads(1)  # small batched ops: threads only add overhead (and compete with other workers)
-        fits = refine_poses(starts, [m.points for m in models], observed, obs.depth, K, self.icp,
-                            [m.rotations for m in models], plane, [m.grid for m in models])
+        fits = refine_poses(starts, [m.model for m in models], observed, obs.depth, K, self.icp, plane)
         out = []
         for b in sorted(set(blob)):  # each blob: the candidate with the lowest ICP score
             j = min((j for j in range(len(blob)) if blob[j] == b), key=lambda j: fits[j][1])
@@ -142,7 +140,7 @@ def make_provider(args: str | None, objects: str) -> DepthOnlyProvider:
     if args:
         try:
             mm, n = args.split(",")
-            kw = {"min_height": float(mm) / 1000, "icp": ICPConfig(max_points=int(n))}
+            kw = {"min_height": float(mm) / 1000, "icp": RefineConfig(fit=FitConfig(max_points=int(n)))}
         except ValueError:
             raise UserError(f"depth-only ARGS {args!r} are not MIN_HEIGHT_MM,MAX_POINTS, e.g. 5,200") from None
     return DepthOnlyProvider(str(Path(objects)), **kw)

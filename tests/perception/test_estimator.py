@@ -72,7 +72,7 @@ def test_duplicates_of_one_block_are_dropped(tiny_bop, tiny_run):
     """Two detections of one type whose centres are closer than half the block's smallest side are one block: the one
     with the smaller mask goes; detections of another type, or farther apart, stay."""
     est = Estimator(tiny_run, EstimatorConfig(models=tiny_bop))
-    side = float(np.ptp(est.model_points[1], axis=0).min())
+    side = est.objects[1].smallest_side
 
     def det(obj_id: int, x: float, pixels: int) -> Detection:
         T = np.eye(4)

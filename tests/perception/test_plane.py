@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from posegrasp.perception.icp import ICPConfig, refine_pose
+from posegrasp.perception.refine import FitConfig, ObjectModel, RefineConfig, refine_pose
 from posegrasp.perception.plane import clear_plane, fit_support_plane, plane_pixels
 
 K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
@@ -44,16 +44,17 @@ def test_icp_scores_a_pose_sunk_into_the_table_worse():
     plane = np.array([0.0, 0.0, -1.0, 0.5])  # normal up the optical axis, towards the camera
     model = rng.uniform(-0.02, 0.02, (2000, 3))
     depth = np.zeros((240, 320))  # no depth: the free-space term stays 0
-    cfg = ICPConfig(iterations=0)
+    cfg = RefineConfig(fit=FitConfig(iterations=0))
+    fixed = ObjectModel.of_points(model, cfg, np.eye(3)[None])
     for dz, share in ((0.0, 0.0), (0.01, 0.25)):  # the cube's bottom 0 or 1 cm beneath the table
         T = np.eye(4)
         T[2, 3] = 0.48 + dz
         obs = model[:300] @ T[:3, :3].T + T[:3, 3]
-        s_free = refine_pose(T, model, obs, depth, K, cfg, np.eye(3)[None])[1]
-        s_plane = refine_pose(T, model, obs, depth, K, cfg, np.eye(3)[None], plane)[1]
-        below = np.mean(model[:, 2] + T[2, 3] > 0.5 + cfg.violation_margin)
+        s_free = refine_pose(T, fixed, obs, depth, K, cfg)[1]
+        s_plane = refine_pose(T, fixed, obs, depth, K, cfg, plane)[1]
+        below = np.mean(model[:, 2] + T[2, 3] > 0.5 + cfg.score.violation_margin)
         assert abs(below - share / 2) < 0.03  # points more than the 5 mm margin beneath: half the sunk part
-        assert s_plane - s_free == pytest.approx(cfg.violation_weight * below, abs=1e-6)
+        assert s_plane - s_free == pytest.approx(cfg.score.violation_weight * below, abs=1e-6)
 
 
 def test_no_plane_without_a_table(tiny_bop):

@@ -5,8 +5,8 @@ import pytest
 import trimesh
 
 from posegrasp import bop
-from posegrasp.perception.icp import cube_rotations
-from posegrasp.perception.rests import Rests, up_classes
+from posegrasp.perception.refine.rests import Rests, up_classes
+from posegrasp.perception.refine.starts import cube_rotations
 
 
 def _symmetries(obj_id: int) -> tuple[np.ndarray, np.ndarray]:

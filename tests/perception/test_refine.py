@@ -1,4 +1,5 @@
-"""Depth refinement: ICP from rotation hypotheses recovers a block turned onto a near-symmetry."""
+"""Depth refinement (``perception.refine``): ICP from rotation hypotheses recovers a block turned onto a
+near-symmetry."""
 
 import itertools
 
@@ -8,7 +9,9 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from posegrasp.perception.icp import ICPConfig, NearestGrid, cube_rotations, distinct_rotations, refine_pose, refine_poses
+from posegrasp.perception.refine import (FitConfig, NearestGrid, ObjectModel, RefineConfig, ScoreConfig, SearchConfig,
+                                        StartConfig, TurnConfig, cube_rotations, distinct_rotations, refine_pose,
+                                        refine_poses)
 from posegrasp.perception.metrics import rotation_error_sym_deg
 from posegrasp import bop
 from posegrasp.geometry import axis_angle_R, make_T
@@ -31,17 +34,30 @@ def test_distinct_rotations_drop_hypotheses_equal_under_symmetry():
     assert np.allclose(cyl[0], np.eye(3))  # the estimate itself stays first
 
 
-@pytest.mark.parametrize("bad, message", [(dict(polish=-1), "polish .-1. must be >= 0"),
-                                          (dict(max_points=2), "max_points must be >= 3 .*got 2"),
-                                          (dict(truncation=0.0), "truncation .0.0. must be positive"),
-                                          (dict(float_weight=-1.0), "float_weight .-1.0. >= 0"),
-                                          (dict(pattern_fits=0), r"pattern_fits .0. >= 1"),
-                                          (dict(rank_points=2000), r"rank_points .2000. within \[1, model_points\]"),
-                                          (dict(hypotheses="sphere"), "'cube' or 'identity', got 'sphere'")])
-def test_icp_config_names_the_bad_value(bad, message):
-    ICPConfig().validate()
+@pytest.mark.parametrize("bad, message", [
+    (dict(fit=FitConfig(polish=-1)), r"fit\.polish .-1. must be >= 0"),
+    (dict(fit=FitConfig(max_points=2)), r"fit\.max_points must be >= 3 .*got 2"),
+    (dict(score=ScoreConfig(truncation=0.0)), r"score\.truncation .0\.0. must be positive"),
+    (dict(score=ScoreConfig(float_weight=-1.0)), r"score\.float_weight .-1\.0. >= 0"),
+    (dict(turns=TurnConfig(seeds=0)), r"turns\.seeds .0. >= 1"),
+    (dict(search=SearchConfig(pattern_fits=0)), r"search\.pattern_fits .0. >= 1"),
+    (dict(score=ScoreConfig(rank_points=2000)), r"score\.rank_points .2000. within \[1, fit\.model_points\]"),
+    (dict(starts=StartConfig(hypotheses="sphere")), "'cube' or 'identity', got 'sphere'")])
+def test_refine_config_names_the_bad_value(bad, message):
+    RefineConfig().validate()
     with pytest.raises(ValueError, match=message):
-        ICPConfig(**bad).validate()
+        RefineConfig(**bad).validate()
+
+
+def test_refine_config_loads_its_stages_from_a_table():
+    """The settings nest by stage, as a TOML table would give them; a flat key is refused with the valid ones named."""
+    from posegrasp.config import from_dict
+    from posegrasp.errors import UserError
+
+    cfg = from_dict(RefineConfig, {"fit": {"polish": 2}, "search": {"pattern_rounds": 0}})
+    assert cfg == RefineConfig(fit=FitConfig(polish=2), search=SearchConfig(pattern_rounds=0))
+    with pytest.raises(UserError, match=r"unknown key\(s\) \['polish'\]; valid keys are \['fit', 'score'"):
+        from_dict(RefineConfig, {"polish": 2})
 
 
 def test_nearest_grid_matches_within_half_a_cell_diagonal():
@@ -59,19 +75,19 @@ def test_nearest_grid_matches_within_half_a_cell_diagonal():
     with pytest.raises(ValueError, match="cell > 0"):
         NearestGrid(model, cell=0.0)
     with pytest.raises(ValueError, match="truncation"):  # a field that stops short of the score's truncation
-        refine_poses([np.eye(4)], [model], [model[:50]], np.zeros((8, 8)), np.eye(3), ICPConfig(truncation=0.02),
-                     grids=[grid])
+        refine_poses([np.eye(4)], [ObjectModel.of_points(model, grid=grid)], [model[:50]], np.zeros((8, 8)), np.eye(3),
+                     RefineConfig(score=ScoreConfig(truncation=0.02)))
 
 
 def test_grids_posed_and_exact_lookups():
     """Two objects' grids as one lookup: camera-frame points under poses (R, t) find the cells their object-frame
     points find (but for the odd point on a cell boundary), and ``exact`` gives each point's true nearest model
     point, its row within its own model."""
-    from posegrasp.perception.icp import _Grids
+    from posegrasp.perception.refine.grids import Grids
 
     rng = np.random.default_rng(1)
     models = [rng.uniform(-1, 1, (500, 3)) * [0.03, 0.015, 0.01], rng.uniform(-1, 1, (300, 3)) * 0.02]
-    grids = _Grids([NearestGrid(m) for m in models], 500)
+    grids = Grids([NearestGrid(m) for m in models], 500)
     obj = torch.tensor([0, 1, 1, 0])
     R = torch.from_numpy(np.stack([axis_angle_R(v / np.linalg.norm(v), a) for v, a in
                                    zip(rng.normal(size=(4, 3)), rng.uniform(0, np.pi, 4))])).float()
@@ -106,10 +122,11 @@ def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
             return rotation_error_sym_deg(T[:3, :3], g.T_cam_obj[:3, :3], info.symmetries_discrete)
 
         for Q in (None, hyps):  # all 24 hypotheses, and the 6 that differ under the box's symmetries
-            T, _ = refine_pose(T_est, model, obs[::max(1, len(obs) // 300)], depth, K, rotations=Q)
+            T, _ = refine_pose(T_est, ObjectModel.of_points(model, hypotheses=Q), obs[::max(1, len(obs) // 300)],
+                               depth, K)
             fixed += err(T) < 10.0 and np.linalg.norm(T[:3, 3] - g.T_cam_obj[:3, 3]) < 0.005
-        T1, _ = refine_pose(T_est, model, obs[::max(1, len(obs) // 300)], depth, K,
-                            ICPConfig(hypotheses="identity", yaw_step_deg=0.0))
+        plain = RefineConfig(starts=StartConfig(hypotheses="identity"), turns=TurnConfig(step_deg=0.0))
+        T1, _ = refine_pose(T_est, ObjectModel.of_points(model, plain), obs[::max(1, len(obs) // 300)], depth, K, plain)
         stuck += err(T1) > 45.0
     # measured: 7 of 8 recovered with the 24 hypotheses, 7 of 8 with the 6; plain ICP stays turned in 8 of 8
     assert fixed >= 2 * 0.75 * len(recs) and stuck >= 0.75 * len(recs)
@@ -128,14 +145,14 @@ def test_objects_refined_together_as_each_alone(tiny_bop):
         z = depth[vs, us].astype(np.float64)
         obs = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)[::3 + k]
         T_est = g.T_cam_obj @ make_T(axis_angle_R(np.array([0.0, 0.0, 1.0]), 0.3), np.array([0.004, 0.0, 0.0]))
-        args.append((T_est, model, obs, distinct_rotations(cube_rotations(), infos[g.obj_id].symmetries_discrete, [])))
-    assert len(args) >= 2 and len({len(a[1]) for a in args}) == len(args) and len({len(a[2]) for a in args}) > 1
-    cfg = ICPConfig(polish=2)
+        Q = distinct_rotations(cube_rotations(), infos[g.obj_id].symmetries_discrete, [])
+        args.append((T_est, ObjectModel.of_points(model, hypotheses=Q), obs))
+    assert len(args) >= 2 and len({len(a[1].points) for a in args}) == len(args) and len({len(a[2]) for a in args}) > 1
+    cfg = RefineConfig(fit=FitConfig(polish=2))
     for plane in (None, np.array([0.0, 0.0, -1.0, float(depth[depth > 0].max()) + 0.01])):
-        together = refine_poses(*[list(x) for x in zip(*[a[:3] for a in args])], depth, K, cfg, [a[3] for a in args],
-                                plane)
-        for (T, s), (T_est, model, obs, Q) in zip(together, args):
-            T1, s1 = refine_pose(T_est, model, obs, depth, K, cfg, Q, plane)
+        together = refine_poses(*[list(x) for x in zip(*args)], depth, K, cfg, plane)
+        for (T, s), (T_est, model, obs) in zip(together, args):
+            T1, s1 = refine_pose(T_est, model, obs, depth, K, cfg, plane)
             np.testing.assert_allclose(T, T1, atol=1e-4)
             assert s == pytest.approx(s1, abs=1e-5)
     assert refine_poses([], [], [], depth, K) == []
@@ -144,7 +161,7 @@ def test_objects_refined_together_as_each_alone(tiny_bop):
 def test_yaw_turns_repeat_no_turn_a_symmetry_gives():
     """Turns about the plane's normal: every step of 360 deg / (the symmetries about that axis); none for a continuous
     axis along it."""
-    from posegrasp.perception.icp import yaw_turns
+    from posegrasp.perception.refine.starts import yaw_turns
 
     up = np.array([0.0, 0.0, 1.0])
     quarter = np.stack([axis_angle_R(up, k * np.pi / 2) for k in (1, 2, 3)])
@@ -215,17 +232,18 @@ def test_yaw_turns_find_a_cube_turned_on_the_table():
     def err(T):
         return rotation_error_sym_deg(T[:3, :3], T_gt[:3, :3], list(Q[1:]))
 
-    hyps = distinct_rotations(Q, list(Q[1:]), [])
-    T_turns, _ = refine_pose(T_est, model, obs, depth, K, ICPConfig(), hyps, plane, symmetries=syms)
-    plain = ICPConfig(yaw_step_deg=0.0, level_rests=False, yaw_search_deg=0.0)
-    T_plain, _ = refine_pose(T_est, model, obs, depth, K, plain, hyps, plane, symmetries=syms)
-    T_held, _ = refine_pose(T_est, model, obs, depth, K, ICPConfig(yaw_step_deg=0.0), hyps, plane, symmetries=syms)
+    cube_model = ObjectModel.of_points(model, hypotheses=distinct_rotations(Q, list(Q[1:]), []), symmetries=syms)
+    T_turns, _ = refine_pose(T_est, cube_model, obs, depth, K, RefineConfig(), plane)
+    plain = RefineConfig(starts=StartConfig(level_rests=False), turns=TurnConfig(step_deg=0.0),
+                         search=SearchConfig(yaw_deg=0.0))
+    T_plain, _ = refine_pose(T_est, cube_model, obs, depth, K, plain, plane)
+    T_held, _ = refine_pose(T_est, cube_model, obs, depth, K, RefineConfig(turns=TurnConfig(step_deg=0.0)), plane)
     assert err(T_turns) < 5.0 and np.linalg.norm(T_turns[:3, 3] - T_gt[:3, 3]) < 0.002
     assert err(T_plain) > 10.0 and err(T_held) < 5.0
 
 
 def test_up_face_names_the_object_axis_along_the_normal():
-    from posegrasp.perception.icp import up_face
+    from posegrasp.perception.refine.starts import up_face
 
     up = np.array([0.0, 0.0, 1.0])
     R = torch.from_numpy(np.stack([np.eye(3), axis_angle_R(np.array([1.0, 0.0, 0.0]), np.pi),
@@ -238,8 +256,8 @@ def test_up_face_names_the_object_axis_along_the_normal():
 def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
     """An L-block standing on the ends of its two bars, corner up (its rest 45 deg from every object axis), estimated
     as an upright L turned 120 deg: levelled onto the nearest object axis, no resting start can reach that pose; the
-    model's rests (``perception.rests``) give one that does."""
-    from posegrasp.perception.rests import Rests
+    model's rests (``perception.refine.rests``) give one that does."""
+    from posegrasp.perception.refine.rests import Rests
 
     mesh = bop.load_model("assets/blocks", 8)
     syms = bop.load_models_info("assets/blocks")[8].symmetry_rotations()
@@ -253,7 +271,8 @@ def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
     obs = obs[::max(1, len(obs) // 300)]
 
     def err(rests):
-        T, _ = refine_pose(T_est, model, obs, depth, K, ICPConfig(), hyps, plane, symmetries=syms, rests=rests)
+        T, _ = refine_pose(T_est, ObjectModel.of_points(model, hypotheses=hyps, symmetries=syms, rests=rests), obs,
+                           depth, K, RefineConfig(), plane)
         return rotation_error_sym_deg(T[:3, :3], T_gt[:3, :3], list(syms[0]))
 
     assert err(rests) < 1.0  # 0.04 deg measured
@@ -262,30 +281,28 @@ def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
 
 
 def test_a_pose_floating_above_the_plane_costs_the_floating_term():
-    """``_score``'s floating term: a 2 cm cube and its observed points lifted 2, 8 and 30 mm above the table plane
+    """The score's floating term: a 2 cm cube and its observed points lifted 2, 8 and 30 mm above the table plane
     score the same fit, plus float_weight x (height - margin) / 1 cm, capped at float_weight."""
-    from posegrasp.perception.icp import _Grids, _score
+    from posegrasp.perception.refine.frame import Frame
+    from posegrasp.perception.refine.score import score
 
     corners = np.array(list(itertools.product((-0.01, 0.01), repeat=3)))
-    model = np.concatenate([corners, np.random.default_rng(0).uniform(-0.01, 0.01, (300, 3))])
-    m, m_ok = torch.from_numpy(model).float()[None], torch.ones(1, len(model), dtype=torch.bool)
+    model = ObjectModel.of_points(np.concatenate([corners, np.random.default_rng(0).uniform(-0.01, 0.01, (300, 3))]))
     K = np.array([[500.0, 0, 32], [0, 500.0, 32], [0, 0, 1]])
-    depth = torch.zeros(64, 64)  # no depth seen: no free-space term
-    plane = torch.tensor([0.0, 0.0, -1.0, 0.5])  # the table 0.5 m from the camera, its normal towards the camera
-    grids = _Grids([NearestGrid(model)], len(model))
-    R, obj, w = torch.eye(3)[None], torch.zeros(1, dtype=torch.long), torch.ones(1, len(model))
+    depth = np.zeros((64, 64))  # no depth seen: no free-space term
+    plane = np.array([0.0, 0.0, -1.0, 0.5])  # the table 0.5 m from the camera, its normal towards the camera
+    R, obj = torch.eye(3)[None], torch.zeros(1, dtype=torch.long)
     costs = []
     for lift in (0.002, 0.008, 0.030):
         t = torch.tensor([[0.0, 0.0, 0.49 - lift]])  # the cube's lowest face ``lift`` above the table
-        p = m + t[:, None]
-        on, off = (_score(R, t, m, m_ok, p, w, obj, depth, K, cfg, plane, grids, fine=True)
-                   for cfg in (ICPConfig(), ICPConfig(float_weight=0.0)))
+        frame = Frame.of([model], [model.points + t.numpy()], depth, K, plane)
+        on, off = (score(frame, cfg, R, t, obj, fine=True) for cfg in (ScoreConfig(), ScoreConfig(float_weight=0.0)))
         costs.append(float(on - off))
     np.testing.assert_allclose(costs, [0.0, 0.01 * 0.4, 0.01], atol=1e-6)
 
 
 def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
-    from posegrasp.perception.icp import level, resting
+    from posegrasp.perception.refine.starts import level, resting
 
     rng = np.random.default_rng(0)
     n = torch.tensor([0.0, -0.6, -0.8], dtype=torch.float64)
@@ -307,9 +324,10 @@ def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
 
 
 def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squares_pose():
-    """``_Kabsch.fit`` with rows held: targets made by turning R0 m about the normal n by 0.4 rad and shifting give
+    """``Kabsch.fit`` with rows held: targets made by turning R0 m about the normal n by 0.4 rad and shifting give
     back that turn and shift exactly (a free row the same), and ``turns_about`` is Rodrigues' formula."""
-    from posegrasp.perception.icp import _Kabsch, turns_about
+    from posegrasp.perception.refine.kabsch import Kabsch
+    from posegrasp.perception.torch_geometry import turns_about
 
     rng = np.random.default_rng(0)
     n = np.array([0.0, -0.6, -0.8])
@@ -318,7 +336,7 @@ def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squar
     G, shift = axis_angle_R(n, 0.4), np.array([0.1, 0.2, 0.5])
     dst = np.einsum("ij,hjk,hkn->hni", G, R0, src) + shift  # (2, N, 3)
     f = lambda a: torch.from_numpy(a).float()  # noqa: E731
-    fit = _Kabsch(f(dst), torch.ones(2, 50))
+    fit = Kabsch(f(dst), torch.ones(2, 50))
     for held in ([True, True], [False, True]):
         R, t = fit.fit(f(src), torch.tensor(held), f(R0), f(n))
         np.testing.assert_allclose(R.numpy(), G @ R0, atol=1e-5)
@@ -328,10 +346,11 @@ def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squar
 
 
 def test_the_pattern_search_walks_a_pose_down_its_score_along_the_plane():
-    """``_pattern_search`` on a score that is the distance (m) to a target pose's position plus its turn about the
+    """``pattern_search`` on a score that is the distance (m) to a target pose's position plus its turn about the
     normal (rad, scaled 10 cm per rad): from 3.4 mm and 3 deg off, in 2 rounds per scale, it ends within the last
     scale's steps (0.5 mm, 0.5 deg), keeps the pose's height over the plane and appends the moved pose."""
-    from posegrasp.perception.icp import _pattern_search
+    from posegrasp.perception.refine.score import Scored
+    from posegrasp.perception.refine.search import pattern_search
 
     n = torch.tensor([0.0, -0.6, -0.8], dtype=torch.float64)
     R_goal = torch.from_numpy(axis_angle_R(np.array([0.3, 0.2, 0.9]), 0.7))
@@ -345,9 +364,11 @@ def test_the_pattern_search_walks_a_pose_down_its_score_along_the_plane():
         cos = ((torch.einsum("hij,ij->h", R, R_goal) - 1) / 2).clamp(-1, 1)
         return (t - t_goal).norm(dim=1) + 0.1 * torch.arccos(cos)
 
-    score = score_of(R0[None], t0[None], torch.zeros(1, dtype=torch.long))
-    R, t, obj, s = _pattern_search(R0[None], t0[None], torch.zeros(1, dtype=torch.long), score, n,
-                                   torch.tensor([[[0.0, 0.0, 1.0]]], dtype=torch.float64), 1, 2, score_of)
+    obj = torch.zeros(1, dtype=torch.long)
+    start = Scored(R0[None], t0[None], obj, score_of(R0[None], t0[None], obj))
+    out = pattern_search(start, n, torch.tensor([[[0.0, 0.0, 1.0]]], dtype=torch.float64),
+                         SearchConfig(pattern_fits=1, pattern_rounds=2), score_of)
+    R, t, s = out.R, out.t, out.score
     assert len(R) == 2 and torch.equal(R[0], R0) and float(s[1]) < float(s[0])
     assert float((t[1] - t_goal).norm()) < 0.0005 * np.sqrt(2) + 1e-9
     assert float(torch.arccos(((torch.trace(R[1].T @ R_goal) - 1) / 2).clamp(-1, 1))) < np.radians(0.5) + 1e-9

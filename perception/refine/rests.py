@@ -6,7 +6,7 @@ normal lies inside F; resting on F, the plane's upward normal is u = -n_F in the
 six axes; an L-block also stands as an inverted V on the ends of its two bars (u = -(1, 0, 1) / sqrt 2), a
 triangular prism lies on each of its three sides (u at 120 deg steps about its axis), a brick leans on a long side's
 studs (u 36 deg off its -z axis). The depth refinement lays its resting starts on the nearest of these
-(``perception.icp.level``): an object axis would put those poses 30-45 deg off.
+(``perception.refine.starts.level``): an object axis would put those poses 30-45 deg off.
 
 Two rests are one for the fit when a symmetry of the model maps one up onto the other: S u_i = u_j for a discrete
 symmetry S (or the identity), or (S u_i) . c = u_j . c for a continuous symmetry axis c (a turn about c then maps

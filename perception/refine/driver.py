@@ -1,0 +1,140 @@
+"""``refine_poses``: the depth refinement's stages, in order, for all the objects of one frame in one batch."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+import torch
+
+from posegrasp.perception.refine.config import RefineConfig, TurnConfig
+from posegrasp.perception.refine.frame import Frame
+from posegrasp.perception.refine.grids import columns
+from posegrasp.perception.refine.kabsch import Kabsch
+from posegrasp.perception.refine.model import ObjectModel
+from posegrasp.perception.refine.score import Scored, best_rows, score
+from posegrasp.perception.refine.search import ScoreOf, pattern_search, yaw_search
+from posegrasp.perception.refine.starts import rest_starts, resting, turned, up_face
+
+
+def refine_pose(T_cam_obj: np.ndarray, model: ObjectModel, observed: np.ndarray, depth: np.ndarray, K: np.ndarray,
+                cfg: RefineConfig | None = None, plane: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """``refine_poses`` of one object: its estimate T_cam_obj (4, 4), model and observed points (N, 3)."""
+    return refine_poses([T_cam_obj], [model], [observed], depth, K, cfg, plane)[0]
+
+
+def refine_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: list[np.ndarray],
+                 depth: np.ndarray, K: np.ndarray, cfg: RefineConfig | None = None,
+                 plane: np.ndarray | None = None) -> list[tuple[np.ndarray, float]]:
+    """The best-scoring fit of each object of a frame (``perception.refine``): from its estimate T_cam_obj (4, 4),
+    its ``ObjectModel`` and its observed points (N_o, 3) (camera frame, m), against the depth image (H, W) (m) seen
+    through intrinsics K (3, 3), given the supporting plane (4,: n . x + d = 0, camera frame; ``perception.plane``)
+    or None. Returns (T_cam_obj refined, its score in m) per object. The objects' starts run as one batch (much of a
+    step's cost is fixed); each result is the one the object gets alone, up to float rounding."""
+    if not estimates:
+        return []
+    cfg = cfg or RefineConfig()
+    short = [x.grid.field.margin for x in models if x.grid.field.margin < cfg.score.truncation]
+    if short:  # beyond its grid a field gives its margin: the fit term would stop short of the truncation
+        raise ValueError(f"ICP truncation ({cfg.score.truncation} m) exceeds a model's distance field margin "
+                         f"({min(short)} m); build the fields with margin >= truncation")
+    frame = Frame.of(models, observed, depth, K, plane)
+    rank = partial(score, frame, cfg.score)
+    fits = _starts(frame, estimates, [x.hypotheses for x in models], cfg.starts.level_rests)
+    exact = min(cfg.fit.exact_steps, cfg.fit.iterations)
+    fits = _grid_steps(frame, fits, cfg.fit.iterations - exact)
+    if cfg.turns.step_deg > 0:
+        fits = _turns(frame, fits, cfg.turns, rank)
+    if 0 < cfg.fit.polish < int(torch.bincount(fits.obj).max()):  # each object's best by the grid's score go on
+        fits = fits.rows(best_rows(rank(fits.R, fits.t, fits.obj), fits.obj, cfg.fit.polish, fits.R))
+    fits = _exact_steps(frame, fits, exact)
+    fine = partial(score, frame, cfg.score, fine=True)
+    poses = yaw_search(Scored(fits.R, fits.t, fits.obj, fine(fits.R, fits.t, fits.obj)), frame.normal, cfg.search,
+                       fine)
+    if cfg.search.pattern_rounds > 0:
+        poses = pattern_search(poses, frame.normal, frame.ups, cfg.search, fine)
+    return [poses.best(o) for o in range(len(estimates))]
+
+
+@dataclass(frozen=True)
+class _Fits:
+    """The fits in progress: rotations R (H, 3, 3) and translations t (H, 3) (object to camera) of objects obj (H,);
+    ``held`` (H,): fitted as turns about the plane's normal n and shifts along the plane, resting on it; for those,
+    ``low`` (H,) = min_j m_j . (R^T n), the lowest model point's height less n . t + d, which such a step keeps."""
+
+    R: torch.Tensor
+    t: torch.Tensor
+    obj: torch.Tensor
+    held: torch.Tensor
+    low: torch.Tensor
+
+    def rows(self, i: torch.Tensor) -> _Fits:
+        """The fits of rows i."""
+        return _Fits(self.R[i], self.t[i], self.obj[i], self.held[i], self.low[i])
+
+
+def _starts(frame: Frame, estimates: list[np.ndarray], hypotheses: list[np.ndarray], level_rests: bool) -> _Fits:
+    """The fits' starts: each estimate R, t turned by each of its object's hypotheses (R Q, t), and given the plane
+    each of these also moved to rest on it, and with ``level_rests`` laid on its nearest rest and held
+    (``perception.refine.starts``)."""
+    T = torch.from_numpy(np.stack(estimates).astype(np.float32))  # (O, 4, 4)
+    obj = torch.cat([torch.full((len(Q),), o) for o, Q in enumerate(hypotheses)])  # (H,): each hypothesis' object
+    R = T[obj, :3, :3] @ torch.from_numpy(np.concatenate(hypotheses)).float()  # (H, 3, 3)
+    t = T[obj, :3, 3]  # (H, 3)
+    held = torch.zeros(len(R), dtype=torch.bool)
+    pl = frame.plane
+    if pl is not None:
+        R2, src = (rest_starts(R, obj, pl[:3], frame.ups, frame.rest_labels, frame.symmetries) if level_rests
+                   else (R, torch.arange(len(R))))
+        R, t = torch.cat([R, R2]), torch.cat([t, resting(R2, t[src], frame.models, frame.model_ok, obj[src], pl)])
+        obj, held = torch.cat([obj, obj[src]]), torch.cat([held, torch.full((len(R2),), level_rests)])
+    low = torch.zeros(len(R))
+    if held.any():
+        low = (frame.models[obj] @ (R.transpose(1, 2) @ pl[:3])[:, :, None])[..., 0] \
+            .masked_fill(~frame.model_ok[obj], torch.inf).min(1)[0]
+    return _Fits(R, t, obj, held, low)
+
+
+def _turns(frame: Frame, fits: _Fits, cfg: TurnConfig, rank: ScoreOf) -> _Fits:
+    """The best fit of each of an object's ``cfg.seeds`` best-ranked rests facing up, turned about the normal by every
+    ``cfg.step_deg`` of its period about it (``perception.refine.starts.turned``), each fitted ``cfg.iterations``
+    grid steps."""
+    normal = frame.normal.double().numpy()
+    fits = fits.rows(best_rows(rank(fits.R, fits.t, fits.obj), fits.obj, cfg.seeds,
+                               face=up_face(fits.R, normal, frame.ups[fits.obj])))
+    R, obj, source = turned(fits.R, fits.obj, normal, cfg.step_deg, frame.symmetries)
+    return _grid_steps(frame, _Fits(R, fits.t[source], obj, fits.held[source], fits.low[source]), cfg.iterations)
+
+
+def _grid_steps(frame: Frame, fits: _Fits, n: int) -> _Fits:
+    """``n`` ICP steps, each observed point matched to the grid's nearest model point."""
+    p = frame.points[fits.obj]  # (H, N, 3)
+    p_cols, kabsch = p.transpose(1, 2).contiguous(), Kabsch(p, frame.weights[fits.obj])  # (H, 3, N)
+    for _ in range(n):
+        fits = _step(frame, kabsch, fits, columns(frame.columns, frame.grids.posed(p_cols, fits.R, fits.t, fits.obj)))
+    return fits
+
+
+def _exact_steps(frame: Frame, fits: _Fits, n: int) -> _Fits:
+    """``n`` ICP steps, each observed point matched to its exact nearest model point (a k-d tree of the model)."""
+    p, m = frame.points[fits.obj], frame.models[fits.obj]
+    kabsch = Kabsch(p, frame.weights[fits.obj])
+    rows = torch.arange(len(fits.obj))[:, None]
+    for _ in range(n):
+        nn = frame.grids.exact((p - fits.t[:, None]) @ fits.R, fits.obj)  # (H, N)
+        fits = _step(frame, kabsch, fits, m[rows, nn].transpose(1, 2))
+    return fits
+
+
+def _step(frame: Frame, kabsch: Kabsch, fits: _Fits, src: torch.Tensor) -> _Fits:
+    """The fits of the model points src (H, 3, N) matched to the observed points; the held ones turned about the
+    plane's normal and shifted along it, then set back resting on it."""
+    if not bool(fits.held.any()):
+        R, t = kabsch.fit(src)
+        return dataclasses.replace(fits, R=R, t=t)
+    n, held = frame.plane[:3], fits.held
+    R, t = kabsch.fit(src, held, fits.R, n)
+    t[held] = t[held] - (fits.low[held] + t[held] @ n + frame.plane[3])[:, None] * n
+    return dataclasses.replace(fits, R=R, t=t)

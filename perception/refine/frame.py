@@ -1,0 +1,62 @@
+"""The context of one frame's depth refinement: its objects' models and observed points as batched tensors."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from posegrasp.perception.refine.grids import Grids
+from posegrasp.perception.refine.model import ObjectModel
+from posegrasp.perception.refine.starts import Symmetries, stacked_rests
+
+
+@dataclass(frozen=True)
+class Frame:
+    """What every stage of one frame's refinement reads, for O objects (a fit's row names its object o): their model
+    points (O, M, 3) (object frame, m; padded far off) valid where ``model_ok`` (O, M); their observed points
+    (O, N, 3) (camera frame, m) with ``weights`` (O, N) (0: padding); the depth image (H, W) (m, 0: no depth) and
+    intrinsics K (3, 3); the supporting plane (4,: n . x + d = 0, n unit, camera frame) or None; the models' ``grids``
+    and stacked point columns (3, O M) (row o M + j: point j of model o); their rests' ups (O, U, 3) and classes
+    (O, U) (``stacked_rests``) and their symmetries."""
+
+    models: torch.Tensor
+    model_ok: torch.Tensor
+    points: torch.Tensor
+    weights: torch.Tensor
+    depth: torch.Tensor
+    K: np.ndarray
+    plane: torch.Tensor | None
+    grids: Grids
+    columns: torch.Tensor
+    ups: torch.Tensor
+    rest_labels: torch.Tensor
+    symmetries: list[Symmetries]
+
+    @classmethod
+    def of(cls, models: list[ObjectModel], observed: list[np.ndarray], depth: np.ndarray, K: np.ndarray,
+           plane: np.ndarray | None) -> Frame:
+        """The context of objects ``models`` observed as points (N_o, 3) each (camera frame, m) in ``depth`` (H, W)."""
+        m, m_ok = _padded([x.points for x in models], 1e3)  # padding far off, never a nearest point
+        p, p_ok = _padded(observed)
+        ups, labels = stacked_rests([x.rests for x in models])
+        return cls(m, m_ok, p, p_ok.float(), torch.from_numpy(np.asarray(depth, dtype=np.float32)), K,
+                   None if plane is None else torch.from_numpy(np.asarray(plane, dtype=np.float32)),
+                   Grids([x.grid for x in models], m.shape[1]), m.reshape(-1, 3).T.contiguous(), ups, labels,
+                   [x.symmetries for x in models])
+
+    @property
+    def normal(self) -> torch.Tensor:
+        """The turns' axis (3,), camera frame: the plane's normal, or the optical axis without a plane."""
+        return torch.tensor([0.0, 0.0, 1.0]) if self.plane is None else self.plane[:3]
+
+
+def _padded(arrays: list[np.ndarray], fill: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Point sets (n_i, 3) as one float32 tensor (O, max n_i, 3), padded with ``fill``, and its validity mask
+    (O, max n_i)."""
+    n = max(len(a) for a in arrays)
+    out, valid = torch.full((len(arrays), n, 3), fill), torch.zeros(len(arrays), n, dtype=torch.bool)
+    for i, a in enumerate(arrays):
+        out[i, :len(a)], valid[i, :len(a)] = torch.from_numpy(np.asarray(a, dtype=np.float32)), True
+    return out, valid
