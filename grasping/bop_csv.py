@@ -26,7 +26,8 @@ from posegrasp import bop
 from posegrasp.bop_check import rotation_problem
 from posegrasp.catalog import catalog_by_id
 from posegrasp.errors import DatasetError, ProviderError
-from posegrasp.grasping.perception import MAX_TRANSLATION_M, ROT_TOL, Estimate, Observation, capture_ids
+from posegrasp.grasping.perception import MAX_TRANSLATION_M, ROT_TOL, Estimate, Observation
+from posegrasp.grasping.tasks import get_task
 
 #: A row whose translation is less than this far in front of the camera (mm) is refused: no camera sees an object
 #: there, and it is what metres written in the mm column look like.
@@ -68,7 +69,7 @@ def check_rows(provider: object, episodes: int, task: str) -> None:
     episodes of ``task`` captures (any other provider: nothing to check)."""
     if not isinstance(provider, BopCsvProvider):
         return
-    ims = capture_ids(task)
+    ims = get_task(task).looks
     for n, r in enumerate(provider.rows(), start=2):
         if r.scene_id >= episodes or r.im_id not in ims:
             raise DatasetError(f"{provider.path} line {n}: scene_id {r.scene_id}, im_id {r.im_id} is no frame of this "

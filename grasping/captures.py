@@ -35,8 +35,9 @@ from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, pre
 from posegrasp.executor import make_executor
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.episode import EpisodeTask, run_episode
-from posegrasp.grasping.perception import DEPTH_SCALE, capture_ids
-from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings
+from posegrasp.grasping.perception import DEPTH_SCALE
+from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, Failure
+from posegrasp.grasping.tasks import get_task
 from posegrasp.lock import folder_lock
 from posegrasp.progress import progress as progress_bar
 from posegrasp.sim.camera import Frame, intrinsics
@@ -45,7 +46,7 @@ from posegrasp.sim.workcell import HAND_CAMERA, Workcell
 SPLIT = "test"
 SETTINGS_FILE = "captures.json"
 EPISODE_FILE = "scene_episode.json"  #: per scene: the episode it comes from and the captures it holds
-_PHYSICAL = ("timeout", "simulation error")  # failures a captures-only run meets at the same point
+_PHYSICAL = (Failure.TIMEOUT, Failure.SIMULATION_ERROR)  # failures a captures-only run meets at the same point
 
 
 class _Recorder:
@@ -69,7 +70,7 @@ def run_capturing(task: EpisodeTask) -> tuple[EpisodeRecord, EpisodeTimings, Sce
     """Worker: run episode ``task`` (or only its captures, ``task.captures_only``) and encode its captures; an
     episode that stopped before a later look (stack: no base seen) gets them from a captures-only run."""
     record, timings, scene = _run(task)
-    if not task.captures_only and len(scene.cams) < len(capture_ids(task.cfg.task)) \
+    if not task.captures_only and len(scene.cams) < len(get_task(task.cfg.task).looks) \
             and record.failure not in _PHYSICAL:
         scene = _run(dataclasses.replace(task, captures_only=True))[2]
     scene.finish({"episode": task.index, "seed": task.seed, "scene_seed": record.scene_seed, "task": task.cfg.task,

@@ -49,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _task_arg(text: str) -> str:
-    from posegrasp.grasping.config import TASKS
+    from posegrasp.grasping.tasks import TASKS
 
     if text not in TASKS:
         raise UserError(f"--task {text!r} is not a task; choose one of: {', '.join(TASKS)}")

@@ -1,4 +1,5 @@
-"""Typed settings of the grasp trials: control, grasp planning, scoring and scenes.
+"""Typed settings of the grasp trials: control, grasp planning, scoring, firm holds and scenes; each task's own
+settings are in its module (``grasping.tasks.kitting.KittingConfig``, ``grasping.tasks.stack.StackConfig``).
 
 Lengths in metres, times in seconds (simulated unless the name says ``wall``), angles in degrees where
 the name says ``_deg``. Any field can be set from a TOML file of the same layout (``--config``).
@@ -11,9 +12,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from posegrasp import ASSETS
+from posegrasp.config import load_toml, within
+from posegrasp.errors import ConfigError
 from posegrasp.grasping.hand import TIP_BELOW
 from posegrasp.grasping.support import RestConfig
-from posegrasp.config import load_toml, within
+from posegrasp.grasping.tasks import REGISTRY, TASKS, get_task
+from posegrasp.grasping.tasks.kitting import KittingConfig
+from posegrasp.grasping.tasks.stack import StackConfig
 from posegrasp.sim.scene import SceneConfig
 
 #: The shipped hand-eye calibration (``posegrasp calibrate``), used by the trials.
@@ -134,22 +139,10 @@ class GraspConfig:
     place_jitter: float = 0.02
     #: Weights of the grasp score.
     score: GraspScoreConfig = field(default_factory=GraspScoreConfig)
-    # The kitting and stack tasks, where the block's yaw in the hand matters, pinch yaw-stably: the block's
-    # centre near this far along the gripper y axis (m; pick-and-place: grasps.HAND_Y, -5 mm), between the
-    # pads of fingers 2 and 3 (grasps.plan_grasps), and the fingers close up to this many control periods
-    # more until all three touch.
+    #: The yaw-stable pinch of the tasks that hold firmly (``FirmHoldConfig``): the block's centre near this far
+    #: along the gripper y axis (m; otherwise ``grasps.HAND_Y``, -5 mm), between the pads of fingers 2 and 3
+    #: (``grasps.plan_grasps``).
     pose_hand_y: float = -0.012
-    pose_finger_wait: int = 10
-    # The stack task also lets the arm stop swaying (5-8 mm after a fast descent) before closing and before
-    # setting the block down: the gripper moving slower than pose_settle_speed (m/s) for 3 control periods in a
-    # row, at most pose_settle_time (s) (the controller keeps a steady offset of 1-1.5 mm from its target, so
-    # a distance to the target does not tell a still arm); and sets the block down from pose_place_gap (m)
-    # above its surface (guarded, slowly), so a block that slid down in the fingers touches the base slowly too.
-    # Kitting does not: an L-block turns in the hand while held (7-10 deg), and the longer hold took it past 10 deg.
-    pose_settle_speed: float = 0.005
-    pose_settle_time: float = 1.0
-    pose_place_gap: float = 0.02
-    pose_approach_speed: float = 0.1  # stack: the approach and place descent (m/s; approach_speed sways the arm)
 
 
 @dataclass(frozen=True)
@@ -169,32 +162,22 @@ class ScoringConfig:
 
 
 @dataclass(frozen=True)
-class KittingConfig:
-    """The kitting task (``grasping.tasks``): the block must end upright on the pad at the kit's yaw."""
+class FirmHoldConfig:
+    """How the tasks that hold the block firmly (``TrialConfig.firm_hold_tasks``) do it: the yaw-stable pinch
+    (``GraspConfig.pose_hand_y``) with all three fingers, MuJoCo's noslip solver, which removes the slip the soft
+    contacts still allow (without it a 2x2 brick pinched by its top edge slid 9 mm down the fingers and turned
+    10 deg during the carry: stack, seed 0, 7 of its 8 episodes failed), and MuJoCo's sleeping islands: bodies at
+    rest are not simulated until something touches them, so blocks resting on the table cost nothing (the physics
+    of a stack episode took half the time, noslip only 15 % more)."""
 
-    pos_tol: float = 0.015  # success: its centre within this xy distance of the kit's (m) ...
-    yaw_tol_deg: float = 10.0  # ... its yaw within this of the kit's, both modulo its symmetries ...
-    upright_tol_deg: float = 15.0  # ... and its upright face within this of straight down ("wrong face up")
-    belief_tol_deg: float = 20.0  # the planner targets only estimates this close to upright
-    kit_yaw_deg: float = 0.0  # the kit's yaw on the pad (world, deg)
-
-
-@dataclass(frozen=True)
-class StackConfig:
-    """The stack task (``grasping.tasks``): a block set centred on a base block standing on the pad."""
-
-    pos_tol: float = 0.01  # success: its centre within this xy distance of the base's top centre (m) ...
-    yaw_tol_deg: float = 10.0  # ... its yaw within this of the base's, modulo both blocks' symmetries ...
-    upright_tol_deg: float = 15.0  # ... upright ...
-    rest_time: float = 1.0  # ... resting there this long after the hand has left (s) ...
-    base_move_tol: float = 0.005  # ... and the base moved at most this far (m)
-    belief_tol_deg: float = 20.0  # the planner targets only estimates this close to upright
-    base_jitter: float = 0.02  # the base's centre is drawn this far (m, per axis) around the pad centre
-    look_height: float = 0.3  # the hand camera looks down at the pad from this height (m)
-
-
-#: The trial tasks (``--task``): ``grasping.tasks``.
-TASKS = ("pick-place", "kitting", "stack")
+    #: Once two fingers grip, the fingers close up to this many control periods more until all three touch.
+    finger_wait: int = 10
+    #: Noslip solver iterations per physics step (0: off).
+    noslip_iterations: int = field(default=2, metadata=within(0, 1000))
+    #: Whether bodies at rest sleep (MuJoCo's sleeping islands).
+    sleep: bool = True
+    #: Speeds below which a body is at rest and may sleep (MuJoCo's ``sleep_tolerance``; its default).
+    sleep_tolerance: float = field(default=1e-3, metadata=within(0.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -206,19 +189,13 @@ class TrialConfig:
     hand_eye: str = str(HAND_EYE_JSON)  # calibrated T_gripper_cam used by the planner
     elliptic_cones: bool = True  # elliptic friction cones and ...
     impratio: float = 10.0  # ... a high impedance ratio stop grasped blocks from creeping out of the fingers
-    # The tasks that hold the block firmly: the yaw-stable pinch (grasp.pose_hand_y, pose_finger_wait), MuJoCo's
-    # noslip solver (iterations per physics step; 0: off), which removes the slip the soft contacts still allow
-    # (without it a 2x2 brick pinched by its top edge slid 9 mm down the fingers and turned 10 deg during the
-    # carry: stack, seed 0, 7 of its 8 episodes failed), and MuJoCo's sleeping islands: bodies at rest (speeds
-    # below pose_sleep_tolerance, MuJoCo's default) are not simulated until something touches them, so blocks
-    # resting on the table cost nothing (the physics of a stack episode took half the time, noslip only 15 % more).
-    # None: the object set's choice (its manifest's ``firm_hold_tasks``: every task for imported sets), else
-    # DEFAULT_FIRM_HOLD_TASKS. The shipped blocks keep pick-and-place out, so its records stay as they were (noslip
-    # alone, without the yaw-stable pinch, dropped cubes from its 2-finger pinches: 22 of 200).
+    #: The tasks that hold the block firmly (``firm_hold``); None: the object set's choice (its manifest's
+    #: ``firm_hold_tasks``: every task for imported sets), else the tasks that ask for it (``Task.firm_hold``:
+    #: kitting and stack). The shipped blocks keep pick-and-place out, so its records stay as they were (noslip
+    #: alone, without the yaw-stable pinch, dropped cubes from its 2-finger pinches: 22 of 200).
     firm_hold_tasks: tuple[str, ...] | None = None
-    pose_noslip_iterations: int = field(default=2, metadata=within(0, 1000))
-    pose_sleep: bool = True
-    pose_sleep_tolerance: float = field(default=1e-3, metadata=within(0.0, 1.0))
+    #: How those tasks hold firmly.
+    firm_hold: FirmHoldConfig = field(default_factory=FirmHoldConfig)
     support_timeconst: float = 0.01  # stiffness of contacts with the table and the pad once the scene has settled
     # (MuJoCo solref time constant, s): at the default 0.02 a brick set down on its studs walks away over the pad
     control: ControlConfig = field(default_factory=ControlConfig)
@@ -226,31 +203,41 @@ class TrialConfig:
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
     rest: RestConfig = field(default_factory=RestConfig)  # levelling of pose estimates (grasping.support)
     scene: SceneConfig = field(default_factory=lambda: SceneConfig(settle_timeout=2.0))
-    task: str = "pick-place"  # one of TASKS
+    #: The trial task (``--task``), one of ``grasping.tasks.TASKS``.
+    task: str = "pick-place"
+    #: The kitting task's settings.
     kitting: KittingConfig = field(default_factory=KittingConfig)
+    #: The stack task's settings.
     stack: StackConfig = field(default_factory=StackConfig)
     # a perception provider that has not answered a capture after this many wall seconds fails the episode with
     # "perception error" (0: no limit; the oracles are not timed)
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
 
 
-#: The tasks that hold firmly where neither the campaign nor its object set says.
-DEFAULT_FIRM_HOLD_TASKS = ("kitting", "stack")
-
-
 def firm_hold_tasks(cfg: TrialConfig) -> tuple[str, ...]:
-    """The tasks that hold the block firmly: ``cfg.firm_hold_tasks``, else the object set's, else the default."""
+    """The tasks that hold the block firmly: ``cfg.firm_hold_tasks``, else the object set's, else those that ask for
+    it (``Task.firm_hold``)."""
     if cfg.firm_hold_tasks is not None:
         return cfg.firm_hold_tasks
     from posegrasp.catalog import set_firm_hold_tasks
 
     tasks = set_firm_hold_tasks(cfg.scene.workcell.objects)
-    return DEFAULT_FIRM_HOLD_TASKS if tasks is None else tasks
+    return tuple(name for name, task in REGISTRY.items() if task.firm_hold) if tasks is None else tasks
 
 
-def firm_hold(cfg: TrialConfig) -> bool:
-    """Does the campaign's task hold the block firmly (``firm_hold_tasks``)?"""
+def holds_firmly(cfg: TrialConfig) -> bool:
+    """Does the campaign's task hold the block firmly (``firm_hold_tasks``, ``FirmHoldConfig``)?"""
     return cfg.task in firm_hold_tasks(cfg)
+
+
+def check_task(cfg: TrialConfig) -> None:
+    """ConfigError unless ``cfg.task`` and ``cfg.firm_hold_tasks`` name tasks and the task accepts the campaign's
+    settings (``Task.check``: the scene's block types can serve it, ...)."""
+    task = get_task(cfg.task)
+    unknown = [t for t in firm_hold_tasks(cfg) if t not in TASKS]
+    if unknown:
+        raise ConfigError(f"firm_hold_tasks names unknown task(s) {unknown}; choose among: {', '.join(TASKS)}")
+    task.check(cfg)
 
 
 def load_trial_config(path: str | Path | None = None) -> TrialConfig:

@@ -66,13 +66,8 @@ class Observation:
         return int(self.rgb.shape[1])
 
 
-#: ``Observation.im_id`` of each capture an episode makes.
+#: ``Observation.im_id`` of each capture an episode makes (which a task takes: ``Task.looks``).
 PICK_LOOK, BASE_LOOK = 0, 1
-
-
-def capture_ids(task: str) -> tuple[int, ...]:
-    """The im_ids an episode of ``task`` captures: the pick look, and stack's look at the base."""
-    return (PICK_LOOK, BASE_LOOK) if task == "stack" else (PICK_LOOK,)
 
 
 class Provider(Protocol):

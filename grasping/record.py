@@ -9,14 +9,39 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 from posegrasp.grasping.upright import UprightDeviation
 from posegrasp.io import jsonable
 
-#: Failure reasons, in the order the summary lists them (the last five only in the kitting and stack tasks).
-FAILURES = ("no detection", "perception error", "pose error", "unreachable", "collision", "slip", "drop", "misplaced",
-            "timeout", "simulation error",
-            "no upright block", "no base seen", "wrong face up", "misaligned", "base moved")
+
+
+class Failure(StrEnum):
+    """Why an episode failed, in the order the summary lists them; a record's ``failure`` holds the value (text).
+    The last five come from the kitting and stack tasks (``grasping.tasks``)."""
+
+    NO_DETECTION = "no detection"  # the provider returned no estimate
+    PERCEPTION_ERROR = "perception error"  # the provider raised, hung or returned what the planner cannot use
+    POSE_ERROR = "pose error"  # the chosen estimate was no block, or a later failure on an estimate too far off
+    UNREACHABLE = "unreachable"  # no grasp of an acceptable estimate passed the IK check
+    COLLISION = "collision"  # the hand hit the table or another block on its way to the grasp
+    SLIP = "slip"  # the fingers did not close on the block, or it left them before the hold time
+    DROP = "drop"  # the block fell out of the hand after the grasp was scored
+    MISPLACED = "misplaced"  # the block ended too far from its target, moving, or still touched by the hand
+    TIMEOUT = "timeout"  # the arm did not reach a pose in time
+    SIMULATION_ERROR = "simulation error"  # the physics diverged, or the scene never came to rest
+    NO_UPRIGHT = "no upright block"  # the task allows none of the estimates (none believed upright)
+    NO_BASE = "no base seen"  # stack: perception found no base on the pad
+    WRONG_FACE = "wrong face up"  # the placed block's upright face is not down
+    MISALIGNED = "misaligned"  # the placed block's yaw is off its target's
+    BASE_MOVED = "base moved"  # stack: the base moved
+
+
+#: The failure reasons (values of ``Failure``), in the order the summary lists them.
+FAILURES = tuple(Failure)
+#: Failures never re-counted as "pose error" (``grasping.episode``): nothing was grasped, or the task's own verdict.
+NOT_POSE_ERRORS = frozenset({Failure.NO_DETECTION, Failure.SIMULATION_ERROR, Failure.NO_UPRIGHT, Failure.NO_BASE,
+                             Failure.WRONG_FACE, Failure.MISALIGNED, Failure.BASE_MOVED})
 #: Record fields of the kitting and stack tasks, left out of a pick-and-place record.
 TASK_FIELDS = ("task", "estimate_error", "final_error", "base")
 
@@ -79,7 +104,7 @@ class EpisodeRecord:
     blocks: list[str] = field(default_factory=list)  # catalogue names of the scene's blocks
     target: Target | FalseTarget | None = None
     outcome: str = "failure"  # or "success"
-    failure: str | None = None  # one of FAILURES
+    failure: Failure | None = None
     grasped: bool = False
     placed: bool = False
     pose_error: PoseDeviation | None = None
@@ -102,6 +127,8 @@ class EpisodeRecord:
                 del d[k]
         if self.perception_error is None:
             del d["perception_error"]
+        if self.failure is not None:
+            d["failure"] = Failure(self.failure).value
         return jsonable(d, digits=6)
 
 

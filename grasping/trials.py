@@ -24,15 +24,15 @@ from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.bop_csv import check_rows
 from posegrasp.grasping.captures import open_export, run_capturing
 from posegrasp.catalog import set_record
-from posegrasp.grasping.config import TrialConfig, with_set
+from posegrasp.grasping.config import TrialConfig, check_task, with_set
 from posegrasp.grasping.episode import EpisodeTask, run_episode
 from posegrasp.grasping.provider_registry import canonical_spec, make_provider
-from posegrasp.grasping.record import FAILURES
+from posegrasp.grasping.record import Failure
 from posegrasp.grasping.report import write_report
 from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, SUMMARY, TIMINGS, Campaign, append_record,
                                           check_campaign, read_records, write_records)
 from posegrasp.grasping.stats import rate_row, summarise
-from posegrasp.grasping.tasks import check_task
+from posegrasp.grasping.tasks import get_task
 from posegrasp.io import write_bytes, write_json
 from posegrasp.lock import folder_lock
 from posegrasp.progress import progress as progress_bar
@@ -104,7 +104,7 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
         ran = sum(not t.captures_only for t in todo)  # (the others were only captured)
         records = [done[i] for i in sorted(done)]
         write_records(out / EPISODES, records)
-        summary = summarise(records)
+        summary = {**summarise(records), **get_task(cfg.task).metrics(records)}
         summary.update(task=cfg.task, seed=seed, perception=perception, workers=workers,
                        objects=set_record(cfg.scene.workcell.objects),
                        wall={"seconds": elapsed, "episodes_run": ran,
@@ -134,7 +134,7 @@ def print_summary(s: dict, console: Console) -> None:
     f = Table(title="failures")
     f.add_column("reason")
     f.add_column("count")
-    for reason in FAILURES:
+    for reason in Failure:
         if s["failures"].get(reason):
             f.add_row(reason, str(s["failures"][reason]))
     console.print(f)

@@ -16,7 +16,7 @@ from posegrasp import bop
 from posegrasp.catalog import DEFAULT_SET, load_catalog, set_record
 from posegrasp.cli import main
 from posegrasp.grasping.config import TrialConfig, with_set
-from posegrasp.grasping.tasks import standing_R
+from posegrasp.grasping.tasks.standing import standing_R
 
 
 @pytest.fixture(scope="module")

@@ -25,21 +25,39 @@ PARTS = ("sim", "datagen", "perception", "grasping", "objects")
 
 
 def _modules() -> dict[str, Path]:
-    """Every module of the package, by dotted name."""
+    """Every module of the package and of its subpackages (folders with an ``__init__.py``), by dotted name."""
     mods = {}
     for pkg, folder in PACKAGES.items():
-        for f in sorted((ROOT / folder).glob("*.py")):
-            mods[pkg if f.stem == "__init__" else f"{pkg}.{f.stem}"] = f
+        root = ROOT / folder
+        for f in sorted(root.rglob("*.py")):
+            parts = f.relative_to(root).with_suffix("").parts
+            if all((root.joinpath(*parts[:i]) / "__init__.py").is_file() for i in range(1, len(parts))):
+                mods[".".join((pkg, *parts)).removesuffix(".__init__")] = f
     return mods
 
 
+def _imports(tree: ast.AST):
+    """The import statements of a module, those inside functions included; not those under ``if TYPE_CHECKING:``,
+    which never run (they name types for annotations only)."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            todo.extend(node.orelse)
+            continue
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node
+        todo.extend(ast.iter_child_nodes(node))
+
+
 def import_graph() -> nx.DiGraph:
-    """Module -> module edges for every import statement of the package, those inside functions included."""
+    """Module -> module edges for every import statement of the package that runs, those inside functions
+    included."""
     mods = _modules()
     g = nx.DiGraph()
     g.add_nodes_from(mods)
     for name, path in mods.items():
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        for node in _imports(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Import):
                 targets = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:

@@ -15,11 +15,13 @@ from posegrasp.catalog import load_catalog
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T
 from posegrasp.grasping.compare import compare_runs
-from posegrasp.grasping.config import KittingConfig, StackConfig, TrialConfig
-from posegrasp.grasping.record import EpisodeRecord
+from posegrasp.grasping.config import TrialConfig, check_task
+from posegrasp.grasping.record import EpisodeRecord, Failure
 from posegrasp.grasping.runfolder import EPISODES
-from posegrasp.grasping.tasks import (MISALIGNED, PAD_TOP, WRONG_FACE, can_stack, check_task, kitting_verdict,
-                                      stack_verdict, standing_extent)
+from posegrasp.grasping.tasks.base import PAD_TOP
+from posegrasp.grasping.tasks.kitting import KittingConfig, kitting_verdict
+from posegrasp.grasping.tasks.stack import StackConfig, can_stack, stack_verdict
+from posegrasp.grasping.tasks.standing import standing_extent
 from posegrasp.grasping.trials import run_trials
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import SceneConfig, settle
@@ -46,8 +48,9 @@ def _on_pad(block, yaw_deg: float, xy=PAD, flip: bool = False, z0: float = PAD_T
                       else z0 - standing_extent(block)[0] + 0.001))
 
 
-@pytest.mark.parametrize("yaw, flip, reason", [(8.0, False, None), (-8.0, False, None), (12.0, False, MISALIGNED),
-                                               (188.0, False, None), (0.0, True, WRONG_FACE)])
+@pytest.mark.parametrize("yaw, flip, reason", [(8.0, False, None), (-8.0, False, None),
+                                               (12.0, False, Failure.MISALIGNED), (188.0, False, None),
+                                               (0.0, True, Failure.WRONG_FACE)])
 def test_kitting_verdict_on_a_settled_brick(yaw, flip, reason):
     brick = load_catalog()["brick_2x4"]  # symmetric by 180 deg about z: 188 deg is 8 deg off
     T = _settled([brick], [_on_pad(brick, yaw, flip=flip)])[0]
@@ -57,7 +60,8 @@ def test_kitting_verdict_on_a_settled_brick(yaw, flip, reason):
         assert err.tilt_deg < 1.0 and err.te < 2e-3 and abs(abs(err.yaw_deg) - abs(yaw) % 180) < 1.0
 
 
-@pytest.mark.parametrize("offset, yaw, reason", [(0.0, 5.0, None), (0.015, 0.0, "misplaced"), (0.0, 14.0, MISALIGNED)])
+@pytest.mark.parametrize("offset, yaw, reason", [(0.0, 5.0, None), (0.015, 0.0, "misplaced"),
+                                                 (0.0, 14.0, Failure.MISALIGNED)])
 def test_stack_verdict_on_a_settled_pair(offset, yaw, reason):
     cat = load_catalog()
     base, top = cat["arch"], cat["cube"]  # the cube's 90-degree symmetry: yaw compared modulo it
@@ -77,7 +81,7 @@ def test_an_upright_block_is_compared_by_its_standing_copies():
     lb = load_catalog()["l_block"]
     T = make_T(axis_angle_R(Z, np.radians(114.0)), (*PAD, PAD_TOP - standing_extent(lb)[0]))
     err, reason = kitting_verdict(lb, T, PAD, PAD_TOP, KittingConfig())
-    assert reason == MISALIGNED and err.tilt_deg < 1e-6 and err.yaw_deg == pytest.approx(114.0)
+    assert reason == Failure.MISALIGNED and err.tilt_deg < 1e-6 and err.yaw_deg == pytest.approx(114.0)
 
 
 def test_a_moved_base_fails_stack():
