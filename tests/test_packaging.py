@@ -25,11 +25,14 @@ PARTS = ("sim", "datagen", "perception", "grasping", "objects")
 
 
 def _modules() -> dict[str, Path]:
-    """Every module of the package, by dotted name."""
+    """Every module of the package and of its subpackages (folders with an ``__init__.py``), by dotted name."""
     mods = {}
     for pkg, folder in PACKAGES.items():
-        for f in sorted((ROOT / folder).glob("*.py")):
-            mods[pkg if f.stem == "__init__" else f"{pkg}.{f.stem}"] = f
+        for f in sorted((ROOT / folder).rglob("*.py")):
+            sub = f.relative_to(ROOT / folder).parent.parts
+            if any(not (ROOT / folder / Path(*sub[:i]) / "__init__.py").exists() for i in range(1, len(sub) + 1)):
+                continue  # a script beside the assets, not a module
+            mods[".".join([pkg, *sub] + ([] if f.stem == "__init__" else [f.stem]))] = f
     return mods
 
 
@@ -97,8 +100,9 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_wheel_holds_one_package_and_its_assets(wheel: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     assert {n.split("/")[0] for n in names} == {"posegrasp", "posegrasp-0.1.0.dist-info"}
-    for part in PARTS:
-        assert f"posegrasp/{part}/__init__.py" in names
+    for part in PARTS:  # each part and its subpackages (pyproject.toml lists every one)
+        inits = {f"posegrasp/{p.relative_to(ROOT).as_posix()}" for p in (ROOT / part).rglob("__init__.py")}
+        assert inits and inits <= set(names), f"missing from the wheel: {sorted(inits - set(names))}"
     assets = {n.removeprefix("posegrasp/assets/") for n in names if n.startswith("posegrasp/assets/")}
     shipped = {str(p.relative_to(posegrasp.ASSETS)) for p in posegrasp.ASSETS.rglob("*")
                if p.is_file() and "__pycache__" not in p.parts}
