@@ -76,6 +76,7 @@ def read_run(run_dir: Path) -> TrialRun:
     raw = [r for _, r in sorted(read_records(run_dir / EPISODES).items())]
     if not raw:
         raise UserError(f"{run_dir / EPISODES} holds no finished episode: run (or resume) the trials first")
+    campaign = read_campaign(run_dir)
     episodes = [EpisodeRecord.from_json(r, f"{run_dir / EPISODES} episode {r['episode']}") for r in raw]
     summary = read_json_object(run_dir / SUMMARY) if (run_dir / SUMMARY).is_file() else summarise(raw)
-    return TrialRun(run_dir, read_campaign(run_dir), episodes, Summary.from_json(summary, str(run_dir / SUMMARY)))
+    return TrialRun(run_dir, campaign, episodes, Summary.from_json(summary, str(run_dir / SUMMARY)))
