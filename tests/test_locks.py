@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import cli
 from test_workers import TINY_TOML
 
 from posegrasp.datagen.config import load_datagen_config
@@ -57,8 +58,8 @@ def wait_for_lock(folder: Path, proc: subprocess.Popen) -> None:
 
 def test_two_datagen_runs_on_one_folder_and_a_stale_lock(tmp_path, tiny_toml):
     out = tmp_path / "ds"
-    args = [sys.executable, "-m", "posegrasp.cli", "datagen", "--out", str(out), "--scenes", "1", "--views", "2",
-            "--workers", "1", "--config", str(tiny_toml), "--no-progress"]
+    args = cli("datagen", "--out", str(out), "--scenes", "1", "--views", "2", "--workers", "1", "--config",
+               str(tiny_toml), "--no-progress")
     first = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         wait_for_lock(out, first)

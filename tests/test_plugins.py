@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from rich.console import Console
 
+from helpers import run_cli
 from posegrasp.errors import UserError
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.perception import Estimate, PerceptionError, call_with_timeout, checked_estimates
@@ -200,12 +201,10 @@ def test_installed_entry_point_is_found_by_name(tmp_path):
            str(target), str(pkg)]
     subprocess.run(pip, check=True, capture_output=True, timeout=180)
     env = dict(os.environ, PYTHONPATH=str(target))
-    cli = [sys.executable, "-m", "posegrasp.cli"]
     calls = tmp_path / "calls"
     calls.mkdir()
-    run = subprocess.run(cli + ["trials", "--perception", f"tinyprov:{calls}", "--episodes", "1", "--workers", "1",
-                                "--no-progress", "--out", str(tmp_path / "run")], env=env, capture_output=True,
-                         text=True, timeout=300)
+    run = run_cli("trials", "--perception", f"tinyprov:{calls}", "--episodes", "1", "--workers", "1", "--no-progress",
+                  "--out", str(tmp_path / "run"), env=env)
     assert run.returncode == 0, run.stderr
     assert [p.name.split("_")[:2] for p in calls.glob("*.json")] == [["0", "0"]]
     assert _records(tmp_path / "run")[0]["failure"] == "no detection"

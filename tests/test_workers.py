@@ -7,11 +7,11 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+from helpers import cli
 from test_datagen import file_hashes
 
 from posegrasp.datagen.config import load_datagen_config
@@ -26,10 +26,6 @@ blocks = [2, 3]
 width = 80
 height = 60
 """
-
-
-def cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "posegrasp.cli", *args]
 
 
 def children(pid: int) -> dict[int, str]:
