@@ -225,12 +225,14 @@ def test_check_flags_boxes_and_counts_against_bop_toolkit_rules(dataset, tmp_pat
 
 # ------------------------------------------------------------------------------------------- determinism
 
+@pytest.mark.slow
 def test_same_bytes_with_two_workers(dataset, tmp_path, small_toml):
     out = tmp_path / "two"
     generate_dataset(out, SCENES, VIEWS, SEED, load_datagen_config(small_toml), workers=2)
     assert file_hashes(out) == file_hashes(dataset)
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_same_bytes(dataset, tmp_path, small_toml):
     out = tmp_path / "killed"
     args = ["datagen", "--out", str(out), "--scenes", str(SCENES), "--views", str(VIEWS), "--seed", str(SEED),

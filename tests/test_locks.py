@@ -56,6 +56,7 @@ def wait_for_lock(folder: Path, proc: subprocess.Popen) -> None:
         time.sleep(0.01)
 
 
+@pytest.mark.slow
 def test_two_datagen_runs_on_one_folder_and_a_stale_lock(tmp_path, tiny_toml):
     out = tmp_path / "ds"
     args = cli("datagen", "--out", str(out), "--scenes", "1", "--views", "2", "--workers", "1", "--config",
@@ -122,6 +123,7 @@ def test_a_failed_datagen_start_leaves_the_folder_usable(tmp_path, tiny_toml):
         generate_dataset(out, 1, 1, seed=3, cfg=cfg, workers=1)
 
 
+@pytest.mark.slow
 def test_a_failed_trials_start_leaves_the_folder_usable(tmp_path):
     out = tmp_path / "run"
     out.mkdir()

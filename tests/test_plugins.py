@@ -111,6 +111,7 @@ def _quiet() -> Console:
     return Console(file=io.StringIO())
 
 
+@pytest.mark.slow
 def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, monkeypatch):
     (tmp_path / "spy_provider.py").write_text(SPY)
     calls1, calls2 = tmp_path / "calls1", tmp_path / "calls2"
@@ -131,6 +132,7 @@ def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, 
     assert not (tmp_path / "__pycache__").exists()  # the plug-in file was loaded without writing beside it
 
 
+@pytest.mark.slow
 def test_bad_providers_fail_their_episodes_not_the_campaign(tmp_path):
     (tmp_path / "bad.py").write_text(BAD)
     cfg = dataclasses.replace(CFG, perception_timeout_s=1.0)
@@ -189,6 +191,7 @@ def test_timeout_restores_a_running_timer_and_works_off_the_main_thread():
     assert out[1] == 5 and "within 0.2 s" in out[0]
 
 
+@pytest.mark.slow
 def test_installed_entry_point_is_found_by_name(tmp_path):
     pkg, target = tmp_path / "pkg", tmp_path / "site"
     (pkg / "tinyprov").mkdir(parents=True)
@@ -225,6 +228,7 @@ except UserError as e:
 """
 
 
+@pytest.mark.slow
 def test_depth_only_example_grasps_blocks(tmp_path):
     spec = f"py:{ROOT / 'examples' / 'providers' / 'depth_only.py'}:make_provider"
     provider = make_provider(spec)

@@ -18,6 +18,8 @@ from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.runfolder import EPISODES
 from posegrasp.grasping.trials import run_trials
 
+pytestmark = pytest.mark.slow  # a local Ray cluster
+
 ray = pytest.importorskip("ray", reason="Ray is the optional 'ray' extra; `make test` installs it")
 
 

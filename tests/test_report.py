@@ -19,6 +19,8 @@ from posegrasp.grasping.runfolder import EPISODES
 from posegrasp.grasping.trials import run_trials
 from posegrasp.errors import UserError
 
+pytestmark = pytest.mark.slow  # a 3-episode campaign, its re-simulated frames and Chromium
+
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync"]

@@ -117,6 +117,7 @@ def test_a_task_the_catalogue_cannot_serve_is_refused():
 
 
 @pytest.mark.parametrize("task, measured", [("kitting", KITTING_ORACLE), ("stack", STACK_ORACLE)])
+@pytest.mark.slow
 def test_short_oracle_campaign_and_same_seed_same_records(tmp_path, task, measured):
     cfg = TrialConfig(task=task)
     s = run_trials(tmp_path / "a", 8, seed=0, perception="oracle", workers=2, cfg=cfg, progress=False)

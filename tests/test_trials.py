@@ -32,6 +32,7 @@ def serial_run(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_ten_oracle_episodes_meet_the_documented_floor(oracle_run):
     out, summary = oracle_run
     lines = (out / EPISODES).read_text().splitlines()
@@ -50,12 +51,14 @@ def test_ten_oracle_episodes_meet_the_documented_floor(oracle_run):
     assert (out / "timings.jsonl").exists() and (out / "summary.json").exists()
 
 
+@pytest.mark.slow
 def test_same_seed_same_lines_for_one_and_two_workers(oracle_run, serial_run):
     two = (oracle_run[0] / EPISODES).read_text().splitlines()[:4]
     one = (serial_run / EPISODES).read_text().splitlines()
     assert one == two
 
 
+@pytest.mark.slow
 def test_resume_after_a_kill_gives_the_same_file(serial_run, tmp_path):
     full = (serial_run / EPISODES).read_bytes()
     out = tmp_path / "resumed"
@@ -69,6 +72,7 @@ def test_resume_after_a_kill_gives_the_same_file(serial_run, tmp_path):
     assert (out / EPISODES).read_bytes() == full
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_different_campaign(serial_run, tmp_path):
     from posegrasp.errors import UserError
 
@@ -78,6 +82,7 @@ def test_resume_refuses_a_different_campaign(serial_run, tmp_path):
         run_trials(out, 4, seed=1, perception="oracle", workers=1, cfg=TrialConfig())
 
 
+@pytest.mark.slow
 def test_large_pose_noise_fails_more_than_small(tmp_path):
     small = run_trials(tmp_path / "small", 6, seed=3, perception="noisy-oracle:0.002,1", workers=1, cfg=TrialConfig())
     large = run_trials(tmp_path / "large", 6, seed=3, perception="noisy-oracle:0.03,30", workers=1, cfg=TrialConfig())
