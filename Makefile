@@ -1,4 +1,5 @@
-# Two set-up-to-result targets: `make demo` and `make test`. Both build .venv from scratch when needed.
+# Set-up-to-result targets: `make demo`, `make test` (every test, as CI runs it) and `make test-fast` (the
+# everyday tier: the tests not marked slow). Each builds .venv from scratch when needed.
 SHELL := /bin/bash
 PY ?= python3.11
 VENV := .venv
@@ -7,7 +8,7 @@ STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: demo test setup sysdeps clean
+.PHONY: demo test test-fast setup sysdeps clean
 
 setup: $(STAMP)
 
@@ -32,6 +33,9 @@ demo: setup sysdeps
 
 test: setup sysdeps
 	$(BIN)/python -m pytest -q
+
+test-fast: setup sysdeps
+	$(BIN)/python -m pytest -q -m "not slow"
 
 clean:
 	rm -rf $(VENV) demo_out

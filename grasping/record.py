@@ -2,7 +2,8 @@
 failure taxonomy and its phase timings (a line of ``timings.jsonl``).
 
 Lengths in metres, angles in degrees where the name says ``_deg``, times in simulated seconds (wall-clock and
-CPU seconds only in ``EpisodeTimings``). ``to_json()`` gives the JSON-ready dict: floats rounded to 6 decimals.
+CPU seconds only in ``EpisodeTimings``). ``to_json()`` gives the JSON-ready dict: floats rounded to 6 decimals;
+``EpisodeRecord.from_json`` reads such a dict back.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+from posegrasp.config import from_dict
+from posegrasp.errors import UserError
 from posegrasp.grasping.upright import UprightDeviation
 from posegrasp.io import jsonable
 
@@ -130,6 +133,23 @@ class EpisodeRecord:
         if self.failure is not None:
             d["failure"] = Failure(self.failure).value
         return jsonable(d, digits=6)
+
+    @classmethod
+    def from_json(cls, data: dict, where: str = "episode record") -> EpisodeRecord:
+        """The record of an ``episodes.jsonl`` line (``to_json``'s inverse); a UserError naming ``where`` and
+        the key for a missing, unknown or mistyped field."""
+        if not isinstance(data, dict):
+            raise UserError(f"{where}: expected a JSON object, got {type(data).__name__}")
+        missing = [f.name for f in dataclasses.fields(cls) if f.name not in data
+                   and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+        if missing:
+            raise UserError(f"{where}: missing field(s) {missing}")
+        rec = from_dict(cls, {k: v for k, v in data.items() if k != "target"}, where)
+        target = data.get("target")
+        if target is not None:
+            kind = FalseTarget if isinstance(target, dict) and "obj_id" in target else Target
+            rec.target = from_dict(kind, target, f"{where}.target")
+        return rec
 
 
 @dataclass(frozen=True)

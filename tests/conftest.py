@@ -1,6 +1,18 @@
-"""Shared test set-up: headless EGL rendering, fixed thread counts."""
+"""Shared test set-up: headless EGL rendering, fixed thread counts; tests that need a slow fixture are slow."""
 
 import os
 
+import pytest
+
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+#: Fixtures whose set-up alone is minutes on 2 cores: a test using one is marked slow (``make test-fast`` skips it).
+SLOW_FIXTURES = {"tiny_run"}  # four networks trained for a few steps on the tiny BOP dataset
+
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` deselects by mark
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)

@@ -42,6 +42,7 @@ def records(run: Path) -> dict[int, dict]:
     return {i: {k: v for k, v in r.items() if k != "perception"} for i, r in read_records(run / EPISODES).items()}
 
 
+@pytest.mark.slow
 def test_stack_captures_equal_the_full_episodes_and_resume(tmp_path):
     """Both looks of two stack episodes: the full episodes' export is byte for byte the captures-only one, a valid
     BOP test split; a scene left incomplete by a kill is redone identically; the folder is locked and bound."""
@@ -71,6 +72,7 @@ def test_stack_captures_equal_the_full_episodes_and_resume(tmp_path):
         captures_only(tmp_path / "only", 2, cfg)
 
 
+@pytest.mark.slow
 def test_replayed_eval_results_give_the_live_model_episodes(tmp_path):
     """Two pick-and-place episodes: the live model (exporting its captures) and the replay of ``posegrasp eval``'s
     results on the captures-only export record the same episodes (outcome, pose error, everything); compare

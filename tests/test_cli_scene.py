@@ -3,17 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+from helpers import run_cli
 from posegrasp.io import read_image
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "posegrasp.cli", *args], capture_output=True, text=True, timeout=300)
 
 
 def test_scene_writes_labelled_capture(tmp_path):

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 
+from helpers import run_cli
 from posegrasp.grasping.compare import compare_runs, is_worse, mcnemar_exact
 from posegrasp.grasping.stats import wilson
 
@@ -59,9 +58,8 @@ def test_cli_fail_if_worse(tmp_path):
     for name, recs in (("A", a), ("B", b)):
         (tmp_path / name).mkdir()
         (tmp_path / name / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs.values()))
-    cmd = [sys.executable, "-m", "posegrasp.cli", "compare", str(tmp_path / "A"), str(tmp_path / "B")]
-    assert subprocess.run(cmd, capture_output=True).returncode == 0
-    r = subprocess.run(cmd + ["--fail-if-worse"], capture_output=True, text=True)
+    assert run_cli("compare", str(tmp_path / "A"), str(tmp_path / "B")).returncode == 0
+    r = run_cli("compare", str(tmp_path / "A"), str(tmp_path / "B"), "--fail-if-worse")
     assert r.returncode == 1 and "worse" in r.stdout
-    r = subprocess.run(cmd[:-1] + [str(tmp_path / "missing")], capture_output=True, text=True)
+    r = run_cli("compare", str(tmp_path / "A"), str(tmp_path / "missing"))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1

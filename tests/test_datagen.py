@@ -10,7 +10,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import trimesh
 from matplotlib.path import Path as PolyPath
 from scipy.spatial import ConvexHull
 
+from helpers import cli, run_cli
 from posegrasp.bop_check import check_dataset
 from posegrasp.datagen.config import load_datagen_config
 from posegrasp.datagen.generate import STATS_FILE, generate_dataset, is_complete
@@ -37,11 +37,6 @@ height = 240
 [depth_noise]
 keep_clean = true
 """
-
-
-def run_cli(*args: str, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "posegrasp.cli", *args], capture_output=True, text=True,
-                          timeout=300, **kw)
 
 
 def file_hashes(root: Path) -> dict[str, str]:
@@ -230,18 +225,20 @@ def test_check_flags_boxes_and_counts_against_bop_toolkit_rules(dataset, tmp_pat
 
 # ------------------------------------------------------------------------------------------- determinism
 
+@pytest.mark.slow
 def test_same_bytes_with_two_workers(dataset, tmp_path, small_toml):
     out = tmp_path / "two"
     generate_dataset(out, SCENES, VIEWS, SEED, load_datagen_config(small_toml), workers=2)
     assert file_hashes(out) == file_hashes(dataset)
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_same_bytes(dataset, tmp_path, small_toml):
     out = tmp_path / "killed"
     args = ["datagen", "--out", str(out), "--scenes", str(SCENES), "--views", str(VIEWS), "--seed", str(SEED),
             "--workers", "1", "--config", str(small_toml), "--no-progress"]
-    proc = subprocess.Popen([sys.executable, "-m", "posegrasp.cli", *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, start_new_session=True)
+    proc = subprocess.Popen(cli(*args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            start_new_session=True)
     t0 = time.monotonic()
     while not is_complete(out, "train_pbr", 0):
         assert proc.poll() is None, proc.stderr.read().decode()

@@ -78,6 +78,7 @@ def test_mesh_candidates_where_the_box_faces_miss(parts):
     assert grasps and {round(g.width, 3) for g in grasps} <= {0.026, 0.04}  # true spans, not the box's
 
 
+@pytest.mark.slow
 def test_oracle_pick_place_on_imported_parts(parts, tmp_path):
     cfg = with_set(TrialConfig(min_blocks=1, max_blocks=2), parts)
     summary = run_trials(tmp_path / "run", 2, seed=0, perception="oracle", workers=1, cfg=cfg, progress=False)

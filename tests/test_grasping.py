@@ -129,6 +129,7 @@ def test_oracle_reports_only_visible_blocks(look_frame):
         np.testing.assert_array_equal(e.T_cam_obj, look_frame.T_cam_obj[k - 1])
 
 
+@pytest.mark.slow  # the shipped network on a full look frame
 def test_model_provider_drops_slivers_like_the_oracle(look_frame):
     from posegrasp.grasping.model_provider import SHIPPED_MODEL, ModelProvider
 
@@ -142,6 +143,7 @@ def test_model_provider_drops_slivers_like_the_oracle(look_frame):
     assert len(kept) == sum(n >= cut for n in sizes) < len(dets)
 
 
+@pytest.mark.slow
 def test_shipped_estimator_drops_segmented_table_pixels(look_frame):
     """The plane step clears the seg net's bleed onto the table before classification; the outline snapping after
     the fits may label pixels within the plane's tolerance again, but they are the blocks' own bottom edges."""
@@ -212,6 +214,7 @@ def test_rest_prior_levels_near_resting_estimates_only():
     assert abs(T_c[:3, :3][2, 2]) < 1e-9
 
 
+@pytest.mark.slow  # the shipped network on a full look frame
 def test_shipped_estimator_splits_a_mask_holding_two_blocks(look_frame):
     """A detection fitted to block 1 whose mask also holds block 2 (two touching blocks segmented as one) is
     split: block 1 is fitted again to its own pixels, block 2 becomes a detection of its own, typed by the

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import cli
 from test_workers import TINY_TOML
 
 from posegrasp.datagen.config import load_datagen_config
@@ -55,10 +56,11 @@ def wait_for_lock(folder: Path, proc: subprocess.Popen) -> None:
         time.sleep(0.01)
 
 
+@pytest.mark.slow
 def test_two_datagen_runs_on_one_folder_and_a_stale_lock(tmp_path, tiny_toml):
     out = tmp_path / "ds"
-    args = [sys.executable, "-m", "posegrasp.cli", "datagen", "--out", str(out), "--scenes", "1", "--views", "2",
-            "--workers", "1", "--config", str(tiny_toml), "--no-progress"]
+    args = cli("datagen", "--out", str(out), "--scenes", "1", "--views", "2", "--workers", "1", "--config",
+               str(tiny_toml), "--no-progress")
     first = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         wait_for_lock(out, first)
@@ -121,6 +123,7 @@ def test_a_failed_datagen_start_leaves_the_folder_usable(tmp_path, tiny_toml):
         generate_dataset(out, 1, 1, seed=3, cfg=cfg, workers=1)
 
 
+@pytest.mark.slow
 def test_a_failed_trials_start_leaves_the_folder_usable(tmp_path):
     out = tmp_path / "run"
     out.mkdir()

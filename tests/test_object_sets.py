@@ -73,6 +73,7 @@ def test_datagen_on_a_set_passes_dataset_check_and_stays_on_its_set(parts, tmp_p
     assert snapshot(ds) == before
 
 
+@pytest.mark.slow
 def test_trials_record_their_set_and_compare_refuses_another(parts, tmp_path, capsys):
     a, b = tmp_path / "a", tmp_path / "b"
     trial = ["trials", "--episodes", "1", "--seed", "3", "--workers", "1", "--no-progress"]

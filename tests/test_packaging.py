@@ -113,6 +113,7 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return whl
 
 
+@pytest.mark.slow
 def test_wheel_holds_one_package_and_its_assets(wheel: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     assert {n.split("/")[0] for n in names} == {"posegrasp", "posegrasp-0.1.0.dist-info"}
@@ -125,6 +126,7 @@ def test_wheel_holds_one_package_and_its_assets(wheel: Path) -> None:
     assert "posegrasp/datagen/datagen.toml" in names
 
 
+@pytest.mark.slow
 def test_installed_wheel_runs_from_any_folder(wheel: Path, tmp_path: Path) -> None:
     """Installed (not editable) into a fresh target, the wheel finds its assets and runs a command elsewhere."""
     site = tmp_path / "site"

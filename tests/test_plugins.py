@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from rich.console import Console
 
+from helpers import run_cli
 from posegrasp.errors import UserError
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.perception import Estimate, PerceptionError, call_with_timeout, checked_estimates
@@ -110,6 +111,7 @@ def _quiet() -> Console:
     return Console(file=io.StringIO())
 
 
+@pytest.mark.slow
 def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, monkeypatch):
     (tmp_path / "spy_provider.py").write_text(SPY)
     calls1, calls2 = tmp_path / "calls1", tmp_path / "calls2"
@@ -130,6 +132,7 @@ def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, 
     assert not (tmp_path / "__pycache__").exists()  # the plug-in file was loaded without writing beside it
 
 
+@pytest.mark.slow
 def test_bad_providers_fail_their_episodes_not_the_campaign(tmp_path):
     (tmp_path / "bad.py").write_text(BAD)
     cfg = dataclasses.replace(CFG, perception_timeout_s=1.0)
@@ -188,6 +191,7 @@ def test_timeout_restores_a_running_timer_and_works_off_the_main_thread():
     assert out[1] == 5 and "within 0.2 s" in out[0]
 
 
+@pytest.mark.slow
 def test_installed_entry_point_is_found_by_name(tmp_path):
     pkg, target = tmp_path / "pkg", tmp_path / "site"
     (pkg / "tinyprov").mkdir(parents=True)
@@ -200,12 +204,10 @@ def test_installed_entry_point_is_found_by_name(tmp_path):
            str(target), str(pkg)]
     subprocess.run(pip, check=True, capture_output=True, timeout=180)
     env = dict(os.environ, PYTHONPATH=str(target))
-    cli = [sys.executable, "-m", "posegrasp.cli"]
     calls = tmp_path / "calls"
     calls.mkdir()
-    run = subprocess.run(cli + ["trials", "--perception", f"tinyprov:{calls}", "--episodes", "1", "--workers", "1",
-                                "--no-progress", "--out", str(tmp_path / "run")], env=env, capture_output=True,
-                         text=True, timeout=300)
+    run = run_cli("trials", "--perception", f"tinyprov:{calls}", "--episodes", "1", "--workers", "1", "--no-progress",
+                  "--out", str(tmp_path / "run"), env=env)
     assert run.returncode == 0, run.stderr
     assert [p.name.split("_")[:2] for p in calls.glob("*.json")] == [["0", "0"]]
     assert _records(tmp_path / "run")[0]["failure"] == "no detection"
@@ -226,6 +228,7 @@ except UserError as e:
 """
 
 
+@pytest.mark.slow
 def test_depth_only_example_grasps_blocks(tmp_path):
     spec = f"py:{ROOT / 'examples' / 'providers' / 'depth_only.py'}:make_provider"
     provider = make_provider(spec)

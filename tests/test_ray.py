@@ -5,11 +5,10 @@ with ``--workers ray``; both give the process pool's bytes. The driver alone wri
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import run_cli
 from test_datagen import file_hashes
 from test_workers import TINY_TOML
 
@@ -18,6 +17,8 @@ from posegrasp.datagen.generate import SceneJob, generate_dataset
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.runfolder import EPISODES
 from posegrasp.grasping.trials import run_trials
+
+pytestmark = pytest.mark.slow  # a local Ray cluster
 
 ray = pytest.importorskip("ray", reason="Ray is the optional 'ray' extra; `make test` installs it")
 
@@ -43,9 +44,8 @@ def test_datagen_on_ray_gives_the_pools_bytes(cluster, tmp_path):
     cfg_file.write_text(TINY_TOML)
     assert "root" not in SceneJob.__dataclass_fields__  # a task gets no path: it never writes into --out
     out = tmp_path / "ray"
-    r = subprocess.run([sys.executable, "-m", "posegrasp.cli", "datagen", "--out", str(out), "--scenes", "3",
-                        "--views", "2", "--seed", "7", "--workers", "ray", "--config", str(cfg_file), "--no-progress"],
-                       capture_output=True, text=True, timeout=300, env={**os.environ, "RAY_ADDRESS": cluster.address})
+    r = run_cli("datagen", "--out", str(out), "--scenes", "3", "--views", "2", "--seed", "7", "--workers", "ray",
+                "--config", str(cfg_file), "--no-progress", env={**os.environ, "RAY_ADDRESS": cluster.address})
     assert r.returncode == 0, r.stderr
     pool = tmp_path / "pool"
     generate_dataset(pool, 3, 2, 7, load_datagen_config(cfg_file), workers=2)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -13,10 +14,12 @@ import pytest
 from PIL import Image
 
 from posegrasp.grasping.config import TrialConfig
-from posegrasp.grasping.report import REPORT, register, resimulate_look, write_report
+from posegrasp.grasping.report import REPORT, read_run, register, resimulate_look, write_report
 from posegrasp.grasping.runfolder import EPISODES
 from posegrasp.grasping.trials import run_trials
 from posegrasp.errors import UserError
+
+pytestmark = pytest.mark.slow  # a 3-episode campaign, its re-simulated frames and Chromium
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -49,11 +52,25 @@ def test_trials_write_a_self_contained_report(run):
 def test_report_frame_is_the_episodes_look_capture(run):
     """Re-simulation reproduces the episode's look: the provider finds the recorded number of blocks."""
     out, _ = run
-    rec = json.loads((out / EPISODES).read_text().splitlines()[0])
+    rec = read_run(out).episodes[0]
     look = resimulate_look(out, rec)
-    assert look is not None and len(look.estimates) == rec["detected"]
+    assert look is not None and len(look.estimates) == rec.detected
     assert look.labels.shape == look.frame.rgb.shape[:2] and look.labels.max() >= 1
     assert look.overview.ndim == 3 and look.overview.std() > 5
+
+
+def test_run_folder_reads_into_typed_records(run, tmp_path):
+    out, s = run
+    read = read_run(out)
+    lines = (out / EPISODES).read_text().splitlines()
+    assert [e.to_json() for e in read.episodes] == [json.loads(line) for line in lines]
+    assert (read.summary.overall.success, read.summary.overall.n) == (s["success"], s["n"])
+    assert list(read.summary.per_block) == list(s["per_block"])
+    bad = tmp_path / "bad"
+    shutil.copytree(out, bad)
+    (bad / EPISODES).write_text(re.sub(r'"n_blocks":\d+', '"n_blocks":"many"', lines[0]) + "\n")
+    with pytest.raises(UserError, match="episode 0.n_blocks: expected int"):
+        read_run(bad)
 
 
 def test_report_command_and_bad_folder(run, tmp_path):

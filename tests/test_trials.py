@@ -5,12 +5,11 @@ from __future__ import annotations
 import io
 import json
 import shutil
-import subprocess
-import sys
 
 import pytest
 from rich.console import Console
 
+from helpers import PICK_PLACE_ORACLE, run_cli, success_floor
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.stats import wilson
 from posegrasp.grasping.runfolder import EPISODES
@@ -33,12 +32,13 @@ def serial_run(tmp_path_factory):
     return out
 
 
-def test_ten_oracle_episodes_succeed_at_least_nine_times(oracle_run):
+@pytest.mark.slow
+def test_ten_oracle_episodes_meet_the_documented_floor(oracle_run):
     out, summary = oracle_run
     lines = (out / EPISODES).read_text().splitlines()
     recs = [json.loads(line) for line in lines]
     assert [r["episode"] for r in recs] == list(range(10))
-    assert sum(r["outcome"] == "success" for r in recs) >= 9
+    assert sum(r["outcome"] == "success" for r in recs) >= success_floor(*PICK_PLACE_ORACLE, 10)  # 8
     assert summary["success"] == sum(r["outcome"] == "success" for r in recs)
     lo, hi = summary["wilson95"]
     assert lo <= summary["rate"] <= hi
@@ -51,12 +51,14 @@ def test_ten_oracle_episodes_succeed_at_least_nine_times(oracle_run):
     assert (out / "timings.jsonl").exists() and (out / "summary.json").exists()
 
 
+@pytest.mark.slow
 def test_same_seed_same_lines_for_one_and_two_workers(oracle_run, serial_run):
     two = (oracle_run[0] / EPISODES).read_text().splitlines()[:4]
     one = (serial_run / EPISODES).read_text().splitlines()
     assert one == two
 
 
+@pytest.mark.slow
 def test_resume_after_a_kill_gives_the_same_file(serial_run, tmp_path):
     full = (serial_run / EPISODES).read_bytes()
     out = tmp_path / "resumed"
@@ -70,6 +72,7 @@ def test_resume_after_a_kill_gives_the_same_file(serial_run, tmp_path):
     assert (out / EPISODES).read_bytes() == full
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_different_campaign(serial_run, tmp_path):
     from posegrasp.errors import UserError
 
@@ -79,6 +82,7 @@ def test_resume_refuses_a_different_campaign(serial_run, tmp_path):
         run_trials(out, 4, seed=1, perception="oracle", workers=1, cfg=TrialConfig())
 
 
+@pytest.mark.slow
 def test_large_pose_noise_fails_more_than_small(tmp_path):
     small = run_trials(tmp_path / "small", 6, seed=3, perception="noisy-oracle:0.002,1", workers=1, cfg=TrialConfig())
     large = run_trials(tmp_path / "large", 6, seed=3, perception="noisy-oracle:0.03,30", workers=1, cfg=TrialConfig())
@@ -95,10 +99,6 @@ def test_large_pose_noise_fails_more_than_small(tmp_path):
 ])
 def test_wilson_interval_matches_hand_computation(k, n, lo, hi):
     assert wilson(k, n) == pytest.approx((lo, hi), abs=2e-6)
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "posegrasp.cli", *args], capture_output=True, text=True, timeout=300)
 
 
 @pytest.mark.parametrize("args, words", [

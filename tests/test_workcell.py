@@ -78,7 +78,7 @@ def test_depth_lies_on_model_surface(look_frame):
 
 def pyrender_silhouettes(frame: Frame, scene, width: int, height: int) -> list[np.ndarray]:
     """Each block rendered alone by pyrender from its PLY-equivalent mesh at the ground-truth pose."""
-    from posegrasp.grasping.report import silhouette
+    from posegrasp.grasping.report.figures import silhouette
 
     return [silhouette(inst.block, frame.T_cam_obj[k], frame.K, width, height) for k, inst in enumerate(scene.blocks)]
 

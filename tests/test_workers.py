@@ -7,11 +7,11 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+from helpers import cli
 from test_datagen import file_hashes
 
 from posegrasp.datagen.config import load_datagen_config
@@ -26,10 +26,6 @@ blocks = [2, 3]
 width = 80
 height = 60
 """
-
-
-def cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "posegrasp.cli", *args]
 
 
 def children(pid: int) -> dict[int, str]:
@@ -91,6 +87,7 @@ def tiny_toml(tmp_path_factory) -> Path:
     return p
 
 
+@pytest.mark.slow
 def test_datagen_workers_die_with_their_parent(tmp_path, tiny_toml):
     out = tmp_path / "killed"
     args = ["datagen", "--out", str(out), "--scenes", "4", "--views", "3", "--seed", "5", "--workers", "2",
@@ -109,6 +106,7 @@ def test_datagen_workers_die_with_their_parent(tmp_path, tiny_toml):
     assert file_hashes(out) == file_hashes(ref)
 
 
+@pytest.mark.slow
 def test_trials_workers_die_with_their_parent(tmp_path):
     out = tmp_path / "killed"
     args = ["trials", "--out", str(out), "--episodes", "2", "--seed", "4", "--workers", "2", "--perception", "oracle",
@@ -127,6 +125,7 @@ def test_trials_workers_die_with_their_parent(tmp_path):
     assert (out / EPISODES).read_bytes() == (ref / EPISODES).read_bytes()
 
 
+@pytest.mark.slow
 def test_a_pool_keeps_its_workers_inside_a_with_block_and_ends_them_after():
     from posegrasp.executor import PoolExecutor
 

@@ -18,6 +18,7 @@ def _parser():
     return p
 
 
+@pytest.mark.slow
 def test_train_and_eval_commands(tiny_bop, tiny_run, tmp_path, capsys):
     cfg = tmp_path / "cfg.toml"
     cfg.write_text("[seg]\nbatch_size = 2\nlog_every = 1\n[seg.model]\nwidth = 0.125\ninput_size = [64, 96]\n"

@@ -23,6 +23,7 @@ def _frame(tiny_bop):
     return rec, rec.load_rgb(), rec.load_depth(), rec.camera.K
 
 
+@pytest.mark.slow
 def test_estimator_api(tiny_bop, tiny_run):
     rec, rgb, depth, K = _frame(tiny_bop)
     est = Estimator(tiny_run)
@@ -68,6 +69,7 @@ def test_estimator_api(tiny_bop, tiny_run):
     assert [d.obj_id for d in est.estimate(rgb, holes, K, masks)[0]] == [2, 3]
 
 
+@pytest.mark.slow
 def test_duplicates_of_one_block_are_dropped(tiny_bop, tiny_run):
     """Two detections of one type whose centres are closer than half the block's smallest side are one block: the one
     with the smaller mask goes; detections of another type, or farther apart, stay."""
@@ -110,6 +112,7 @@ def test_estimator_runs_numpy_blas_on_one_thread(tiny_bop, tiny_run, monkeypatch
     assert seen == [{1}] and blas_threads() == before
 
 
+@pytest.mark.slow
 def test_segments_the_classifier_calls_not_a_block_are_dropped(tiny_bop, tiny_run, tiny_cls_config, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(tiny_run / "pose", run / "pose")
@@ -133,6 +136,7 @@ def test_segments_the_classifier_calls_not_a_block_are_dropped(tiny_bop, tiny_ru
     assert [o for o, _ in est._part_types(rgb, depth, K, parts, prob, None)] == [0, 0, 0]
 
 
+@pytest.mark.slow
 def test_classifier_with_the_height_channel_and_an_ensemble(tiny_bop, tiny_run, tiny_cls_config, tmp_path):
     """A classifier trained on crops with the height above the plane: its 7-channel crops reach it through the
     estimator's classify and split paths, and a checkpoint without the setting loads as 6 channels; both as the

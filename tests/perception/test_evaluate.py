@@ -11,6 +11,7 @@ from posegrasp import bop
 from posegrasp.perception.evaluate import EvalConfig, evaluate
 
 
+@pytest.mark.slow
 def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
     rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", progress=False)
     for name in ("metrics.json", "per_object.csv", "instances.csv", "curves.png", "posegrasp_tiny_bop0-test.csv",
@@ -36,6 +37,7 @@ def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
     assert rep["ablation"]["split_merged"] and rep["ablation"]["guided"] and rep["time_per_image_s"]["guided"] > 0
 
 
+@pytest.mark.slow
 def test_evaluate_without_classifier(tiny_bop, tiny_run, tmp_path):
     rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev",
                    EvalConfig(classify=False, icp=False, plane=False, guided=False), progress=False)
@@ -46,6 +48,7 @@ def test_evaluate_without_classifier(tiny_bop, tiny_run, tmp_path):
     assert 0 <= rep["segmentation"]["mIoU"] <= 100
 
 
+@pytest.mark.slow
 def test_evaluate_gt_masks_without_refinement(tiny_bop, tiny_run, tmp_path):
     rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", EvalConfig(masks="gt", refine_iterations=0), progress=False)
     assert rep["overall"]["detected"] == 100.0 and rep["segmentation"] is None

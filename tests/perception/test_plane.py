@@ -37,6 +37,7 @@ def test_ransac_finds_the_table_and_its_pixels():
     assert clear_plane(labels, flat, K)[1] is None and clear_plane(labels, flat, K)[0] is labels
 
 
+@pytest.mark.slow
 def test_icp_scores_a_pose_sunk_into_the_table_worse():
     """Score of a fixed pose (no ICP steps): a 4 cm cube on the table 0.5 m below the camera; the same cube
     1 cm lower (a quarter of it beneath the table) pays the plane term, the one on the table does not."""

@@ -100,6 +100,7 @@ def test_grids_posed_and_exact_lookups():
         assert np.array_equal(idx[h].numpy(), cKDTree(models[o]).query(local[h].numpy())[1])
 
 
+@pytest.mark.slow
 def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
     """The tiny set's 60 x 30 x 20 mm box (obj 3), its estimate turned 90 deg about its z axis (not one of
     its symmetries, but ADD-S barely sees it) and shifted 4 mm: the hypotheses find the true pose back."""
@@ -132,6 +133,7 @@ def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
     assert fixed >= 2 * 0.75 * len(recs) and stuck >= 0.75 * len(recs)
 
 
+@pytest.mark.slow
 def test_objects_refined_together_as_each_alone(tiny_bop):
     """``refine_poses`` batches the objects of a frame (models and point sets of different sizes, padded): each result
     is ``refine_pose``'s for that object alone, with and without the supporting plane."""
@@ -213,6 +215,7 @@ def _on_table(mesh, T_world_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     return T_cam_world @ T_world_obj, obs, depth.astype(np.float32), K, plane
 
 
+@pytest.mark.slow
 def test_yaw_turns_find_a_cube_turned_on_the_table():
     """Seen from above, a cube's top face fits its points at almost any yaw, and free ICP keeps much of a yaw error
     it starts from (35 deg -> 16 deg measured); the turns about the table's normal find the true yaw back (2.3 deg),
@@ -253,6 +256,7 @@ def test_up_face_names_the_object_axis_along_the_normal():
     assert up_face(R, up).tolist() == [4, 5, 1, 2]
 
 
+@pytest.mark.slow
 def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
     """An L-block standing on the ends of its two bars, corner up (its rest 45 deg from every object axis), estimated
     as an upright L turned 120 deg: levelled onto the nearest object axis, no resting start can reach that pose; the

@@ -43,6 +43,7 @@ def _fixed_pose_loss(model, ds):
         return pose_loss(q, t, c, b["points"], b["model_points"], b["target"], b["symmetric"]).dis.mean().item()
 
 
+@pytest.mark.slow
 def test_pose_training_lowers_loss(tiny_bop, tiny_run):
     cfg = checkpoint.read_config(tiny_run / "pose")
     trained, model_cfg, _ = checkpoint.load_model(tiny_run / "pose", "pose")
@@ -92,6 +93,7 @@ def test_cls_lr_schedule():
     assert cls_lr(cfg, 55) == pytest.approx(0.5) and cls_lr(cfg, 100) == pytest.approx(0.0, abs=1e-12)
 
 
+@pytest.mark.slow
 def test_resume_is_exact_and_guarded(tiny_bop, tiny_configs, tmp_path):
     _, pose, _ = tiny_configs
     pose = dataclasses.replace(pose, model=dataclasses.replace(pose.model, num_points=32, crop_size=32),
@@ -111,6 +113,7 @@ def test_resume_is_exact_and_guarded(tiny_bop, tiny_configs, tmp_path):
         ["step", "1", "2", "3", "4"]
 
 
+@pytest.mark.slow
 def test_seg_resume_after_interrupted_save(tiny_bop, tiny_configs, tmp_path):
     seg, _, _ = tiny_configs
     seg = dataclasses.replace(seg, checkpoint_every=1)
@@ -122,6 +125,7 @@ def test_seg_resume_after_interrupted_save(tiny_bop, tiny_configs, tmp_path):
     assert out["step"] == 3
 
 
+@pytest.mark.slow
 def test_seg_batches_prepared_by_workers_train_the_same_weights(tiny_bop, tiny_configs, tmp_path):
     seg, _, _ = tiny_configs
     train_seg(tiny_bop, tmp_path / "here", seg, steps=3, progress=False)
@@ -135,6 +139,7 @@ def test_seg_batches_prepared_by_workers_train_the_same_weights(tiny_bop, tiny_c
         train_seg(tiny_bop, tmp_path / "bad", dataclasses.replace(seg, device="gpu0"), steps=1, progress=False)
 
 
+@pytest.mark.slow
 def test_seg_fine_tunes_from_init_weights(tiny_bop, tiny_run, tiny_configs, tmp_path):
     seg, _, _ = tiny_configs
     ds = SegDataset(tiny_bop, "train", seg.model.input_size, 4)
@@ -159,6 +164,7 @@ def test_seg_fine_tunes_from_init_weights(tiny_bop, tiny_run, tiny_configs, tmp_
         train_seg(tiny_bop, tmp_path / "none", dataclasses.replace(seg, init=str(tmp_path)), steps=1, progress=False)
 
 
+@pytest.mark.slow
 def test_pose_fine_tuning_with_the_symmetry_loss(tiny_bop, tiny_run, tiny_configs, tmp_path):
     _, pose, _ = tiny_configs
     start = load_file(tiny_run / "pose" / "model.safetensors")

@@ -1,0 +1,81 @@
+"""An episode re-simulated from its recorded seeds up to the look capture, with ``grasping.episode``'s own
+functions: the hand-camera frame the provider saw, its estimates and labels, and the overview camera's image."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from posegrasp.errors import DatasetError, SimulationError
+from posegrasp.executor import Executor, SerialExecutor
+from posegrasp.grasping.record import EpisodeRecord
+from posegrasp.grasping.runfolder import read_campaign
+from posegrasp.sim.camera import Frame
+
+
+@dataclass
+class Look:
+    """An episode's re-simulated look capture: the frame, the provider's estimates, labels and overview image."""
+
+    frame: Frame
+    estimates: list
+    labels: np.ndarray
+    overview: np.ndarray
+    objects: str = ""  # the object set's folder (``""``: the shipped blocks)
+
+
+def resimulate_look(run_dir: Path, rec: EpisodeRecord) -> Look | None:
+    """Episode ``rec`` of the run in ``run_dir`` re-simulated from its seeds up to the look capture; None if it
+    never got there."""
+    from posegrasp.catalog import catalog_by_id
+    from posegrasp.grasping.episode import EpisodeTask, capture_look, drive_to_look, episode_draws, episode_workcell
+    from posegrasp.grasping.model_provider import ModelProvider
+    from posegrasp.grasping.perception import PICK_LOOK, PerceptionError, observation, perceive
+    from posegrasp.grasping.provider_registry import make_provider
+    from posegrasp.sim.camera import CameraRenderer
+    from posegrasp.sim.workcell import OVERVIEW_CAMERA
+
+    campaign = read_campaign(run_dir)
+    task = EpisodeTask(rec.seed, rec.episode, rec.perception, campaign.config, campaign.T_gripper_cam)
+    n_blocks, scene_seed, percept_seed, _ = episode_draws(task)
+    if scene_seed != rec.scene_seed:
+        raise DatasetError(f"episode {rec.episode} of {run_dir} does not re-simulate (scene seed {scene_seed} "
+                           f"!= recorded {rec.scene_seed}): the code changed since the run; rerun the trials")
+    try:
+        wc = episode_workcell(task.cfg, scene_seed, n_blocks)
+    except SimulationError:  # a scene that never settles (recorded as a simulation error)
+        return None
+    if not drive_to_look(wc, task.cfg.control):
+        return None
+    frame = capture_look(wc)
+    provider = make_provider(task.perception, wc.cfg.objects)
+    if isinstance(provider, ModelProvider):  # its class map too, from the same single run of the network
+        result = provider.perceive(observation(frame, task.index, PICK_LOOK))
+        ests, labels = provider.select(result), result.labels
+    else:
+        try:
+            ests = perceive(provider, frame, percept_seed, task.index, PICK_LOOK,
+                            known_ids=catalog_by_id(wc.cfg.objects), timeout_s=task.cfg.perception_timeout_s)
+        except PerceptionError:  # the episode's "perception error": no estimates to draw
+            ests = []
+        labels = frame.mask
+    cam = CameraRenderer.from_config(wc, OVERVIEW_CAMERA, wc.cfg.overview_camera, wc.cfg.render)
+    overview = cam.rgb()
+    cam.close()
+    return Look(frame, ests, np.asarray(labels), overview, wc.cfg.objects)
+
+
+def _resimulate_look_task(item: tuple[Path, EpisodeRecord]) -> Look | None:
+    """``resimulate_look(*item)``: a plain function of one argument, as executors (Ray too) take."""
+    return resimulate_look(*item)
+
+
+def resimulate_looks(run_dir: Path, episodes: Sequence[EpisodeRecord],
+                     executor: Executor | None = None) -> dict[int, Look | None]:
+    """``resimulate_look`` of each episode, by episode index, run by ``executor`` (a campaign's warm workers) or
+    in this process."""
+    done = (executor or SerialExecutor()).imap(_resimulate_look_task, [(run_dir, r) for r in episodes])
+    return {episodes[i].episode: look for i, look in done}

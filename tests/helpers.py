@@ -1,0 +1,49 @@
+"""Helpers shared by the tests: the command line in a child process, and success floors for short trial runs
+taken from documented 200-episode measurements."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+from posegrasp.grasping.stats import wilson
+
+#: Documented success counts (successes, episodes), seed 0, `--workers 2`; the floors below are taken from them.
+#: Measured by `posegrasp trials --episodes 200 --seed 0 --perception oracle --workers 2` (docs/results.md).
+PICK_PLACE_ORACLE = (198, 200)
+#: Measured by `posegrasp trials --episodes 200 --seed 0 --perception model --workers 2` (docs/results.md).
+PICK_PLACE_MODEL = (196, 200)
+#: Measured by `posegrasp trials --task kitting --episodes 200 --seed 0 --perception oracle --workers 2` (docs/tasks.md).
+KITTING_ORACLE = (199, 200)
+#: Measured by `posegrasp trials --task stack --episodes 200 --seed 0 --perception oracle --workers 2` (docs/tasks.md).
+STACK_ORACLE = (194, 200)
+
+
+def success_floor(k: int, n: int, m: int, alpha: float = 0.01) -> int:
+    """Fewest successes an ``m``-episode run must reach, given ``k`` of ``n`` documented successes.
+
+    With ``p`` the lower end of the Wilson 95 % interval of ``k / n`` (a rate the product reaches on any CPU
+    unless the measurement was unlucky), the floor is the largest ``f`` with ``P(X < f) <= alpha`` for
+    ``X ~ Binomial(m, p)``: a correct product fails the test with probability at most ``alpha``.
+    """
+    if m < 1:
+        raise ValueError(f"need m >= 1 episodes, got {m}")
+    p = wilson(k, n)[0]
+    below = 0.0  # P(X < f)
+    for f in range(m + 1):
+        at = math.comb(m, f) * p**f * (1 - p) ** (m - f)
+        if below + at > alpha:
+            return f
+        below += at
+    return m
+
+
+def cli(*args: str) -> list[str]:
+    """The command line running ``posegrasp ARGS`` with this interpreter."""
+    return [sys.executable, "-m", "posegrasp.cli", *args]
+
+
+def run_cli(*args: str, timeout: float = 300, **kw) -> subprocess.CompletedProcess:
+    """``posegrasp ARGS`` run in a child process, its output captured as text."""
+    return subprocess.run(cli(*args), capture_output=True, text=True, timeout=timeout, **kw)
