@@ -32,7 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", default=None, help="image WIDTHxHEIGHT (default from the config: 640x480)")
     p.add_argument("--config", default=None, help="generation settings TOML (defaults: datagen/datagen.toml)")
     p.add_argument("--rgb-format", choices=("png", "jpg"), default=None, help="colour images (default: jpg for train_pbr, png for test)")
-    p.add_argument("--blocks", default=None, help="blocks per scene: N or MIN-MAX (default 3-8)")
+    p.add_argument("--scene", default=None,
+                   help="scene kind: table (blocks apart), pile (a heap) or bin (a heap in a tote); default table")
+    p.add_argument("--blocks", default=None,
+                   help="objects per scene: N or MIN-MAX (default 3-8 on the table, 12 in a pile or bin)")
     p.add_argument("--objects", default=None,
                    help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -53,7 +56,13 @@ def load_config(args: argparse.Namespace):
         wc = cfg.workcell
         cfg = dataclasses.replace(cfg, workcell=dataclasses.replace(wc, hand_camera=dataclasses.replace(
             wc.hand_camera, width=w, height=h)))
-    cfg = override(cfg, rgb_format=args.rgb_format, blocks=parse_blocks(args.blocks) if args.blocks else None)
+    cfg = override(cfg, rgb_format=args.rgb_format, scene=args.scene)
+    if args.blocks:
+        counts = parse_blocks(args.blocks)
+        if cfg.scene == "table":
+            cfg = override(cfg, blocks=counts)
+        else:
+            cfg = dataclasses.replace(cfg, clutter=dataclasses.replace(cfg.clutter, parts=counts))
     return validate(cfg)
 
 

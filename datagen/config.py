@@ -13,6 +13,7 @@ from pathlib import Path
 
 from posegrasp.config import load_toml
 from posegrasp.errors import ConfigError
+from posegrasp.sim.clutter import CLUTTER_KINDS, ClutterConfig
 from posegrasp.sim.config import WorkcellConfig, with_objects
 from posegrasp.sim.scene import PALETTE, check_block_types
 
@@ -152,8 +153,17 @@ class DatagenConfig:
     depth_noise: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
     rgb_noise: RgbNoiseConfig = field(default_factory=RgbNoiseConfig)
     workcell: WorkcellConfig = field(default_factory=WorkcellConfig)
+    #: Scene kind (``--scene``): ``table`` (blocks dropped apart over the pick area), ``pile`` (parts dropped into
+    #: a heap) or ``bin`` (the heap in a tote).
+    scene: str = "table"
+    #: Pile and bin scenes: parts per scene (``--blocks``; ``blocks`` is the table's), tote, drop and settling.
+    clutter: ClutterConfig = field(default_factory=ClutterConfig)
+    #: Viewpoints of pile and bin scenes: closer and steeper than the table's, to look into the tote.
+    clutter_views: ViewConfig = field(default_factory=lambda: ViewConfig(distance=(0.3, 0.6),
+                                                                          elevation_deg=(45.0, 88.0)))
 
 
+SCENES = ("table", *CLUTTER_KINDS)
 TEXTURE_KINDS = ("checker", "gradient", "flat", "noise")
 RGB_FORMATS = ("auto", "jpg", "png")
 
@@ -173,14 +183,19 @@ def validate(cfg: DatagenConfig) -> DatagenConfig:
     check_block_types(cfg.block_types, cfg.workcell.objects)
     if not 0.01 <= cfg.min_spacing <= 0.2:
         raise ConfigError(f"min_spacing {cfg.min_spacing} m is out of range: use 0.01-0.2")
-    v = cfg.views
-    _check_range("views.distance", v.distance, 0.05)
-    _check_range("views.elevation_deg", v.elevation_deg, 0.0)
-    _check_range("views.azimuth_deg", v.azimuth_deg)
-    if v.elevation_deg[1] > 89.5:
-        raise ConfigError(f"views.elevation_deg must stay below 89.5 degrees, got {list(v.elevation_deg)}")
-    if v.ik_iters < 1 or v.attempts_per_view < 1:
-        raise ConfigError("views.ik_iters and views.attempts_per_view must be >= 1")
+    if cfg.scene not in SCENES:
+        raise ConfigError(f"scene (--scene) {cfg.scene!r} must be one of {', '.join(SCENES)}")
+    _check_range("clutter.parts", cfg.clutter.parts, 1)
+    if min(cfg.clutter.tote.inner_size) <= 0.0:
+        raise ConfigError(f"clutter.tote.inner_size must be positive, got {list(cfg.clutter.tote.inner_size)}")
+    for name, v in (("views", cfg.views), ("clutter_views", cfg.clutter_views)):
+        _check_range(f"{name}.distance", v.distance, 0.05)
+        _check_range(f"{name}.elevation_deg", v.elevation_deg, 0.0)
+        _check_range(f"{name}.azimuth_deg", v.azimuth_deg)
+        if v.elevation_deg[1] > 89.5:
+            raise ConfigError(f"{name}.elevation_deg must stay below 89.5 degrees, got {list(v.elevation_deg)}")
+        if v.ik_iters < 1 or v.attempts_per_view < 1:
+            raise ConfigError(f"{name}.ik_iters and {name}.attempts_per_view must be >= 1")
     _check_range("lights.extra", cfg.lights.extra, 0)
     if cfg.lights.extra[1] > 6:
         raise ConfigError(f"lights.extra allows at most 6 extra lights (OpenGL renders 8), got {cfg.lights.extra[1]}")

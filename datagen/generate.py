@@ -27,7 +27,7 @@ from posegrasp.datagen.views import ViewStats, visit_views
 from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root
 from posegrasp import bop
 from posegrasp import io as pio
-from posegrasp.errors import DatasetError, SceneUnsettled, UserError
+from posegrasp.errors import ConfigError, DatasetError, SceneUnsettled
 from posegrasp.executor import make_executor
 from posegrasp.lock import folder_lock
 from posegrasp.sim.camera import intrinsics
@@ -68,7 +68,8 @@ def generate_scene(job: SceneJob) -> SceneWriter:
     try:
         gs = build_scene(cfg, np.random.default_rng(s_scene))
     except SceneUnsettled as e:
-        raise SceneUnsettled(f"scene {job.scene_id}: {e}; lower --blocks or raise min_spacing / area_margin") from None
+        hint = "lower --blocks or raise min_spacing / area_margin" if cfg.scene == "table" else "lower --blocks"
+        raise SceneUnsettled(f"scene {job.scene_id}: {e}; {hint}") from None
     wc = gs.workcell
     c = cfg.workcell.hand_camera
     renderer = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far,
@@ -76,7 +77,8 @@ def generate_scene(job: SceneJob) -> SceneWriter:
     writer = SceneWriter(cfg.depth_scale, rgb_extension(cfg, job.split), cfg.jpg_quality)
     stats, noise_rng = ViewStats(), np.random.default_rng(s_noise)
     try:
-        for im_id, _ in enumerate(visit_views(wc, cfg.views, job.views, np.random.default_rng(s_views), stats)):
+        views = cfg.views if cfg.scene == "table" else cfg.clutter_views
+        for im_id, _ in enumerate(visit_views(wc, views, job.views, np.random.default_rng(s_views), stats)):
             frame = renderer.capture()
             dn, rn = cfg.depth_noise, cfg.rgb_noise
             depth = noisy_depth(frame.depth, frame.K, dn, noise_rng, c.near, c.far) if dn.enabled else frame.depth
@@ -86,6 +88,7 @@ def generate_scene(job: SceneJob) -> SceneWriter:
         renderer.close()
     info = {
         "scene_id": job.scene_id,
+        **({} if cfg.scene == "table" else {"scene": cfg.scene}),
         "images": stats.reached,
         "blocks": [{"obj_id": b.block.obj_id, "name": b.block.name, "rgba": list(b.rgba)} for b in wc.blocks],
         "distractors": len(gs.look.distractors),
@@ -116,10 +119,14 @@ def check_settings(path: Path, settings: dict[str, Any], binding: bool) -> None:
 
 def recorded_config(cfg: DatagenConfig) -> dict[str, Any]:
     """``cfg`` as ``datagen_config.json`` records it: ``workcell.objects`` only for a set other than the shipped
-    blocks (a dataset's ``models/`` are its set's; datasets made before sets existed stay resumable)."""
+    blocks (a dataset's ``models/`` are its set's; datasets made before sets existed stay resumable), the pile and
+    bin settings only for those scenes (a table dataset's record is the one it had before they existed)."""
     d = dataclasses.asdict(cfg)
     if not cfg.workcell.objects:
         del d["workcell"]["objects"]
+    if cfg.scene == "table":
+        for k in ("scene", "clutter", "clutter_views"):
+            del d[k]
     return d
 
 
@@ -146,9 +153,9 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
     """
     cfg = validate(cfg or DatagenConfig())
     if split not in SPLITS:
-        raise UserError(f"split {split!r} must be one of {', '.join(SPLITS)}")
+        raise ConfigError(f"split {split!r} must be one of {', '.join(SPLITS)}")
     if scenes < 1 or views < 1:
-        raise UserError(f"--scenes and --views must be >= 1, got {scenes} and {views}")
+        raise ConfigError(f"--scenes and --views must be >= 1, got {scenes} and {views}")
     check_capacity(cfg)
     root = Path(out)
     c = cfg.workcell.hand_camera

@@ -1,6 +1,6 @@
 """A randomised, settled scene for dataset generation: blocks dropped into the pick area (closer than their
-size, so some land on others) among randomised looks (textures, materials, lights, distractors), everything
-drawn from one rng.
+size, so some land on others; ``table``) or parts dropped into a heap (``pile``) or a tote (``bin``:
+``sim.clutter``), among randomised looks (textures, materials, lights, distractors), everything drawn from one rng.
 
 Physics runs with MuJoCo's sleeping islands enabled: blocks at rest cost nothing while the arm moves between
 viewpoints, and wake up if the arm touches them.
@@ -15,8 +15,9 @@ import numpy as np
 
 from posegrasp.datagen.appearance import Look, light_tint, sample_look
 from posegrasp.datagen.config import DatagenConfig
-from posegrasp.catalog import PartType
+from posegrasp.catalog import PartType, load_catalog
 from posegrasp.errors import ConfigError
+from posegrasp.sim.clutter import build_clutter_scene, check_clutter, clutter_workcell
 from posegrasp.sim.scene import SceneConfig, area_capacity, choose_types, drop_and_settle, randomise_lights
 from posegrasp.sim.workcell import BlockInstance, Workcell
 
@@ -27,7 +28,7 @@ class GenScene:
 
     workcell: Workcell
     look: Look
-    drops: int
+    drops: int  #: drops of all blocks (table) or waves of parts (pile, bin) it took
 
 
 def scene_config(cfg: DatagenConfig) -> SceneConfig:
@@ -37,7 +38,13 @@ def scene_config(cfg: DatagenConfig) -> SceneConfig:
 
 
 def check_capacity(cfg: DatagenConfig) -> None:
-    """Raise a ConfigError if the largest block count does not fit in the pick area."""
+    """Raise a ConfigError if the largest block count does not fit in the pick area (table) or the tote (pile,
+    bin: ``sim.clutter.check_clutter``, which also refuses a tote the hand cannot reach)."""
+    if cfg.scene != "table":
+        cat = load_catalog(cfg.workcell.objects)
+        types = [cat[t] for t in cfg.block_types or cat]
+        check_clutter(cfg.workcell, cfg.scene, cfg.clutter, types, cfg.clutter.parts[1])
+        return
     cap = area_capacity(scene_config(cfg))
     if cfg.blocks[1] > cap:
         raise ConfigError(f"{cfg.blocks[1]} blocks do not fit in the pick area (at most {cap}); lower --blocks")
@@ -60,12 +67,20 @@ def stack_drops(poses: list[np.ndarray], types: list[PartType]) -> list[np.ndarr
 def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 20) -> GenScene:
     """Draw block count, types and look from ``rng``, build the workcell and settle the dropped blocks."""
     scfg = scene_config(cfg)
-    n = int(rng.integers(cfg.blocks[0], cfg.blocks[1] + 1))
+    counts = cfg.blocks if cfg.scene == "table" else cfg.clutter.parts
+    n = int(rng.integers(counts[0], counts[1] + 1))
     types = choose_types(scfg, n, rng)
     look = sample_look(cfg, n, rng)
-    wc = Workcell(cfg.workcell, [BlockInstance(b, c) for b, c in zip(types, look.block_rgba)], extras=look.add_to)
+    parts = [BlockInstance(b, c) for b, c in zip(types, look.block_rgba)]
+    if cfg.scene == "table":
+        wc = Workcell(cfg.workcell, parts, extras=look.add_to)
+    else:
+        wc = clutter_workcell(cfg.workcell, cfg.scene, parts, cfg.clutter, extras=look.add_to)
     wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
     randomise_lights(wc, scfg, rng)
     light_tint(wc.model, cfg.lights, rng)
-    drops = drop_and_settle(wc, scfg, types, rng, max_drops, margin=cfg.area_margin, arrange=stack_drops)
+    if cfg.scene == "table":
+        drops = drop_and_settle(wc, scfg, types, rng, max_drops, margin=cfg.area_margin, arrange=stack_drops)
+    else:
+        drops = build_clutter_scene(wc, cfg.scene, cfg.clutter, rng).waves
     return GenScene(wc, look, drops)

@@ -63,7 +63,8 @@ def choose_types(cfg: SceneConfig, n: int, rng: np.random.Generator) -> list[Par
     return [cat[names[i]] for i in rng.integers(0, len(names), size=n)]
 
 
-def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A rotation matrix drawn uniformly (a normalised Gaussian quaternion)."""
     q = rng.normal(size=4)
     return quat_to_R(q / np.linalg.norm(q))
 
@@ -104,25 +105,41 @@ def drop_poses(cfg: SceneConfig, blocks: list[PartType], rng: np.random.Generato
             raise UserError(f"could not place {len(blocks)} blocks in the pick area; use fewer blocks "
                             f"(at most about {area_capacity(cfg)}) or a smaller min_spacing")
         placed.append(xy)
-        R = _random_rotation(rng)
+        R = random_rotation(rng)
         poses.append(make_T(R, (xy[0], xy[1], cfg.drop_height + r)))
     return poses
 
 
-def settle(workcell: Workcell, cfg: SceneConfig) -> bool:
-    """Step physics with the arm held in place until every block is at rest; False on timeout."""
+#: Control period (s) of ``run_held``: the arm's hold command is renewed and ``done`` asked this often.
+SETTLE_PERIOD = 0.02
+
+
+def run_held(workcell: Workcell, timeout: float, done: Callable[[], bool]) -> bool:
+    """Step physics in control periods of ``SETTLE_PERIOD`` s, the arm held at its pose, until ``done()`` (asked
+    after each period) is true; False after ``timeout`` simulated seconds."""
     m = workcell.model
     hold = workcell.arm_q
-    steps = max(1, round(0.02 / m.opt.timestep))
-    rest_for = 0
-    for _ in range(int(cfg.settle_timeout / 0.02)):
+    steps = max(1, round(SETTLE_PERIOD / m.opt.timestep))
+    for _ in range(int(timeout / SETTLE_PERIOD)):
         workcell.command_arm(4.0 * (hold - workcell.arm_q) + workcell.gravity_feedforward())
         workcell.step(steps)
-        v = workcell.block_speeds()
-        rest_for = rest_for + 1 if np.all(v[:, 0] < cfg.rest_speed[0]) and np.all(v[:, 1] < cfg.rest_speed[1]) else 0
-        if rest_for >= 10:
+        if done():
             return True
     return False
+
+
+def settle(workcell: Workcell, cfg: SceneConfig) -> bool:
+    """Step physics with the arm held in place until every block is at rest (slower than ``rest_speed`` for 10
+    control periods in a row); False on timeout."""
+    rest_for = 0
+
+    def done() -> bool:
+        nonlocal rest_for
+        v = workcell.block_speeds()
+        rest_for = rest_for + 1 if np.all(v[:, 0] < cfg.rest_speed[0]) and np.all(v[:, 1] < cfg.rest_speed[1]) else 0
+        return rest_for >= 10
+
+    return run_held(workcell, cfg.settle_timeout, done)
 
 
 def randomise_lights(workcell: Workcell, cfg: SceneConfig, rng: np.random.Generator) -> None:
