@@ -178,8 +178,7 @@ class TrialConfig:
     elliptic_cones: bool = True
     #: MuJoCo impedance ratio of the contacts (high: less creep in the fingers).
     impratio: float = 10.0
-    #: Tasks that hold the block firmly (yaw-stable pinch, noslip, sleeping islands); unset: the object set's, else
-    #: kitting and stack.
+    #: Tasks that hold the block firmly (yaw-stable pinch, noslip, sleep); unset: the set's, else kitting and stack.
     firm_hold_tasks: tuple[str, ...] | None = None
     #: Firm hold: MuJoCo noslip solver iterations per physics step, which stop slow slip in the fingers; 0: off.
     pose_noslip_iterations: int = field(default=2, metadata=within(0, 1000))
@@ -187,8 +186,7 @@ class TrialConfig:
     pose_sleep: bool = True
     #: Firm hold: speed below which a body may sleep (MuJoCo's sleep tolerance).
     pose_sleep_tolerance: float = field(default=1e-3, metadata=within(0.0, 1.0))
-    #: MuJoCo solref time constant (s) of the table's and pad's contacts once the scene has settled (stiffer than
-    #: MuJoCo's 0.02, at which a brick set down on its studs walks over the pad).
+    #: MuJoCo solref time constant (s) of the table's and pad's contacts after settling (0.02 lets bricks walk).
     support_timeconst: float = 0.01
     #: Arm control.
     control: ControlConfig = field(default_factory=ControlConfig)
@@ -206,8 +204,7 @@ class TrialConfig:
     kitting: KittingConfig = field(default_factory=KittingConfig)
     #: The stack task.
     stack: StackConfig = field(default_factory=StackConfig)
-    #: A perception provider that has not answered a capture after this many wall seconds fails the episode with
-    #: "perception error"; 0: no limit (the oracles are not timed).
+    #: Wall seconds a provider may take per capture before the episode fails as "perception error"; 0: no limit.
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
 
 

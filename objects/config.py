@@ -36,8 +36,7 @@ class ImportConfig:
     coacd_threshold: float = field(default=0.05, metadata=within(0.01, 1.0))
     #: Seed of CoACD and the surface samples: the same mesh gives the same pieces.
     seed: int = 0
-    #: Trial tasks that hold the set's objects firmly, written into the set's manifest (parts slip out of the plain
-    #: pinch more often than the blocks).
+    #: Trial tasks that hold the set's objects firmly, written into the set's manifest.
     firm_hold_tasks: tuple[str, ...] = ("pick-place", "kitting", "stack")
     #: Warn when the object spans fewer pixels (px) in the hand camera at the look pose.
     min_pixels: float = 16.0

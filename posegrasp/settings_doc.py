@@ -61,7 +61,8 @@ ROOTS: tuple[Root, ...] = (
          "`posegrasp train refine --config FILE`, table `[refine]`"),
     Root("Training: instance classifier", "posegrasp.perception.train_cls:ClsTrainConfig", "cls",
          "`posegrasp train cls --config FILE`, table `[cls]`"),
-    Root("Evaluation", "posegrasp.perception.evaluate:EvalConfig", "eval", "`posegrasp eval --config FILE`, table `[eval]`",
+    Root("Evaluation", "posegrasp.perception.evaluate:EvalConfig", "eval",
+         "`posegrasp eval --config FILE`, table `[eval]`",
          "The command's flags (`--no-icp`, `--gt-masks`, ...) override the file."),
     Root("Estimator", "posegrasp.perception.estimator:EstimatorConfig", None,
          "Python: `Estimator(weights, EstimatorConfig(...))`",
@@ -228,7 +229,8 @@ class _Writer:
             changed = [f"`{f.name}` = {toml_value(getattr(instance, f.name))}" for f in dataclasses.fields(cls)
                        if getattr(instance, f.name) != getattr(first[1], f.name)]
             self.heading(3, title)
-            self.out += [f"{(lead or cls.__name__).rstrip('.')}: the fields of [{first[0].split(' (')[0]}](#{first[2]}), "
+            name = first[0].split(" (")[0]
+            self.out += [f"{(lead or cls.__name__).rstrip('.')}: the fields of [{name}](#{first[2]}), "
                          f"with {', '.join(changed)}.", ""]
             return
         anchor = self.heading(3, title)
