@@ -22,69 +22,90 @@ from posegrasp.sim.scene import PALETTE, check_block_types
 class ViewConfig:
     """Hand-camera viewpoints on a spherical cap over the clutter, reached by the arm.
 
-    The camera sits ``distance`` from a look-at point among the blocks, ``elevation_deg`` above the table
-    plane, at ``azimuth_deg`` about the vertical through the look-at point (0 = on the side of the arm base),
-    looking at the point with image-up toward world-up, then rolled by up to ``roll_deg`` about its axis.
-    A view whose IK residual exceeds ``max_pos_residual`` (m) or ``max_rot_residual_deg`` is unreachable;
-    camera positions farther than ``max_reach`` (m) from the shoulder joint are rejected without IK.
+    The camera looks at a point among the blocks with image-up toward world-up, then rolls about its axis.
     """
 
+    #: Range of the camera's distance (m) from the look-at point.
     distance: tuple[float, float] = (0.25, 0.75)
+    #: Range of the camera's elevation (deg) above the table plane.
     elevation_deg: tuple[float, float] = (30.0, 88.0)
+    #: Range of the azimuth (deg) about the vertical through the look-at point; 0 is the arm base's side.
     azimuth_deg: tuple[float, float] = (-180.0, 180.0)
+    #: Largest roll (deg) of the camera about its optical axis.
     roll_deg: float = 60.0
+    #: Random offset (m) of the look-at point.
     target_jitter: float = 0.02
+    #: A view whose IK position residual (m) exceeds this is unreachable.
     max_pos_residual: float = 0.005
+    #: A view whose IK rotation residual (deg) exceeds this is unreachable.
     max_rot_residual_deg: float = 1.0
+    #: Camera positions farther (m) from the shoulder joint are rejected without IK.
     max_reach: float = 0.66
+    #: IK iterations per attempt.
     ik_iters: int = 60
+    #: IK attempts (random starts) per view.
     attempts_per_view: int = 4
+    #: Gain (1/s) of the joint drive to a view.
     drive_gain: float = 10.0
+    #: The arm has reached a view when every joint is within this (rad).
     drive_tol: float = 0.005
+    #: Simulated time (s) allowed to reach a view.
     drive_timeout: float = 6.0
 
 
 @dataclass(frozen=True)
 class ColourConfig:
-    """Block colours: a palette entry (saturated toy colours and dull, nearly textureless greys and browns)
-    with hue (fraction of a turn), saturation and value jitter; material specular and shininess ranges."""
+    """Block colours: a palette entry with hue, saturation and value jitter, and material ranges."""
 
+    #: Base colours, RGB in [0, 1]: saturated toy colours and dull greys and browns.
     palette: tuple[tuple[float, float, float], ...] = PALETTE
+    #: Hue jitter, a fraction of a full turn.
     hue_jitter: float = 0.03
+    #: Saturation jitter.
     saturation_jitter: float = 0.15
+    #: Value (brightness) jitter.
     value_jitter: float = 0.2
+    #: Range of the material's specular reflectance.
     specular: tuple[float, float] = (0.05, 0.6)
+    #: Range of the material's shininess.
     shininess: tuple[float, float] = (0.05, 0.7)
 
 
 @dataclass(frozen=True)
 class TextureConfig:
-    """Procedural table and floor textures: MuJoCo builtins (``checker``, ``gradient``, ``flat``) or a small
-    generated ``noise`` image, random colours, ``speckle`` fraction of random marks, repeats per metre."""
+    """Procedural table and floor textures in random colours."""
 
+    #: Texture kinds drawn from: MuJoCo's `checker`, `gradient`, `flat`, or a generated `noise` image.
     kinds: tuple[str, ...] = ("checker", "gradient", "flat", "noise")
+    #: Range of the fraction of texels given random marks.
     speckle: tuple[float, float] = (0.0, 0.05)
+    #: Range of the texture repeats per metre.
     repeat_per_m: tuple[float, float] = (1.0, 12.0)
+    #: Side (px) of a generated texture.
     size_px: int = 64
 
 
 @dataclass(frozen=True)
 class LightConfig:
-    """Lights: ``extra`` added to the workcell's two, then all placed, aimed and dimmed at random
-    (``intensity`` diffuse range, per-channel ``tint``)."""
+    """Lights added to the workcell's two, then all placed, aimed and dimmed at random."""
 
+    #: Range of the number of lights added (at most 6).
     extra: tuple[int, int] = (0, 3)
+    #: Range of each light's diffuse intensity.
     intensity: tuple[float, float] = (0.3, 0.8)
+    #: Largest per-channel colour tint of a light.
     tint: float = 0.15
 
 
 @dataclass(frozen=True)
 class DistractorConfig:
-    """Unlabelled primitives (box, cylinder, sphere, capsule) resting on the table in a ``band`` (m) around
-    the pick area: they occlude blocks from oblique views. ``size`` is the half-extent range (m)."""
+    """Unlabelled primitives (box, cylinder, sphere, capsule) on the table around the pick area."""
 
+    #: Range of the number of distractors per scene.
     count: tuple[int, int] = (0, 4)
+    #: Range of a distractor's half-extent (m).
     size: tuple[float, float] = (0.01, 0.045)
+    #: Range of the distance (m) from the pick area's edge.
     band: tuple[float, float] = (0.05, 0.15)
 
 
@@ -92,66 +113,90 @@ class DistractorConfig:
 class DepthNoiseConfig:
     """Structured-light depth sensor model.
 
-    Projector shadows and dropout at depth edges, lateral jitter (``pixel_shift`` px), axial noise
-    ``sigma = sigma_base + sigma_quad (z - z_ref)^2 + sigma_angle / sqrt(z) theta^2 / (pi/2 - theta)^2``,
-    disparity quantisation (``baseline`` m, ``disparity_step`` px) and random dropout.
-    ``keep_clean`` also writes the noiseless depth to ``depth_clean/``.
+    Projector shadows and dropout at depth edges, lateral jitter, axial noise
+    ``sigma = sigma_base + sigma_quad (z - z_ref)^2 + sigma_angle / sqrt(z) theta^2 / (pi/2 - theta)^2``
+    (z depth, theta the incidence angle), disparity quantisation and random dropout.
     """
 
+    #: Apply the depth noise model.
     enabled: bool = True
+    #: Axial noise std (m) at `z_ref`.
     sigma_base: float = 0.0008
+    #: Growth (m per m^2) of the axial noise std with (z - z_ref)^2.
     sigma_quad: float = 0.0019
+    #: Depth (m) of the least axial noise.
     z_ref: float = 0.4
+    #: Weight (m) of the incidence-angle term of the axial noise.
     sigma_angle: float = 0.0001
+    #: Std (px) of the lateral jitter.
     pixel_shift: float = 0.25
+    #: Projector-camera baseline (m), for shadows and disparity.
     baseline: float = 0.05
+    #: Disparity quantisation step (px).
     disparity_step: float = 0.125
+    #: Depth jump (m) that makes a pixel a depth edge.
     edge_threshold: float = 0.01
+    #: Probability that an edge pixel reads no depth.
     edge_dropout: float = 0.5
+    #: Probability that any pixel reads no depth.
     random_dropout: float = 0.002
+    #: Also write the noiseless depth to `depth_clean/`.
     keep_clean: bool = False
 
 
 @dataclass(frozen=True)
 class RgbNoiseConfig:
-    """Camera effects on the colour image: exposure gain and gamma, Gaussian blur (probability, sigma px)
-    and Gaussian sensor noise (std in grey levels)."""
+    """Camera effects on the colour image: exposure, gamma, blur and sensor noise."""
 
+    #: Apply the colour image effects.
     enabled: bool = True
+    #: Range of the exposure gain.
     gain: tuple[float, float] = (0.75, 1.25)
+    #: Range of the gamma.
     gamma: tuple[float, float] = (0.85, 1.15)
+    #: Probability of a Gaussian blur.
     blur_prob: float = 0.3
+    #: Range of the blur's sigma (px).
     blur_sigma: tuple[float, float] = (0.3, 1.2)
+    #: Range of the Gaussian sensor noise std (grey levels).
     noise_std: tuple[float, float] = (0.0, 4.0)
 
 
 @dataclass(frozen=True)
 class DatagenConfig:
-    """Everything that decides the content of a generated dataset (besides seed, scene and view counts).
+    """Everything that decides the content of a generated dataset (besides seed, scene and view counts)."""
 
-    ``blocks``: blocks per scene, drawn uniformly in [min, max]; ``block_types``: names in the object set (empty: all);
-    ``min_spacing``: least distance (m) between drop points in the plane (smaller: piles, more occlusion);
-    blocks must come to rest within ``area_margin`` (m) of the pick area, else they are dropped again.
-    ``depth_scale``: BOP depth png units (value x depth_scale = mm). ``rgb_format``: ``jpg``, ``png`` or
-    ``auto`` (jpg for ``train_pbr``, png otherwise, as in the BOP datasets). ``msaa``: multisamples per pixel
-    of the colour image (anti-aliasing; 0 renders it faster with jagged edges).
-    """
-
+    #: Range of the number of blocks per scene, drawn uniformly.
     blocks: tuple[int, int] = (3, 8)
+    #: Object types (names in the object set) drawn from; empty: all.
     block_types: tuple[str, ...] = ()
+    #: Least distance (m) between drop points in the plane; smaller gives piles and more occlusion.
     min_spacing: float = 0.03
+    #: Blocks must come to rest within this distance (m) of the pick area, else they are dropped again.
     area_margin: float = 0.04
+    #: Depth PNG unit (mm): value x depth_scale = mm, as in BOP.
     depth_scale: float = 0.1
+    #: Colour image format: `jpg`, `png`, or `auto` (jpg for `train_pbr`, png otherwise).
     rgb_format: str = "auto"
+    #: JPEG quality, 1-100.
     jpg_quality: int = 95
+    #: Multisamples per pixel of the colour image (0, 2, 4 or 8; 0 renders faster with jagged edges).
     msaa: int = 4
+    #: Viewpoints of the hand camera.
     views: ViewConfig = field(default_factory=ViewConfig)
+    #: Block colours.
     colours: ColourConfig = field(default_factory=ColourConfig)
+    #: Table and floor textures.
     textures: TextureConfig = field(default_factory=TextureConfig)
+    #: Lights.
     lights: LightConfig = field(default_factory=LightConfig)
+    #: Unlabelled clutter.
     distractors: DistractorConfig = field(default_factory=DistractorConfig)
+    #: The depth sensor model.
     depth_noise: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
+    #: The colour camera model.
     rgb_noise: RgbNoiseConfig = field(default_factory=RgbNoiseConfig)
+    #: The workcell (`--objects` sets its `objects`).
     workcell: WorkcellConfig = field(default_factory=WorkcellConfig)
     #: Scene kind (``--scene``): ``table`` (blocks dropped apart over the pick area), ``pile`` (parts dropped into
     #: a heap) or ``bin`` (the heap in a tote).

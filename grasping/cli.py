@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="trial settings TOML (grasping.config.TrialConfig layout)")
     p.add_argument("--task", type=_task_arg, default=None,
                    help="pick-place (default) | kitting (upright, at the kit's yaw) | stack (on a base block); "
-                        "docs/tasks.md says which to use when")
+                        "docs/trials.md says which to use when")
     p.add_argument("--objects", default=None,
                    help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--sweep-noise", action="store_true",

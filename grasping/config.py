@@ -29,24 +29,42 @@ HAND_EYE_JSON = ASSETS / "calibration" / "hand_eye.json"
 class ControlConfig:
     """Closed-loop differential IK (mink) driving the arm's velocity actuators."""
 
-    dt: float = 0.04  # control period: one QP per period, physics steps in between
-    speed: float = 0.4  # peak Cartesian speed of the gripper along a straight segment (m/s)
-    angular_speed: float = 2.0  # peak rotation speed of the gripper (rad/s)
-    pos_tol: float = 0.004  # a segment is reached within this position error (m) ...
-    rot_tol_deg: float = 3.0  # ... and this orientation error
-    max_lag: float = 0.02  # the reference waits while the hand lags it by more than this (m) ...
-    max_lag_deg: float = 10.0  # ... or this angle
-    settle_timeout: float = 1.5  # time allowed after a segment's nominal duration to reach it
-    frame_gain: float = 0.8  # fraction of the pose error the IK removes per control period
-    orientation_cost: float = 0.5  # FrameTask orientation weight (position weight 1)
-    posture_cost: float = 0.01  # weak pull toward the look pose's joint angles
-    table_clearance: float = 0.002  # hand/arm geoms keep this distance (m) from the table
-    finger_speed: float = 4.0  # finger closing velocity command (rad/s)
-    release_speed: float = 0.6  # finger opening speed when releasing a block (rad/s)
-    max_speed: float = 50.0  # any joint faster than this (rad/s or m/s) is a simulation error
-    look_tol: float = 0.01  # the arm has reached the look pose when every joint is within this (rad) ...
-    look_timeout: float = 4.0  # ... within this time, else the episode times out
-    look_gain: float = 10.0  # P gain (1/s) of the joint drive to the look pose
+    #: Control period (s): one IK solve per period, physics steps in between.
+    dt: float = 0.04
+    #: Peak Cartesian speed of the gripper along a straight segment (m/s).
+    speed: float = 0.4
+    #: Peak rotation speed of the gripper (rad/s).
+    angular_speed: float = 2.0
+    #: A segment is reached within this position error (m) and `rot_tol_deg`.
+    pos_tol: float = 0.004
+    #: A segment is reached within this orientation error (deg) and `pos_tol`.
+    rot_tol_deg: float = 3.0
+    #: The reference waits while the hand lags it by more than this (m) or `max_lag_deg`.
+    max_lag: float = 0.02
+    #: The reference waits while the hand lags it by more than this angle (deg).
+    max_lag_deg: float = 10.0
+    #: Time (s) allowed after a segment's nominal duration to reach it.
+    settle_timeout: float = 1.5
+    #: Fraction of the pose error the IK removes per control period.
+    frame_gain: float = 0.8
+    #: Orientation weight of the IK's gripper task (position weight 1).
+    orientation_cost: float = 0.5
+    #: Weight of the IK's pull toward the look pose's joint angles.
+    posture_cost: float = 0.01
+    #: Hand and arm keep this distance (m) from the table.
+    table_clearance: float = 0.002
+    #: Finger closing velocity command (rad/s).
+    finger_speed: float = 4.0
+    #: Finger opening speed when releasing a block (rad/s).
+    release_speed: float = 0.6
+    #: Any joint faster than this (rad/s or m/s) is a simulation error.
+    max_speed: float = 50.0
+    #: The arm has reached the look pose when every joint is within this (rad).
+    look_tol: float = 0.01
+    #: Time (s) allowed to reach the look pose, else the episode times out.
+    look_timeout: float = 4.0
+    #: P gain (1/s) of the joint drive to the look pose.
+    look_gain: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -149,16 +167,26 @@ class GraspConfig:
 class ScoringConfig:
     """Success criteria and the failure taxonomy thresholds."""
 
-    lift_min: float = 0.05  # grasp success: block bottom at least this high ...
-    hold_time: float = 1.0  # ... for this long
-    place_tol: float = 0.025  # place success: block within this xy distance of its target ...
-    hand_away: float = 0.05  # ... the hand at least this far from it ...
-    rest_speed: tuple[float, float] = (0.01, 0.2)  # ... and the block at rest (m/s, rad/s)
-    rest_periods: int = 3  # the block is at rest after this many control periods in a row below rest_speed
-    rest_timeout: float = 1.5  # time allowed for the block to come to rest after release
-    pose_error_frac: float = 0.1  # a failed grasp counts as "pose error" if ADD(-S) > frac x diameter
-    pose_error_points: int = 500  # surface points of the block model for ADD and ADD-S
-    min_visible_px: int = 150  # oracle: blocks with fewer mask pixels are not detected (640x480)
+    #: Grasp success: the block's bottom at least this high (m) for `hold_time`.
+    lift_min: float = 0.05
+    #: Grasp success: the block held up for this long (s).
+    hold_time: float = 1.0
+    #: Place success: the block within this xy distance (m) of its target, released and at rest.
+    place_tol: float = 0.025
+    #: Place success: the hand at least this far (m) from the block.
+    hand_away: float = 0.05
+    #: The block is at rest below these speeds (m/s, rad/s).
+    rest_speed: tuple[float, float] = (0.01, 0.2)
+    #: The block is at rest after this many control periods in a row below `rest_speed`.
+    rest_periods: int = 3
+    #: Time (s) allowed for the block to come to rest after release.
+    rest_timeout: float = 1.5
+    #: A failed episode counts as "pose error" when the target's ADD(-S) exceeds this x its diameter.
+    pose_error_frac: float = 0.1
+    #: Surface points of the block model for ADD and ADD-S.
+    pose_error_points: int = 500
+    #: Oracle: blocks with fewer visible mask pixels (at 640x480) are not detected.
+    min_visible_px: int = 150
 
 
 @dataclass(frozen=True)
@@ -184,24 +212,32 @@ class FirmHoldConfig:
 class TrialConfig:
     """One trial campaign: scenes of ``min_blocks``-``max_blocks`` blocks, control, grasps, scoring."""
 
+    #: Fewest blocks in a scene.
     min_blocks: int = 1
+    #: Most blocks in a scene.
     max_blocks: int = 5
-    hand_eye: str = str(HAND_EYE_JSON)  # calibrated T_gripper_cam used by the planner
-    elliptic_cones: bool = True  # elliptic friction cones and ...
-    impratio: float = 10.0  # ... a high impedance ratio stop grasped blocks from creeping out of the fingers
-    #: The tasks that hold the block firmly (``firm_hold``); None: the object set's choice (its manifest's
-    #: ``firm_hold_tasks``: every task for imported sets), else the tasks that ask for it (``Task.firm_hold``:
-    #: kitting and stack). The shipped blocks keep pick-and-place out, so its records stay as they were (noslip
-    #: alone, without the yaw-stable pinch, dropped cubes from its 2-finger pinches: 22 of 200).
+    #: Hand-eye calibration file (`T_gripper_cam`) the planner uses (`posegrasp calibrate` writes one).
+    hand_eye: str = str(HAND_EYE_JSON)
+    #: Elliptic friction cones, so that grasped blocks do not creep out of the fingers.
+    elliptic_cones: bool = True
+    #: MuJoCo impedance ratio of the contacts (high: less creep in the fingers).
+    impratio: float = 10.0
+    #: Tasks that hold the block firmly (``firm_hold``); unset: the object set's choice (its manifest's
+    #: ``firm_hold_tasks``: every task for imported sets), else the tasks that ask for it (kitting and stack).
     firm_hold_tasks: tuple[str, ...] | None = None
     #: How those tasks hold firmly.
     firm_hold: FirmHoldConfig = field(default_factory=FirmHoldConfig)
-    support_timeconst: float = 0.01  # stiffness of contacts with the table and the pad once the scene has settled
-    # (MuJoCo solref time constant, s): at the default 0.02 a brick set down on its studs walks away over the pad
+    #: MuJoCo solref time constant (s) of the table's and pad's contacts after settling (0.02 lets bricks walk).
+    support_timeconst: float = 0.01
+    #: Arm control.
     control: ControlConfig = field(default_factory=ControlConfig)
+    #: Grasp planning and motions.
     grasp: GraspConfig = field(default_factory=GraspConfig)
+    #: Success criteria and failure reasons.
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
-    rest: RestConfig = field(default_factory=RestConfig)  # levelling of pose estimates (grasping.support)
+    #: Levelling of pose estimates onto the table (`grasping/support.py`).
+    rest: RestConfig = field(default_factory=RestConfig)
+    #: Scene randomisation and the workcell.
     scene: SceneConfig = field(default_factory=lambda: SceneConfig(settle_timeout=2.0))
     #: The trial task (``--task``), one of ``grasping.tasks.TASKS``.
     task: str = "pick-place"
@@ -209,8 +245,7 @@ class TrialConfig:
     kitting: KittingConfig = field(default_factory=KittingConfig)
     #: The stack task's settings.
     stack: StackConfig = field(default_factory=StackConfig)
-    # a perception provider that has not answered a capture after this many wall seconds fails the episode with
-    # "perception error" (0: no limit; the oracles are not timed)
+    #: Wall seconds a provider may take per capture before the episode fails as "perception error"; 0: no limit.
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
 
 

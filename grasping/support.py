@@ -29,10 +29,14 @@ from posegrasp.geometry import axis_angle_R, make_T, transform_points
 class RestConfig:
     """When to level a pose estimate (see the module docstring)."""
 
+    #: Level pose estimates that nearly rest on the table.
     enabled: bool = True
-    max_tilt_deg: float = 8.0  # level estimates at most this far from a resting pose (deg)
-    max_gap: float = 0.01  # and set them onto the table when their bottom is this close to it (m)
-    min_face_share: float = 0.04  # hull faces smaller than this share of the hull's area are no resting faces
+    #: Level estimates at most this far (deg) from a resting pose.
+    max_tilt_deg: float = 8.0
+    #: Set levelled estimates onto the table when their bottom is this close (m) to it.
+    max_gap: float = 0.01
+    #: Hull faces smaller than this share of the hull's area are no resting faces.
+    min_face_share: float = 0.04
 
 
 @functools.lru_cache(maxsize=32)

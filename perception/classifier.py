@@ -34,16 +34,19 @@ IN_CHANNELS = 6  # RGB (normalised), mask, relative depth, valid depth (+ height
 
 @dataclass
 class ClassifierConfig:
-    """obj_ids: the objects (set from the dataset; 0 = not a block). widths: channels of the conv stages (a 2x max-pool
-    between stages). crop_size: input side (px). crop_side: the crop's side (m) at the segment's
-    median depth. depth_range: relative depths are clipped to +-this (m) and scaled to [-1, 1]. height_range: > 0
-    adds the height above the supporting plane as a channel, clipped to [0, this] (m) and scaled to [0, 1]."""
+    """The instance classifier: a small CNN on a crop of fixed metric size around each segment."""
 
+    #: Classes (BOP ids; 0: not a block); set from the dataset.
     obj_ids: list[int] = field(default_factory=lambda: [1, 2, 3])
+    #: Channels of the conv stages, a 2x max-pool between stages.
     widths: tuple[int, ...] = (16, 32, 64, 128)
+    #: Input side (px).
     crop_size: int = 64
+    #: The crop's side (m) at the segment's median depth.
     crop_side: float = 0.16
+    #: Depths relative to the segment's are clipped to +-this (m), scaled to [-1, 1].
     depth_range: float = 0.05
+    #: Above 0: a channel of the height (m) above the supporting plane, clipped to [0, this].
     height_range: float = 0.0
 
     @property

@@ -26,29 +26,25 @@ from posegrasp.perception.plane import fit_support_plane
 
 @dataclass
 class DataConfig:
-    """Sample selection and augmentation.
+    """Sample selection and augmentation."""
 
-    min_visib_fract: skip instances less visible than this (BOP convention: 0.1).
-    min_points: skip instances with fewer visible pixels with valid depth.
-    num_model_points: model points per pose sample, redrawn every sample (DenseFusion: 500; the
-    symmetric loss costs N x M^2, so the CPU default is 128).
-    model_pool: surface points sampled once per model, from which each sample draws.
-    augment: apply the augmentations below to training samples.
-    color_jitter: brightness, contrast and saturation factors drawn in [1 - j, 1 + j].
-    hue_jitter: hue shift, fraction of a full turn, drawn in [-h, h].
-    depth_noise: std (m) of Gaussian noise on each point's depth, along its ray.
-    translation_noise: each pose sample's cloud and target are shifted by U(-n, n) m per axis
-    (DenseFusion's ``noise_trans``).
-    """
-
+    #: Skip instances less visible than this (BOP: 0.1).
     min_visib_fract: float = 0.1
+    #: Skip instances with fewer visible pixels with valid depth.
     min_points: int = 50
+    #: Model points per pose sample, redrawn every sample (DenseFusion 500; the symmetric loss costs N x M^2).
     num_model_points: int = 128
+    #: Surface points sampled once per model, from which each sample draws.
     model_pool: int = 4000
+    #: Augment the training samples as below.
     augment: bool = True
+    #: Brightness, contrast and saturation factors drawn in [1 - j, 1 + j].
     color_jitter: float = 0.2
+    #: Hue shift drawn in [-h, h], a fraction of a full turn.
     hue_jitter: float = 0.03
+    #: Std (m) of Gaussian noise on each point's depth, along its ray.
     depth_noise: float = 0.001
+    #: Each pose sample's cloud and target shifted by U(-n, n) (m, per axis).
     translation_noise: float = 0.01
 
 

@@ -45,35 +45,39 @@ RE_SYM_GOAL = 15.0  # degrees: the rotation error (up to symmetry) the "re_sym_<
 
 @dataclass
 class EvalConfig:
-    """split: BOP split to evaluate. masks: "pred" (full pipeline) or "gt" (ground-truth visible
-    masks, pose stage only). refine_iterations: -1 = as trained, 0 = no refinement. classify: re-label
-    segments with the run's instance classifier when it has one (false: the paper's pipeline). icp: refine
-    every estimate against the depth image (``perception.refine``, with the dataset's models). plane: use the
-    frame's supporting plane (``perception.plane``: segmented pixels on it dropped; an ICP prior). guided: snap the
-    class map's outlines to the colour edges (``perception.guided``). split_merged: split
-    off the parts of a mask its fitted model leaves unexplained (``perception.split``; needs icp).
-    min_visib_fract: ground-truth instances less visible are not evaluated (BOP: 0.1).
-    min_mask_px: detections whose mask has fewer pixels (counted at 640x480) are dropped, from the scores and from
-    the results CSV (0: none; the grasp trials' model provider drops those under 150: with 150 the CSV holds
-    exactly what it returns on the same frames).
-    min_valid_points: the estimator's minimum valid-depth pixels per object. model_points: surface
-    points per model for ADD / ADD-S. max_images: 0 = all. method: name in the results CSV file."""
+    """How ``posegrasp eval`` runs the estimator on a BOP split and scores it."""
 
+    #: BOP split to evaluate (`--split`).
     split: str = "test"
+    #: `pred` (the full pipeline) or `gt` (ground-truth visible masks: the pose stage alone; `--gt-masks`).
     masks: str = "pred"
+    #: Refiner iterations: -1 as trained, 0 none (`--no-refine`).
     refine_iterations: int = -1
+    #: Re-label segments with the run's instance classifier when it has one (`--no-cls`).
     classify: bool = True
+    #: Refine every estimate against the depth image with the dataset's models (``perception.refine``; `--no-icp`).
     icp: bool = True
+    #: Use the frame's supporting plane (`--no-plane`).
     plane: bool = True
+    #: Snap the class map's outlines to the colour edges (`--no-guided`).
     guided: bool = True
+    #: Split off the parts of a mask its fitted model leaves unexplained; needs `icp` (`--no-split`).
     split_merged: bool = True
+    #: Ground-truth instances less visible are not evaluated (BOP: 0.1).
     min_visib_fract: float = 0.1
+    #: Objects with fewer valid-depth pixels in their mask are skipped.
     min_valid_points: int = 50
+    #: Detections whose mask has fewer pixels (at 640x480) are dropped; the trials' model provider uses 150.
     min_mask_px: int = 0
+    #: Surface points per model for ADD and ADD-S.
     model_points: int = 1000
+    #: Images evaluated; 0: all (`--max-images`).
     max_images: int = 0
+    #: Method name in the results CSV's file name.
     method: str = "posegrasp"
+    #: Torch CPU threads (`--threads`).
     threads: int = 2
+    #: Seed of the estimator's point sampling.
     seed: int = 0
 
 

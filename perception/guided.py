@@ -27,12 +27,13 @@ from posegrasp.perception.crop import padded_box
 
 @dataclass
 class GuidedConfig:
-    """radius: window radius (px at full resolution; 0 turns the refinement off). eps: regularisation of the
-    guide's covariance (colour in [0, 1]: larger eps smooths across weaker edges). subsample: the factor the
-    coefficients are computed at (fast guided filter)."""
+    """Snapping the class map's outlines to the colour image's edges (fast guided filter)."""
 
+    #: Window radius (px) at full resolution; 0 turns snapping off.
     radius: int = 16
+    #: Regularisation of the guide's covariance (colour in [0, 1]); larger smooths across weaker edges.
     eps: float = 1e-4
+    #: Factor the coefficients are computed at.
     subsample: int = 4
 
     def validate(self) -> None:

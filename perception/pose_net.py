@@ -23,30 +23,35 @@ from posegrasp.perception.attention import CAM, GFEM, PAM
 
 @dataclass
 class PoseNetConfig:
-    """Pose net hyper-parameters (DenseFusion's values in comments).
+    """Pose net hyper-parameters (DenseFusion's values in the descriptions)."""
 
-    obj_ids: BOP ids of the objects, one head each (their order = the object index). symmetric:
-    per object, whether its loss is ADD-S. num_points: N points per object (500 LineMOD / 1000 YCB).
-    crop_size: side (px) the RGB crop is resized to. backbone_width: ResNet18 base channels (64).
-    emb_dim: colour embedding per pixel (32). point_widths: per-point convs of geometry and colour
-    (64, 128). global_widths: convs before the average pool (512, 1024). head_widths: 1D-conv head
-    widths (640, 256, 128). use_pam / use_cam / use_gfem: the paper's modules (all False =
-    DenseFusion). gfem_channels: GFEM output width.
-    """
-
+    #: BOP ids of the objects, one head each; set from the dataset.
     obj_ids: list[int] = field(default_factory=lambda: [1, 2, 3])
+    #: Per object, whether its loss is ADD-S; set from the dataset.
     symmetric: list[bool] = field(default_factory=lambda: [False, False, False])
+    #: Depth points sampled per object (500 LineMOD, 1000 YCB).
     num_points: int = 500
+    #: Side (px) the colour crop is resized to; a multiple of 8.
     crop_size: int = 80
+    #: ResNet18 base channels (64).
     backbone_width: int = 16
+    #: Colour embedding channels per pixel (32).
     emb_dim: int = 32
+    #: Per-point convs of geometry and colour (64, 128).
     point_widths: tuple[int, int] = (32, 64)
+    #: Convs before the average pool (512, 1024).
     global_widths: tuple[int, int] = (128, 256)
+    #: 1D-conv head widths (640, 256, 128).
     head_widths: tuple[int, int, int] = (128, 64, 32)
+    #: The paper's position attention module (all three off: DenseFusion).
     use_pam: bool = True
+    #: The paper's channel attention module.
     use_cam: bool = True
+    #: The paper's global feature enhancement module.
     use_gfem: bool = True
+    #: Channel reduction of the position attention's queries and keys.
     pam_reduction: int = 8
+    #: GFEM output channels.
     gfem_channels: int = 128
 
     @property

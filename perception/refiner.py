@@ -18,19 +18,21 @@ from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 
 @dataclass
 class RefinerConfig:
-    """Refiner hyper-parameters (DenseFusion's values in comments).
+    """Refiner hyper-parameters (DenseFusion's values in the descriptions); objects and widths follow the pose net."""
 
-    obj_ids / symmetric: as the pose net's. emb_dim: the pose net's embedding width (32).
-    point_widths (64, 128), global_widths (512, 1024), fc_widths (512, 128): layer widths.
-    iterations: refinement steps at inference (2 for YCB, 4 for LineMOD).
-    """
-
+    #: BOP ids of the objects, as the pose net's.
     obj_ids: list[int] = field(default_factory=lambda: [1, 2, 3])
+    #: Per object, whether its loss is ADD-S, as the pose net's.
     symmetric: list[bool] = field(default_factory=lambda: [False, False, False])
+    #: The pose net's colour embedding channels (32).
     emb_dim: int = 32
+    #: Per-point conv widths (64, 128).
     point_widths: tuple[int, int] = (32, 64)
+    #: Conv widths before the pool (512, 1024).
     global_widths: tuple[int, int] = (128, 256)
+    #: Fully connected widths (512, 128).
     fc_widths: tuple[int, int] = (128, 64)
+    #: Refinement steps at inference (2 YCB, 4 LineMOD).
     iterations: int = 2
 
     @property

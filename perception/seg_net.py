@@ -34,21 +34,21 @@ EXTRA_CONVS: tuple[int, ...] = (512, 512, 512)
 
 @dataclass
 class SegNetConfig:
-    """Segmentation net hyper-parameters.
+    """Segmentation net hyper-parameters; every channel count is scaled by ``width``."""
 
-    num_classes: background + objects (class = BOP obj_id). width: channel multiplier (1.0 = the
-    paper; 0.25 runs on a CPU). input_size: (height, width) px the image is resized to (at least
-    32; multiples of 32 avoid rounding of the pooled sizes). mffm_channels: output channels of
-    MFFM1..3 at width 1.0. encoder_skip_channels: the conv width of every encoder input of an MFFM
-    (64 in the paper). up_channels: the two upsampling convs. All widths are scaled by ``width``.
-    """
-
+    #: Classes: background + objects (class = BOP obj_id); set from the dataset.
     num_classes: int = 4
+    #: Channel multiplier (1.0 is the paper's net; 0.25 runs on a CPU).
     width: float = 0.25
+    #: (height, width) (px) the image is resized to; at least 32, multiples of 32 avoid rounding.
     input_size: tuple[int, int] = (240, 320)
+    #: Output channels of MFFM1..3 at width 1.0.
     mffm_channels: tuple[int, int, int] = (256, 128, 64)
+    #: Conv width of every encoder input of an MFFM (64 in the paper).
     encoder_skip_channels: int = 64
+    #: Channels of the two upsampling convs.
     up_channels: tuple[int, int] = (64, 32)
+    #: Batch normalisation after the convs.
     batch_norm: bool = True
 
     def scaled(self, c: int) -> int:

@@ -27,20 +27,21 @@ from posegrasp.perception.crop import backproject, padded_box
 
 @dataclass
 class SplitConfig:
-    """tol (m): an observed point this close to the fitted model's surface is explained by it.
-    min_pixels, min_share: an unexplained part must cover at least this many pixels and this share of the
-    mask to be split off. same_block (m): a part whose fitted model lies this close to the rest's (median distance
-    of its points to the rest's surface) is the same block, and the split is undone. rounds: split passes (0 turns
-    splitting off). model_points: surface points per model for the distance test. duplicate: two detections of one type
-    whose centres lie closer than this share of the block's smallest side are one block; the one with the smaller mask
-    is dropped (0: never)."""
+    """Splitting a mask into the blocks it holds, and dropping duplicate detections."""
 
+    #: An observed point this close (m) to the fitted model's surface is explained by it.
     tol: float = 0.004
+    #: An unexplained part must cover at least this many pixels to be split off ...
     min_pixels: int = 150
+    #: ... and this share of the mask.
     min_share: float = 0.1
+    #: A part fitted this close (m) to the rest's model is the same block; the split is undone.
     same_block: float = 0.005
+    #: Split passes; 0 turns splitting and duplicate dropping off.
     rounds: int = 2
+    #: Surface points per model for the distance test.
     model_points: int = 20000
+    #: Two detections of one type closer than this share of the block's smallest side are one; 0: never.
     duplicate: float = 0.5
 
 

@@ -24,25 +24,29 @@ from posegrasp.perception.training import (StageConfig, StageTraining, batch_key
 
 @dataclass
 class ClsTrainConfig(StageConfig):
-    """Instance classifier training (``perception.classifier``). ``obj_ids`` empty = every object of
-    models_info. ``use_seg``: also learn on the segments that the run's ``seg/`` net predicts on the
-    training images (when the run has one), labelled by the ground truth. ``background``: also learn a
-    class 0, "not a block", from those segments that lie mostly on background (needs ``use_seg`` and the
-    run's ``seg/``); the estimator drops the segments it wins. The learning rate rises
-    linearly over the first ``warmup`` of the steps, then follows a cosine to 0. ``init``: a classifier checkpoint
-    (or a run holding ``cls/``) to start from (fine-tuning on more data); its ``[cls.model]`` settings (crop, the
-    height channel) come with it."""
+    """Instance classifier training (``perception.classifier``)."""
 
+    #: The classifier net.
     model: ClassifierConfig = field(default_factory=ClassifierConfig)
+    #: Samples and augmentation.
     data: DataConfig = field(default_factory=DataConfig)
+    #: Objects trained; empty: every object of `models_info.json`.
     obj_ids: list[int] = field(default_factory=list)
+    #: Training steps (batches).
     steps: int = 3000
+    #: Crops per batch.
     batch_size: int = 64
+    #: Peak learning rate.
     lr: float = 2e-3
+    #: AdamW weight decay.
     weight_decay: float = 1e-4
+    #: Share of the steps over which the learning rate rises linearly; then a cosine to 0.
     warmup: float = 0.1
+    #: Also learn on the segments the run's `seg/` net predicts on the training images, labelled by the ground truth.
     use_seg: bool = True
+    #: Also learn a class 0, "not a block", from segments mostly on background (needs `use_seg`).
     background: bool = False
+    #: A classifier checkpoint (or a run holding `cls/`) to fine-tune; its `[cls.model]` settings come with it.
     init: str = ""
 
 

@@ -25,24 +25,33 @@ from posegrasp.perception.training import (StageConfig, StageTraining, batch_key
 
 @dataclass
 class PoseTrainConfig(StageConfig):
-    """Pose net training. ``obj_ids`` empty = every object of models_info; ``model.obj_ids`` and
-    ``model.symmetric`` are set from the dataset. The evaluation that drives the lr / w decay uses
-    ``val_split``, or a fixed subset of the training instances (no augmentation) when that split
-    does not exist. ``sym_loss``: "adds" (the paper: ADD-S for every symmetric object) or "min_sym"
-    (the minimum ADD over each object's discrete symmetries, ADD-S only for continuous ones; it pins
-    the rotation down where ADD-S lets near-symmetric shapes settle on a wrong one). ``init``: a pose
-    checkpoint (or a run holding ``pose/``) to start from (fine-tuning), as for segmentation."""
+    """Pose net training; ``model.obj_ids`` and ``model.symmetric`` are set from the dataset.
 
+    The evaluation that drives the lr / w decay uses ``val_split``, or a fixed subset of the training instances (no
+    augmentation) when that split does not exist.
+    """
+
+    #: The net.
     model: PoseNetConfig = field(default_factory=PoseNetConfig)
+    #: Samples and augmentation.
     data: DataConfig = field(default_factory=DataConfig)
+    #: Objects trained; empty: every object of `models_info.json`.
     obj_ids: list[int] = field(default_factory=list)
+    #: Weight of the confidence regulariser in the loss (DenseFusion's w).
     w: float = 0.015
+    #: Once the validation mean distance (m) falls below this, lr and w decay (once).
     decay_margin: float = 0.016
+    #: Factor of that learning-rate decay.
     lr_decay: float = 0.3
+    #: Factor of that w decay.
     w_decay: float = 0.3
+    #: Below this validation mean distance (m) the checkpoint is marked ready for refiner training.
     refine_margin: float = 0.013
+    #: Validation samples per evaluation.
     eval_samples: int = 200
+    #: `adds` (ADD-S for symmetric objects, as the paper) or `min_sym` (least ADD over the discrete symmetries).
     sym_loss: str = "adds"
+    #: A pose checkpoint (or a run holding `pose/`) to fine-tune; empty: from scratch.
     init: str = ""
 
 

@@ -22,11 +22,17 @@ class RefineTrainConfig(StageConfig):
     """Refiner training on top of the frozen pose net in ``RUN/pose`` (its objects and embedding
     width are copied into ``model``). lr defaults to DenseFusion's decayed lr (1e-4 x 0.3)."""
 
+    #: The refiner net.
     model: RefinerConfig = field(default_factory=RefinerConfig)
+    #: Samples and augmentation.
     data: DataConfig = field(default_factory=DataConfig)
+    #: Training steps (batches).
     steps: int = 10000
+    #: Learning rate (DenseFusion's decayed 1e-4 x 0.3).
     lr: float = 3e-5
+    #: Refinement iterations per sample in training.
     iterations: int = 2
+    #: Validation samples per evaluation.
     eval_samples: int = 200
 
 

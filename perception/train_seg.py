@@ -25,27 +25,37 @@ from posegrasp.perception.training import (StageConfig, StageTraining, batch_str
 
 @dataclass
 class SegTrainConfig(StageConfig):
-    """Segmentation training. ``model.num_classes`` is set from the dataset (max obj_id + 1).
-    ``val_split`` is evaluated (on ``eval_images``) every ``eval_every`` steps when it exists.
-    ``init`` names a seg checkpoint (or a run holding ``seg/``) whose weights the net starts from
-    (fine-tuning, fresh optimizer); empty = from scratch. ``device``: where the net trains ("cpu", or "cuda" on a
-    machine with an NVIDIA GPU; the checkpoint is the same either way). ``workers``: processes that prepare the
-    batches ahead (0: the training process itself); the batches do not depend on it."""
+    """Segmentation training; ``model.num_classes`` is set from the dataset (max obj_id + 1)."""
 
+    #: The net.
     model: SegNetConfig = field(default_factory=SegNetConfig)
+    #: Samples and augmentation.
     data: DataConfig = field(default_factory=DataConfig)
+    #: Images per batch.
     batch_size: int = 4
+    #: Initial learning rate.
     lr: float = 1e-2
+    #: SGD momentum.
     momentum: float = 0.9
+    #: L2 weight decay.
     weight_decay: float = 1e-4
+    #: Factor the learning rate is multiplied by every `lr_decay_every` steps.
     lr_decay: float = 0.8
+    #: Steps between learning-rate decays.
     lr_decay_every: int = 5000
+    #: `sgd` or `adam`.
     optimizer: str = "sgd"
+    #: Cross-entropy weight of the background class (objects 1).
     background_weight: float = 1.0
+    #: Steps between evaluations on the validation split.
     eval_every: int = 2000
+    #: Validation images per evaluation.
     eval_images: int = 50
+    #: A seg checkpoint (or a run holding `seg/`) to fine-tune, with a fresh optimizer; empty: from scratch.
     init: str = ""
+    #: Where the net trains: `cpu` or `cuda` (the checkpoint is the same either way).
     device: str = "cpu"
+    #: Processes preparing the batches ahead (0: the training process); the batches do not depend on it.
     workers: int = 0
 
 

@@ -31,18 +31,27 @@ from posegrasp.perception import checkpoint as ckpt_mod
 
 @dataclass
 class StageConfig:
-    """What every stage's training has: splits (``train_split`` empty = ``train_pbr`` if present,
-    else ``train``), logging, checkpoint and evaluation intervals (steps), seed and CPU threads."""
+    """What every stage's training has: splits, steps, intervals, seed and CPU threads."""
 
+    #: Training split; empty: `train_pbr` if the dataset has it, else `train`.
     train_split: str = ""
+    #: Validation split, evaluated every `eval_every` steps when the dataset has it.
     val_split: str = "val"
+    #: Training steps (batches).
     steps: int = 20000
+    #: Samples per batch.
     batch_size: int = 8
+    #: Initial learning rate.
     lr: float = 1e-4
+    #: Steps between rows of the metrics CSV.
     log_every: int = 20
+    #: Steps between checkpoints (a killed run resumes from the last).
     checkpoint_every: int = 500
+    #: Steps between evaluations on the validation split.
     eval_every: int = 1000
+    #: Seed of the batches and augmentations.
     seed: int = 0
+    #: Torch CPU threads.
     threads: int = 2
 
 

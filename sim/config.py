@@ -22,12 +22,19 @@ class CameraConfig:
     ``mount_rpy_deg`` are extrinsic x-y-z rotations. Depth outside [near, far] reads 0 (invalid).
     """
 
+    #: Image width (px).
     width: int = field(default=640, metadata=within(16, 4096))
+    #: Image height (px).
     height: int = field(default=480, metadata=within(16, 4096))
+    #: Vertical field of view (deg).
     fovy_deg: float = field(default=55.0, metadata=within(1.0, 170.0))
+    #: Nearest valid depth (m); closer reads 0.
     near: float = field(default=0.15, metadata=within(0.001, 10.0))
+    #: Farthest valid depth (m); farther reads 0.
     far: float = field(default=2.0, metadata=within(0.01, 100.0))
+    #: Camera position (m) in the gripper frame.
     mount_pos: tuple[float, float, float] = (0.0, 0.065, -0.11)
+    #: Camera orientation in the gripper frame (deg), extrinsic x-y-z rotations.
     mount_rpy_deg: tuple[float, float, float] = (12.0, 0.0, 0.0)
 
 
@@ -35,7 +42,9 @@ class CameraConfig:
 class RenderConfig:
     """Renderer settings; shadows and reflections cost ~6x frame rate on the CPU, so they are off."""
 
+    #: Render shadows (about 6x slower on a CPU).
     shadows: bool = False
+    #: Render reflections.
     reflections: bool = False
 
 
@@ -43,7 +52,9 @@ class RenderConfig:
 class AreaConfig:
     """An axis-aligned rectangle on the table top: centre (x, y) and half sizes (m), world frame."""
 
+    #: Centre (x, y) (m), world frame.
     center: tuple[float, float] = (0.45, 0.0)
+    #: Half sizes along x and y (m).
     half_size: tuple[float, float] = (0.12, 0.15)
 
 
@@ -55,18 +66,31 @@ class WorkcellConfig:
     ``posegrasp.catalog``).
     """
 
+    #: Table half sizes x, y, z (m).
     table_half_size: tuple[float, float, float] = (0.55, 0.75, 0.02)
+    #: Table centre (x, y) (m), world frame.
     table_center: tuple[float, float] = (0.3, 0.0)
+    #: Where scenes drop the blocks.
     pick_area: AreaConfig = field(default_factory=AreaConfig)
+    #: The place pad.
     place_area: AreaConfig = field(default_factory=lambda: AreaConfig(center=(0.1, 0.45), half_size=(0.07, 0.07)))
+    #: The RGB-D camera on the hand.
     hand_camera: CameraConfig = field(default_factory=CameraConfig)
+    #: The fixed camera of the overview pictures.
     overview_camera: CameraConfig = field(default_factory=lambda: CameraConfig(fovy_deg=45.0))
+    #: Overview camera position (m), world frame.
     overview_pos: tuple[float, float, float] = (1.45, -0.7, 1.05)
+    #: Point the overview camera looks at (m), world frame.
     overview_target: tuple[float, float, float] = (0.25, 0.1, 0.2)
+    #: Renderer settings.
     render: RenderConfig = field(default_factory=RenderConfig)
+    #: Height (m) of the hand camera above the pick area at the look pose.
     look_height: float = 0.38
+    #: Arm joint angles (rad) at the start of a scene.
     home_qpos: tuple[float, ...] = (-0.37, 3.34, 5.10, 2.65, 1.64, 2.28)
+    #: Physics time step (s).
     timestep: float = 0.002
+    #: Object set folder the scenes draw from (`--objects`); "" is the shipped blocks.
     objects: str = ""
 
 

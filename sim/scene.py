@@ -29,13 +29,21 @@ PALETTE: tuple[tuple[float, float, float], ...] = (
 class SceneConfig:
     """How scenes are randomised. ``block_types`` empty means every catalogue type."""
 
+    #: Object types (names in the object set) a scene draws from; empty: all.
     block_types: tuple[str, ...] = ()
+    #: Block colours, RGB in [0, 1].
     palette: tuple[tuple[float, float, float], ...] = PALETTE
-    min_spacing: float = 0.055  # minimum distance (m) between drop positions in the plane
-    drop_height: float = 0.03  # lowest point of a block above the table when dropped (m)
-    settle_timeout: float = 4.0  # simulated seconds
-    rest_speed: tuple[float, float] = (0.003, 0.1)  # linear m/s, angular rad/s
+    #: Least distance (m) between drop positions in the plane.
+    min_spacing: float = 0.055
+    #: Height (m) of a block's lowest point above the table when dropped.
+    drop_height: float = 0.03
+    #: Simulated time (s) allowed for the dropped blocks to come to rest.
+    settle_timeout: float = 4.0
+    #: Blocks are at rest below these speeds (m/s, rad/s).
+    rest_speed: tuple[float, float] = (0.003, 0.1)
+    #: Range of the lights' diffuse intensity.
     light_intensity: tuple[float, float] = (0.35, 0.8)
+    #: The workcell the scene is built in.
     workcell: WorkcellConfig = field(default_factory=WorkcellConfig)
 
 
