@@ -54,41 +54,35 @@ STAGES = ("seg", "cls", "guided", "pose", "refine", "icp", "split")
 
 @dataclass(frozen=True)
 class EstimatorConfig:
-    """How an ``Estimator`` runs a trained run's nets.
+    """How an ``Estimator`` runs a trained run's nets: segmentation, pose, refiner, instance classifier, then
+    (with ``models``) the depth refinement, the mask splits and the guided outlines."""
 
-    refine_iterations: None = the refiner's configured count (0 when there is no refiner);
-    0 disables refinement (ablation). classify: None = re-label segments with the run's ``cls/``
-    classifier (and its ensemble members ``cls_<name>/``) when it has one; False = never (ablation: the paper's
-    pipeline); True = required.
-    min_valid_points: minimum valid-depth pixels per object. models: a BOP dataset root whose
-    ``models/`` hold the objects' meshes; with it every estimate is refined against the depth image by
-    ICP from rotation hypotheses (``perception.refine``, settings ``icp``); None skips that step.
-    support_plane: fit the frame's dominant plane (``perception.plane``); segmented pixels on it become
-    background and ICP hypotheses sunk into it lose.
-    split: with ``models``, the part of a detection's mask its fitted model leaves unexplained becomes a
-    detection of its own (``perception.split``: touching blocks merged into one segment), and then two fits of one
-    block are one detection (``Estimator.drop_duplicates``); ``rounds = 0`` turns both off. guided: once the poses
-    are fitted, the class map's and the masks' outlines are snapped to the colour image's edges (``perception.guided``);
-    ``radius = 0`` turns it off.
-    pose_points, pose_crop: the depth points sampled per object for the pose net and the side (px) of its colour crop.
-    None: with ``models`` 250 and 48 (``REFINED_POSE_INPUT``), else as in the net's training. The attention over the
-    points costs O(N^2) and the colour CNN O(S^2); once the depth refinement fits the pose, the shipped net (trained
-    with 500 points and 80 px) is as accurate with the smaller inputs (1234 against 1229 of the 1379 instances of the
-    test, val and fresh splits within 0.1 d), while the pose net alone is not (test acc 59.8 against 76.5 %).
-    threads: torch CPU threads (None leaves the setting alone). seed: point sampling seed (each call is deterministic).
-    """
-
+    #: Refiner iterations: unset, the refiner's configured count (0 when the run has none); 0 turns it off.
     refine_iterations: int | None = None
+    #: Objects with fewer valid-depth pixels in their mask are skipped.
     min_valid_points: int = 50
+    #: Torch CPU threads; unset leaves the process's setting alone.
     threads: int | None = None
+    #: Seed of the depth points sampled per object (each call is deterministic).
     seed: int = 0
+    #: Re-label segments with the run's instance classifier: unset, when the run has one; false never; true required.
     classify: bool | None = None
+    #: A BOP dataset root whose ``models/`` hold the objects' meshes; with it every estimate is refined against
+    #: the depth image (``perception.refine``, settings ``icp``); unset skips that step.
     models: str | Path | None = None
+    #: The depth refinement's settings, by stage.
     icp: RefineConfig = field(default_factory=RefineConfig)
+    #: Fit the frame's dominant plane (``perception.plane``): segmented pixels on it become background and fits
+    #: sunk into it lose.
     support_plane: bool = True
+    #: With ``models``: a mask's part its fitted model leaves unexplained becomes a detection of its own.
     split: SplitConfig = field(default_factory=SplitConfig)
+    #: Once the poses are fitted, the masks' outlines are snapped to the colour image's edges.
     guided: GuidedConfig = field(default_factory=GuidedConfig)
+    #: Depth points sampled per object for the pose net; unset: 250 with ``models`` (``REFINED_POSE_INPUT``),
+    #: else as in the net's training.
     pose_points: int | None = None
+    #: Side (px) of the pose net's colour crop; unset: 48 with ``models``, else as in the net's training.
     pose_crop: int | None = None
 
 

@@ -66,7 +66,7 @@ ROOTS: tuple[Root, ...] = (
          "The command's flags (`--no-icp`, `--gt-masks`, ...) override the file."),
     Root("Estimator", "posegrasp.perception.estimator:EstimatorConfig", None,
          "Python: `Estimator(weights, EstimatorConfig(...))`",
-         "Nested settings are dataclasses too: `EstimatorConfig(icp=ICPConfig(pattern_rounds=0))` "
+         "Nested settings are dataclasses too: `EstimatorConfig(icp=RefineConfig(search=SearchConfig(pattern_rounds=0)))` "
          "([real camera](real_camera.md))."),
     Root("Grasp trials", "posegrasp.grasping.config:TrialConfig", "", "`posegrasp trials --config FILE`"),
     Root("Object import", "posegrasp.objects.config:ImportConfig", "", "`posegrasp objects import --config FILE`"),
