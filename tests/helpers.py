@@ -14,7 +14,8 @@ from posegrasp.grasping.stats import wilson
 PICK_PLACE_ORACLE = (198, 200)
 #: Measured by `posegrasp trials --episodes 200 --seed 0 --perception model --workers 2` (docs/results.md).
 PICK_PLACE_MODEL = (196, 200)
-#: Measured by `posegrasp trials --task kitting --episodes 200 --seed 0 --perception oracle --workers 2` (docs/tasks.md).
+#: Measured by `posegrasp trials --task kitting --episodes 200 --seed 0 --perception oracle --workers 2`
+#: (docs/tasks.md).
 KITTING_ORACLE = (199, 200)
 #: Measured by `posegrasp trials --task stack --episodes 200 --seed 0 --perception oracle --workers 2` (docs/tasks.md).
 STACK_ORACLE = (194, 200)
