@@ -198,8 +198,8 @@ class DatagenConfig:
     rgb_noise: RgbNoiseConfig = field(default_factory=RgbNoiseConfig)
     #: The workcell (`--objects` sets its `objects`).
     workcell: WorkcellConfig = field(default_factory=WorkcellConfig)
-    #: Scene kind (``--scene``): ``table`` (blocks dropped apart over the pick area), ``pile`` (parts dropped into
-    #: a heap) or ``bin`` (the heap in a tote).
+    #: Scene kind (``--scene``): ``table`` (blocks apart on the pick area), ``pile`` (a heap) or ``bin`` (a heap in a
+    #: tote).
     scene: str = "table"
     #: Pile and bin scenes: parts per scene (``--blocks``; ``blocks`` is the table's), tote, drop and settling.
     clutter: ClutterConfig = field(default_factory=ClutterConfig)

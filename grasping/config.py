@@ -94,8 +94,7 @@ class GraspScoreConfig:
     clearance_cap: float = 0.02
     #: Score taken off a block's grasps that are not yaw-stable when some are (the tasks that hold firmly).
     unstable: float = 1.0
-    #: Of the ``contact_depths``, the pinch height is the one with the most flat-contact share less this
-    #: per metre (1/m) between it and the block centre's height.
+    #: Pinch height choice: flat-contact share less this per metre (1/m) of distance from the block centre's height.
     pinch_height: float = 5.0
 
 
@@ -107,8 +106,8 @@ class GraspConfig:
     max_width: float = 0.085
     #: Narrowest graspable span across the fingers (m).
     min_width: float = 0.012
-    #: Pinch heights tried, this far below the block's top (m); the one with the flattest contact faces nearest
-    #: the block centre's height wins (``score.pinch_height``).
+    #: Pinch heights tried below the block's top (m); the flattest contact faces nearest the centre's height win
+    #: (``score.pinch_height``).
     contact_depths: tuple[float, ...] = (0.010, 0.018, 0.026, 0.034)
     #: Lowest pinch height above the table (m), so the fingertips clear it.
     min_pinch_height: float = 0.014
@@ -128,8 +127,7 @@ class GraspConfig:
     neighbour_points: int = 300
     #: Height of the pre-grasp pose above the grasp, where the approach starts (m).
     pregrasp_height: float = 0.08
-    #: The fingers pre-shape, and open on release, this much wider than the grasp (m); the clearance check
-    #: models the hand open this wide.
+    #: The fingers pre-shape and open this much wider than the grasp (m); the clearance check models this opening.
     finger_margin: float = 0.03
     #: Peak speed of the approach and of the place descent (m/s).
     approach_speed: float = 0.25
@@ -157,9 +155,8 @@ class GraspConfig:
     place_jitter: float = 0.02
     #: Weights of the grasp score.
     score: GraspScoreConfig = field(default_factory=GraspScoreConfig)
-    #: The yaw-stable pinch of the tasks that hold firmly (``FirmHoldConfig``): the block's centre near this far
-    #: along the gripper y axis (m; otherwise ``grasps.HAND_Y``, -5 mm), between the pads of fingers 2 and 3
-    #: (``grasps.plan_grasps``).
+    #: Firm-hold pinch: the block's centre this far (m) along the gripper y axis, between the pads of fingers 2 and 3
+    #: (otherwise ``grasps.HAND_Y``, -5 mm).
     pose_hand_y: float = -0.012
 
 
@@ -222,8 +219,8 @@ class TrialConfig:
     elliptic_cones: bool = True
     #: MuJoCo impedance ratio of the contacts (high: less creep in the fingers).
     impratio: float = 10.0
-    #: Tasks that hold the block firmly (``firm_hold``); unset: the object set's choice (its manifest's
-    #: ``firm_hold_tasks``: every task for imported sets), else the tasks that ask for it (kitting and stack).
+    #: Tasks that hold the block firmly (``firm_hold``); unset: the object set's manifest's choice (every task for
+    #: imported sets, else kitting and stack).
     firm_hold_tasks: tuple[str, ...] | None = None
     #: How those tasks hold firmly.
     firm_hold: FirmHoldConfig = field(default_factory=FirmHoldConfig)

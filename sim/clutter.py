@@ -36,8 +36,8 @@ class ClutterConfig:
     parts: tuple[int, int] = (12, 12)
     #: Most parts a scene may hold.
     max_parts: int = field(default=30, metadata=within(1, 200))
-    #: Largest share of the tote's inner volume (floor area x wall height) that the parts' bounding boxes may
-    #: fill, the largest type counted for every part.
+    #: Largest share of the tote's inner volume the parts' bounding boxes may fill (the largest type counted for every
+    #: part).
     max_fill: float = field(default=0.6, metadata=within(0.01, 2.0))
     #: The tote of bin scenes; a pile is dropped onto its footprint.
     tote: ToteConfig = field(default_factory=ToteConfig)
