@@ -78,7 +78,7 @@ class GraspScoreConfig:
     horizontal distance (m) from the block's centre, ``w``: the span (m) across the fingers, ``c``: the open
     hand's clearance (m) from the neighbours' surfaces (``grasping.grasps.plan_grasps``)."""
 
-    #: Reward per unit of flat-contact share (0-0.5): the fingers rest on flat faces, not on studs or curves.
+    #: Reward per unit of flat-contact share (0-0.5): fingers on flat faces, not studs or curves.
     support: float = 2.0
     #: Penalty per degree (1/deg) the approach leans from straight down.
     tilt: float = 0.01
@@ -106,7 +106,7 @@ class GraspConfig:
     max_width: float = 0.085
     #: Narrowest graspable span across the fingers (m).
     min_width: float = 0.012
-    #: Pinch heights tried below the block's top (m); the flattest contact faces nearest the centre's height win
+    #: Pinch heights tried below the block's top (m); the flattest contact nearest the centre's height wins
     #: (``score.pinch_height``).
     contact_depths: tuple[float, ...] = (0.010, 0.018, 0.026, 0.034)
     #: Lowest pinch height above the table (m), so the fingertips clear it.
@@ -127,7 +127,7 @@ class GraspConfig:
     neighbour_points: int = 300
     #: Height of the pre-grasp pose above the grasp, where the approach starts (m).
     pregrasp_height: float = 0.08
-    #: The fingers pre-shape and open this much wider than the grasp (m); the clearance check models this opening.
+    #: Pre-shape and release opening beyond the grasp width (m); the clearance check models it.
     finger_margin: float = 0.03
     #: Peak speed of the approach and of the place descent (m/s).
     approach_speed: float = 0.25
@@ -195,7 +195,7 @@ class FirmHoldConfig:
     rest are not simulated until something touches them, so blocks resting on the table cost nothing (the physics
     of a stack episode took half the time, noslip only 15 % more)."""
 
-    #: Once two fingers grip, the fingers close up to this many control periods more until all three touch.
+    #: Once two fingers grip, control periods the fingers may close more until all three touch.
     finger_wait: int = 10
     #: Noslip solver iterations per physics step (0: off).
     noslip_iterations: int = field(default=2, metadata=within(0, 1000))
@@ -213,14 +213,14 @@ class TrialConfig:
     min_blocks: int = 1
     #: Most blocks in a scene.
     max_blocks: int = 5
-    #: Hand-eye calibration file (`T_gripper_cam`) the planner uses (`posegrasp calibrate` writes one).
+    #: Hand-eye calibration file (`T_gripper_cam`) the planner uses (`posegrasp calibrate` writes it).
     hand_eye: str = str(HAND_EYE_JSON)
     #: Elliptic friction cones, so that grasped blocks do not creep out of the fingers.
     elliptic_cones: bool = True
     #: MuJoCo impedance ratio of the contacts (high: less creep in the fingers).
     impratio: float = 10.0
-    #: Tasks that hold the block firmly (``firm_hold``); unset: the object set's manifest's choice (every task for
-    #: imported sets, else kitting and stack).
+    #: Tasks that hold the block firmly (``firm_hold``); unset: the set's manifest's choice (imported sets: all; else
+    #: kitting and stack).
     firm_hold_tasks: tuple[str, ...] | None = None
     #: How those tasks hold firmly.
     firm_hold: FirmHoldConfig = field(default_factory=FirmHoldConfig)
@@ -242,7 +242,7 @@ class TrialConfig:
     kitting: KittingConfig = field(default_factory=KittingConfig)
     #: The stack task's settings.
     stack: StackConfig = field(default_factory=StackConfig)
-    #: Wall seconds a provider may take per capture before the episode fails as "perception error"; 0: no limit.
+    #: Wall seconds a provider may take per capture, else "perception error"; 0: no limit.
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
 
 

@@ -155,7 +155,7 @@ def type_name(tp: Any) -> str:
 
 
 def strip_unit(text: str, unit: str) -> str:
-    """The description without the parenthesised unit the unit column shows."""
+    """The description without the parenthesised unit the default column shows."""
     return re.sub(r" ?\(" + re.escape(unit) + r"\)", "", text, count=1) if unit else text
 
 
@@ -254,7 +254,7 @@ class _Writer:
             self.out += [first, ""]
         hints = typing.get_type_hints(cls)
         nested: list[tuple[dataclasses.Field, Any]] = []
-        rows = ["key | default | description", "-|-|-"]
+        rows = ["key|default|description", "-|-|-"]
         shared: dict[tuple[str, str], list[str]] = {}  # inherited keys listed before: (title, anchor) -> names
         for f in dataclasses.fields(cls):
             value = default_of(f, instance)
@@ -269,8 +269,8 @@ class _Writer:
                     continue
             text = description(cls, f.name)
             unit = unit_of(f.name, text)
-            rows.append(f"{f.name} | {_cell(default_cell(hints[f.name], value, unit))} | "
-                        f"{_cell(strip_unit(text, unit)) or '-'}")
+            cells = [f.name, default_cell(hints[f.name], value, unit), strip_unit(text, unit) or "-"]
+            rows.append("|".join(_cell(c) for c in cells))
         if len(rows) > 2:
             self.out += rows + [""]
         for (where, link), names in shared.items():

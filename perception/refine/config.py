@@ -16,8 +16,8 @@ from posegrasp.perception.refine.starts import cube_rotations
 class StartConfig:
     """Where the fits start (``perception.refine.starts``)."""
 
-    #: Start rotations, object frame: "cube" (the cube group's 24, kept distinct under the object's symmetries) or
-    #: "identity" (plain ICP from the estimate).
+    #: Start rotations, object frame: "cube" (the cube group's 24, distinct under the symmetries) or "identity" (plain
+    #: ICP).
     hypotheses: str = "cube"
     #: With a supporting plane, also lay each start on its nearest rest and fit it as turns about the normal and shifts
     #: along the plane.
@@ -53,8 +53,8 @@ class FitConfig:
 class TurnConfig:
     """The turns about the plane's normal after the first steps (``perception.refine.starts.turned``)."""
 
-    #: Turn step (deg) about the plane's normal (else the optical axis), through the object's centre, over its symmetry
-    #: turn about that axis (0: no turns).
+    #: Turn step (deg) about the plane's normal (else the optical axis) over the object's symmetry turn about it (0: no
+    #: turns).
     step_deg: float = 15.0
     #: Fits per object turned: the best of each of its best-scoring rests facing up, this many rests.
     seeds: int = 3
@@ -68,8 +68,7 @@ class ScoreConfig:
 
     #: Distance (m) beyond which an observed point adds nothing to the fit term.
     truncation: float = 0.01
-    #: Depth (m) a model point must lie in front of the observed surface, or beneath the plane, to count as a
-    #: violation.
+    #: Depth (m) a model point must lie in front of the seen surface, or under the plane, to be a violation.
     violation_margin: float = 0.005
     #: Weight (m) of the share of model points in seen free space plus the share beneath the plane.
     violation_weight: float = 0.01
