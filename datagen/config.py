@@ -29,7 +29,7 @@ class ViewConfig:
     distance: tuple[float, float] = (0.25, 0.75)
     #: Range of the camera's elevation (deg) above the table plane.
     elevation_deg: tuple[float, float] = (30.0, 88.0)
-    #: Range of the azimuth (deg) about the vertical through the look-at point; 0 is the arm base's side.
+    #: Range of the azimuth (deg) about the vertical through the look-at point; 0: the arm base's side.
     azimuth_deg: tuple[float, float] = (-180.0, 180.0)
     #: Largest roll (deg) of the camera about its optical axis.
     roll_deg: float = 60.0
@@ -172,7 +172,7 @@ class DatagenConfig:
     block_types: tuple[str, ...] = ()
     #: Least distance (m) between drop points in the plane; smaller gives piles and more occlusion.
     min_spacing: float = 0.03
-    #: Blocks must come to rest within this distance (m) of the pick area, else they are dropped again.
+    #: Blocks must rest within this distance (m) of the pick area, else they are dropped again.
     area_margin: float = 0.04
     #: Depth PNG unit (mm): value x depth_scale = mm, as in BOP.
     depth_scale: float = 0.1
@@ -180,7 +180,7 @@ class DatagenConfig:
     rgb_format: str = "auto"
     #: JPEG quality, 1-100.
     jpg_quality: int = 95
-    #: Multisamples per pixel of the colour image (0, 2, 4 or 8; 0 renders faster with jagged edges).
+    #: Multisamples per colour pixel (0, 2, 4 or 8; 0 is faster, with jagged edges).
     msaa: int = 4
     #: Viewpoints of the hand camera.
     views: ViewConfig = field(default_factory=ViewConfig)
@@ -198,8 +198,8 @@ class DatagenConfig:
     rgb_noise: RgbNoiseConfig = field(default_factory=RgbNoiseConfig)
     #: The workcell (`--objects` sets its `objects`).
     workcell: WorkcellConfig = field(default_factory=WorkcellConfig)
-    #: Scene kind (``--scene``): ``table`` (blocks dropped apart over the pick area), ``pile`` (parts dropped into
-    #: a heap) or ``bin`` (the heap in a tote).
+    #: Scene kind (``--scene``): ``table`` (blocks apart on the pick area), ``pile`` (a heap) or ``bin`` (a heap in a
+    #: tote).
     scene: str = "table"
     #: Pile and bin scenes: parts per scene (``--blocks``; ``blocks`` is the table's), tote, drop and settling.
     clutter: ClutterConfig = field(default_factory=ClutterConfig)

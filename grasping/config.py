@@ -78,7 +78,7 @@ class GraspScoreConfig:
     horizontal distance (m) from the block's centre, ``w``: the span (m) across the fingers, ``c``: the open
     hand's clearance (m) from the neighbours' surfaces (``grasping.grasps.plan_grasps``)."""
 
-    #: Reward per unit of flat-contact share (0-0.5): the fingers rest on flat faces, not on studs or curves.
+    #: Reward per unit of flat-contact share (0-0.5): fingers on flat faces, not studs or curves.
     support: float = 2.0
     #: Penalty per degree (1/deg) the approach leans from straight down.
     tilt: float = 0.01
@@ -94,8 +94,7 @@ class GraspScoreConfig:
     clearance_cap: float = 0.02
     #: Score taken off a block's grasps that are not yaw-stable when some are (the tasks that hold firmly).
     unstable: float = 1.0
-    #: Of the ``contact_depths``, the pinch height is the one with the most flat-contact share less this
-    #: per metre (1/m) between it and the block centre's height.
+    #: Pinch height choice: flat-contact share less this per metre (1/m) of distance from the block centre's height.
     pinch_height: float = 5.0
 
 
@@ -107,8 +106,8 @@ class GraspConfig:
     max_width: float = 0.085
     #: Narrowest graspable span across the fingers (m).
     min_width: float = 0.012
-    #: Pinch heights tried, this far below the block's top (m); the one with the flattest contact faces nearest
-    #: the block centre's height wins (``score.pinch_height``).
+    #: Pinch heights tried below the block's top (m); the flattest contact nearest the centre's height wins
+    #: (``score.pinch_height``).
     contact_depths: tuple[float, ...] = (0.010, 0.018, 0.026, 0.034)
     #: Lowest pinch height above the table (m), so the fingertips clear it.
     min_pinch_height: float = 0.014
@@ -128,8 +127,7 @@ class GraspConfig:
     neighbour_points: int = 300
     #: Height of the pre-grasp pose above the grasp, where the approach starts (m).
     pregrasp_height: float = 0.08
-    #: The fingers pre-shape, and open on release, this much wider than the grasp (m); the clearance check
-    #: models the hand open this wide.
+    #: Pre-shape and release opening beyond the grasp width (m); the clearance check models it.
     finger_margin: float = 0.03
     #: Peak speed of the approach and of the place descent (m/s).
     approach_speed: float = 0.25
@@ -157,9 +155,8 @@ class GraspConfig:
     place_jitter: float = 0.02
     #: Weights of the grasp score.
     score: GraspScoreConfig = field(default_factory=GraspScoreConfig)
-    #: The yaw-stable pinch of the tasks that hold firmly (``FirmHoldConfig``): the block's centre near this far
-    #: along the gripper y axis (m; otherwise ``grasps.HAND_Y``, -5 mm), between the pads of fingers 2 and 3
-    #: (``grasps.plan_grasps``).
+    #: Firm-hold pinch: the block's centre this far (m) along the gripper y axis, between the pads of fingers 2 and 3
+    #: (otherwise ``grasps.HAND_Y``, -5 mm).
     pose_hand_y: float = -0.012
 
 
@@ -198,7 +195,7 @@ class FirmHoldConfig:
     rest are not simulated until something touches them, so blocks resting on the table cost nothing (the physics
     of a stack episode took half the time, noslip only 15 % more)."""
 
-    #: Once two fingers grip, the fingers close up to this many control periods more until all three touch.
+    #: Once two fingers grip, control periods the fingers may close more until all three touch.
     finger_wait: int = 10
     #: Noslip solver iterations per physics step (0: off).
     noslip_iterations: int = field(default=2, metadata=within(0, 1000))
@@ -216,14 +213,14 @@ class TrialConfig:
     min_blocks: int = 1
     #: Most blocks in a scene.
     max_blocks: int = 5
-    #: Hand-eye calibration file (`T_gripper_cam`) the planner uses (`posegrasp calibrate` writes one).
+    #: Hand-eye calibration file (`T_gripper_cam`) the planner uses (`posegrasp calibrate` writes it).
     hand_eye: str = str(HAND_EYE_JSON)
     #: Elliptic friction cones, so that grasped blocks do not creep out of the fingers.
     elliptic_cones: bool = True
     #: MuJoCo impedance ratio of the contacts (high: less creep in the fingers).
     impratio: float = 10.0
-    #: Tasks that hold the block firmly (``firm_hold``); unset: the object set's choice (its manifest's
-    #: ``firm_hold_tasks``: every task for imported sets), else the tasks that ask for it (kitting and stack).
+    #: Tasks that hold the block firmly (``firm_hold``); unset: the set's manifest's choice (imported sets: all; else
+    #: kitting and stack).
     firm_hold_tasks: tuple[str, ...] | None = None
     #: How those tasks hold firmly.
     firm_hold: FirmHoldConfig = field(default_factory=FirmHoldConfig)
@@ -245,7 +242,7 @@ class TrialConfig:
     kitting: KittingConfig = field(default_factory=KittingConfig)
     #: The stack task's settings.
     stack: StackConfig = field(default_factory=StackConfig)
-    #: Wall seconds a provider may take per capture before the episode fails as "perception error"; 0: no limit.
+    #: Wall seconds a provider may take per capture, else "perception error"; 0: no limit.
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
 
 

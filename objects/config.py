@@ -18,13 +18,13 @@ class ImportConfig:
     density: float = field(default=1050.0, metadata=within(1.0, 25000.0))
     #: MuJoCo friction: sliding, torsional, rolling.
     friction: tuple[float, float, float] = (0.5, 0.005, 0.0001)
-    #: Close a hole only if its patch is at most this fraction of the surface area; a larger opening is refused.
+    #: Largest hole patch closed, a fraction of the surface area; a larger opening is refused.
     max_hole_fraction: float = field(default=0.25, metadata=within(0.0, 1.0))
     #: Smallest bounding-box diagonal (m); smaller means the declared unit is wrong.
     min_size: float = 0.005
     #: Largest bounding-box diagonal (m); larger means the declared unit is wrong.
     max_size: float = 1.0
-    #: A symmetry moves every checked surface point to within this fraction of the diameter of the surface.
+    #: A symmetry moves every checked surface point within this fraction of the diameter of the surface.
     sym_tol_rel: float = field(default=0.01, metadata=within(1e-5, 0.2))
     #: Surface samples checked per symmetry candidate.
     sym_points: int = field(default=1500, metadata=within(100, 100000))

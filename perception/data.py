@@ -32,7 +32,7 @@ class DataConfig:
     min_visib_fract: float = 0.1
     #: Skip instances with fewer visible pixels with valid depth.
     min_points: int = 50
-    #: Model points per pose sample, redrawn every sample (DenseFusion 500; the symmetric loss costs N x M^2).
+    #: Model points per pose sample, redrawn each sample (DenseFusion 500; the symmetric loss costs N x M^2).
     num_model_points: int = 128
     #: Surface points sampled once per model, from which each sample draws.
     model_pool: int = 4000

@@ -67,20 +67,18 @@ class EstimatorConfig:
     seed: int = 0
     #: Re-label segments with the run's instance classifier: unset, when the run has one; false never; true required.
     classify: bool | None = None
-    #: A BOP dataset root whose ``models/`` hold the objects' meshes; with it every estimate is refined against
-    #: the depth image (``perception.refine``, settings ``icp``); unset skips that step.
+    #: A BOP dataset root whose ``models/`` hold the meshes; with it every estimate is refined against the depth image
+    #: (settings ``icp``).
     models: str | Path | None = None
     #: The depth refinement's settings, by stage.
     icp: RefineConfig = field(default_factory=RefineConfig)
-    #: Fit the frame's dominant plane (``perception.plane``): segmented pixels on it become background and fits
-    #: sunk into it lose.
+    #: Fit the frame's dominant plane: segmented pixels on it become background and fits sunk into it lose.
     support_plane: bool = True
     #: With ``models``: a mask's part its fitted model leaves unexplained becomes a detection of its own.
     split: SplitConfig = field(default_factory=SplitConfig)
     #: Once the poses are fitted, the masks' outlines are snapped to the colour image's edges.
     guided: GuidedConfig = field(default_factory=GuidedConfig)
-    #: Depth points sampled per object for the pose net; unset: 250 with ``models`` (``REFINED_POSE_INPUT``),
-    #: else as in the net's training.
+    #: Depth points per object for the pose net; unset: 250 with ``models``, else as in the net's training.
     pose_points: int | None = None
     #: Side (px) of the pose net's colour crop; unset: 48 with ``models``, else as in the net's training.
     pose_crop: int | None = None

@@ -49,13 +49,13 @@ class EvalConfig:
 
     #: BOP split to evaluate (`--split`).
     split: str = "test"
-    #: `pred` (the full pipeline) or `gt` (ground-truth visible masks: the pose stage alone; `--gt-masks`).
+    #: `pred` (full pipeline) or `gt` (ground-truth visible masks: the pose stage alone; `--gt-masks`).
     masks: str = "pred"
     #: Refiner iterations: -1 as trained, 0 none (`--no-refine`).
     refine_iterations: int = -1
     #: Re-label segments with the run's instance classifier when it has one (`--no-cls`).
     classify: bool = True
-    #: Refine every estimate against the depth image with the dataset's models (``perception.refine``; `--no-icp`).
+    #: Refine every estimate against the depth image with the dataset's models (`--no-icp`).
     icp: bool = True
     #: Use the frame's supporting plane (`--no-plane`).
     plane: bool = True
@@ -67,7 +67,7 @@ class EvalConfig:
     min_visib_fract: float = 0.1
     #: Objects with fewer valid-depth pixels in their mask are skipped.
     min_valid_points: int = 50
-    #: Detections whose mask has fewer pixels (at 640x480) are dropped; the trials' model provider uses 150.
+    #: Drop detections with fewer mask pixels (at 640x480); the trials' model provider uses 150.
     min_mask_px: int = 0
     #: Surface points per model for ADD and ADD-S.
     model_points: int = 1000

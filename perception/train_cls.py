@@ -42,7 +42,7 @@ class ClsTrainConfig(StageConfig):
     weight_decay: float = 1e-4
     #: Share of the steps over which the learning rate rises linearly; then a cosine to 0.
     warmup: float = 0.1
-    #: Also learn on the segments the run's `seg/` net predicts on the training images, labelled by the ground truth.
+    #: Also learn on the run's `seg/` net's segments of the training images, labelled by the ground truth.
     use_seg: bool = True
     #: Also learn a class 0, "not a block", from segments mostly on background (needs `use_seg`).
     background: bool = False

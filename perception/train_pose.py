@@ -49,7 +49,7 @@ class PoseTrainConfig(StageConfig):
     refine_margin: float = 0.013
     #: Validation samples per evaluation.
     eval_samples: int = 200
-    #: `adds` (ADD-S for symmetric objects, as the paper) or `min_sym` (least ADD over the discrete symmetries).
+    #: `adds` (ADD-S for symmetric objects, as the paper) or `min_sym` (least ADD over discrete symmetries).
     sym_loss: str = "adds"
     #: A pose checkpoint (or a run holding `pose/`) to fine-tune; empty: from scratch.
     init: str = ""

@@ -55,7 +55,7 @@ class SegTrainConfig(StageConfig):
     init: str = ""
     #: Where the net trains: `cpu` or `cuda` (the checkpoint is the same either way).
     device: str = "cpu"
-    #: Processes preparing the batches ahead (0: the training process); the batches do not depend on it.
+    #: Processes preparing batches ahead (0: the training process); batches do not depend on it.
     workers: int = 0
 
 

@@ -36,14 +36,14 @@ class ClutterConfig:
     parts: tuple[int, int] = (12, 12)
     #: Most parts a scene may hold.
     max_parts: int = field(default=30, metadata=within(1, 200))
-    #: Largest share of the tote's inner volume (floor area x wall height) that the parts' bounding boxes may
-    #: fill, the largest type counted for every part.
+    #: Largest share of the tote's inner volume the parts' bounding boxes may fill (the largest type counted for every
+    #: part).
     max_fill: float = field(default=0.6, metadata=within(0.01, 2.0))
     #: The tote of bin scenes; a pile is dropped onto its footprint.
     tote: ToteConfig = field(default_factory=ToteConfig)
     #: Height (m) of the lowest drop point of a part's bounding sphere above the tote's walls.
     drop_height: float = field(default=0.02, metadata=within(0.0, 1.0))
-    #: A pile's parts must come to rest with their centres within this distance (m) of the tote's footprint.
+    #: A pile's parts must rest with their centres within this distance (m) of the tote's footprint.
     pile_margin: float = field(default=0.05, metadata=within(0.0, 1.0))
     #: A heap has settled once no part has moved farther (m) or turned more (deg) than this ...
     rest_motion: tuple[float, float] = (0.002, 2.0)
@@ -51,9 +51,9 @@ class ClutterConfig:
     rest_time: float = field(default=0.2, metadata=within(0.02, 10.0))
     #: ... within this simulated time (s) after the drop.
     settle_timeout: float = field(default=6.0, metadata=within(0.1, 120.0))
-    #: Parts dropped at once: a scene is dropped in waves, each settling before the next lands on it.
+    #: Parts dropped at once; each wave settles before the next lands on it.
     wave_size: int = field(default=12, metadata=within(1, 200))
-    #: Waves, beyond the ones the parts need, that drop again the parts that came to rest out of place.
+    #: Extra waves that drop again the parts that came to rest out of place.
     max_redrops: int = field(default=4, metadata=within(0, 100))
 
 

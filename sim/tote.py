@@ -47,8 +47,8 @@ class ToteConfig:
     reach_height: float = field(default=0.015, metadata=within(0.0, 0.5))
     #: ... and the approach starts with the pinch point this far (m) above the walls' top.
     reach_approach: float = field(default=0.05, metadata=within(0.0, 0.5))
-    #: Least distance (m) from the walls to the arm, wrist, palm and camera at the corner grasps, and to the open
-    #: fingers at the approach above them.
+    #: Least distance (m) from the walls to arm, wrist, palm and camera at the corner grasps, and to the open fingers
+    #: above them.
     reach_clearance: float = field(default=0.002, metadata=within(0.0, 0.1))
 
 

@@ -100,8 +100,7 @@ class SteadyConfig:
     #: The block is brought this far (m) above its surface before the slow, guarded descent (``grasp.place_gap``
     #: otherwise).
     place_gap: float = 0.02
-    #: Peak speed (m/s) of the approach to the grasp and of the place descent (``grasp.approach_speed`` otherwise,
-    #: which sways the arm).
+    #: Peak speed (m/s) of the approach and the place descent (else ``grasp.approach_speed``, which sways the arm).
     approach_speed: float = 0.1
 
 

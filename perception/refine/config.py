@@ -16,11 +16,11 @@ from posegrasp.perception.refine.starts import cube_rotations
 class StartConfig:
     """Where the fits start (``perception.refine.starts``)."""
 
-    #: Start rotations Q applied to the estimate, object frame: "cube" (the 24 rotations of the cube group) or
-    #: "identity" (plain ICP from the estimate); an ``ObjectModel`` keeps those distinct under its symmetries.
+    #: Start rotations, object frame: "cube" (the cube group's 24, distinct under the symmetries) or "identity" (plain
+    #: ICP).
     hypotheses: str = "cube"
-    #: Given the supporting plane, the starts moved to rest on it are also laid on their nearest rest and fitted as
-    #: turns about the plane's normal and shifts along the plane, kept resting on it.
+    #: With a supporting plane, also lay each start on its nearest rest and fit it as turns about the normal and shifts
+    #: along the plane.
     level_rests: bool = True
 
     def rotations(self) -> np.ndarray:
@@ -38,11 +38,10 @@ class FitConfig:
 
     #: ICP steps per start, the exact steps included: all but those come before the turns, those last.
     iterations: int = 12
-    #: Steps (at most ``iterations``) that match each observed point to its exact nearest model point (a k-d tree)
-    #: instead of the voxel grid's, taken last.
+    #: Last steps (at most ``iterations``) matching each point to its exact nearest model point (k-d tree) instead of
+    #: the voxel grid's.
     exact_steps: int = 3
-    #: Fits per object that go on to the exact steps: those that score best with the grid's distances, each turned at
-    #: least 10 deg from the others (0: all).
+    #: Best-scoring fits per object (each turned >= 10 deg from the others) that go on to the exact steps (0: all).
     polish: int = 3
     #: Observed points per object (a random subset of its mask's valid depth pixels).
     max_points: int = 300
@@ -54,8 +53,8 @@ class FitConfig:
 class TurnConfig:
     """The turns about the plane's normal after the first steps (``perception.refine.starts.turned``)."""
 
-    #: Turn step (deg) about the plane's normal (the optical axis without a plane), through the object's centre, over
-    #: the turn that maps the model onto itself about that axis (0: no turns).
+    #: Turn step (deg) about the plane's normal (else the optical axis) over the object's symmetry turn about it (0: no
+    #: turns).
     step_deg: float = 15.0
     #: Fits per object turned: the best of each of its best-scoring rests facing up, this many rests.
     seeds: int = 3
@@ -69,8 +68,7 @@ class ScoreConfig:
 
     #: Distance (m) beyond which an observed point adds nothing to the fit term.
     truncation: float = 0.01
-    #: Depth (m) a model point must lie in front of the observed surface, or beneath the plane, to count as a
-    #: violation.
+    #: Depth (m) a model point must lie in front of the seen surface, or under the plane, to be a violation.
     violation_margin: float = 0.005
     #: Weight (m) of the share of model points in seen free space plus the share beneath the plane.
     violation_weight: float = 0.01
@@ -78,8 +76,8 @@ class ScoreConfig:
     float_margin: float = 0.004
     #: Weight (m) of the floating term, (height - float_margin) / 1 cm clipped to [0, 1] (0: off).
     float_weight: float = 0.01
-    #: Model points (the first of them) for the free-space, plane and floating terms of the scores that rank the
-    #: starts before the exact steps; the final scores take them all.
+    #: Model points for the free-space, plane and floating terms when ranking starts before the exact steps; final
+    #: scores use all.
     rank_points: int = 500
 
 
