@@ -10,14 +10,14 @@ import sys
 from posegrasp.grasping.stats import wilson
 
 #: Documented success counts (successes, episodes), seed 0, `--workers 2`; the floors below are taken from them.
-#: Measured by `posegrasp trials --episodes 200 --seed 0 --perception oracle --workers 2` (docs/results.md).
+#: Measured by `posegrasp trials --episodes 200 --seed 0 --perception oracle --workers 2` (docs/benchmarks.md).
 PICK_PLACE_ORACLE = (198, 200)
-#: Measured by `posegrasp trials --episodes 200 --seed 0 --perception model --workers 2` (docs/results.md).
+#: Measured by `posegrasp trials --episodes 200 --seed 0 --perception model --workers 2` (docs/benchmarks.md).
 PICK_PLACE_MODEL = (196, 200)
 #: Measured by `posegrasp trials --task kitting --episodes 200 --seed 0 --perception oracle --workers 2`
-#: (docs/tasks.md).
+#: (docs/benchmarks.md).
 KITTING_ORACLE = (199, 200)
-#: Measured by `posegrasp trials --task stack --episodes 200 --seed 0 --perception oracle --workers 2` (docs/tasks.md).
+#: Measured by `posegrasp trials --task stack --episodes 200 --seed 0 --perception oracle --workers 2` (docs/benchmarks.md).
 STACK_ORACLE = (194, 200)
 
 

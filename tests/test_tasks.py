@@ -96,7 +96,7 @@ def test_a_moved_base_fails_stack():
 def test_a_block_may_not_overhang_its_base():
     cat = load_catalog()
     assert can_stack(cat["cube"], cat["brick_2x2"]) and can_stack(cat["arch"], cat["cylinder"])
-    # 31.8 mm on a 30 mm cylinder, 40 mm on it, 31.8 mm across a 25 mm wide cuboid: they fell off (docs/tasks.md)
+    # 31.8 mm on a 30 mm cylinder, 40 mm on it, 31.8 mm across a 25 mm wide cuboid: they fell off
     assert not any(can_stack(cat[b], cat[t]) for b, t in [("cylinder", "brick_2x2"), ("cylinder", "cube"),
                                                           ("long_cuboid", "brick_2x2")])
 
@@ -153,7 +153,7 @@ def test_unknown_task_and_unservable_task_are_one_line(tmp_path):
 
 def test_yaw_stable_pinch_prefers_faces_that_reach_fingers_2_and_3():
     # an L-block pinched on its 25 mm end faces (finger 1 against finger 3 alone) turned 10 deg in the hand;
-    # across its 50 mm long side faces it stays put (docs/tasks.md)
+    # across its 50 mm long side faces it stays put
     from posegrasp.grasping.config import GraspConfig
     from posegrasp.grasping.grasps import plan_grasps
 
