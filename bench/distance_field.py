@@ -20,7 +20,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from posegrasp import ASSETS, bop
+from posegrasp import ASSETS, bop, bop_models
 from posegrasp.perception.refine.distance_field import DistanceField
 
 
@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(1)
     print("obj  build s | field mean / p95 / max mm | nearest of 1500 points mean / p95 / max mm")
     for o in sorted(bop.load_models_info(root)):
-        mesh = bop.load_model(root, o)
+        mesh = bop_models.load_model(root, o)
         t0 = time.perf_counter()
         field = DistanceField.of_mesh(mesh, seed=o)
         build = time.perf_counter() - t0
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         p = s + rng.normal(size=s.shape) * args.spread
         true = np.abs(trimesh.proximity.signed_distance(mesh, p))
         est = field(torch.from_numpy(p).float()).numpy()
-        kd = cKDTree(bop.sample_model_points(mesh, 1500, seed=o)).query(p)[0]
+        kd = cKDTree(bop_models.sample_model_points(mesh, 1500, seed=o)).query(p)[0]
         row = [f"{o:3d}  {build:6.2f}"]
         for e in (np.abs(est - true) * 1000, np.abs(kd - true) * 1000):
             row.append(f"{e.mean():.3f} / {np.percentile(e, 95):.3f} / {e.max():.2f}")

@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 
 from posegrasp import bop
+from posegrasp import bop_models
+from posegrasp import bop_images
 from posegrasp import io as pio
 from posegrasp.catalog import set_root
 from posegrasp.errors import DatasetError
@@ -77,13 +79,13 @@ def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
 
 def write_models_eval(root: Path) -> None:
     """Write ``models_eval/``: each model of ``models/`` with its edges split down to ``EVAL_EDGE`` x its diameter
-    (``bop.resample_for_eval``), in mm, as the BOP metrics' evaluation points and VSD's renderings use."""
+    (``bop_models.resample_for_eval``), in mm, as the BOP metrics' evaluation points and VSD's renderings use."""
     import trimesh
 
     diameters = {o: i.diameter / bop.MM for o, i in bop.load_models_info(root).items()}
     for oid, diameter in diameters.items():
         src = bop.model_path(root, oid)
-        mesh = bop.resample_for_eval(trimesh.load(src, force="mesh", process=False), EVAL_EDGE * diameter)
+        mesh = bop_models.resample_for_eval(trimesh.load(src, force="mesh", process=False), EVAL_EDGE * diameter)
         write_if_changed(bop.models_eval_dir(root) / src.name, mesh.export(file_type="ply", encoding="binary"))
 
 
@@ -111,10 +113,10 @@ class SceneWriter:
         """Encode image ``im_id``: ``rgb`` and ``depth`` (m) as measured, masks and labels from ``frame``
         (``frame.extra``: ``amodal`` masks, their pixel ``boxes`` and their parts ``beyond`` the image)."""
         d = Path()  # paths relative to the scene folder
-        self._put(bop.image_path(d, "rgb", im_id, self.rgb_ext), bop.encode_rgb(rgb, self.rgb_ext, self.jpg_quality))
-        self._put(bop.image_path(d, "depth", im_id), bop.encode_depth(depth, self.depth_scale))
+        self._put(bop.image_path(d, "rgb", im_id, self.rgb_ext), bop_images.encode_rgb(rgb, self.rgb_ext, self.jpg_quality))
+        self._put(bop.image_path(d, "depth", im_id), bop_images.encode_depth(depth, self.depth_scale))
         if clean_depth:
-            self._put(bop.image_path(d, "depth_clean", im_id), bop.encode_depth(frame.depth, self.depth_scale))
+            self._put(bop.image_path(d, "depth_clean", im_id), bop_images.encode_depth(frame.depth, self.depth_scale))
         gts, infos = [], []
         for i, (oid, T) in enumerate(zip(frame.obj_ids, frame.T_cam_obj)):
             # visible = the scene render's pixels of block i within its silhouette: the two rasterisers (MuJoCo's
@@ -122,10 +124,10 @@ class SceneWriter:
             amodal, box = frame.extra["amodal"][i], frame.extra["boxes"][i]
             visib = (frame.mask == i + 1) & amodal
             info = bop.gt_info_from_masks(amodal, visib, depth, box, *frame.extra["beyond"][i])
-            full_png = bop.encode_mask(amodal) if info.px_count_all else self._empty_mask(amodal.shape)
+            full_png = bop_images.encode_mask(amodal) if info.px_count_all else self._empty_mask(amodal.shape)
             same = info.px_count_visib == info.px_count_all and np.array_equal(visib, amodal)  # fully visible
             self._put(bop.mask_path(d, im_id, i, visible=False), full_png)
-            self._put(bop.mask_path(d, im_id, i, visible=True), full_png if same else bop.encode_mask(visib))
+            self._put(bop.mask_path(d, im_id, i, visible=True), full_png if same else bop_images.encode_mask(visib))
             gts.append((int(oid), T))
             infos.append(info)
         self.gt[im_id], self.infos[im_id] = gts, infos
@@ -135,7 +137,7 @@ class SceneWriter:
     @staticmethod
     @functools.lru_cache(maxsize=4)
     def _empty_mask(shape: tuple[int, int]) -> bytes:
-        return bop.encode_mask(np.zeros(shape, bool))
+        return bop_images.encode_mask(np.zeros(shape, bool))
 
     def finish(self, extra: dict[str, Any]) -> None:
         """Close the scene with what ``scene_datagen.json`` records."""

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp import bop
+from posegrasp import bop_results
 from posegrasp.bop_check import rotation_problem
 from posegrasp.catalog import catalog_by_id
 from posegrasp.errors import DatasetError, ProviderError
@@ -45,7 +46,7 @@ class BopCsvProvider:
     def name(self) -> str:
         return f"bop-csv:{self.path}"
 
-    def rows(self) -> list[bop.PoseResult]:
+    def rows(self) -> list[bop_results.PoseResult]:
         """Every row of the file, checked (cached per process while the file is unchanged)."""
         return _load(self.path, self.objects, _stamp(self.path))[0]
 
@@ -87,12 +88,12 @@ def _stamp(path: str) -> tuple[int, int]:
 
 @functools.lru_cache(maxsize=4)
 def _load(path: str, objects: str, stamp: tuple[int, int]
-          ) -> tuple[list[bop.PoseResult], dict[tuple[int, int], list[bop.PoseResult]]]:
+          ) -> tuple[list[bop_results.PoseResult], dict[tuple[int, int], list[bop_results.PoseResult]]]:
     """The checked rows of ``path`` and the rows of each frame (``stamp``: the file's mtime and size)."""
-    rows = bop.read_results_csv(path)
+    rows = bop_results.read_results_csv(path)
     known = catalog_by_id(objects)
     seen: dict[tuple, int] = {}
-    frames: dict[tuple[int, int], list[bop.PoseResult]] = {}
+    frames: dict[tuple[int, int], list[bop_results.PoseResult]] = {}
     for n, r in enumerate(rows, start=2):
         problem = _row_problem(r, known)
         key = (r.scene_id, r.im_id, r.obj_id, r.T_cam_obj.tobytes())
@@ -105,7 +106,7 @@ def _load(path: str, objects: str, stamp: tuple[int, int]
     return rows, frames
 
 
-def _row_problem(r: bop.PoseResult, known: dict) -> str | None:
+def _row_problem(r: bop_results.PoseResult, known: dict) -> str | None:
     """What makes one row unusable, or None."""
     if r.obj_id not in known:
         return f"obj_id {r.obj_id} is not in the object set (ids {', '.join(str(k) for k in sorted(known))})"

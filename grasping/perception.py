@@ -24,7 +24,7 @@ from typing import Callable, Collection, Protocol, TypeVar
 
 import numpy as np
 
-from posegrasp import bop
+from posegrasp import bop_images
 from posegrasp.errors import PerceptionError, ProviderError
 from posegrasp.geometry import axis_angle_R
 from posegrasp.sim.camera import Frame
@@ -101,7 +101,7 @@ DEPTH_SCALE = 0.1
 def observation(frame: Frame, scene_id: int = 0, im_id: int = 0) -> Observation:
     """What a provider may see of a captured ``frame``: its RGB image, its depth in ``DEPTH_SCALE`` steps,
     intrinsics, and the capture's ids."""
-    return Observation(frame.rgb, bop.quantise_depth(frame.depth, DEPTH_SCALE), frame.K, scene_id, im_id)
+    return Observation(frame.rgb, bop_images.quantise_depth(frame.depth, DEPTH_SCALE), frame.K, scene_id, im_id)
 
 
 #: Bounds of a usable estimate: rotation orthonormality and determinant (``ROT_TOL``), translation norm (m).

@@ -17,6 +17,7 @@ import torch
 from torch.utils.data import Dataset
 
 from posegrasp import bop
+from posegrasp import bop_models
 from posegrasp.errors import DatasetError
 from posegrasp.perception.crop_cache import fingerprint, read_crop_cache, write_crop_cache
 from posegrasp.perception.inputs import (normalize_cls_input, normalize_rgb, prepare_cls_input, prepare_pose_input,
@@ -140,8 +141,8 @@ class ObjectModels:
     def points(self, obj_id: int) -> np.ndarray:
         """(pool, 3) surface points of the model in its frame (m)."""
         if obj_id not in self._points:
-            mesh = bop.load_model(self.root, obj_id)
-            self._points[obj_id] = bop.sample_model_points(mesh, self.pool, seed=self.seed + obj_id)
+            mesh = bop_models.load_model(self.root, obj_id)
+            self._points[obj_id] = bop_models.sample_model_points(mesh, self.pool, seed=self.seed + obj_id)
         return self._points[obj_id]
 
 

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from posegrasp import bop
-from posegrasp.errors import UserError
+from posegrasp import bop_models
+from posegrasp.errors import ConfigError, DatasetError, WeightsError
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.crop import backproject, mask_bbox, padded_box
 from posegrasp.perception.ensemble import ClassifierEnsemble
@@ -114,7 +115,7 @@ class Estimator:
         cfg = cfg or EstimatorConfig()
         weights = Path(weights)
         if not weights.is_dir():
-            raise UserError(f"weights directory {weights} does not exist")
+            raise WeightsError(f"weights directory {weights} does not exist")
         if cfg.threads is not None:
             torch.set_num_threads(cfg.threads)
         self.segmenter = Segmenter.load(weights / "seg")
@@ -126,23 +127,23 @@ class Estimator:
             self.refiner, self.refiner_cfg, _ = ckpt_mod.load_model(weights / "refine", "refine")
             if list(self.refiner_cfg.obj_ids) != list(self.pose_cfg.obj_ids) or \
                     self.refiner_cfg.emb_dim != self.pose_cfg.emb_dim:
-                raise UserError(f"refiner in {weights / 'refine'} was trained for another pose net")
+                raise WeightsError(f"refiner in {weights / 'refine'} was trained for another pose net")
         self.classifier: ClassifierEnsemble | None = None
         if cfg.classify is not False and (weights / "cls").exists():
             self.classifier = ClassifierEnsemble.load(weights)
         elif cfg.classify:
-            raise UserError(f"{weights} has no cls/ checkpoint: train one with 'posegrasp train cls'")
+            raise WeightsError(f"{weights} has no cls/ checkpoint: train one with 'posegrasp train cls'")
         default_iters = self.refiner_cfg.iterations if self.refiner_cfg is not None else 0
         self.refine_iterations = default_iters if cfg.refine_iterations is None else cfg.refine_iterations
         if self.refine_iterations > 0 and self.refiner is None:
-            raise UserError(f"{weights} has no refine/ checkpoint: cannot refine")
+            raise WeightsError(f"{weights} has no refine/ checkpoint: cannot refine")
         self.min_valid_points = cfg.min_valid_points
         points, crop = (REFINED_POSE_INPUT if cfg.models is not None else
                         (self.pose_cfg.num_points, self.pose_cfg.crop_size))
         self.pose_points = points if cfg.pose_points is None else cfg.pose_points
         self.pose_crop = crop if cfg.pose_crop is None else cfg.pose_crop
         if self.pose_points < 1 or self.pose_crop < 8 or self.pose_crop % 8:
-            raise UserError(f"pose_points must be >= 1 and pose_crop a multiple of 8 px, got {self.pose_points} and "
+            raise ConfigError(f"pose_points must be >= 1 and pose_crop a multiple of 8 px, got {self.pose_points} and "
                             f"{self.pose_crop}")
         self.seed = cfg.seed
         self.icp = cfg.icp
@@ -161,9 +162,9 @@ class Estimator:
         infos = bop.load_models_info(models)
         missing = [o for o in self.obj_ids if o not in infos]
         if missing:
-            raise UserError(f"models in {models} lack objects {missing} of the pose net")
+            raise DatasetError(f"models in {models} lack objects {missing} of the pose net")
         surface = self.split_cfg.model_points if self.split_cfg.rounds > 0 else 0
-        self.objects = {o: ObjectModel.of_mesh(bop.load_model(models, o), infos[o].symmetry_rotations(), self.icp,
+        self.objects = {o: ObjectModel.of_mesh(bop_models.load_model(models, o), infos[o].symmetry_rotations(), self.icp,
                                                seed=o, surface_points=surface) for o in self.obj_ids}
 
     @property

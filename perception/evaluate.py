@@ -26,6 +26,8 @@ from typing import Any
 import numpy as np
 
 from posegrasp import bop
+from posegrasp import bop_results
+from posegrasp import bop_models
 from posegrasp import io as pio
 from posegrasp.errors import ConfigError
 from posegrasp.lock import folder_lock
@@ -177,7 +179,7 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
         guided=GuidedConfig() if cfg.guided else GuidedConfig(radius=0)))
     infos = bop.load_models_info(data)
     obj_ids = [o for o in est.obj_ids if o in infos]
-    pts = {o: bop.sample_model_points(bop.load_model(data, o), cfg.model_points, seed=o) for o in obj_ids}
+    pts = {o: bop_models.sample_model_points(bop_models.load_model(data, o), cfg.model_points, seed=o) for o in obj_ids}
     records = load_records(data, cfg.split)
     if cfg.max_images:
         records = records[:cfg.max_images]
@@ -186,7 +188,7 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
     nc = est.seg_cfg.num_classes
     conf = np.zeros((nc, nc), dtype=np.int64)
     rows: list[dict[str, Any]] = []
-    results: list[bop.PoseResult] = []
+    results: list[bop_results.PoseResult] = []
     times: dict[str, list[float]] = {k: [] for k in (*STAGES, "total")}
     for rec in track(records, f"eval {cfg.split}", enabled=progress):
         rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
@@ -207,7 +209,7 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
             times[k].append(v)
         times["total"].append(total)
         rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
-        results.extend(bop.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total) for d in dets)
+        results.extend(bop_results.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total) for d in dets)
         groups.extend(bop19.image(
             depth, K, [B.Truth(g.obj_id, g.T_cam_obj, g.info.visib_fract if g.info else 1.0) for g in rec.instances],
             [B.Estimate(d.obj_id, d.score, d.T_cam_obj) for d in dets], targets.get((rec.scene_id, rec.im_id), {})))
@@ -246,7 +248,7 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
     scores = B.scores(groups, infos, bop.load_camera(data).width)
     pio.write_json(out / "scores_bop19.json", pio.jsonable(scores, nan_to_null=True))
     report["bop19"] = {k: scores[k] for k in ("ar", "ar_vsd", "ar_mssd", "ar_mspd", "targets")}
-    bop.write_results_csv(out / f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv", results)
+    bop_results.write_results_csv(out / f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv", results)
     pio.write_json(out / "metrics.json", pio.jsonable(report, nan_to_null=True))
     return report
 
@@ -256,7 +258,7 @@ def _bop19_setup(data: Path, split: str, records: list[bop.ImageRecord], infos: 
     """The BOP 2019 scorer on the dataset's ``models_eval/`` (else ``models/``) and the targets per image
     ({(scene_id, im_id): {obj_id: inst_count}}) of the evaluated images: ``test_targets_bop19.json`` for the
     test split when the dataset has it, else the instances at least 10 % visible."""
-    meshes = {o: bop.load_model(bop.eval_model_path(data, o)) for o in infos}
+    meshes = {o: bop_models.load_model(bop.eval_model_path(data, o)) for o in infos}
     scorer = B.Bop19({o: np.asarray(m.vertices) for o, m in meshes.items()}, infos, DepthRenderer(meshes))
     listed = bop.load_test_targets(data) if split == "test" else None
     shown = {(r.scene_id, r.im_id) for r in records}

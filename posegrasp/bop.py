@@ -11,37 +11,28 @@ Layout under a dataset root::
 
 Files are in millimetres (models, translations, depth png x depth_scale); everything this module
 returns is in metres: the conversion happens here, at the boundary. Poses are 4x4 ``T_cam_obj``
-(model frame -> OpenCV camera frame: x right, y down, z forward). Writers are atomic; the image encoders give
-the bytes of BOP's colour, depth and mask images to writers that place their own files.
+(model frame -> OpenCV camera frame: x right, y down, z forward). Writers are atomic. The images'
+codecs are in ``posegrasp.bop_images``, the models' meshes in ``posegrasp.bop_models``, the results files in
+``posegrasp.bop_results``.
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 from collections import Counter
 from dataclasses import dataclass, field
-from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-import cv2
 import numpy as np
 
 from posegrasp import io as pio
+from posegrasp.bop_images import MM, depth_from_png
 from posegrasp.errors import DatasetError
 
-MM = 1e-3  # metres per millimetre
 TEST_TARGETS_FILE = "test_targets_bop19.json"
 MIN_TARGET_VISIB = 0.1  #: BOP 2019: instances less visible are no targets
 EMPTY_BOX = (-1, -1, -1, -1)
-RESULTS_HEADER = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
-#: PNG settings, the fastest (and smallest) measured for each kind: unfiltered rows for noisy depth, plus
-#: run-length deflate for masks; sub-filtered rows for colour images.
-_PNG_NONE = (cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE)
-_PNG_MASK = (*_PNG_NONE, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE)
-_PNG_SUB = (cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB)
 
 
 # ---------------------------------------------------------------------------- paths
@@ -321,29 +312,6 @@ def iter_scene_images(root: str | Path, split: str, scene_ids: Iterable[int] | N
             yield ImageRecord(root=root, split=split, scene_id=sid, im_id=im_id, camera=cams[im_id], instances=inst)
 
 
-def load_model(root_or_file: str | Path, obj_id: int | None = None):
-    """A model PLY (mm) as a ``trimesh.Trimesh`` in metres; pass the dataset root and obj_id, or a file."""
-    import trimesh
-
-    p = model_path(root_or_file, obj_id) if obj_id is not None else Path(root_or_file)
-    if not p.exists():
-        raise DatasetError(f"model file {p} does not exist")
-    try:
-        mesh = trimesh.load(p, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types on corrupt files
-        raise DatasetError(f"cannot read model {p}: {e}") from None
-    mesh.apply_scale(MM)
-    return mesh
-
-
-def sample_model_points(mesh, n: int, seed: int = 0) -> np.ndarray:
-    """n points (m) uniformly on the surface of a trimesh model, reproducible from ``seed``."""
-    import trimesh
-
-    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    return np.asarray(pts, dtype=np.float64)
-
-
 # ---------------------------------------------------------------------------- writers
 
 def pose_to_bop(T: np.ndarray) -> tuple[list[float], list[float]]:
@@ -390,39 +358,6 @@ def write_scene_gt_info(path: str | Path, infos: dict[int, list[GTInfo]]) -> Pat
                      "visib_fract": g.visib_fract} for g in v]
            for k, v in sorted(infos.items())}
     return pio.write_json(path, out)
-
-
-def depth_to_png(depth_m: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:
-    """Depth (m) -> uint16 png values (value x depth_scale = mm); 0 stays 0, clipped at 65535."""
-    v = np.round(np.asarray(depth_m, dtype=np.float64) / MM / depth_scale)
-    return np.clip(np.nan_to_num(v, nan=0.0, posinf=0.0), 0, 65535).astype(np.uint16)
-
-
-def depth_from_png(png: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:
-    """BOP depth png values (x depth_scale = mm) -> depth float32 (H, W) in metres; 0 stays 0."""
-    return np.asarray(png).astype(np.float32) * np.float32(depth_scale * MM)
-
-
-def quantise_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
-    """Depth (m) in steps of ``depth_scale`` mm, float32: what a BOP depth png of it reads back as (bit for bit)."""
-    return depth_from_png(depth_to_png(depth_m, depth_scale), depth_scale)
-
-
-def encode_rgb(rgb: np.ndarray, ext: str, jpg_quality: int = 95) -> bytes:
-    """An RGB uint8 image (H, W, 3) as BOP colour image bytes; ``ext`` ``jpg`` or ``png``."""
-    if ext == "jpg":
-        return pio.encode_image(".jpg", rgb, [cv2.IMWRITE_JPEG_QUALITY, jpg_quality])
-    return pio.encode_image(".png", rgb, _PNG_SUB)
-
-
-def encode_depth(depth_m: np.ndarray, depth_scale: float = 1.0) -> bytes:
-    """A depth map (m) as BOP depth PNG bytes (uint16, value x depth_scale = mm)."""
-    return pio.encode_image(".png", depth_to_png(depth_m, depth_scale), _PNG_NONE)
-
-
-def encode_mask(mask: np.ndarray) -> bytes:
-    """A boolean mask as BOP mask PNG bytes (0/255, 8-bit)."""
-    return pio.encode_image(".png", np.asarray(mask, bool).view(np.uint8) * np.uint8(255), _PNG_MASK)
 
 
 def _extent(mask: np.ndarray, x0: int = 0, y0: int = 0) -> tuple[int, int, int, int] | None:
@@ -472,34 +407,6 @@ def gt_info_from_masks(mask: np.ndarray, mask_visib: np.ndarray, depth_m: np.nda
                   visib_fract=float(n_visib / n_all) if n_all else 0.0)
 
 
-def resample_for_eval(mesh, max_edge: float):
-    """The mesh with every edge longer than ``max_edge`` (the mesh's units) split at its midpoint, repeatedly,
-    each face re-triangulated by which of its edges were split (a conforming refinement: no T-junctions): the
-    same surface with dense, roughly uniform vertices, like BOP's ``models_eval``. A ``trimesh.Trimesh``."""
-    import trimesh
-
-    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-    while True:
-        m = trimesh.Trimesh(v, f, process=False)
-        edges, fe = m.edges_unique, m.faces_unique_edges  # fe[:, k]: edge of (f[k], f[k + 1])
-        long = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1) > max_edge
-        if not long.any():
-            return trimesh.Trimesh(v, f, process=False)
-        mid = np.full(len(edges), -1)
-        mid[long] = len(v) + np.arange(long.sum())
-        v = np.concatenate([v, 0.5 * (v[edges[long, 0]] + v[edges[long, 1]])])
-        local = np.concatenate([f, mid[fe]], axis=1)  # v0 v1 v2 m01 m12 m20 (-1: edge kept)
-        code = (local[:, 3:] >= 0) @ np.array([4, 2, 1])
-        f = np.concatenate([local[code == c][:, t].reshape(-1, 3) for c, t in _SPLIT_TRIANGLES.items()])
-
-
-#: Triangles (local vertex indices: 0-2 corners, 3-5 midpoints of edges 01, 12, 20) of a face whose split edges
-#: are coded m01 * 4 + m12 * 2 + m20, fanned from a midpoint so that none is degenerate.
-_SPLIT_TRIANGLES = {0: [0, 1, 2], 4: [3, 1, 2, 3, 2, 0], 2: [4, 2, 0, 4, 0, 1], 1: [5, 0, 1, 5, 1, 2],
-                    6: [3, 1, 4, 3, 4, 2, 3, 2, 0], 3: [4, 2, 5, 4, 5, 0, 4, 0, 1], 5: [3, 1, 2, 3, 2, 5, 3, 5, 0],
-                    7: [0, 3, 5, 3, 1, 4, 5, 4, 2, 3, 4, 5]}
-
-
 @dataclass(frozen=True)
 class EvalTarget:
     """One line of ``test_targets_bop19.json``: in image (scene_id, im_id), ``inst_count`` instances of obj_id."""
@@ -537,88 +444,3 @@ def load_test_targets(root: str | Path) -> list[EvalTarget] | None:
     except (KeyError, TypeError, ValueError) as e:
         raise DatasetError(f"BOP file {p}: each entry needs integer scene_id, im_id, obj_id, inst_count "
                            f"({e})") from None
-
-
-# ---------------------------------------------------------------------------- results
-
-@dataclass
-class PoseResult:
-    """One pose estimate for the BOP results CSV: T_cam_obj (4x4 m), score, time (s, -1 unknown)."""
-
-    scene_id: int
-    im_id: int
-    obj_id: int
-    score: float
-    T_cam_obj: np.ndarray
-    time: float = -1.0
-
-
-def write_results_csv(path: str | Path, results: Iterable[PoseResult]) -> Path:
-    """Write BOP results: ``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm, space-separated.
-    Lossless: R and the score as the shortest decimals that read back as the same floats, t as those of the
-    metres with the decimal point moved (``read_results_csv`` gives back the very same poses)."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(RESULTS_HEADER)
-    for r in results:
-        T = np.asarray(r.T_cam_obj, dtype=np.float64)
-        w.writerow([r.scene_id, r.im_id, r.obj_id, repr(float(r.score)),
-                    " ".join(repr(x) for x in T[:3, :3].ravel().tolist()),
-                    " ".join(format(Decimal(repr(x)).scaleb(3), "f") for x in T[:3, 3].tolist()), f"{r.time:.6f}"])
-    return pio.write_bytes(path, buf.getvalue().encode())
-
-
-def read_results_csv(path: str | Path) -> list[PoseResult]:
-    """A BOP results CSV (header ``scene_id,im_id,obj_id,score,R,t,time``; t in mm) as PoseResults (m), in file
-    order. A DatasetError naming the line for a wrong header, a missing field, a negative or non-integer id or a
-    number that does not parse or is not finite; R is not checked to be a rotation here."""
-    p = Path(path)
-    try:
-        lines = p.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"results file {p} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        why = getattr(e, "strerror", None) or "not UTF-8 text"
-        raise DatasetError(f"cannot read results file {p}: {why}") from None
-    header = [h.strip() for h in lines[0].split(",")] if lines else []
-    if tuple(header) != RESULTS_HEADER:
-        raise DatasetError(f"{p} line 1: the header must be {','.join(RESULTS_HEADER)} (BOP results format), got "
-                           f"{','.join(header)!r}")
-    while len(lines) > 1 and not lines[-1].strip():  # blank lines at the end
-        lines.pop()
-    out = []
-    for n, row in enumerate(csv.reader(lines[1:]), start=2):  # result i is on line i + 2
-        try:
-            out.append(_result(row))
-        except ValueError as e:
-            raise DatasetError(f"{p} line {n}: {e}") from None
-    return out
-
-
-def _result(row: list[str]) -> PoseResult:
-    """One results row (fields as text) -> PoseResult; ValueError saying what is wrong."""
-    if not "".join(row).strip():
-        raise ValueError("empty line")
-    if len(row) != len(RESULTS_HEADER):
-        raise ValueError(f"expected {len(RESULTS_HEADER)} fields ({','.join(RESULTS_HEADER)}), got {len(row)}")
-    ids = []
-    for name, text in zip(RESULTS_HEADER[:3], row[:3]):
-        if not (text.strip().isascii() and text.strip().isdigit()):
-            raise ValueError(f"{name} {text!r} is not a non-negative integer")
-        ids.append(int(text))
-    nums = {name: _numbers(name, text, count) for name, text, count in zip(RESULTS_HEADER[3:], row[3:], (1, 9, 3, 1))}
-    T = np.eye(4)
-    T[:3, :3] = np.array([float(v) for v in nums["R"]]).reshape(3, 3)
-    T[:3, 3] = [float(v.scaleb(-3)) for v in nums["t"]]  # mm -> m, rounded once
-    return PoseResult(*ids, float(nums["score"][0]), T, float(nums["time"][0]))
-
-
-def _numbers(name: str, text: str, count: int) -> list[Decimal]:
-    """``count`` space-separated finite numbers of field ``name``, exactly as written; ValueError otherwise."""
-    try:
-        v = [Decimal(x) for x in text.split()]
-    except InvalidOperation:
-        v = []
-    if len(v) != count or not all(x.is_finite() for x in v):
-        raise ValueError(f"{name} {text!r} is not {count} finite number{'s' if count > 1 else ''}")
-    return v

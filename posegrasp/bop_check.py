@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from posegrasp import bop
+from posegrasp import bop_models
 from posegrasp import io as pio
 from posegrasp.errors import DatasetError, UserError
 from posegrasp.geometry import invert
@@ -175,7 +176,7 @@ class _Checker:
             self.add(f"{self.rel(p)}: missing (listed in models_info.json)")
             return
         try:
-            mesh = bop.load_model(p)  # metres, assuming the file is in mm
+            mesh = bop_models.load_model(p)  # metres, assuming the file is in mm
         except UserError:
             self.add(f"{self.rel(p)}: unreadable (corrupt or not a PLY mesh)")
             return
@@ -197,7 +198,7 @@ class _Checker:
             self.add(f"{self.rel(p)}: missing; BOP's metrics use models_eval/ (rerun the datagen command to add it)")
             return
         try:
-            dense = bop.load_model(p)
+            dense = bop_models.load_model(p)
         except UserError:
             self.add(f"{self.rel(p)}: unreadable (corrupt or not a PLY mesh)")
             return

@@ -9,6 +9,8 @@ from typing import Any
 import numpy as np
 
 from posegrasp import bop
+from posegrasp import bop_results
+from posegrasp import bop_images
 from posegrasp import io as pio
 from posegrasp.bop import MM
 
@@ -60,7 +62,7 @@ def write_model_ply(root: str | Path, obj_id: int, mesh) -> Path:
 
 def write_depth(path: str | Path, depth_m: np.ndarray, depth_scale: float = 1.0) -> Path:
     """Atomically write a depth map in metres as a BOP uint16 png."""
-    return pio.write_image(path, bop.depth_to_png(depth_m, depth_scale))
+    return pio.write_image(path, bop_images.depth_to_png(depth_m, depth_scale))
 
 
 def write_mask(path: str | Path, mask: np.ndarray) -> Path:
@@ -69,4 +71,4 @@ def write_mask(path: str | Path, mask: np.ndarray) -> Path:
 
 
 #: Reading a BOP results CSV back (translations to metres).
-read_results_csv = bop.read_results_csv
+read_results_csv = bop_results.read_results_csv

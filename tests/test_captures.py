@@ -12,6 +12,7 @@ import pytest
 from rich.console import Console
 
 from posegrasp import bop
+from posegrasp import bop_results
 from posegrasp.bop_check import check_dataset
 from posegrasp.errors import UserError
 from posegrasp.grasping.bop_csv import BopCsvProvider, from_spec
@@ -108,8 +109,8 @@ def test_bop_csv_rows_by_frame(tmp_path):
     T[:3, 3] = [0.01, -0.02, 0.4]
     T2 = T.copy()
     T2[0, 3] = 0.05
-    rows = [bop.PoseResult(0, 0, 3, 0.5, T), bop.PoseResult(0, 0, 3, 0.25, T2), bop.PoseResult(1, 1, 2, 0.9, T)]
-    path = bop.write_results_csv(tmp_path / "r.csv", rows)
+    rows = [bop_results.PoseResult(0, 0, 3, 0.5, T), bop_results.PoseResult(0, 0, 3, 0.25, T2), bop_results.PoseResult(1, 1, 2, 0.9, T)]
+    path = bop_results.write_results_csv(tmp_path / "r.csv", rows)
     provider = from_spec(str(path))
     obs = Observation(np.zeros((4, 4, 3), np.uint8), np.zeros((4, 4), np.float32), np.eye(3), 0, 0)
     got = provider.estimate(obs, seed=0)

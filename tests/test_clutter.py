@@ -12,6 +12,7 @@ import pytest
 from test_bad_input import refused, snapshot
 
 from posegrasp import bop
+from posegrasp import bop_models
 from posegrasp.bop_check import check_dataset
 from posegrasp.cli import main
 from posegrasp.catalog import load_catalog
@@ -134,7 +135,7 @@ def test_visible_fractions_hold_under_parts_and_walls(bin_dataset):
     tote's walls (the hiding surface back-projected onto them)."""
     cam = bop.load_camera(bin_dataset)
     W, H = cam.width, cam.height
-    render = DepthRenderer({o: bop.load_model(bin_dataset, o) for o in bop.load_models_info(bin_dataset)})
+    render = DepthRenderer({o: bop_models.load_model(bin_dataset, o) for o in bop.load_models_info(bin_dataset)})
     checked, under_parts, under_walls, fracts = 0, 0, 0, []
     for rec in bop.iter_scene_images(bin_dataset, "train_pbr"):
         clean = read_image(bop.image_path(rec.scene_dir, "depth_clean", rec.im_id)) * (rec.camera.depth_scale * 1e-3)

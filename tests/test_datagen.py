@@ -24,6 +24,7 @@ from posegrasp.bop_check import check_dataset
 from posegrasp.datagen.config import load_datagen_config
 from posegrasp.datagen.generate import STATS_FILE, generate_dataset, is_complete
 from posegrasp import bop
+from posegrasp import bop_models
 from posegrasp.geometry import invert, transform_points
 from posegrasp.io import read_image
 from posegrasp.perception.depth_render import DepthRenderer
@@ -95,7 +96,7 @@ def test_clean_depth_lies_on_models(dataset):
             pts = backproject(clean, rec.camera.K, rec.load_mask(g.gt_index))
             if len(pts) < 50:
                 continue
-            mesh = meshes.setdefault(g.obj_id, bop.load_model(dataset, g.obj_id))
+            mesh = meshes.setdefault(g.obj_id, bop_models.load_model(dataset, g.obj_id))
             pts_obj = transform_points(invert(g.T_cam_obj), pts[:: max(1, len(pts) // 500)])
             _, dist, _ = trimesh.proximity.closest_point(mesh, pts_obj)
             assert np.median(dist) < 1e-3, (rec.scene_id, rec.im_id, g.obj_id, np.median(dist))
@@ -127,7 +128,7 @@ def test_amodal_masks_are_exact_projections_of_convex_blocks(dataset):
         for g in rec.instances:
             if g.obj_id not in (1, 2, 6) or g.info.px_count_all < 100:
                 continue
-            p = transform_points(g.T_cam_obj, bop.load_model(dataset, g.obj_id).vertices)
+            p = transform_points(g.T_cam_obj, bop_models.load_model(dataset, g.obj_id).vertices)
             uv = p[:, :2] / p[:, 2:] * rec.camera.K[[0, 1], [0, 1]] + rec.camera.K[:2, 2]
             exact = PolyPath(uv[ConvexHull(uv).vertices]).contains_points(grid).reshape(H, W)
             full = rec.load_mask(g.gt_index, visible=False)
@@ -140,7 +141,7 @@ def test_amodal_masks_match_pyrender(dataset):
     """Each block rendered alone by pyrender (from the PLY model) at its GT pose gives its amodal mask."""
     cam_info = bop.load_camera(dataset)
     W, H = cam_info.width, cam_info.height
-    render = DepthRenderer({o: bop.load_model(dataset, o) for o in bop.load_models_info(dataset)})
+    render = DepthRenderer({o: bop_models.load_model(dataset, o) for o in bop.load_models_info(dataset)})
     ious = []
     for rec in records(dataset):
         for g in rec.instances:
@@ -157,7 +158,7 @@ def test_gt_info_counts_the_whole_silhouette_as_bop_toolkit(dataset):
     ``calc_gt_info``), checked against pyrender there; boxes are [x, y, w, h] with w = x_max - x_min, empty: -1s."""
     cam = bop.load_camera(dataset)
     W, H = cam.width, cam.height
-    render = DepthRenderer({o: bop.load_model(dataset, o) for o in bop.load_models_info(dataset)})
+    render = DepthRenderer({o: bop_models.load_model(dataset, o) for o in bop.load_models_info(dataset)})
     beyond = 0
     for rec in records(dataset):
         K = rec.camera.K.copy()
@@ -197,7 +198,7 @@ def test_test_split_lists_bop19_targets_and_models_eval(dataset, tmp_path, small
         g.info.visib_fract >= 0.1 for r in recs for g in r.instances)
     infos = bop.load_models_info(out)
     for o in infos:
-        model, dense = bop.load_model(out, o), bop.load_model(bop.eval_model_path(out, o))
+        model, dense = bop_models.load_model(out, o), bop_models.load_model(bop.eval_model_path(out, o))
         assert bop.eval_model_path(out, o).parent.name == "models_eval" and len(dense.vertices) > len(model.vertices)
         assert dense.edges_unique_length.max() <= 0.05 * infos[o].diameter + 1e-9
         assert np.isclose(dense.area, model.area, rtol=1e-5) and np.allclose(dense.bounds, model.bounds, atol=1e-6)

@@ -28,6 +28,7 @@ import torch
 from scipy import ndimage
 
 from posegrasp import bop
+from posegrasp import bop_models
 from posegrasp.errors import UserError
 from posegrasp.grasping.perception import Estimate, Observation
 from posegrasp.perception.crop import backproject
@@ -64,7 +65,7 @@ class DepthOnlyProvider:
         infos = bop.load_models_info(self.models)
         self._models = []
         for o, info in sorted(infos.items()):
-            pts = bop.sample_model_points(bop.load_model(self.models, o), 500, seed=o)
+            pts = bop_models.sample_model_points(bop_models.load_model(self.models, o), 500, seed=o)
             rots = distinct_rotations(self.icp.rotations(), info.symmetries_discrete,
                                       [a for a, _ in info.symmetries_continuous])
             self._models.append(_Model(o, ObjectModel.of_points(pts, self.icp, rots, grid=NearestGrid(pts)),

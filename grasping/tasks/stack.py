@@ -66,8 +66,7 @@ class StackConfig:
 def can_stack(base: PartType, block: PartType, overhang: float = 1.0) -> bool:
     """Can ``block`` stand upright on ``base`` standing upright: a flat top under a flat bottom, the block's
     footprint at most ``overhang`` times the base's, side for side? A block wider than its base tips over as the
-    fingers let go: a long cuboid knocked a cylinder 4 cm off the pad; a 2x2 brick (31.8 mm) on a standing
-    cylinder (30 mm) fell, 6 times in 6 (seed 0), dragged by a fingertip that opens from its top edge."""
+    fingers let go: a fingertip that opens from its top edge drags it off."""
     if base.upright_down is None or block.upright_down is None or not (base.flat_top and block.flat_bottom):
         return False
     return all(a <= overhang * b for a, b in zip(footprint(block), footprint(base)))

@@ -147,7 +147,6 @@ def standing_pose(block: PartType, xy: np.ndarray, surface_z: float, rng: np.ran
 
 def any_upright(wc: Workcell, ks: list[int], tol_deg: float, graspable: Graspable) -> bool:
     """Does any of the blocks ``ks`` (1-based) stand upright with a grasp clear of its neighbours
-    (``graspable``)? An upright block hemmed in by others leaves the task nothing to do: 3 of 200 kitting episodes
-    failed as "unreachable" so."""
+    (``graspable``)? An upright block hemmed in by others would leave the task nothing it can reach."""
     poses = wc.block_poses()
     return any(believed_upright(wc.blocks[k - 1].block, poses[k - 1], tol_deg) and graspable(wc, k) for k in ks)

@@ -1,6 +1,6 @@
 """The depth refinement's settings, one dataclass per stage, gathered in ``RefineConfig``.
 
-Lengths in metres, angles in degrees. ``RefineConfig.validate`` raises ValueError naming the bad value.
+Lengths in metres, angles in degrees. ``RefineConfig.validate`` raises ConfigError naming the bad value.
 """
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from posegrasp.errors import ConfigError
 from posegrasp.perception.refine.starts import cube_rotations
 
 
@@ -29,7 +30,7 @@ class StartConfig:
             return cube_rotations()
         if self.hypotheses == "identity":
             return np.eye(3)[None]
-        raise ValueError(f"ICP hypotheses must be 'cube' or 'identity', got {self.hypotheses!r}")
+        raise ConfigError(f"ICP hypotheses must be 'cube' or 'identity', got {self.hypotheses!r}")
 
 
 @dataclass
@@ -115,27 +116,27 @@ class RefineConfig:
         return self.starts.rotations()
 
     def validate(self) -> None:
-        """Raise ValueError on an unusable configuration."""
+        """Raise ConfigError on an unusable configuration."""
         f, tu, s, se = self.fit, self.turns, self.score, self.search
         self.rotations()
         if min(f.iterations, f.exact_steps, f.polish) < 0:
-            raise ValueError(f"ICP fit.iterations ({f.iterations}), fit.exact_steps ({f.exact_steps}) and fit.polish "
+            raise ConfigError(f"ICP fit.iterations ({f.iterations}), fit.exact_steps ({f.exact_steps}) and fit.polish "
                              f"({f.polish}) must be >= 0")
         if tu.step_deg < 0 or tu.seeds < 1 or tu.iterations < 0:
-            raise ValueError(f"ICP turns.step_deg ({tu.step_deg}) and turns.iterations ({tu.iterations}) must be >= 0 "
+            raise ConfigError(f"ICP turns.step_deg ({tu.step_deg}) and turns.iterations ({tu.iterations}) must be >= 0 "
                              f"and turns.seeds ({tu.seeds}) >= 1")
         if se.yaw_deg < 0 or se.yaw_step_deg <= 0:
-            raise ValueError(f"ICP search.yaw_deg ({se.yaw_deg}) must be >= 0 and search.yaw_step_deg "
+            raise ConfigError(f"ICP search.yaw_deg ({se.yaw_deg}) must be >= 0 and search.yaw_step_deg "
                              f"({se.yaw_step_deg}) positive")
         if se.pattern_rounds < 0 or se.pattern_fits < 1:
-            raise ValueError(f"ICP search.pattern_rounds ({se.pattern_rounds}) must be >= 0 and search.pattern_fits "
+            raise ConfigError(f"ICP search.pattern_rounds ({se.pattern_rounds}) must be >= 0 and search.pattern_fits "
                              f"({se.pattern_fits}) >= 1")
         if f.model_points < 3 or not 1 <= s.rank_points <= f.model_points:
-            raise ValueError(f"ICP fit.model_points ({f.model_points}) must be >= 3 and score.rank_points "
+            raise ConfigError(f"ICP fit.model_points ({f.model_points}) must be >= 3 and score.rank_points "
                              f"({s.rank_points}) within [1, fit.model_points]")
         if f.max_points < 3:
-            raise ValueError(f"ICP fit.max_points must be >= 3 (a rigid fit needs 3 points), got {f.max_points}")
+            raise ConfigError(f"ICP fit.max_points must be >= 3 (a rigid fit needs 3 points), got {f.max_points}")
         if s.truncation <= 0 or min(s.violation_margin, s.violation_weight, s.float_margin, s.float_weight) < 0:
-            raise ValueError(f"ICP score.truncation ({s.truncation}) must be positive, score.violation_margin "
+            raise ConfigError(f"ICP score.truncation ({s.truncation}) must be positive, score.violation_margin "
                              f"({s.violation_margin}), score.violation_weight ({s.violation_weight}), "
                              f"score.float_margin ({s.float_margin}) and score.float_weight ({s.float_weight}) >= 0")

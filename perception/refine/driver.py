@@ -9,6 +9,7 @@ from functools import partial
 import numpy as np
 import torch
 
+from posegrasp.errors import ConfigError
 from posegrasp.perception.refine.config import RefineConfig, TurnConfig
 from posegrasp.perception.refine.frame import Frame
 from posegrasp.perception.refine.grids import columns
@@ -38,7 +39,7 @@ def refine_poses(estimates: list[np.ndarray], models: list[ObjectModel], observe
     cfg = cfg or RefineConfig()
     short = [x.grid.field.margin for x in models if x.grid.field.margin < cfg.score.truncation]
     if short:  # beyond its grid a field gives its margin: the fit term would stop short of the truncation
-        raise ValueError(f"ICP truncation ({cfg.score.truncation} m) exceeds a model's distance field margin "
+        raise ConfigError(f"ICP truncation ({cfg.score.truncation} m) exceeds a model's distance field margin "
                          f"({min(short)} m); build the fields with margin >= truncation")
     frame = Frame.of(models, observed, depth, K, plane)
     rank = partial(score, frame, cfg.score)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posegrasp import bop
+from posegrasp import bop_models
 from posegrasp.perception.refine.config import RefineConfig
 from posegrasp.perception.refine.distance_field import DistanceField
 from posegrasp.perception.refine.grids import NearestGrid
@@ -50,11 +50,11 @@ class ObjectModel:
         ``cfg.fit.model_points`` points sampled on it (seeded), the start rotations distinct under the symmetries, its
         stable rests, the signed distance field of its surface, and a ``ModelSurface`` of ``surface_points`` points
         (0: none)."""
-        points = bop.sample_model_points(mesh, cfg.fit.model_points, seed=seed)
+        points = bop_models.sample_model_points(mesh, cfg.fit.model_points, seed=seed)
         rests = Rests.of_mesh(mesh, *symmetries)
         hypotheses = distinct_rotations(cfg.rotations(), list(symmetries[0]), list(symmetries[1]))
         grid = NearestGrid(points, field=DistanceField.of_mesh(mesh, seed=seed, margin=cfg.score.truncation))
-        surface = ModelSurface(bop.sample_model_points(mesh, surface_points, seed=seed)) if surface_points else None
+        surface = ModelSurface(bop_models.sample_model_points(mesh, surface_points, seed=seed)) if surface_points else None
         return cls(points, hypotheses, grid, symmetries, rests, surface)
 
     @property

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from posegrasp.errors import DatasetError
 import numpy as np
 
 
@@ -50,7 +51,7 @@ class Rests:
 
         T, _ = trimesh.poses.compute_stable_poses(mesh, sigma=0.0, n_samples=1, threshold=0.0)
         if len(T) == 0:
-            raise ValueError("the mesh has no stable rest: is it a closed solid?")
+            raise DatasetError("the mesh has no stable rest: is it a closed solid?")
         ups = T[:, 2, :3] / np.linalg.norm(T[:, 2, :3], axis=1, keepdims=True)  # R^T e_z, R the rest's rotation
         return cls(ups, up_classes(ups, discrete, axes, tol_deg))
 

@@ -7,6 +7,9 @@ import pytest
 from bop_helpers import read_results_csv
 
 from posegrasp import bop
+from posegrasp import bop_results
+from posegrasp import bop_models
+from posegrasp import bop_images
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T
 
@@ -20,7 +23,7 @@ def test_tiny_dataset_reads_in_metres(tiny_bop):
     assert infos[3].diameter == pytest.approx(np.sqrt(0.06 ** 2 + 0.03 ** 2 + 0.02 ** 2))
     raw = json.loads(bop.models_info_path(tiny_bop).read_text())
     assert raw["3"]["diameter"] == pytest.approx(infos[3].diameter * 1000)  # mm on disk
-    mesh = bop.load_model(tiny_bop, 3)
+    mesh = bop_models.load_model(tiny_bop, 3)
     np.testing.assert_allclose(mesh.extents, [0.06, 0.03, 0.02], atol=1e-9)
     recs = list(bop.iter_scene_images(tiny_bop, "train"))
     assert len(recs) == 8 and all(len(r.instances) == 3 for r in recs)
@@ -49,12 +52,12 @@ def test_scene_round_trip(tmp_path):
     bop.write_scene_gt_info(tmp_path / "scene_gt_info.json", {3: [info]})
     assert bop.load_scene_gt_info(tmp_path / "scene_gt_info.json")[3] == [info]
     d = np.array([[0.0, 0.5, 1.23456]])
-    assert np.array_equal(bop.depth_to_png(d, 0.1), [[0, 5000, 12346]])
+    assert np.array_equal(bop_images.depth_to_png(d, 0.1), [[0, 5000, 12346]])
 
 
 def test_results_csv(tmp_path):
     T = make_T(axis_angle_R(np.array([0.0, 0.0, 1.0]), 0.3), np.array([0.1, 0.2, 0.3]))
-    p = bop.write_results_csv(tmp_path / "res.csv", [bop.PoseResult(1, 2, 3, 0.5, T, 0.25)])
+    p = bop_results.write_results_csv(tmp_path / "res.csv", [bop_results.PoseResult(1, 2, 3, 0.5, T, 0.25)])
     lines = p.read_text().splitlines()
     assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time"
     assert lines[1].split(",")[5] == "100 200 300"

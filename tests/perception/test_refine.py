@@ -14,6 +14,7 @@ from posegrasp.perception.refine import (FitConfig, NearestGrid, ObjectModel, Re
                                         refine_poses)
 from posegrasp.perception.metrics import rotation_error_sym_deg
 from posegrasp import bop
+from posegrasp import bop_models
 from posegrasp.geometry import axis_angle_R, make_T
 
 
@@ -105,7 +106,7 @@ def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
     """The tiny set's 60 x 30 x 20 mm box (obj 3), its estimate turned 90 deg about its z axis (not one of
     its symmetries, but ADD-S barely sees it) and shifted 4 mm: the hypotheses find the true pose back."""
     info = bop.load_models_info(tiny_bop)[3]
-    model = bop.sample_model_points(bop.load_model(tiny_bop, 3), 500, seed=3)
+    model = bop_models.sample_model_points(bop_models.load_model(tiny_bop, 3), 500, seed=3)
     hyps = distinct_rotations(cube_rotations(), info.symmetries_discrete, [])
     assert len(hyps) == 6
     fixed, stuck = 0, 0
@@ -142,7 +143,7 @@ def test_objects_refined_together_as_each_alone(tiny_bop):
     infos = bop.load_models_info(tiny_bop)
     args = []
     for k, g in enumerate(rec.instances):
-        model = bop.sample_model_points(bop.load_model(tiny_bop, g.obj_id), 300 + 100 * k, seed=k)
+        model = bop_models.sample_model_points(bop_models.load_model(tiny_bop, g.obj_id), 300 + 100 * k, seed=k)
         vs, us = np.nonzero(rec.load_mask(g.gt_index) & (depth > 0))
         z = depth[vs, us].astype(np.float64)
         obs = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)[::3 + k]
@@ -263,14 +264,14 @@ def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
     model's rests (``perception.refine.rests``) give one that does."""
     from posegrasp.perception.refine.rests import Rests
 
-    mesh = bop.load_model("assets/blocks", 8)
+    mesh = bop_models.load_model("assets/blocks", 8)
     syms = bop.load_models_info("assets/blocks")[8].symmetry_rotations()
     rests = Rests.of_mesh(mesh, *syms)
     R_world_obj = axis_angle_R(np.array([0.0, 1.0, 0.0]), np.radians(135.0))  # object (-1, 0, -1) / sqrt 2 up
     lowest = (mesh.vertices @ R_world_obj.T)[:, 2].min()
     T_gt, obs, depth, K, plane = _on_table(mesh, make_T(R_world_obj, np.array([0.0, 0.0, -lowest])))
     T_est = make_T(axis_angle_R(plane[:3], np.radians(120.0)) @ T_gt[:3, :3] @ R_world_obj.T, T_gt[:3, 3] + 0.004)
-    model = bop.sample_model_points(mesh, 500, seed=8)
+    model = bop_models.sample_model_points(mesh, 500, seed=8)
     hyps = distinct_rotations(cube_rotations(), list(syms[0]), [])
     obs = obs[::max(1, len(obs) // 300)]
 

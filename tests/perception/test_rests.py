@@ -5,6 +5,7 @@ import pytest
 import trimesh
 
 from posegrasp import bop
+from posegrasp import bop_models
 from posegrasp.perception.refine.rests import Rests, up_classes
 from posegrasp.perception.refine.starts import cube_rotations
 
@@ -25,7 +26,7 @@ def test_the_l_block_also_stands_as_an_inverted_v():
     """The shipped L-block (an upright L in the x-z plane, bars 50 x 25 x 25 mm) rests on a side face (+-y), on
     either bar (+z, +x), on either bar's end (-x, -z), and on the ends of both bars, corner up: (-1, 0, -1) / sqrt 2;
     its half turn about (1, 0, 1) maps each pair onto itself, so these are 4 classes."""
-    rests = Rests.of_mesh(bop.load_model("assets/blocks", 8), *_symmetries(8))
+    rests = Rests.of_mesh(bop_models.load_model("assets/blocks", 8), *_symmetries(8))
     ups = np.round(rests.ups, 3)
     assert len(ups) == 7 and [-0.707, 0.0, -0.707] in ups.tolist()
     label = {tuple(u): int(c) for u, c in zip(ups.tolist(), rests.labels)}
@@ -34,7 +35,7 @@ def test_the_l_block_also_stands_as_an_inverted_v():
 
 
 def test_a_lying_cylinders_hull_sides_are_one_rest_class():
-    rests = Rests.of_mesh(bop.load_model("assets/blocks", 5), *_symmetries(5))
+    rests = Rests.of_mesh(bop_models.load_model("assets/blocks", 5), *_symmetries(5))
     side = np.abs(rests.ups[:, 2]) < 1e-6
     assert side.sum() == 48 and len(set(rests.labels[side].tolist())) == 1
     assert len(set(rests.labels.tolist())) == 2  # standing on either cap (the flip about x), lying

@@ -1,0 +1,61 @@
+"""A BOP dataset's object models: read (PLY, mm) into metres, sampled, and resampled densely for ``models_eval``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from posegrasp.bop import MM, model_path
+from posegrasp.errors import DatasetError
+
+
+def load_model(root_or_file: str | Path, obj_id: int | None = None):
+    """A model PLY (mm) as a ``trimesh.Trimesh`` in metres; pass the dataset root and obj_id, or a file."""
+    import trimesh
+
+    p = model_path(root_or_file, obj_id) if obj_id is not None else Path(root_or_file)
+    if not p.exists():
+        raise DatasetError(f"model file {p} does not exist")
+    try:
+        mesh = trimesh.load(p, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types on corrupt files
+        raise DatasetError(f"cannot read model {p}: {e}") from None
+    mesh.apply_scale(MM)
+    return mesh
+
+
+def sample_model_points(mesh, n: int, seed: int = 0) -> np.ndarray:
+    """n points (m) uniformly on the surface of a trimesh model, reproducible from ``seed``."""
+    import trimesh
+
+    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(pts, dtype=np.float64)
+
+
+def resample_for_eval(mesh, max_edge: float):
+    """The mesh with every edge longer than ``max_edge`` (the mesh's units) split at its midpoint, repeatedly,
+    each face re-triangulated by which of its edges were split (a conforming refinement: no T-junctions): the
+    same surface with dense, roughly uniform vertices, like BOP's ``models_eval``. A ``trimesh.Trimesh``."""
+    import trimesh
+
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+    while True:
+        m = trimesh.Trimesh(v, f, process=False)
+        edges, fe = m.edges_unique, m.faces_unique_edges  # fe[:, k]: edge of (f[k], f[k + 1])
+        long = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1) > max_edge
+        if not long.any():
+            return trimesh.Trimesh(v, f, process=False)
+        mid = np.full(len(edges), -1)
+        mid[long] = len(v) + np.arange(long.sum())
+        v = np.concatenate([v, 0.5 * (v[edges[long, 0]] + v[edges[long, 1]])])
+        local = np.concatenate([f, mid[fe]], axis=1)  # v0 v1 v2 m01 m12 m20 (-1: edge kept)
+        code = (local[:, 3:] >= 0) @ np.array([4, 2, 1])
+        f = np.concatenate([local[code == c][:, t].reshape(-1, 3) for c, t in _SPLIT_TRIANGLES.items()])
+
+
+#: Triangles (local vertex indices: 0-2 corners, 3-5 midpoints of edges 01, 12, 20) of a face whose split edges
+#: are coded m01 * 4 + m12 * 2 + m20, fanned from a midpoint so that none is degenerate.
+_SPLIT_TRIANGLES = {0: [0, 1, 2], 4: [3, 1, 2, 3, 2, 0], 2: [4, 2, 0, 4, 0, 1], 1: [5, 0, 1, 5, 1, 2],
+                    6: [3, 1, 4, 3, 4, 2, 3, 2, 0], 3: [4, 2, 5, 4, 5, 0, 4, 0, 1], 5: [3, 1, 2, 3, 2, 5, 3, 5, 0],
+                    7: [0, 3, 5, 3, 1, 4, 5, 4, 2, 3, 4, 5]}
