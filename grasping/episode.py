@@ -63,10 +63,13 @@ class _Log:
     def start(self, ctl: ArmController | None) -> None:
         self._t = (ctl.sim_time if ctl else 0.0, time.perf_counter(), time.process_time())
 
-    def stop(self, phase: str, ctl: ArmController | None) -> None:
-        self.sim[phase] = round((ctl.sim_time if ctl else 0.0) - self._t[0], 3)
-        self.wall[phase] = round(time.perf_counter() - self._t[1], 4)
-        self.cpu[phase] = round(time.process_time() - self._t[2], 4)
+    def stop(self, phase: str, ctl: ArmController | None, add: bool = False) -> None:
+        """End ``phase`` now and start the next; ``add``: add to the phase's earlier times (a phase repeated
+        in one episode, as bin picking's attempts repeat theirs)."""
+        times = ((ctl.sim_time if ctl else 0.0) - self._t[0], time.perf_counter() - self._t[1],
+                 time.process_time() - self._t[2])
+        for log, t, digits in zip((self.sim, self.wall, self.cpu), times, (3, 4, 4)):
+            log[phase] = round(t + (log.get(phase, 0.0) if add else 0.0), digits)
         self.start(ctl)
 
 
@@ -166,23 +169,39 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
                 :g_cfg.grasps_per_block]:
             options.append((g.score + g_cfg.detection_weight * e.score, j, g))
     options.sort(key=lambda o: -o[0])
-    ik = robot_workcell(wc.cfg)
     for _, j, g in options[:g_cfg.ik_checks]:
-        pre = g.T_world_gripper.copy()
-        pre[2, 3] += g_cfg.pregrasp_height
-        q, dp, _ = ik.solve_gripper_ik(pre, wc.arm_q)
-        if dp < g_cfg.reach_tol:
-            q, dp, _ = ik.solve_gripper_ik(g.T_world_gripper, q)
-        if dp < g_cfg.reach_tol:
+        if reachable(wc, g_cfg, g.T_world_gripper):
             return j, g, poses[j]
     return None
+
+
+def reachable(wc: Workcell, g_cfg: GraspConfig, T_grasp: np.ndarray) -> bool:
+    """Does the arm's IK reach the grasp pose ``T_grasp`` (world gripper) and the pre-grasp above it
+    (``reach_q``)?"""
+    return reach_q(wc, g_cfg, T_grasp) is not None
+
+
+def reach_q(wc: Workcell, g_cfg: GraspConfig, T_grasp: np.ndarray, pregrasp_height: float | None = None
+            ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Joint angles (rad) of the pre-grasp ``pregrasp_height`` (m; default ``g_cfg.pregrasp_height``) above the grasp
+    pose ``T_grasp`` (world gripper) and of the grasp, solved by the arm's IK from its current joint angles; None
+    unless both are reached within ``reach_tol``."""
+    ik = robot_workcell(wc.cfg)
+    pre = T_grasp.copy()
+    pre[2, 3] += g_cfg.pregrasp_height if pregrasp_height is None else pregrasp_height
+    q_pre, dp, _ = ik.solve_gripper_ik(pre, wc.arm_q)
+    if dp >= g_cfg.reach_tol:
+        return None
+    q, dp, _ = ik.solve_gripper_ik(T_grasp, q_pre)
+    return (q_pre, q) if dp < g_cfg.reach_tol else None
 
 
 def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
     """Episode ``task.index``'s random draws: block count, scene seed, perception seed, place offset (m)."""
     cfg = task.cfg
     rng = np.random.default_rng(np.random.SeedSequence([task.seed, task.index]))
-    n_blocks = int(rng.integers(cfg.min_blocks, cfg.max_blocks + 1))
+    lo, hi = get_task(cfg.task).blocks(cfg)
+    n_blocks = int(rng.integers(lo, hi + 1))
     scene_seed, percept_seed = (int(v) for v in rng.integers(0, 2**31 - 1, size=2))
     place_offset = rng.uniform(-cfg.grasp.place_jitter, cfg.grasp.place_jitter, size=2)
     return n_blocks, scene_seed, percept_seed, place_offset
@@ -221,12 +240,13 @@ def drive_to_look(wc: Workcell, cfg: ControlConfig, q: np.ndarray | None = None)
                         gain=cfg.look_gain)
 
 
-@functools.lru_cache(maxsize=4)
-def look_down_q(wc_cfg, xy: tuple[float, float], height: float, setting: str) -> np.ndarray:
-    """Joint angles putting the hand camera ``height`` (m) above the world point ``xy`` (m), looking down; a
-    UserError naming the ``setting`` of the height if no joint angles do."""
+@functools.lru_cache(maxsize=8)
+def look_down_q(wc_cfg, xy: tuple[float, float], height: float, setting: str, up: float = 1.0) -> np.ndarray:
+    """Joint angles putting the hand camera ``height`` (m) above the world point ``xy`` (m), looking down, the
+    image's up along world +x (``up`` 1) or -x (-1); a UserError naming the ``setting`` of the height if no joint
+    angles do."""
     robot = robot_workcell(wc_cfg)
-    T = make_T(look_at_R(np.array([0.0, 0.0, -1.0]), up_hint=np.array([1.0, 0.0, 0.0])), (*xy, height))
+    T = make_T(look_at_R(np.array([0.0, 0.0, -1.0]), up_hint=np.array([up, 0.0, 0.0])), (*xy, height))
     q, dp, dr = robot.solve_camera_ik(T, robot.look_q)
     if dp > 1e-3 or dr > 1e-2:
         raise UserError(f"the look from {height} m above {tuple(xy)} ({setting}) is unreachable (residual "
@@ -281,9 +301,17 @@ def _judge(rec: EpisodeRecord, s_cfg: ScoringConfig) -> None:
     """Set the outcome; a failure after a grasp attempt on an estimate too far off counts as "pose error"."""
     if rec.failure is None:
         rec.outcome = "success"
-    elif rec.failure not in NOT_POSE_ERRORS and rec.pose_error:
-        if rec.pose_error.err > s_cfg.pose_error_frac * rec.target.diameter:
-            rec.failure = Failure.POSE_ERROR
+    else:
+        rec.failure = blame(rec.failure, rec.pose_error, rec.target, s_cfg)
+
+
+def blame(failure: Failure, pose_error: PoseDeviation | None, target: Target | FalseTarget | None,
+          s_cfg: ScoringConfig) -> Failure:
+    """``failure``, or "pose error" when it came after a grasp attempt on an estimate farther off its block (ADD(-S))
+    than ``pose_error_frac`` of the block's diameter."""
+    if failure not in NOT_POSE_ERRORS and pose_error and pose_error.err > s_cfg.pose_error_frac * target.diameter:
+        return Failure.POSE_ERROR
+    return failure
 
 
 def _look_q(wc: Workcell) -> np.ndarray:
@@ -337,12 +365,12 @@ class Episode:
         q = look_down_q(self.wc.cfg, (float(xy[0]), float(xy[1])), height, setting)
         return drive_to_look(self.wc, self.cfg.control, q)
 
-    def capture(self, im_id: int) -> Frame:
+    def capture(self, im_id: int, images: bool = False) -> Frame:
         """The hand camera's frame at the arm's current pose, capture ``im_id`` of the episode (shown to
-        ``on_capture``)."""
+        ``on_capture``); with its RGB-D when the capture hook or the provider needs it, or ``images``."""
         if self.camera is None:
             self.camera = CameraRenderer.from_config(self.wc, HAND_CAMERA, self.wc.cfg.hand_camera, self.wc.cfg.render)
-        frame = self.camera.capture(images=_needs_images(self))
+        frame = self.camera.capture(images=images or _needs_images(self))
         if self.on_capture is not None:
             self.on_capture(self.wc, frame, im_id)
         return frame
