@@ -356,10 +356,13 @@ def _look(ep: Episode, area: Area) -> None:
     ep.log.stop("look", ep.ctl, add=True)
 
 
-def _in_box(wc: Workcell, box: Tote, parts: list[int]) -> list[int]:
-    """The ``parts`` (1-based) lying inside the out-box ``box`` (every vertex, within 5 mm)."""
+def tally(wc: Workcell, area: Area, box: Tote, parts: list[int]) -> tuple[list[int], list[int]]:
+    """Which of ``parts`` (1-based) lie in the out-box ``box`` (every vertex, within 5 mm), and which of the others
+    have left the heap's area (their centre outside it: thrown out)? The simulator's truth, for the verdicts."""
     poses = wc.block_poses()
-    return [k for k in parts if box.contains(transform_points(poses[k - 1], wc.blocks[k - 1].block.vertices), 0.005)]
+    gone = [k for k in parts if box.contains(transform_points(poses[k - 1], wc.blocks[k - 1].block.vertices), 0.005)]
+    thrown = [k for k in parts if k not in gone and not area.holds(poses[k - 1][None, :3, 3])[0]]
+    return gone, thrown
 
 
 def empty_tote(ep: Episode) -> None:
@@ -426,12 +429,10 @@ def empty_tote(ep: Episode) -> None:
             att.failure = att.failure or Failure.TIMEOUT
             _finish(rec, att, ep.ctl.sim_time - t0, n, left + lost, cfg.scoring)
             raise
-        gone = _in_box(wc, box, left)
+        gone, thrown = tally(wc, area, box, left)
         for k in gone:
             park(wc, k)
-        left = [k for k in left if k not in gone]
-        thrown = [k for k in left if not area.holds(wc.block_poses()[k - 1][None, :3, 3])[0]]
-        left = [k for k in left if k not in thrown]
+        left = [k for k in left if k not in gone and k not in thrown]
         lost += thrown
         att.removed, att.thrown_out = gone, thrown
         target = att.target.instance if att.target is not None else 0
