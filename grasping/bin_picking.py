@@ -141,11 +141,20 @@ def pregrasp_height(cfg: TrialConfig, area: Area, T_grasp: np.ndarray) -> float:
     return max(cfg.grasp.pregrasp_height, start - T_grasp[2, 3])
 
 
+def _tried(grasp: Grasp, failed: list[np.ndarray], b: BinPickConfig) -> bool:
+    """Is ``grasp`` one of the ``failed`` grasp poses (world gripper), within ``retry_distance`` and
+    ``retry_angle_deg``?"""
+    T = grasp.T_world_gripper
+    return any(np.linalg.norm(T[:3, 3] - F[:3, 3]) < b.retry_distance
+               and T[:3, 0] @ F[:3, 0] > np.cos(np.radians(b.retry_angle_deg)) for F in failed)
+
+
 def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
-                yaw_now: float) -> tuple[int, Grasp, np.ndarray]:
-    """The estimate to pick (index), its grasp and its levelled ``T_world_obj`` among the estimates in the tote;
-    ``EpisodeFailed``: "nothing graspable" when no part has a clear grasp, "unreachable" when the IK reaches none.
-    ``heap``: the depth image's points on the heap (``heap_points``)."""
+                yaw_now: float, failed: list[np.ndarray] = ()) -> tuple[int, Grasp, np.ndarray]:
+    """The estimate to pick (index), its grasp and its levelled ``T_world_obj`` among the estimates in the tote,
+    none of the grasps that ``failed`` before (``_tried``); ``EpisodeFailed``: "nothing graspable" when no part has
+    a clear grasp, "unreachable" when the IK reaches none. ``heap``: the depth image's points on the heap
+    (``heap_points``)."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
     area = area_of(wc, b)
     cat = catalog_by_id(wc.cfg.objects)
@@ -168,7 +177,7 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
         others = np.concatenate([near(c) for i, c in enumerate(clouds) if i != j] + [depth])
         wall = near(walls)
         grasps = [g for g in plan_grasps(block, T, others, plan_cfg, yaw_now, yaw_stable=holds_firmly(cfg))
-                  if _clear_of(g, others, [cam], b.part_clearance)
+                  if not _tried(g, failed, b) and _clear_of(g, others, [cam], b.part_clearance)
                   and _clear_of(g, wall, [cam, *hand_boxes((g.width + b.finger_margin) / 2)], g_cfg.clearance_min)
                   ][:g_cfg.grasps_per_block]
         options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), j, g)
@@ -231,11 +240,14 @@ def visible_fraction(ep: Episode, frame: Frame, k: int) -> float | None:
 
 
 class _Contacts:
-    """Control-period monitor: has the robot touched the tote's walls (``wall``) or the floor or table (``floor``)?"""
+    """Control-period monitor: has the robot touched the tote's walls (``wall``), the floor or the table (``floor``)
+    or another part than the target ``k`` (``parts``)?"""
 
-    def __init__(self, ep: Episode, walls: np.ndarray, floors: np.ndarray):
+    def __init__(self, ep: Episode, walls: np.ndarray, floors: np.ndarray, k: int):
         self.ep, self.walls, self.floors = ep, walls, floors
-        self.wall = self.floor = False
+        inst = ep.wc.geom_instance[:-1]
+        self.others = np.flatnonzero((inst > 0) & (inst != k))
+        self.wall = self.floor = self.parts = False
 
     def __call__(self) -> None:
         d = self.ep.wc.data
@@ -243,10 +255,14 @@ class _Contacts:
             return
         g = d.contact.geom[: d.ncon]
         rob = self.ep.ctl.robot_geom[g]
-        for flag, ids in (("wall", self.walls), ("floor", self.floors)):
+        for flag, ids in (("wall", self.walls), ("floor", self.floors), ("parts", self.others)):
             hit = np.isin(g, ids)
             if np.any(rob[:, 0] & hit[:, 1] | rob[:, 1] & hit[:, 0]):
                 setattr(self, flag, True)
+
+    def blocked(self) -> Failure:
+        """Why the hand did not get to the grasp or close on the part: it hit something, or (else) it timed out."""
+        return Failure.COLLISION if self.floor or self.parts else Failure.TIMEOUT
 
     def stop(self) -> bool:
         """A protective stop: the robot touched a wall."""
@@ -272,7 +288,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
     m = ep.wc.model
     walls = np.array([m.geom(f"tote/{w}").id for w in WALLS]) if area.walls else np.zeros(0, int)
     floors = np.array([m.geom("table").id] + ([m.geom("tote/floor").id] if area.walls else []))
-    watch = _Contacts(ep, walls, floors)
+    watch = _Contacts(ep, walls, floors, k)
     T_grasp = plan.grasp.T_world_gripper
     T_pre = T_grasp.copy()
     T_pre[2, 3] += pregrasp_height(cfg, area, T_grasp)
@@ -286,8 +302,8 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
         reached = ctl.move(T_grasp, speed=g_cfg.approach_speed, until=watch.stop)
         watch.check()
         if not reached:
-            raise EpisodeFailed(Failure.COLLISION if watch.floor else Failure.TIMEOUT)
-        if not ctl.close(k):
+            raise EpisodeFailed(watch.blocked())
+        if not ctl.close(k, wait_all=cfg.firm_hold.finger_wait if holds_firmly(cfg) else 0):
             raise EpisodeFailed(Failure.COLLISION if watch.floor else Failure.SLIP)
         ep.log.stop("pick", ctl, add=True)
         start = _bottoms(ep.wc)
@@ -376,6 +392,7 @@ def empty_tote(ep: Episode) -> None:
     n = len(wc.blocks)
     left = list(range(1, n + 1))  # parts neither in the out-box nor thrown out
     lost: list[int] = []
+    failed: list[np.ndarray] = []  # grasp poses that failed: not tried again
     in_a_row = 0
     _look(ep, area)
     for a in range(b.attempts_per_part * n):
@@ -402,7 +419,7 @@ def empty_tote(ep: Episode) -> None:
                     break
                 raise EpisodeFailed(Failure.NO_DETECTION)
             try:
-                j, grasp, T_est = choose_part(wc, cfg, ests, T_world_cam, heap, _yaw(ep.ctl.target))
+                j, grasp, T_est = choose_part(wc, cfg, ests, T_world_cam, heap, _yaw(ep.ctl.target), failed)
             finally:
                 ep.log.stop("plan", ep.ctl, add=True)
             k = _match(wc, T_est)
@@ -418,6 +435,7 @@ def empty_tote(ep: Episode) -> None:
         except EpisodeFailed as f:
             att.failure = f.reason
             if att.target is not None and att.target.instance:
+                failed.append(grasp.T_world_gripper)
                 _open_and_retreat(ep, area)
         except SimulationError:
             att.failure = Failure.SIMULATION_ERROR

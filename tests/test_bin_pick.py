@@ -138,8 +138,8 @@ def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path
     assert (tmp_path / "a" / EPISODES).read_bytes() == (tmp_path / "b" / EPISODES).read_bytes()
     b = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]
     assert b == s["bin_pick"] and b["parts_present"] == 8
-    # 89 of 164 oracle attempts succeeded (12 parts, bin, seed 0, 20 episodes)
-    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(89, 164, b["attempts"]["n"]), b
+    # 224 of 389 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes)
+    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(224, 389, b["attempts"]["n"]), b
     recs = {i: json.loads(line) for i, line in enumerate((tmp_path / "a" / EPISODES).read_text().splitlines())}
     r = compare_runs(recs, recs)
     assert r["bin_pick"]["percent_cleared"]["wilcoxon_p"] == 1.0 and not is_worse(r, 0.05)

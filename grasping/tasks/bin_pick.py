@@ -74,10 +74,14 @@ class BinPickConfig:
     #: Parts are tried highest first; the best grasps of this many parts that have some compete.
     plan_parts: int = field(default=3, metadata=within(1, 200))
     #: The fingers open this much wider than the part they grasp (m; ``grasp.finger_margin`` on the table).
-    finger_margin: float = field(default=0.015, metadata=within(0.0, 0.1))
+    finger_margin: float = field(default=0.01, metadata=within(0.0, 0.1))
     #: The open hand keeps this distance (m) from the other parts' estimated surfaces and the depth image's points
     #: (negative: it may push into the heap that far); from the walls it keeps ``grasp.clearance_min``.
     part_clearance: float = field(default=-0.015, metadata=within(-0.05, 0.1))
+    #: A grasp that failed is not tried again: no grasp within this distance (m) of its pose ...
+    retry_distance: float = field(default=0.01, metadata=within(0.0, 1.0))
+    #: ... and this angle (deg) of its squeeze axis.
+    retry_angle_deg: float = field(default=20.0, metadata=within(0.0, 180.0))
     #: One depth pixel in this many, along each image axis, becomes an obstacle point of the grasp planner.
     depth_stride: int = field(default=4, metadata=within(1, 64))
     #: Depth points within this distance (m) of the target's estimated surface are the target, not obstacles.
@@ -124,8 +128,9 @@ def bin_scene(cfg: TrialConfig, seed: int, n_parts: int) -> Workcell:
     return wc
 
 
-def mean_ci95(values: list[float]) -> dict:
-    """Mean of ``values`` with its Student-t 95 % interval (None for fewer than 2 values)."""
+def mean_ci95(values: list[float], lo: float = -math.inf, hi: float = math.inf) -> dict:
+    """Mean of ``values`` with its Student-t 95 % interval, clipped to [``lo``, ``hi``] (None for fewer than 2
+    values)."""
     n = len(values)
     if n == 0:
         return {"n": 0, "mean": None, "ci95": None}
@@ -135,7 +140,7 @@ def mean_ci95(values: list[float]) -> dict:
     from scipy.stats import t
 
     half = float(t.ppf(0.975, n - 1)) * statistics.stdev(values) / math.sqrt(n)
-    return {"n": n, "mean": mean, "ci95": [mean - half, mean + half]}
+    return {"n": n, "mean": mean, "ci95": [max(lo, mean - half), min(hi, mean + half)]}
 
 
 def visibility_bin(fraction: float | None) -> str:
@@ -161,7 +166,7 @@ def bin_metrics(records: list[dict]) -> dict:
     sim_hours = sum(r["sim_time"] for r in eps) / 3600.0
     labels = [label for label, _, _ in VISIBILITY_BINS] + ["unknown"]
     return {"bin_pick": {
-        "percent_cleared": mean_ci95([100.0 * r["cleared"] for r in eps]),
+        "percent_cleared": mean_ci95([100.0 * r["cleared"] for r in eps], 0.0, 100.0),
         "episodes_cleared": sum(r["outcome"] == "success" for r in eps),
         "parts_present": sum(r["n_blocks"] for r in eps),
         "parts_removed": sum(r["removed"] for r in eps),
@@ -182,7 +187,7 @@ class BinPickTask:
     name = BIN_PICK
     looks = BIN_LOOKS
     fixed_looks = BIN_LOOKS[:1]  # the first look only: the later ones follow the picks
-    firm_hold = False
+    firm_hold = True
 
     def blocks(self, cfg: TrialConfig) -> tuple[int, int]:
         """``bin_pick.clutter.parts``."""
