@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
@@ -32,19 +33,22 @@ from posegrasp.catalog import PartType, catalog_by_id
 from posegrasp.errors import SimulationError
 from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import ScoringConfig, TrialConfig, holds_firmly
-from posegrasp.grasping.episode import (Episode, Plan, _match, _yaw, blame, drive_to_look, look_down_q, pose_errors,
-                                       reach_q)
 from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
 from posegrasp.grasping.hand import camera_box, hand_boxes
 from posegrasp.grasping.perception import Estimate, PerceptionError
 from posegrasp.grasping.record import Attempt, BinPickRecord, FalseTarget, Failure, Target
 from posegrasp.grasping.support import rest_on_table
+from posegrasp.grasping.targets import (Plan, blame, drive_to_look, gripper_yaw, look_down_q, match_block,
+                                        pose_errors, reach_q)
 from posegrasp.grasping.tasks.base import EpisodeFailed
-from posegrasp.grasping.tasks.bin_pick import OUTBOX, BinPickConfig, outbox_of
+from posegrasp.grasping.tasks.bin_pick import BinPickConfig, outbox_of
 from posegrasp.sim.camera import Frame
 from posegrasp.sim.clutter import park, tote_of
 from posegrasp.sim.tote import WALLS, Tote
 from posegrasp.sim.workcell import Workcell, wrap_angle
+
+if TYPE_CHECKING:
+    from posegrasp.grasping.episode import Episode
 
 
 @dataclass(frozen=True)
@@ -419,10 +423,10 @@ def empty_tote(ep: Episode) -> None:
                     break
                 raise EpisodeFailed(Failure.NO_DETECTION)
             try:
-                j, grasp, T_est = choose_part(wc, cfg, ests, T_world_cam, heap, _yaw(ep.ctl.target), failed)
+                j, grasp, T_est = choose_part(wc, cfg, ests, T_world_cam, heap, gripper_yaw(ep.ctl.target), failed)
             finally:
                 ep.log.stop("plan", ep.ctl, add=True)
-            k = _match(wc, T_est)
+            k = match_block(wc, T_est)
             if k == 0:
                 att.target = FalseTarget(0, ests[j].obj_id)
                 raise EpisodeFailed(Failure.POSE_ERROR)

@@ -217,9 +217,8 @@ class BinPickTask:
         return BinPickRecord(episode, seed, scene_seed, n_blocks, perception, task=self.name)
 
     def run(self, ep: Episode) -> None:
-        from posegrasp.grasping.bin_picking import empty_tote
-
-        empty_tote(ep)
+        """Attempts until the tote is believed empty (``Episode.empty_tote``: ``grasping.bin_picking``)."""
+        ep.empty_tote()
 
     def metrics(self, records: list[dict]) -> dict:
         return bin_metrics(records)
