@@ -71,10 +71,11 @@ def check_rows(provider: object, episodes: int, task: str) -> None:
     if not isinstance(provider, BopCsvProvider):
         return
     ims = get_task(task).looks
+    named = " or ".join(map(str, ims)) if len(ims) <= 3 else f"{ims[0]}-{ims[-1]}"
     for n, r in enumerate(provider.rows(), start=2):
         if r.scene_id >= episodes or r.im_id not in ims:
             raise DatasetError(f"{provider.path} line {n}: scene_id {r.scene_id}, im_id {r.im_id} is no frame of this "
-                               f"campaign (scene_id = episode, 0-{episodes - 1}; im_id {' or '.join(map(str, ims))} in "
+                               f"campaign (scene_id = episode, 0-{episodes - 1}; im_id {named} in "
                                f"the {task} task); replay the file with the --episodes and --task it was exported with")
 
 

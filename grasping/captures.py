@@ -70,7 +70,7 @@ def run_capturing(task: EpisodeTask) -> tuple[EpisodeRecord, EpisodeTimings, Sce
     """Worker: run episode ``task`` (or only its captures, ``task.captures_only``) and encode its captures; an
     episode that stopped before a later look (stack: no base seen) gets them from a captures-only run."""
     record, timings, scene = _run(task)
-    if not task.captures_only and len(scene.cams) < len(get_task(task.cfg.task).looks) \
+    if not task.captures_only and not set(get_task(task.cfg.task).fixed_looks) <= set(scene.cams) \
             and record.failure not in _PHYSICAL:
         scene = _run(dataclasses.replace(task, captures_only=True))[2]
     scene.finish({"episode": task.index, "seed": task.seed, "scene_seed": record.scene_seed, "task": task.cfg.task,

@@ -23,8 +23,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                   "--captures-only")
     p.add_argument("--config", default=None, help="trial settings TOML (grasping.config.TrialConfig layout)")
     p.add_argument("--task", type=_task_arg, default=None,
-                   help="pick-place (default) | kitting (upright, at the kit's yaw) | stack (on a base block); "
-                        "docs/trials.md says which to use when")
+                   help="pick-place (default) | kitting (upright, at the kit's yaw) | stack (on a base block) | "
+                        "bin-pick (empty a tote or a pile into an out-box); docs/trials.md says which to use when")
+    p.add_argument("--scene", type=_scene_arg, default=None,
+                   help="table (the default of the table tasks) | bin: parts heaped in a tote | pile: the same heap "
+                        "on the table; bin and pile go with --task bin-pick, which takes bin unless told")
+    p.add_argument("--blocks", type=positive_int("--blocks"), default=None,
+                   help="blocks per scene (default: 1-5 on the table, 12 in a bin or pile, at most 30 there)")
     p.add_argument("--objects", default=None,
                    help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--sweep-noise", action="store_true",
@@ -56,6 +61,33 @@ def _task_arg(text: str) -> str:
     return text
 
 
+#: The ``--scene`` choices: the table tasks' scene, and bin picking's (``sim.clutter.CLUTTER_KINDS``).
+SCENES = ("table", "bin", "pile")
+
+
+def _scene_arg(text: str) -> str:
+    if text not in SCENES:
+        raise UserError(f"--scene {text!r} is not a scene; choose one of: {', '.join(SCENES)}")
+    return text
+
+
+def with_scene(cfg, scene: str | None, blocks: int | None):
+    """``cfg`` (a ``TrialConfig``) with ``--scene`` and ``--blocks``: bin and pile only for bin picking (which takes
+    its scene from ``bin_pick.scene`` when ``scene`` is None), table only for the others."""
+    from posegrasp.grasping.record import BIN_PICK
+
+    if cfg.task == BIN_PICK:
+        if scene == "table":
+            raise UserError("--task bin-pick empties a tote or a heap: use --scene bin or --scene pile, not table")
+        b = cfg.bin_pick
+        clutter = dataclasses.replace(b.clutter, parts=(blocks, blocks)) if blocks else b.clutter
+        return dataclasses.replace(cfg, bin_pick=dataclasses.replace(b, scene=scene or b.scene, clutter=clutter))
+    if scene not in (None, "table"):
+        raise UserError(f"--scene {scene} is a bin-picking scene: use it with --task bin-pick (the {cfg.task} task "
+                        "runs on the table)")
+    return dataclasses.replace(cfg, min_blocks=blocks, max_blocks=blocks) if blocks else cfg
+
+
 def _noise_arg(text: str) -> str:
     from posegrasp.grasping.trials import SWEEPS
 
@@ -71,6 +103,7 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
     cfg = with_set(load_trial_config(args.config), args.objects)
     if args.task:
         cfg = dataclasses.replace(cfg, task=args.task)
+    cfg = with_scene(cfg, args.scene, args.blocks)
     out, export = args.out, args.export_captures
     if args.captures_only or export:
         _check_export_args(args)

@@ -4,8 +4,10 @@ Two trial runs on the same episode seeds are paired episode by episode, whatever
 (oracle, model, a plug-in, a replayed BOP results file). Reported: each run's success rate with
 its Wilson 95 % interval, the difference, McNemar's exact test on the discordant pairs (b = A succeeded and B
 failed, c = A failed and B succeeded; two-sided p = min(1, 2 P[X <= min(b, c)]) with X ~ Binomial(b + c, 1/2)),
-per-block differences and the episodes that flipped. ``--fail-if-worse`` makes the exit status 1 when B is
-worse than A with p < alpha, for CI.
+per-block differences and the episodes that flipped. Bin-picking runs add percent cleared paired by episode
+(Wilcoxon signed-rank test) and attempt success (Wilson intervals, Newcombe's interval of the difference)
+(``compare_bin_pick``). ``--fail-if-worse`` makes the exit status 1 when B is worse than A with p < alpha (McNemar;
+Wilcoxon on percent cleared for bin picking), for CI.
 """
 
 from __future__ import annotations
@@ -20,8 +22,9 @@ from rich.table import Table
 
 from posegrasp.arguments import number, out_file
 from posegrasp.errors import DatasetError, UserError
+from posegrasp.grasping.record import BIN_PICK
 from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, read_campaign, read_records
-from posegrasp.grasping.stats import rate_row
+from posegrasp.grasping.stats import newcombe, rate_row
 from posegrasp.io import write_json
 
 
@@ -86,7 +89,9 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
         t = a[i].get("target") or {}
         blocks[t.get("type", "(no block there)")].append((x, y))
     n = len(common)
+    extra = {"bin_pick": compare_bin_pick(a, b, common)} if ta == BIN_PICK else {}
     return {
+        **extra,
         "task": ta,
         "episodes": n,
         "a": {"perception": a[common[0]].get("perception"), **rate_row(sum(sa), n)},  # any providers pair up
@@ -101,9 +106,47 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
     }
 
 
+def compare_bin_pick(a: dict[int, dict], b: dict[int, dict], common: list[int]) -> dict:
+    """Two bin-picking runs on their common episodes: percent cleared paired episode by episode (mean difference
+    B - A in points, Wilcoxon signed-rank test, two-sided; p = 1 when no episode differs) and attempt success
+    (each run's Wilson 95 % interval, the difference B - A with Newcombe's 95 % interval; attempts differ in number
+    and are not paired)."""
+    from scipy.stats import wilcoxon
+
+    ca = [100.0 * a[i]["cleared"] for i in common]
+    cb = [100.0 * b[i]["cleared"] for i in common]
+    diffs = [y - x for x, y in zip(ca, cb)]
+    p = float(wilcoxon(cb, ca).pvalue) if any(diffs) else 1.0
+    rows = []
+    for run in (a, b):
+        att = [t["outcome"] == "success" for i in common for t in run[i].get("attempts", [])]
+        rows.append(rate_row(sum(att), len(att)))
+    ra, rb = rows
+    mean = sum(diffs) / len(diffs)
+    return {
+        "percent_cleared": {"a_mean": sum(ca) / len(ca), "b_mean": sum(cb) / len(cb), "difference": mean,
+                            "b_better": sum(d > 0 for d in diffs), "a_better": sum(d < 0 for d in diffs),
+                            "wilcoxon_p": p},
+        "attempts": {"a": ra, "b": rb, "difference": (rb["rate"] if rb["n"] else 0.0) - (ra["rate"] if ra["n"] else 0.0),
+                     "difference_ci95": list(newcombe(ra["success"], ra["n"], rb["success"], rb["n"]))},
+        "better": "B" if mean > 0 else "A" if mean < 0 else "neither",
+    }
+
+
 def is_worse(result: dict, alpha: float) -> bool:
-    """B is significantly worse than A: lower success and McNemar p < ``alpha``."""
+    """B is significantly worse than A: lower success and McNemar p < ``alpha``; for bin picking, a lower percent
+    cleared and Wilcoxon p < ``alpha``."""
+    if "bin_pick" in result:
+        c = result["bin_pick"]["percent_cleared"]
+        return c["difference"] < 0 and c["wilcoxon_p"] < alpha
     return result["difference"] < 0 and result["mcnemar"]["p_value"] < alpha
+
+
+def _worse_p(result: dict) -> float:
+    """The p-value ``is_worse`` judges by."""
+    if "bin_pick" in result:
+        return result["bin_pick"]["percent_cleared"]["wilcoxon_p"]
+    return result["mcnemar"]["p_value"]
 
 
 def print_comparison(result: dict, names: tuple[str, str], console: Console) -> None:
@@ -124,10 +167,24 @@ def print_comparison(result: dict, names: tuple[str, str], console: Console) -> 
     for k, v in result["per_block"].items():
         pb.add_row(k, str(v["n"]), str(v["a"]), str(v["b"]), f"{100 * v['difference']:+.0f}")
     console.print(pb)
+    if "bin_pick" in result:
+        print_bin_pick_comparison(result["bin_pick"], console)
     for key, label in (("a_success_b_failure", "A succeeded, B failed"), ("a_failure_b_success", "A failed, B succeeded")):
         eps = result["flipped"][key]
         if eps:
             console.print(f"{label}: " + ", ".join(str(e["episode"]) for e in eps))
+
+
+def print_bin_pick_comparison(r: dict, console: Console) -> None:
+    c, t = r["percent_cleared"], r["attempts"]
+    lo, hi = t["difference_ci95"]
+    console.print(f"percent cleared: A {c['a_mean']:.1f} %, B {c['b_mean']:.1f} %, B - A {c['difference']:+.1f} points "
+                  f"(B better in {c['b_better']} episodes, A in {c['a_better']}); Wilcoxon signed-rank p = "
+                  f"{c['wilcoxon_p']:.4g}")
+    console.print(f"attempt success: A {t['a']['success']}/{t['a']['n']}, B {t['b']['success']}/{t['b']['n']}, "
+                  f"B - A {100 * t['difference']:+.1f} points (Newcombe 95 % {100 * lo:+.1f} to {100 * hi:+.1f})")
+    sure = "significant at p < 0.05" if c["wilcoxon_p"] < 0.05 else "not significant (p >= 0.05)"
+    console.print(f"better at clearing the tote: {r['better']} ({sure})")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -149,6 +206,6 @@ def run_compare(args: argparse.Namespace) -> int:
     if args.out:
         write_json(args.out, result)
     if args.fail_if_worse and is_worse(result, args.alpha):
-        print(f"B is worse than A (p = {result['mcnemar']['p_value']:.4g} < {args.alpha})")
+        print(f"B is worse than A (p = {_worse_p(result):.4g} < {args.alpha})")
         return 1
     return 0

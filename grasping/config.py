@@ -1,5 +1,6 @@
 """Typed settings of the grasp trials: control, grasp planning, scoring, firm holds and scenes; each task's own
-settings are in its module (``grasping.tasks.kitting.KittingConfig``, ``grasping.tasks.stack.StackConfig``).
+settings are in its module (``grasping.tasks.kitting.KittingConfig``, ``grasping.tasks.stack.StackConfig``,
+``grasping.tasks.bin_pick.BinPickConfig``).
 
 Lengths in metres, times in seconds (simulated unless the name says ``wall``), angles in degrees where
 the name says ``_deg``. Any field can be set from a TOML file of the same layout (``--config``).
@@ -17,6 +18,7 @@ from posegrasp.errors import ConfigError
 from posegrasp.grasping.hand import TIP_BELOW
 from posegrasp.grasping.support import RestConfig
 from posegrasp.grasping.tasks import REGISTRY, TASKS, get_task
+from posegrasp.grasping.tasks.bin_pick import BinPickConfig
 from posegrasp.grasping.tasks.kitting import KittingConfig
 from posegrasp.grasping.tasks.stack import StackConfig
 from posegrasp.sim.scene import SceneConfig
@@ -242,6 +244,8 @@ class TrialConfig:
     kitting: KittingConfig = field(default_factory=KittingConfig)
     #: The stack task's settings.
     stack: StackConfig = field(default_factory=StackConfig)
+    #: The bin-picking task's settings.
+    bin_pick: BinPickConfig = field(default_factory=BinPickConfig)
     #: Wall seconds a provider may take per capture, else "perception error"; 0: no limit.
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
 

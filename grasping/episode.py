@@ -20,17 +20,18 @@ from typing import Callable
 import mujoco
 import numpy as np
 
-from posegrasp.catalog import PartType, catalog_by_id
+from posegrasp.catalog import catalog_by_id
 from posegrasp.errors import SimulationError, UserError
-from posegrasp.geometry import axis_angle_R, look_at_R, make_T, transform_points
-from posegrasp.grasping.config import ControlConfig, GraspConfig, ScoringConfig, TrialConfig, holds_firmly
-from posegrasp.grasping.controller import ArmController, robot_workcell
+from posegrasp.geometry import axis_angle_R, transform_points
+from posegrasp.grasping.config import GraspConfig, ScoringConfig, TrialConfig, holds_firmly
+from posegrasp.grasping.controller import ArmController
 from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
 from posegrasp.grasping.perception import PICK_LOOK, Estimate, PerceptionError, perceive, reads_labels
 from posegrasp.grasping.provider_registry import make_provider
-from posegrasp.grasping.record import (NOT_POSE_ERRORS, EpisodeRecord, EpisodeTimings, FalseTarget, Failure,
-                                       PoseDeviation, Target)
+from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, FalseTarget, Failure, Target
 from posegrasp.grasping.support import rest_on_table
+from posegrasp.grasping.targets import (Plan, _look_q, blame, drive_to_look, gripper_yaw as _yaw,  # noqa: F401
+                                        look_down_q, match_block as _match, pose_errors, reachable)
 from posegrasp.grasping.tasks import get_task
 from posegrasp.grasping.tasks.base import EpisodeFailed, Goal, Pickable, SteadyConfig
 from posegrasp.sim.camera import CameraRenderer, Frame
@@ -63,28 +64,14 @@ class _Log:
     def start(self, ctl: ArmController | None) -> None:
         self._t = (ctl.sim_time if ctl else 0.0, time.perf_counter(), time.process_time())
 
-    def stop(self, phase: str, ctl: ArmController | None) -> None:
-        self.sim[phase] = round((ctl.sim_time if ctl else 0.0) - self._t[0], 3)
-        self.wall[phase] = round(time.perf_counter() - self._t[1], 4)
-        self.cpu[phase] = round(time.process_time() - self._t[2], 4)
+    def stop(self, phase: str, ctl: ArmController | None, add: bool = False) -> None:
+        """End ``phase`` now and start the next; ``add``: add to the phase's earlier times (a phase repeated
+        in one episode, as bin picking's attempts repeat theirs)."""
+        times = ((ctl.sim_time if ctl else 0.0) - self._t[0], time.perf_counter() - self._t[1],
+                 time.process_time() - self._t[2])
+        for log, t, digits in zip((self.sim, self.wall, self.cpu), times, (3, 4, 4)):
+            log[phase] = round(t + (log.get(phase, 0.0) if add else 0.0), digits)
         self.start(ctl)
-
-
-@dataclass(frozen=True)
-class Plan:
-    """The chosen grasp on scene block ``k`` (1-based) and that block's estimated, levelled ``T_world_obj``
-    and estimated type ``est_block`` (``block`` is its true type)."""
-
-    k: int
-    block: PartType
-    grasp: Grasp
-    T_world_obj: np.ndarray
-    est_block: PartType | None = None
-
-    def height_range(self) -> tuple[float, float]:
-        """Bottom and top (world z, m) of the block at its estimated pose."""
-        z = transform_points(self.T_world_obj, self.block.vertices)[:, 2]
-        return float(z.min()), float(z.max())
 
 
 def _block_bottom(wc: Workcell, k: int) -> float:
@@ -118,32 +105,6 @@ def _hand_block_distance(wc: Workcell, k: int, ctl: ArmController, dmax: float) 
     return float(best)
 
 
-def pose_errors(block: PartType, T_est: np.ndarray, T_gt: np.ndarray, n_points: int = 500) -> PoseDeviation:
-    """Translation (m), rotation (deg), ADD and ADD-S (m, over ``n_points`` surface samples) of an estimate
-    ``T_est`` against ``T_gt`` (both world_obj); ``err`` is ADD-S for symmetric blocks, else ADD."""
-    from posegrasp.perception.metrics import add, adds, rotation_error_deg, translation_error
-
-    pts = surface_points(block, n_points)
-    a = add(T_est[:3, :3], T_est[:3, 3], T_gt[:3, :3], T_gt[:3, 3], pts)
-    s = adds(T_est[:3, :3], T_est[:3, 3], T_gt[:3, :3], T_gt[:3, 3], pts)
-    symmetric = bool(block.symmetries_discrete or block.symmetries_continuous)
-    return PoseDeviation(translation_error(T_est[:3, 3], T_gt[:3, 3]), rotation_error_deg(T_est[:3, :3], T_gt[:3, :3]),
-                     a, s, "ADD-S" if symmetric else "ADD", s if symmetric else a)
-
-
-def _match(wc: Workcell, T_world_obj: np.ndarray) -> int:
-    """The scene block (1-based) an estimate refers to: the one whose centre is nearest the estimated centre,
-    if within that block's diameter, else 0 (a false detection). The estimate's class may be wrong: the
-    robot then grasps with the wrong model, as a real one would (evaluation only)."""
-    d = [float(np.linalg.norm(T[:3, 3] - T_world_obj[:3, 3])) for T in wc.block_poses()]
-    k = int(np.argmin(d))
-    return k + 1 if d[k] <= wc.blocks[k].block.diameter else 0
-
-
-def _yaw(T: np.ndarray) -> float:
-    return float(np.arctan2(T[1, 0], T[0, 0]))
-
-
 def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, yaw_now: float,
             pickable: Pickable | None = None, unpickable: Failure = Failure.UNREACHABLE
             ) -> tuple[int, Grasp, np.ndarray] | None:
@@ -166,14 +127,8 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
                 :g_cfg.grasps_per_block]:
             options.append((g.score + g_cfg.detection_weight * e.score, j, g))
     options.sort(key=lambda o: -o[0])
-    ik = robot_workcell(wc.cfg)
     for _, j, g in options[:g_cfg.ik_checks]:
-        pre = g.T_world_gripper.copy()
-        pre[2, 3] += g_cfg.pregrasp_height
-        q, dp, _ = ik.solve_gripper_ik(pre, wc.arm_q)
-        if dp < g_cfg.reach_tol:
-            q, dp, _ = ik.solve_gripper_ik(g.T_world_gripper, q)
-        if dp < g_cfg.reach_tol:
+        if reachable(wc, g_cfg, g.T_world_gripper):
             return j, g, poses[j]
     return None
 
@@ -182,7 +137,8 @@ def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
     """Episode ``task.index``'s random draws: block count, scene seed, perception seed, place offset (m)."""
     cfg = task.cfg
     rng = np.random.default_rng(np.random.SeedSequence([task.seed, task.index]))
-    n_blocks = int(rng.integers(cfg.min_blocks, cfg.max_blocks + 1))
+    lo, hi = get_task(cfg.task).blocks(cfg)
+    n_blocks = int(rng.integers(lo, hi + 1))
     scene_seed, percept_seed = (int(v) for v in rng.integers(0, 2**31 - 1, size=2))
     place_offset = rng.uniform(-cfg.grasp.place_jitter, cfg.grasp.place_jitter, size=2)
     return n_blocks, scene_seed, percept_seed, place_offset
@@ -213,25 +169,6 @@ def clear_grasp(g_cfg: GraspConfig, wc: Workcell, k: int) -> bool:
               for j, (inst, T) in enumerate(zip(wc.blocks, poses)) if j != k - 1]
     return bool(plan_grasps(wc.blocks[k - 1].block, poses[k - 1], np.concatenate([np.zeros((0, 3))] + others), g_cfg,
                             0.0, yaw_stable=True))
-
-
-def drive_to_look(wc: Workcell, cfg: ControlConfig, q: np.ndarray | None = None) -> bool:
-    """Drive the arm to the look pose (or the joint angles ``q``); False if it does not get there."""
-    return wc.drive_arm(_look_q(wc) if q is None else q, tol=cfg.look_tol, timeout=cfg.look_timeout,
-                        gain=cfg.look_gain)
-
-
-@functools.lru_cache(maxsize=4)
-def look_down_q(wc_cfg, xy: tuple[float, float], height: float, setting: str) -> np.ndarray:
-    """Joint angles putting the hand camera ``height`` (m) above the world point ``xy`` (m), looking down; a
-    UserError naming the ``setting`` of the height if no joint angles do."""
-    robot = robot_workcell(wc_cfg)
-    T = make_T(look_at_R(np.array([0.0, 0.0, -1.0]), up_hint=np.array([1.0, 0.0, 0.0])), (*xy, height))
-    q, dp, dr = robot.solve_camera_ik(T, robot.look_q)
-    if dp > 1e-3 or dr > 1e-2:
-        raise UserError(f"the look from {height} m above {tuple(xy)} ({setting}) is unreachable (residual "
-                        f"{dp:.4f} m); set a lower {setting}")
-    return q
 
 
 def capture_look(wc: Workcell) -> Frame:
@@ -281,14 +218,8 @@ def _judge(rec: EpisodeRecord, s_cfg: ScoringConfig) -> None:
     """Set the outcome; a failure after a grasp attempt on an estimate too far off counts as "pose error"."""
     if rec.failure is None:
         rec.outcome = "success"
-    elif rec.failure not in NOT_POSE_ERRORS and rec.pose_error:
-        if rec.pose_error.err > s_cfg.pose_error_frac * rec.target.diameter:
-            rec.failure = Failure.POSE_ERROR
-
-
-def _look_q(wc: Workcell) -> np.ndarray:
-    """Joint angles of the look pose, solved once per process on the robot-only model."""
-    return robot_workcell(wc.cfg).look_q
+    else:
+        rec.failure = blame(rec.failure, rec.pose_error, rec.target, s_cfg)
 
 
 @dataclass
@@ -337,12 +268,12 @@ class Episode:
         q = look_down_q(self.wc.cfg, (float(xy[0]), float(xy[1])), height, setting)
         return drive_to_look(self.wc, self.cfg.control, q)
 
-    def capture(self, im_id: int) -> Frame:
+    def capture(self, im_id: int, images: bool = False) -> Frame:
         """The hand camera's frame at the arm's current pose, capture ``im_id`` of the episode (shown to
-        ``on_capture``)."""
+        ``on_capture``); with its RGB-D when the capture hook or the provider needs it, or ``images``."""
         if self.camera is None:
             self.camera = CameraRenderer.from_config(self.wc, HAND_CAMERA, self.wc.cfg.hand_camera, self.wc.cfg.render)
-        frame = self.camera.capture(images=_needs_images(self))
+        frame = self.camera.capture(images=images or _needs_images(self))
         if self.on_capture is not None:
             self.on_capture(self.wc, frame, im_id)
         return frame
@@ -479,6 +410,13 @@ class Episode:
         T_retreat[2, 3] += top_est - plan.grasp.T_world_gripper[2, 3] + g_cfg.fingertip_depth + g_cfg.retreat_height
         ctl.move(T_retreat)
         self.log.stop("place", ctl)
+
+    def empty_tote(self) -> None:
+        """Bin picking's episode: attempt after attempt until the tote is believed empty
+        (``grasping.bin_picking.empty_tote``)."""
+        from posegrasp.grasping.bin_picking import empty_tote
+
+        empty_tote(self)
 
     def wait_for_rest(self, k: int) -> bool:
         """Hold until block ``k`` has been at rest for rest_periods control periods (True) or rest_timeout passed."""

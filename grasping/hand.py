@@ -39,3 +39,15 @@ def hand_boxes(o: float) -> list[tuple[tuple[float, float, float], tuple[float, 
     pinch point up out of reach, and the palm."""
     return ([((o, y0, -1.0), (o + FINGER_THICKNESS, y1, TIP_BELOW)) for y0, y1 in FINGER1_Y]
             + [((-o - FINGER_THICKNESS, y0, -1.0), (-o, y1, TIP_BELOW)) for y0, y1 in FINGER23_Y] + [PALM])
+
+
+#: Half width (m) of the hand camera's housing along the gripper x axis and y axis (``camera_box``).
+CAMERA_HALF = (0.025, 0.02)
+
+
+def camera_box(mount_pos: tuple[float, float, float]) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The hand camera and its housing as an axis-aligned box (min corner, max corner; m, gripper frame) around
+    its mount ``mount_pos`` (``CameraConfig.mount_pos``), from 2 cm below the mount up out of reach, like the
+    palm: obstacles under it (a tote's wall) would hit the camera before the fingers reach the grasp."""
+    x, y, z = mount_pos
+    return (x - CAMERA_HALF[0], y - CAMERA_HALF[1], -1.0), (x + CAMERA_HALF[0], y + CAMERA_HALF[1], z + 0.02)

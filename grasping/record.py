@@ -20,8 +20,9 @@ from posegrasp.io import jsonable
 
 
 class Failure(StrEnum):
-    """Why an episode failed, in the order the summary lists them; a record's ``failure`` holds the value (text).
-    The last five come from the kitting and stack tasks (``grasping.tasks``)."""
+    """Why an episode (or a bin-picking attempt) failed, in the order the summary lists them; a record's
+    ``failure`` holds the value (text). ``NO_UPRIGHT``-``BASE_MOVED`` come from the kitting and stack tasks, the rest
+    after them from bin picking (``grasping.tasks.bin_pick``): its attempts' reasons, then its episodes' ends."""
 
     NO_DETECTION = "no detection"  # the provider returned no estimate
     PERCEPTION_ERROR = "perception error"  # the provider raised, hung or returned what the planner cannot use
@@ -38,13 +39,21 @@ class Failure(StrEnum):
     WRONG_FACE = "wrong face up"  # the placed block's upright face is not down
     MISALIGNED = "misaligned"  # the placed block's yaw is off its target's
     BASE_MOVED = "base moved"  # stack: the base moved
+    NOTHING_GRASPABLE = "nothing graspable"  # bin: parts were seen, none with a grasp clear of walls and neighbours
+    WALL_HIT = "hit the wall"  # bin: the robot touched the tote's walls (a protective stop)
+    DOUBLE_PICK = "two parts lifted"  # bin: another part came out of the tote with the target
+    THROWN_OUT = "part thrown out"  # bin: a part left the tote other than into the out-box
+    PARTS_LEFT = "parts left"  # bin episode: the robot saw nothing more to pick, yet parts were not removed
+    FAILED_IN_A_ROW = "failed in a row"  # bin episode: ended after too many failed attempts in a row
+    ATTEMPT_LIMIT = "attempt limit"  # bin episode: ended after its most attempts (twice the parts)
 
 
 #: The failure reasons (values of ``Failure``), in the order the summary lists them.
 FAILURES = tuple(Failure)
 #: Failures never re-counted as "pose error" (``grasping.episode``): nothing was grasped, or the task's own verdict.
 NOT_POSE_ERRORS = frozenset({Failure.NO_DETECTION, Failure.SIMULATION_ERROR, Failure.NO_UPRIGHT, Failure.NO_BASE,
-                             Failure.WRONG_FACE, Failure.MISALIGNED, Failure.BASE_MOVED})
+                             Failure.WRONG_FACE, Failure.MISALIGNED, Failure.BASE_MOVED, Failure.NOTHING_GRASPABLE,
+                             Failure.PARTS_LEFT, Failure.FAILED_IN_A_ROW, Failure.ATTEMPT_LIMIT})
 #: Record fields of the kitting and stack tasks, left out of a pick-and-place record.
 TASK_FIELDS = ("task", "estimate_error", "final_error", "base")
 
@@ -144,11 +153,77 @@ class EpisodeRecord:
                    and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
         if missing:
             raise UserError(f"{where}: missing field(s) {missing}")
-        rec = from_dict(cls, {k: v for k, v in data.items() if k != "target"}, where)
-        target = data.get("target")
-        if target is not None:
-            kind = FalseTarget if isinstance(target, dict) and "obj_id" in target else Target
-            rec.target = from_dict(kind, target, f"{where}.target")
+        if cls is EpisodeRecord and data.get("task") == BIN_PICK:
+            return BinPickRecord.from_json(data, where)
+        rec = from_dict(cls, {k: v for k, v in data.items() if k not in ("target", "attempts")}, where)
+        rec.target = _target(data.get("target"), f"{where}.target")
+        return rec
+
+
+def _target(data: object, where: str) -> Target | FalseTarget | None:
+    """A record's ``target`` read back from JSON (None stays None)."""
+    if data is None:
+        return None
+    return from_dict(FalseTarget if isinstance(data, dict) and "obj_id" in data else Target, data, where)
+
+
+#: The bin-picking task's name (``--task``), whose episodes are ``BinPickRecord``s.
+BIN_PICK = "bin-pick"
+
+
+@dataclass
+class Attempt:
+    """One bin-picking attempt: look, perceive, choose a part, pick it and drop it into the out-box. ``attempt``
+    (0-based) is also the ``im_id`` of its capture."""
+
+    attempt: int
+    outcome: str = "failure"  # or "success": the target, alone, ended in the out-box
+    failure: Failure | None = None
+    detected: int = 0  # estimates the provider returned
+    target: Target | FalseTarget | None = None
+    pose_error: PoseDeviation | None = None  # the target's estimate against its true pose
+    visib_fract: float | None = None  # the target's visible share of its unoccluded silhouette at the capture
+    grasped: bool = False  # the target was lifted clear of the tote's walls and held
+    removed: list[int] = field(default_factory=list)  # parts (1-based) that went into the out-box
+    thrown_out: list[int] = field(default_factory=list)  # parts (1-based) that left the tote elsewhere
+    sim_time: float = 0.0  # simulated seconds the attempt took
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        if self.failure is not None:
+            d["failure"] = Failure(self.failure).value
+        return d
+
+
+@dataclass
+class BinPickRecord(EpisodeRecord):
+    """A bin-picking episode: a tote (or a pile) of ``n_blocks`` parts emptied attempt by attempt. ``outcome`` is
+    "success" when every part went into the out-box, else ``failure`` says how the episode ended (the last
+    attempt's reason after a simulation error); ``sim_time`` is the robot's simulated time."""
+
+    removed: int = 0  # parts in the out-box at the end
+    cleared: float = 0.0  # removed / n_blocks
+    attempts: list[Attempt] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        d = super().to_json()
+        d["attempts"] = [jsonable(a.to_json(), digits=6) for a in self.attempts]
+        return d
+
+    @classmethod
+    def from_json(cls, data: dict, where: str = "episode record") -> BinPickRecord:
+        rec = EpisodeRecord.from_json.__func__(cls, data, where)
+        attempts = data.get("attempts") or []
+        if not isinstance(attempts, list):
+            raise UserError(f"{where}.attempts: expected a list, got {type(attempts).__name__}")
+        rec.attempts = []
+        for i, a in enumerate(attempts):
+            at = f"{where}.attempts[{i}]"
+            if not isinstance(a, dict):
+                raise UserError(f"{at}: expected a JSON object, got {type(a).__name__}")
+            att = from_dict(Attempt, {k: v for k, v in a.items() if k != "target"}, at)
+            att.target = _target(a.get("target"), f"{at}.target")
+            rec.attempts.append(att)
         return rec
 
 

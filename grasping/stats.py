@@ -25,6 +25,18 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return lo, 1.0 if k == n else min(1.0, (centre + half) / den)
 
 
+def newcombe(k_a: int, n_a: int, k_b: int, n_b: int) -> tuple[float, float]:
+    """95 % interval of the difference of two independent rates, ``k_b / n_b - k_a / n_a``, from their Wilson
+    intervals (Newcombe 1998, method 10): d - sqrt((p_b - l_b)^2 + (u_a - p_a)^2), d + sqrt((u_b - p_b)^2 +
+    (p_a - l_a)^2); (-1, 1) when a rate has no trials."""
+    if not n_a or not n_b:
+        return -1.0, 1.0
+    pa, pb = k_a / n_a, k_b / n_b
+    (la, ua), (lb, ub) = wilson(k_a, n_a), wilson(k_b, n_b)
+    d = pb - pa
+    return d - math.sqrt((pb - lb) ** 2 + (ua - pa) ** 2), d + math.sqrt((ub - pb) ** 2 + (pa - la) ** 2)
+
+
 def rate_row(k: int, n: int) -> dict:
     """Successes, trials, rate and its Wilson 95 % interval."""
     lo, hi = wilson(k, n)

@@ -138,9 +138,30 @@ def print_summary(s: dict, console: Console) -> None:
         if s["failures"].get(reason):
             f.add_row(reason, str(s["failures"][reason]))
     console.print(f)
+    if "bin_pick" in s:
+        print_bin_pick(s["bin_pick"], console)
     if s["wall"]["episodes_per_min"]:
         console.print(f"{s['wall']['episodes_run']} episodes in {s['wall']['seconds']:.1f} s wall = "
                       f"{s['wall']['episodes_per_min']:.0f} episodes/min")
+
+
+def print_bin_pick(b: dict, console: Console) -> None:
+    """Bin picking's lines of the summary: percent cleared, attempt success, picks per hour, attempt failures."""
+    pc, a = b["percent_cleared"], b["attempts"]
+    ci = f" (t 95 % interval {pc['ci95'][0]:.1f}-{pc['ci95'][1]:.1f} %)" if pc["ci95"] else ""
+    mean = f"{pc['mean']:.1f} %" if pc["mean"] is not None else "-"
+    rate = f"{100 * a['rate']:.1f} %" if a["n"] else "-"
+    pph = f"{b['picks_per_sim_hour']:.0f}" if b["picks_per_sim_hour"] else "-"
+    console.print(f"[bold]bin picking[/]: cleared {mean} of the parts per episode{ci}, "
+                  f"{b['episodes_cleared']}/{pc['n']} totes emptied; attempts {a['success']}/{a['n']} succeeded = "
+                  f"{rate} (Wilson 95 % {100 * a['wilson95'][0]:.1f}-{100 * a['wilson95'][1]:.1f} %); "
+                  f"{pph} picks per simulated hour")
+    f = Table(title="failed attempts")
+    f.add_column("reason")
+    f.add_column("count")
+    for reason, n in b["attempt_failures"].items():
+        f.add_row(reason, str(n))
+    console.print(f)
 
 
 def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, cfg: TrialConfig,

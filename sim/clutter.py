@@ -175,7 +175,7 @@ def in_place(workcell: Workcell, kind: str, cfg: ClutterConfig, tol: float = 0.0
     return np.all((xy >= lo[:2] - cfg.pile_margin) & (xy <= hi[:2] + cfg.pile_margin), axis=1)
 
 
-def _park(workcell: Workcell, k: int) -> None:
+def park(workcell: Workcell, k: int) -> None:
     """Part ``k`` (1-based) back at its parking spot, away from everything, floating (gravity compensated)."""
     workcell.set_block_pose(k, make_T(np.eye(3), (0.0, PARKING_Y + PARKING_GAP * k, 0.5)))
     workcell.model.body_gravcomp[workcell.block_body[k - 1]] = 1.0
@@ -234,7 +234,7 @@ def build_clutter_scene(workcell: Workcell, kind: str, cfg: ClutterConfig,
     n = len(workcell.blocks)
     workcell.reset(workcell.arm_q)
     for k in range(1, n + 1):
-        _park(workcell, k)
+        park(workcell, k)
     pending, waves, sim_time = list(range(1, n + 1)), 0, 0.0
     max_waves = -(-n // cfg.wave_size) + cfg.max_redrops
     while pending and waves < max_waves:
@@ -255,7 +255,7 @@ def build_clutter_scene(workcell: Workcell, kind: str, cfg: ClutterConfig,
         sim_time += workcell.data.time - t0
         out = [k for k, ok in zip(range(1, n + 1), in_place(workcell, kind, cfg)) if not ok and k not in pending]
         for k in out:
-            _park(workcell, k)
+            park(workcell, k)
         pending = out + pending
     if pending:
         raise SceneUnsettled(f"{len(pending)} of the {n} parts of a {kind} scene still came to rest out of place "

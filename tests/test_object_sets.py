@@ -43,7 +43,7 @@ def test_the_catalogue_loads_a_set_and_its_upright_data(parts):
     assert with_set(TrialConfig(), roundabout).scene.workcell.objects == str(parts)  # absolute, for the workers
     # an imported set holds firmly in every task, the shipped blocks in kitting and stack; a campaign's own wins
     assert with_set(TrialConfig(), parts).firm_hold_tasks == ("pick-place", "kitting", "stack")
-    assert with_set(TrialConfig()).firm_hold_tasks == ("kitting", "stack")
+    assert with_set(TrialConfig()).firm_hold_tasks == ("kitting", "stack", "bin-pick")
     assert with_set(TrialConfig(firm_hold_tasks=("stack",)), parts).firm_hold_tasks == ("stack",)
 
 

@@ -115,6 +115,16 @@ class Task(Protocol):
     #: says otherwise (``TrialConfig.firm_hold_tasks``)?
     firm_hold: bool
 
+    @property
+    def fixed_looks(self) -> tuple[int, ...]:
+        """The looks whose frames do not depend on what the robot did before them: those a ``--captures-only``
+        run takes (all of ``looks`` but in a task whose later looks follow its picks)."""
+        ...
+
+    def blocks(self, cfg: TrialConfig) -> tuple[int, int]:
+        """Fewest and most blocks of an episode's scene (its count is drawn uniformly between them)."""
+        ...
+
     def check(self, cfg: TrialConfig) -> None:
         """A one-line UserError, naming the setting to change, unless the campaign's settings can serve the task
         (kitting needs a block type with an upright face, ...)."""
@@ -147,6 +157,15 @@ class PickTask:
     firm_hold: bool = False
     #: The failure when perception found blocks but ``pickable`` allows none of them.
     unpickable: Failure = Failure.UNREACHABLE
+
+    @property
+    def fixed_looks(self) -> tuple[int, ...]:
+        """All of ``looks``."""
+        return self.looks
+
+    def blocks(self, cfg: TrialConfig) -> tuple[int, int]:
+        """``TrialConfig.min_blocks`` and ``max_blocks``."""
+        return cfg.min_blocks, cfg.max_blocks
 
     def check(self, cfg: TrialConfig) -> None:
         """Every campaign's settings can serve the task."""

@@ -1,0 +1,185 @@
+"""Bin picking: its verdicts (a wall hit, two parts lifted, a part thrown out) on hand-made scenes with real physics,
+each way an episode ends, determinism, a short oracle run, the comparison of two runs and bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from helpers import run_cli, success_floor
+from posegrasp.catalog import load_catalog
+from posegrasp.geometry import axis_angle_R, make_T, transform_points
+from posegrasp.grasping.bin_picking import _look, area_of, pick_and_drop, tally
+from posegrasp.grasping.calibration import load_hand_eye
+from posegrasp.grasping.compare import compare_runs, is_worse
+from posegrasp.grasping.config import TrialConfig, with_set
+from posegrasp.grasping.controller import ArmController
+from posegrasp.grasping.episode import Episode, EpisodeTask, Plan, _Log, run_episode
+from posegrasp.grasping.grasps import plan_grasps
+from posegrasp.grasping.record import Attempt, BinPickRecord, EpisodeRecord, Failure
+from posegrasp.grasping.runfolder import EPISODES, SUMMARY
+from posegrasp.grasping.tasks.base import EpisodeFailed
+from posegrasp.grasping.tasks.bin_pick import BinPickConfig, bin_workcell, outbox_of
+from posegrasp.grasping.trials import run_trials
+from posegrasp.sim.clutter import ClutterConfig, settle_heap
+from posegrasp.sim.workcell import BlockInstance
+
+CAT = load_catalog()
+Z = np.array([0.0, 0.0, 1.0])
+
+
+def _cfg(parts: int = 3, **bin_pick) -> TrialConfig:
+    b = BinPickConfig(clutter=ClutterConfig(parts=(parts, parts)), **bin_pick)
+    return with_set(dataclasses.replace(TrialConfig(), task="bin-pick", bin_pick=b))
+
+
+def _episode(cfg: TrialConfig, names: list[str], poses: list[np.ndarray]) -> Episode:
+    """A bin-picking episode on a hand-made scene: the parts ``names`` set at ``poses`` in the tote and settled,
+    the arm at the look."""
+    wc = bin_workcell(cfg, [BlockInstance(CAT[n], (0.8, 0.3, 0.2, 1.0)) for n in names])
+    for k, T in enumerate(poses, start=1):
+        wc.set_block_pose(k, T)
+        wc.model.body_gravcomp[wc.block_body[k - 1]] = 0.0
+    assert settle_heap(wc, cfg.bin_pick.clutter)
+    mount = tuple(tuple(float(v) for v in r) for r in load_hand_eye(cfg.hand_eye))
+    task = EpisodeTask(0, 0, "oracle", cfg, mount)
+    ctl = ArmController(wc, cfg.control, wc.look_q)
+    ep = Episode(task, wc, ctl, BinPickRecord(0, 0, 0, len(names), "oracle", task="bin-pick"), _Log(), 0, np.zeros(2))
+    _look(ep, area_of(wc, cfg.bin_pick))
+    return ep
+
+
+def _flat(name: str, xy, yaw_deg: float = 0.0, z: float | None = None) -> np.ndarray:
+    b = CAT[name]
+    floor = 0.01  # the tote's floor
+    return make_T(axis_angle_R(Z, np.radians(yaw_deg)), (xy[0], xy[1], (z or floor) - b.vertices[:, 2].min() + 0.001))
+
+
+def _plan(ep: Episode, k: int, pick) -> Plan:
+    """A plan for part ``k`` at its true pose: the grasp ``pick`` chooses among its grasps (no obstacles)."""
+    wc, cfg = ep.wc, ep.cfg
+    block, T = wc.blocks[k - 1].block, wc.block_poses()[k - 1]
+    g_cfg = dataclasses.replace(cfg.grasp, min_pinch_height=0.01 + cfg.grasp.min_pinch_height,
+                                finger_margin=cfg.bin_pick.finger_margin)
+    grasps = plan_grasps(block, T, np.zeros((0, 3)), g_cfg, 0.0)
+    return Plan(k, block, pick(grasps), T, block)
+
+
+def test_a_hand_driven_into_the_wall_stops_with_a_wall_hit():
+    cfg = _cfg()
+    lo, hi = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
+    ep = _episode(cfg, ["long_cuboid"], [_flat("long_cuboid", (0.5 * (lo[0] + hi[0]), hi[1] - 0.02))])
+    # squeezing across the wall: a finger comes down on the wall
+    plan = _plan(ep, 1, lambda gs: max(gs, key=lambda g: abs(g.T_world_gripper[1, 0])))
+    with pytest.raises(EpisodeFailed) as e:
+        pick_and_drop(ep, plan, area_of(ep.wc, cfg.bin_pick), outbox_of(ep.wc.cfg, cfg.bin_pick), Attempt(0))
+    assert e.value.reason == Failure.WALL_HIT
+
+
+def test_a_part_riding_on_the_target_is_two_parts_lifted():
+    cfg = _cfg()
+    c = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.center
+    T_long = _flat("long_cuboid", c)
+    T_cube = _flat("brick_2x2", (c[0] + 0.025, c[1]), z=0.01 + 0.025)  # on the long cuboid's +x end
+    ep = _episode(cfg, ["long_cuboid", "brick_2x2"], [T_long, T_cube])
+    assert ep.wc.block_poses()[1][2, 3] > 0.04  # still on top after settling
+    plan = _plan(ep, 1, lambda gs: min(gs, key=lambda g: g.T_world_gripper[0, 3]))  # pinched at the -x end
+    with pytest.raises(EpisodeFailed) as e:
+        pick_and_drop(ep, plan, area_of(ep.wc, cfg.bin_pick), outbox_of(ep.wc.cfg, cfg.bin_pick), Attempt(0))
+    assert e.value.reason == Failure.DOUBLE_PICK
+
+
+def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
+    cfg = _cfg()
+    wc0 = bin_workcell(cfg, [])
+    area, box = area_of(wc0, cfg.bin_pick), outbox_of(wc0.cfg, cfg.bin_pick)
+    lo, _ = area.tote.inner_bounds()
+    poses = [_flat("cube", area.tote.center), _flat("cube", box.center),
+             _flat("cube", (lo[0] - 0.08, area.tote.center[1]), z=0.0)]  # on the table beside the tote
+    ep = _episode(cfg, ["cube", "cube", "cube"], poses)
+    assert tally(ep.wc, area, box, [1, 2, 3]) == ([2], [3])
+
+
+def _oracle_episode(cfg: TrialConfig, index: int = 0, perception: str = "oracle") -> BinPickRecord:
+    mount = tuple(tuple(float(v) for v in r) for r in load_hand_eye(cfg.hand_eye))
+    rec, _ = run_episode(EpisodeTask(0, index, perception, cfg, mount))
+    return rec
+
+
+@pytest.mark.slow
+def test_an_oracle_episode_empties_the_tote_and_stops_when_it_sees_it_empty():
+    rec = _oracle_episode(_cfg(3), index=3)  # a tote with no part lying against a wall (the hand cannot reach those)
+    assert rec.failure is None and rec.outcome == "success" and rec.removed == 3 and rec.cleared == 1.0
+    assert [a.outcome for a in rec.attempts] == ["success"] * 3
+    for a in rec.attempts:
+        assert a.target.class_ok and a.pose_error.err < 1e-3 and 0.0 < a.visib_fract <= 1.0 and a.removed
+    assert 0.0 < rec.sim_time - sum(a.sim_time for a in rec.attempts) <= 2.0  # and the first look
+
+
+def test_failures_in_a_row_and_the_attempt_limit_end_an_episode():
+    far = "noisy-oracle:0.08,0"  # every estimate 8 cm off: no pick can succeed
+    rec = _oracle_episode(_cfg(2, max_failures=2), perception=far)
+    assert rec.failure == Failure.FAILED_IN_A_ROW and len(rec.attempts) == 2 and rec.removed == 0
+    rec = _oracle_episode(_cfg(2, max_failures=100), perception=far)
+    assert rec.failure == Failure.ATTEMPT_LIMIT and len(rec.attempts) == 4
+    assert all(a.outcome == "failure" and a.failure for a in rec.attempts)
+    back = EpisodeRecord.from_json(json.loads(json.dumps(rec.to_json())))
+    assert isinstance(back, BinPickRecord) and back.to_json() == rec.to_json()
+
+
+@pytest.mark.slow
+def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path):
+    cfg = _cfg(4)
+    s = run_trials(tmp_path / "a", 2, 0, "oracle", 2, cfg, progress=False)
+    run_trials(tmp_path / "b", 2, 0, "oracle", 1, cfg, progress=False)
+    assert (tmp_path / "a" / EPISODES).read_bytes() == (tmp_path / "b" / EPISODES).read_bytes()
+    b = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]
+    assert b == s["bin_pick"] and b["parts_present"] == 8
+    # 224 of 389 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes)
+    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(224, 389, b["attempts"]["n"]), b
+    recs = {i: json.loads(line) for i, line in enumerate((tmp_path / "a" / EPISODES).read_text().splitlines())}
+    r = compare_runs(recs, recs)
+    assert r["bin_pick"]["percent_cleared"]["wilcoxon_p"] == 1.0 and not is_worse(r, 0.05)
+
+
+def test_compare_pairs_bin_pick_episodes_by_percent_cleared():
+    def run(cleared: list[float], ok: int) -> dict[int, dict]:
+        return {i: {"episode": i, "seed": 0, "task": "bin-pick", "outcome": "failure", "cleared": c,
+                    "attempts": [{"outcome": "success" if j < ok else "failure"} for j in range(10)]}
+                for i, c in enumerate(cleared)}
+
+    a = run([1.0] * 8, 9)
+    b = run([0.5, 0.6, 0.4, 0.7, 0.5, 0.3, 0.6, 0.5], 5)
+    r = compare_runs(a, b)["bin_pick"]
+    assert r["better"] == "A" and r["percent_cleared"]["wilcoxon_p"] < 0.05
+    lo, hi = r["attempts"]["difference_ci95"]
+    assert r["attempts"]["difference"] == pytest.approx(-0.4) and lo < -0.4 < hi < 0
+    assert is_worse(compare_runs(a, b), 0.05) and not is_worse(compare_runs(b, a), 0.05)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--task", "bin-pick", "--scene", "table"], "--scene bin or --scene pile"),
+    (["--scene", "pile"], "use it with --task bin-pick"),
+    (["--task", "bin-pick", "--blocks", "31"], "max_parts 30"),
+])
+def test_bad_bin_pick_input_is_one_line_and_writes_nothing(tmp_path, args, message):
+    out = tmp_path / "run"
+    r = run_cli("trials", *args, "--episodes", "1", "--out", str(out), "--no-progress")
+    assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("toml, args, message", [
+    ("[grasp]\nmax_width = 0.02\n", [], "wider than the hand opens"),
+    ("[bin_pick.clutter]\nmax_parts = 100\n", ["--blocks", "40"], "do not fit the tote"),
+])
+def test_parts_too_big_for_the_hand_or_too_many_for_the_tote_are_refused(tmp_path, toml, args, message):
+    (tmp_path / "c.toml").write_text(toml)
+    out = tmp_path / "run"
+    r = run_cli("trials", "--task", "bin-pick", "--config", str(tmp_path / "c.toml"), *args, "--episodes", "1",
+                "--out", str(out))
+    assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not out.exists()
