@@ -144,6 +144,11 @@ def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
     return n_blocks, scene_seed, percept_seed, place_offset
 
 
+def further_seed(task: EpisodeTask, j: int) -> int:
+    """Episode ``task.index``'s seed for its ``j``-th further draw (j >= 1): from ``SeedSequence([S, i, j])``."""
+    return int(np.random.default_rng(np.random.SeedSequence([task.seed, task.index, j])).integers(2**31 - 1))
+
+
 def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
     """The episode's settled scene for its task (``Task.scene``, settled with the scene defaults), then the trial's
     contact and solver settings (the tasks that hold firmly, ``config.holds_firmly``: noslip and sleeping islands)."""
@@ -179,11 +184,12 @@ def capture_look(wc: Workcell) -> Frame:
     return frame
 
 
-def run_episode(task: EpisodeTask, on_capture: Callable[[Workcell, Frame, int], None] | None = None
-                ) -> tuple[EpisodeRecord, EpisodeTimings]:
+def run_episode(task: EpisodeTask, on_capture: Callable[[Workcell, Frame, int], None] | None = None,
+                on_step: Callable[[Workcell], None] | None = None) -> tuple[EpisodeRecord, EpisodeTimings]:
     """Run one episode; returns its record (deterministic) and the wall-clock and CPU timings of its phases
     (which vary run to run). ``on_capture(workcell, frame, im_id)`` sees every frame the hand camera captures for
-    perception, as it is taken (``grasping.captures``). With ``task.captures_only`` the episode stops after its
+    perception, as it is taken (``grasping.captures``); ``on_step(workcell)`` runs after every physics step once
+    the scene has settled (the report's films; it must not change the physics state). With ``task.captures_only`` the episode stops after its
     last capture and its record judges nothing."""
     cfg = task.cfg
     trial = get_task(cfg.task)
@@ -194,6 +200,7 @@ def run_episode(task: EpisodeTask, on_capture: Callable[[Workcell, Frame, int], 
     try:
         wc = episode_workcell(cfg, scene_seed, n_blocks)
         rec.blocks = [inst.block.name for inst in wc.blocks]
+        wc.on_step = on_step
         log.stop("scene", None)
         ctl = ArmController(wc, cfg.control, _look_q(wc))
         ep = Episode(task, wc, ctl, rec, log, percept_seed, place_offset, on_capture)
@@ -253,9 +260,8 @@ class Episode:
         return np.asarray(self.wc.cfg.place_area.center) + self.place_offset
 
     def seed_for(self, j: int) -> int:
-        """A seed of the episode's own for its ``j``-th further draw (j >= 1): from ``SeedSequence([S, i, j])``."""
-        return int(np.random.default_rng(np.random.SeedSequence([self.task.seed, self.task.index, j]))
-                   .integers(2**31 - 1))
+        """A seed of the episode's own for its ``j``-th further draw (j >= 1): ``further_seed``."""
+        return further_seed(self.task, j)
 
     def T_world_cam(self) -> np.ndarray:
         """The hand camera's pose in the world as the robot believes it: forward kinematics and the calibrated

@@ -147,6 +147,8 @@ class Workcell:
             extras(self.mjcf_root)
         self.model = compile_mjcf(self.mjcf_root)
         self.data = mujoco.MjData(self.model)
+        #: Called with the workcell after every ``step`` (None: nothing); it must not change the physics state.
+        self.on_step: Callable[[Workcell], None] | None = None
         m = self.model
         self.arm_joint_names = [f"jaco_arm/{j}" for j in ARM_JOINTS]
         self.finger_joint_names = [f"jaco_arm/jaco_hand/{j}" for j in FINGER_JOINTS]
@@ -256,6 +258,8 @@ class Workcell:
     def step(self, n: int = 1) -> None:
         """Advance physics ``n`` steps with the current controls."""
         mujoco.mj_step(self.model, self.data, nstep=n)
+        if self.on_step is not None:
+            self.on_step(self)
 
     def arm_velocity_limits(self) -> np.ndarray:
         """Joint velocity limits (rad/s) of the arm's velocity actuators."""

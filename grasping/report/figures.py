@@ -133,3 +133,16 @@ def error_plot(records: list[EpisodeRecord], value: Callable[[EpisodeRecord], fl
     fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
     return f"data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}"
+
+
+def animation_uri(frames: list[np.ndarray], period_s: float) -> str:
+    """``data:`` URI of an animated GIF of ``frames`` (uint8 RGB, one size), each shown ``period_s`` seconds,
+    looping; one palette for all frames (the scene's colours barely change), so frames store only what moved."""
+    from PIL import Image
+
+    first = Image.fromarray(frames[0]).quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    images = [first] + [Image.fromarray(f).quantize(palette=first, dither=Image.Dither.NONE) for f in frames[1:]]
+    buf = io.BytesIO()
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 * period_s),
+                   loop=0, optimize=False)
+    return f"data:image/gif;base64,{base64.b64encode(buf.getvalue()).decode()}"
