@@ -6,12 +6,15 @@ recorded seeds up to the look capture (``grasping.episode``'s own functions, so 
 provider saw) and drawn with the segmentation (the model's labels, or the ground-truth mask for the
 oracles) and the block models rendered by pyrender at the estimated and at the true pose. The strip shows
 the overview camera at the look pose of several episodes (episodes do not expose mid-episode frames).
-Everything is embedded (PNG/JPEG data URIs, inline CSS); the page needs no network.
+A bin-picking run's page shows instead its ``bin_pick`` statistics and, for a few episodes, every attempt.
+Everything is embedded (PNG/JPEG/GIF data URIs, inline CSS); the page needs no network.
 
 Its parts, one concept each:
 
 - ``run``: the run folder read into typed records (``TrialRun``: campaign, ``EpisodeRecord``s, ``Summary``);
 - ``resim``: an episode re-simulated up to its look capture (``Look``);
+- ``binpick``: a bin-picking episode replayed whole from its seeds (``BinReplay``: the tote before and after,
+  a film from the overview camera, each failed attempt's capture with its estimates), for the oracle providers;
 - ``figures``: the images (overlays, the success-against-error plot) as arrays and data URIs;
 - ``sections``: the page, one function per section, each taking typed records and returning HTML;
 - ``page``: ``write_report``, which picks the episodes to show and assembles the sections, and the command.
