@@ -387,8 +387,9 @@ def tally(wc: Workcell, area: Area, box: Tote, parts: list[int]) -> tuple[list[i
 
 def empty_tote(ep: Episode) -> None:
     """The bin-picking episode: attempts until the robot sees nothing left, ``max_failures`` failed in a row or
-    ``attempts_per_part`` per part; fills in ``ep.rec`` (a ``BinPickRecord``). Raises ``EpisodeFailed`` with the
-    episode's end reason unless every part went into the out-box."""
+    ``attempts_per_part`` per part, or when it sees again what it saw when it found nothing graspable (no attempt
+    is recorded for that look: it would find no grasp again); fills in ``ep.rec`` (a ``BinPickRecord``). Raises
+    ``EpisodeFailed`` with the episode's end reason unless every part went into the out-box."""
     rec: BinPickRecord = ep.rec  # type: ignore[assignment]
     cfg, wc = ep.cfg, ep.wc
     b = cfg.bin_pick
@@ -398,6 +399,9 @@ def empty_tote(ep: Episode) -> None:
     lost: list[int] = []
     failed: list[np.ndarray] = []  # grasp poses that failed: not tried again
     in_a_row = 0
+    stuck: list[Estimate] | None = None  # what the robot saw when it last found nothing graspable
+    end = Failure.PARTS_LEFT
+    ests: list[Estimate] = []
     _look(ep, area)
     for a in range(b.attempts_per_part * n):
         t0 = ep.ctl.sim_time
@@ -418,6 +422,9 @@ def empty_tote(ep: Episode) -> None:
             att.detected = len(ests)
             heap = heap_points(depth_points(frame, T_world_cam, b.depth_stride), area, b)
             ep.log.stop("perceive", ep.ctl, add=True)
+            if stuck is not None and _same_view(ests, stuck):  # it would find no grasp again: no attempt
+                end = Failure.NOTHING_GRASPABLE
+                break
             if not ests:
                 if len(heap) < 10:  # nothing seen, nothing above the floor: the robot believes the tote empty
                     break
@@ -464,6 +471,7 @@ def empty_tote(ep: Episode) -> None:
             att.failure = Failure.THROWN_OUT
         _finish(rec, att, ep.ctl.sim_time - t0, n, left + lost, cfg.scoring)
         in_a_row = 0 if att.outcome == "success" else in_a_row + 1
+        stuck = ests if att.failure == Failure.NOTHING_GRASPABLE else None
         if in_a_row >= b.max_failures:
             if rec.removed < n:
                 raise EpisodeFailed(Failure.FAILED_IN_A_ROW)
@@ -472,7 +480,13 @@ def empty_tote(ep: Episode) -> None:
         if rec.removed < n:
             raise EpisodeFailed(Failure.ATTEMPT_LIMIT)
     if rec.removed < n:
-        raise EpisodeFailed(Failure.PARTS_LEFT)
+        raise EpisodeFailed(end)
+
+
+def _same_view(ests: list[Estimate], before: list[Estimate], tol: float = 1e-6) -> bool:
+    """Are ``ests`` the estimates ``before`` (same objects, poses within ``tol``): the robot sees what it saw?"""
+    return len(ests) == len(before) and all(
+        a.obj_id == b.obj_id and np.allclose(a.T_cam_obj, b.T_cam_obj, atol=tol) for a, b in zip(ests, before))
 
 
 def _finish(rec: BinPickRecord, att: Attempt, sim_time: float, n: int, not_removed: list[int],

@@ -12,7 +12,7 @@ import pytest
 from helpers import run_cli, success_floor
 from posegrasp.catalog import load_catalog
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
-from posegrasp.grasping.bin_picking import _look, area_of, pick_and_drop, tally
+from posegrasp.grasping.bin_picking import _look, area_of, empty_tote, pick_and_drop, tally
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse
 from posegrasp.grasping.config import TrialConfig, with_set
@@ -130,6 +130,16 @@ def test_failures_in_a_row_and_the_attempt_limit_end_an_episode():
     assert isinstance(back, BinPickRecord) and back.to_json() == rec.to_json()
 
 
+def test_an_episode_ends_when_no_part_it_sees_has_a_grasp():
+    cfg = _cfg(1)
+    lo, hi = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
+    ep = _episode(cfg, ["cube"], [_flat("cube", (lo[0] + 0.017, lo[1] + 0.017))])  # in a corner: no finger fits
+    with pytest.raises(EpisodeFailed) as e:
+        empty_tote(ep)
+    assert e.value.reason == Failure.NOTHING_GRASPABLE  # the second look sees the same: no second attempt
+    assert [a.failure for a in ep.rec.attempts] == [Failure.NOTHING_GRASPABLE] and ep.rec.removed == 0
+
+
 @pytest.mark.slow
 def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path):
     cfg = _cfg(4)
@@ -138,8 +148,8 @@ def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path
     assert (tmp_path / "a" / EPISODES).read_bytes() == (tmp_path / "b" / EPISODES).read_bytes()
     b = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]
     assert b == s["bin_pick"] and b["parts_present"] == 8
-    # 224 of 389 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes)
-    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(224, 389, b["attempts"]["n"]), b
+    # 224 of 332 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes)
+    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(224, 332, b["attempts"]["n"]), b
     recs = {i: json.loads(line) for i, line in enumerate((tmp_path / "a" / EPISODES).read_text().splitlines())}
     r = compare_runs(recs, recs)
     assert r["bin_pick"]["percent_cleared"]["wilcoxon_p"] == 1.0 and not is_worse(r, 0.05)

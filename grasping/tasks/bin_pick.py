@@ -4,7 +4,8 @@ into an out-box beside it, attempt after attempt.
 Each attempt looks down at the tote from above (capture ``im_id`` = the attempt's index), perceives, chooses the
 next part among the estimates, picks it with a grasp clear of the tote's walls, the neighbours' estimated surfaces
 and the depth image, lifts it clear of the walls and drops it into the out-box (``grasping.bin_picking``). The
-episode ends when the robot sees nothing left to pick, after ``max_failures`` failed attempts in a row, or after
+episode ends when the robot sees nothing left to pick, when it sees again what it saw when it found no grasp on any
+part (that look is no attempt), after ``max_failures`` failed attempts in a row, or after
 ``attempts_per_part`` attempts per part present. Every attempt is recorded (``record.Attempt``); the episode's
 record (``record.BinPickRecord``) says how many parts went into the out-box.
 
