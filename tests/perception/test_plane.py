@@ -67,3 +67,23 @@ def test_no_plane_without_a_table(tiny_bop):
     assert fit_support_plane(depth, K) is None
     table = np.where(depth > 0, depth, depth.max() + 0.01)  # a table 1 cm behind the objects
     np.testing.assert_allclose(fit_support_plane(table, K), [0.0, 0.0, -1.0, depth.max() + 0.01], atol=1e-5)
+
+
+def test_objects_in_a_tote_rest_on_its_floor_not_on_the_table():
+    """A tote's floor 1 cm above the table fills a quarter of the view, the table the rest: the dominant plane is the
+    table, but the block in the tote rests on the floor, which the band around its pixels finds."""
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), 0.5)  # the table, 0.5 m below the camera looking straight down
+    depth[(abs(u - 160) < 90) & (abs(v - 120) < 60)] = 0.49  # the tote's floor
+    block = (abs(u - 160) < 20) & (abs(v - 120) < 15)
+    depth[block] = 0.46
+    np.testing.assert_allclose(fit_support_plane(depth, K), [0.0, 0.0, -1.0, 0.5], atol=1e-6)
+    np.testing.assert_allclose(fit_support_plane(depth, K, objects=block), [0.0, 0.0, -1.0, 0.49], atol=1e-6)
+    strip = (abs(u - 60) < 5) & (abs(v - 30) < 5)  # a bit of the table, wrongly segmented
+    labels = np.where(block | strip, 2, 0)
+    cleared, p = clear_plane(labels, depth, K)  # the band's median height: the floor's
+    np.testing.assert_allclose(p, [0.0, 0.0, -1.0, 0.49], atol=1e-6)
+    np.testing.assert_array_equal(cleared > 0, block | strip)  # the table is not on that plane
+    table_only = np.full((240, 320), 0.5)
+    table_only[block] = 0.46
+    np.testing.assert_array_equal(fit_support_plane(table_only, K, objects=block), fit_support_plane(table_only, K))
