@@ -87,3 +87,33 @@ def test_objects_in_a_tote_rest_on_its_floor_not_on_the_table():
     table_only = np.full((240, 320), 0.5)
     table_only[block] = 0.46
     np.testing.assert_array_equal(fit_support_plane(table_only, K, objects=block), fit_support_plane(table_only, K))
+
+
+def test_a_block_lying_on_another_does_not_float():
+    """Two 4 cm cubes stacked on the table 0.5 m below the camera: the upper one's pose pays the floating term when
+    it is alone in the frame, not beside the cube it lies on (whose seen points support it); the lower one's score
+    is the same either way."""
+    import torch
+
+    from posegrasp.perception.refine.frame import Frame
+    from posegrasp.perception.refine.score import score
+
+    rng = np.random.default_rng(0)
+    plane = np.array([0.0, 0.0, -1.0, 0.5])
+    model = rng.uniform(-0.02, 0.02, (2000, 3))
+    cfg = RefineConfig()
+    cube = ObjectModel.of_points(model, cfg, np.eye(3)[None])
+    poses = [np.eye(4), np.eye(4)]
+    poses[0][2, 3], poses[1][2, 3] = 0.48, 0.44  # the lower cube on the table, the upper one on it
+    obs = [model[:300] @ T[:3, :3].T + T[:3, 3] for T in poses]
+    depth = np.zeros((240, 320))
+
+    def scores(objs: list[int]) -> np.ndarray:
+        frame = Frame.of([cube] * len(objs), [obs[i] for i in objs], depth, K, plane)
+        R = torch.eye(3).expand(len(objs), 3, 3)
+        t = torch.tensor(np.array([poses[i][:3, 3] for i in objs]), dtype=torch.float32)
+        return score(frame, cfg.score, R, t, torch.arange(len(objs)), fine=True).numpy()
+
+    both, upper, lower = scores([0, 1]), scores([1]), scores([0])
+    assert upper[0] - both[1] == pytest.approx(cfg.score.float_weight, abs=1e-6)
+    assert both[0] == pytest.approx(lower[0], abs=1e-7)
