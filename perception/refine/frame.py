@@ -20,7 +20,7 @@ class Frame:
     intrinsics K (3, 3); the supporting plane (4,: n . x + d = 0, n unit, camera frame) or None; the models' ``grids``
     and stacked point columns (3, O M) (row o M + j: point j of model o); their rests' ups (O, U, 3) and classes
     (O, U) (``stacked_rests``) and their symmetries; given the plane, ``supports`` (O, S): heights (m) above it on
-which each object may rest besides the plane (``supports``; 0 where none)."""
+    which each object may rest besides the plane (``supports``; 0 where none)."""
 
     models: torch.Tensor
     model_ok: torch.Tensor
