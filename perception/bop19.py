@@ -14,7 +14,8 @@ the same fraction of the object's diameter, or the same 15 mm), pixels for MSPD.
 Per image and object with a target (``inst_count`` instances), the ``inst_count`` best-scored estimates are
 matched greedily, in decreasing score order, each to the unmatched valid instance (the ``inst_count`` most
 visible) with the lowest error below the threshold. Recall = matched / targets; AR_VSD, AR_MSSD, AR_MSPD are the
-mean recalls over their thresholds (10 x 10, 10, 10) and AR their mean.
+mean recalls over their thresholds (10 x 10, 10, 10) and AR their mean. The same scores by visible-fraction bin
+(``VISIB_BINS``) count the valid instances in the bin as its targets and the matches of those.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ VSD_TAUS = np.arange(0.05, 0.51, 0.05)  #: x diameter
 THETAS = np.arange(0.05, 0.51, 0.05)  #: VSD error thresholds; MSSD thresholds x diameter
 MSPD_PX = np.arange(5, 51, 5)  #: px x image width / 640
 MAX_SYM_STEP = 0.01  #: a continuous symmetry's step moves the farthest vertex at most this x diameter
+#: Visible-fraction bins [lo, hi) AR is also reported by (the last one closed at 1.0).
+VISIB_BINS = ((0.1, 0.3), (0.3, 0.5), (0.5, 0.7), (0.7, 0.9), (0.9, 1.0))
 _CHUNK = 64  # symmetries per batch (memory: chunk x points x 3 doubles)
 
 
@@ -137,7 +140,8 @@ class Truth(NamedTuple):
 class ObjectErrors:
     """One image's errors for one object with targets: its ``targets`` (inst_count), which of its ground-truth
     instances are valid (the ``targets`` most visible), and the errors of its best-scored estimates (at most
-    ``targets``, best first) against each instance: MSSD (E, G) m, MSPD (E, G) px, VSD (E, G, taus)."""
+    ``targets``, best first) against each instance: MSSD (E, G) m, MSPD (E, G) px, VSD (E, G, taus); ``visib``
+    (G,): the instances' visible fractions (unset: 1)."""
 
     obj_id: int
     targets: int
@@ -145,6 +149,12 @@ class ObjectErrors:
     mssd: np.ndarray
     mspd: np.ndarray
     vsd: np.ndarray
+    visib: np.ndarray | None = None
+
+    def in_bin(self, lo: float, hi: float) -> np.ndarray:
+        """Bool (G,): the instances whose visible fraction lies in [lo, hi) ([lo, hi] when hi >= 1)."""
+        v = np.ones(self.valid.shape) if self.visib is None else np.asarray(self.visib)
+        return (v >= lo) & ((v < hi) | (hi >= 1.0))
 
 
 class Bop19:
@@ -172,7 +182,8 @@ class Bop19:
             valid = np.isin(np.arange(len(gts)), ranked)
             ests = sorted((e for e in estimates if e.obj_id == oid), key=lambda e: e.score, reverse=True)[:n]
             E, G, T = len(ests), len(gts), len(VSD_TAUS)
-            errs = ObjectErrors(oid, n, valid, np.full((E, G), np.inf), np.full((E, G), np.inf), np.ones((E, G, T)))
+            errs = ObjectErrors(oid, n, valid, np.full((E, G), np.inf), np.full((E, G), np.inf), np.ones((E, G, T)),
+                                np.array([g.visib_fract for g in gts], dtype=np.float64))
             if E and G and oid in self.points:
                 pts, syms, diameter = self.points[oid], self.syms[oid], self.infos[oid].diameter
                 d_gt = [self.render(oid, g.T_cam_obj, K, h, w) * factor for g in gts]
@@ -198,27 +209,42 @@ def _hull_vertices(points: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------- scores
 
-def matched(errors: np.ndarray, valid: np.ndarray, threshold: float) -> int:
+def taken(errors: np.ndarray, valid: np.ndarray, threshold: float) -> np.ndarray:
     """Greedy matching (bop_toolkit's ``match_poses``): estimates (rows, best score first) each take the
-    unmatched valid instance (column) with the lowest error below ``threshold``; the number matched."""
-    taken = np.zeros(errors.shape[1], bool)
+    unmatched valid instance (column) with the lowest error below ``threshold``; bool (G,): the instances taken."""
+    out = np.zeros(errors.shape[1], bool)
     for row in errors:
-        ok = valid & ~taken & (row < threshold)
+        ok = valid & ~out & (row < threshold)
         if ok.any():
-            taken[np.argmin(np.where(ok, row, np.inf))] = True
-    return int(taken.sum())
+            out[np.argmin(np.where(ok, row, np.inf))] = True
+    return out
 
 
-def _recalls(groups: list[ObjectErrors], diameter: float, width: int) -> dict[str, np.ndarray | int]:
-    """Matched counts at every threshold of each metric, summed over ``groups`` (one object's)."""
-    n_vsd = np.zeros((len(VSD_TAUS), len(THETAS)))
-    n_mssd, n_mspd = np.zeros(len(THETAS)), np.zeros(len(MSPD_PX))
+def matched(errors: np.ndarray, valid: np.ndarray, threshold: float) -> int:
+    """The number of instances ``taken`` at ``threshold``."""
+    return int(taken(errors, valid, threshold).sum())
+
+
+def _recalls(groups: list[ObjectErrors], diameter: float, width: int, bins: tuple[tuple[float, float], ...] = ()
+             ) -> list[dict[str, np.ndarray | int]]:
+    """Matched counts at every threshold of each metric, summed over ``groups`` (one object's): over all the
+    instances (first), then over those of each visible-fraction bin (its targets: its valid instances)."""
+    def zero(targets: int) -> dict[str, np.ndarray | int]:
+        return {"targets": targets, "vsd": np.zeros((len(VSD_TAUS), len(THETAS))), "mssd": np.zeros(len(THETAS)),
+                "mspd": np.zeros(len(MSPD_PX))}
+
+    out = [zero(sum(g.targets for g in groups))] + [zero(0) for _ in bins]
     for g in groups:
-        for i in range(len(VSD_TAUS)):
-            n_vsd[i] += [matched(g.vsd[:, :, i], g.valid, th) for th in THETAS]
-        n_mssd += [matched(g.mssd, g.valid, th * diameter) for th in THETAS]
-        n_mspd += [matched(g.mspd, g.valid, k * width / 640.0) for k in MSPD_PX]
-    return {"targets": sum(g.targets for g in groups), "vsd": n_vsd, "mssd": n_mssd, "mspd": n_mspd}
+        hits = {"vsd": np.array([[taken(g.vsd[:, :, i], g.valid, th) for th in THETAS] for i in range(len(VSD_TAUS))]),
+                "mssd": np.array([taken(g.mssd, g.valid, th * diameter) for th in THETAS]),
+                "mspd": np.array([taken(g.mspd, g.valid, k * width / 640.0) for k in MSPD_PX])}  # (..., G)
+        sels = [np.ones(g.valid.shape, bool)] + [g.in_bin(lo, hi) for lo, hi in bins]
+        for c, sel in zip(out, sels):
+            for k, h in hits.items():
+                c[k] = c[k] + h[..., sel].sum(axis=-1)
+        for c, sel in zip(out[1:], sels[1:]):
+            c["targets"] += int((g.valid & sel).sum())
+    return out
 
 
 def _ar(counts: dict[str, np.ndarray | int]) -> dict[str, float | int]:
@@ -230,12 +256,18 @@ def _ar(counts: dict[str, np.ndarray | int]) -> dict[str, float | int]:
     return {"ar": float(np.mean(list(r.values()))), **r, "targets": int(n)}
 
 
-def scores(groups: list[ObjectErrors], infos: dict[int, ObjectInfo], width: int) -> dict:
-    """AR, AR_VSD, AR_MSSD, AR_MSPD over every target (as BOP reports a dataset) and per object (``per_object``,
-    keyed by obj_id as text); ``width`` of the images in px (MSPD's thresholds scale with width / 640)."""
-    per = {o: _recalls([g for g in groups if g.obj_id == o], infos[o].diameter, width)
+def scores(groups: list[ObjectErrors], infos: dict[int, ObjectInfo], width: int,
+           bins: tuple[tuple[float, float], ...] = VISIB_BINS) -> dict:
+    """AR, AR_VSD, AR_MSSD, AR_MSPD over every target (as BOP reports a dataset), per object (``per_object``, keyed
+    by obj_id as text) and per visible-fraction bin (``by_visib``: one entry per bin, ``visib`` [lo, hi] with the
+    scores and the bin's ``targets``); ``width`` of the images in px (MSPD's thresholds scale with width / 640)."""
+    per = {o: _recalls([g for g in groups if g.obj_id == o], infos[o].diameter, width, bins)
            for o in sorted({g.obj_id for g in groups})}
-    total = {"targets": sum(c["targets"] for c in per.values())}
-    for k in ("vsd", "mssd", "mspd"):
-        total[k] = sum((c[k] for c in per.values()), np.zeros_like(_recalls([], 1.0, width)[k]))
-    return {**_ar(total), "per_object": {str(o): _ar(c) for o, c in per.items()}}
+    totals = []
+    for b in range(len(bins) + 1):
+        total = {"targets": sum(c[b]["targets"] for c in per.values())}
+        for k in ("vsd", "mssd", "mspd"):
+            total[k] = sum((c[b][k] for c in per.values()), np.zeros_like(_recalls([], 1.0, width)[0][k]))
+        totals.append(total)
+    return {**_ar(totals[0]), "per_object": {str(o): _ar(c[0]) for o, c in per.items()},
+            "by_visib": [{"visib": [lo, hi], **_ar(t)} for (lo, hi), t in zip(bins, totals[1:])]}

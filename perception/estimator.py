@@ -194,8 +194,8 @@ class Estimator:
                   ) -> tuple[list[int], list[Detection], dict[str, float]]:
         """``estimate``, and first the index in ``masks`` of each detection's mask."""
         t0 = time.perf_counter()
-        if plane is None and self.support_plane and self.objects:
-            plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
+        if plane is None and self.support_plane and self.objects and masks:  # the plane the masks' objects rest on
+            plane = fit_support_plane(depth, K, self.seed, self.plane_cfg, np.any([m for _, m in masks], axis=0))
         rng = np.random.default_rng(self.seed)
         cfg = self.pose_cfg
         items, kept = [], []

@@ -5,7 +5,8 @@ AUC, < 2 cm accuracy, accuracy at 0.1 x diameter, time per stage, the ablation f
 ``per_object.csv``, ``instances.csv`` (one row per evaluated ground-truth instance),
 ``curves.png`` (accuracy against ADD(-S), rotation error up to the object's symmetries and translation
 error thresholds), ``scores_bop19.json`` (BOP 2019 AR, AR_VSD, AR_MSSD, AR_MSPD overall and per object, on the
-targets of ``test_targets_bop19.json``, or of the ground truth when the dataset has none: ``perception.bop19``)
+targets of ``test_targets_bop19.json``, or of the ground truth when the dataset has none: ``perception.bop19``; also
+by visible-fraction bin, ``bop19.ar_by_visib`` in ``metrics.json``)
 and a BOP results CSV ``<method>_<dataset>-<split>.csv``.
 
 Ablations: ``refine_iterations = 0`` evaluates without refinement; a pose net trained with
@@ -247,7 +248,8 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
     _plot_curves(out / "curves.png", rows, obj_ids)
     scores = B.scores(groups, infos, bop.load_camera(data).width)
     pio.write_json(out / "scores_bop19.json", pio.jsonable(scores, nan_to_null=True))
-    report["bop19"] = {k: scores[k] for k in ("ar", "ar_vsd", "ar_mssd", "ar_mspd", "targets")}
+    report["bop19"] = {**{k: scores[k] for k in ("ar", "ar_vsd", "ar_mssd", "ar_mspd", "targets")},
+                       "ar_by_visib": scores["by_visib"]}
     bop_results.write_results_csv(out / f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv", results)
     pio.write_json(out / "metrics.json", pio.jsonable(report, nan_to_null=True))
     return report

@@ -6,12 +6,17 @@
 n is oriented towards the camera (d > 0: the camera centre lies in front of the plane). Points are
 camera-frame metres. Used by the estimator to drop segmented pixels lying on the plane and to rule out
 depth-refinement hypotheses that sink the object into it.
+
+Given the objects' pixels, the plane is the one they rest on: when the pixels in a band around them lie above the
+dominant plane (a tote's floor above the table it stands on, the table filling most of the view), the plane parallel
+to it at the band's most common height, refitted to the drawn points within ``inlier_tol`` of it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from posegrasp.perception.crop import backproject
@@ -19,16 +24,25 @@ from posegrasp.perception.crop import backproject
 
 @dataclass
 class PlaneConfig:
-    """iterations: RANSAC samples. points: depth pixels drawn for it. inlier_tol (m). min_share: the plane's
-    inliers must cover at least this share of the image (a table does; one face of a block seldom), else
-    there is no supporting plane.
-    mask_tol (m): segmented pixels closer than this to the plane become background (0 keeps them)."""
+    """Finding the supporting plane by RANSAC, and the plane the objects rest on."""
 
+    #: RANSAC samples.
     iterations: int = 100
+    #: Depth pixels drawn for it.
     points: int = 2000
+    #: Distance (m) within which a point is an inlier of a plane.
     inlier_tol: float = 0.004
+    #: Share of the image the plane's inliers must cover (a table does; one face of a block seldom), else there is none.
     min_share: float = 0.2
+    #: Segmented pixels closer (m) than this to the plane become background (0 keeps them).
     mask_tol: float = 0.002
+    #: Median height (m) above the dominant plane of the pixels around the objects beyond which they rest on a plane
+    #: above it (a tote's floor; 0: always the dominant plane).
+    rest_lift: float = 0.003
+    #: Width (px at 640 px image width) of the band around the objects' pixels that finds the plane they rest on.
+    rest_band: int = 10
+    #: Share of the drawn points the plane the objects rest on must hold, else the dominant plane stays.
+    rest_min_share: float = 0.03
 
 
 def plane_distance(plane: np.ndarray, depth: np.ndarray, K: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -38,9 +52,10 @@ def plane_distance(plane: np.ndarray, depth: np.ndarray, K: np.ndarray, pixels: 
     return backproject(depth, K, (0, h, 0, w), pixels) @ plane[:3] + plane[3]
 
 
-def fit_support_plane(depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: PlaneConfig | None = None
-                      ) -> np.ndarray | None:
-    """The dominant plane (n_x, n_y, n_z, d), |n| = 1, d > 0, of the depth image (m), or None."""
+def fit_support_plane(depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: PlaneConfig | None = None,
+                      objects: np.ndarray | None = None) -> np.ndarray | None:
+    """The dominant plane (n_x, n_y, n_z, d), |n| = 1, d > 0, of the depth image (m), or None; given the objects'
+    pixels ``objects`` (bool (H, W)), the plane they rest on (module doc)."""
     cfg = cfg or PlaneConfig()
     valid = np.flatnonzero(depth > 0)
     if len(valid) < 3:
@@ -60,19 +75,50 @@ def fit_support_plane(depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: Plan
     best = int(counts.argmax())
     if counts[best] / len(P) * len(valid) < cfg.min_share * depth.size:
         return None
-    inl = P[np.abs(P @ n[best] + d[best]) < cfg.inlier_tol]
-    c = inl.mean(axis=0)
-    normal = np.linalg.eigh((inl - c).T @ (inl - c))[1][:, 0]  # the least-variance direction
+    plane = _refit(P[np.abs(P @ n[best] + d[best]) < cfg.inlier_tol])
+    if objects is not None and cfg.rest_lift > 0:
+        plane = _resting_plane(plane, P, depth, K, objects, cfg)
+    return plane
+
+
+def _refit(inliers: np.ndarray) -> np.ndarray:
+    """The least-squares plane (n, d), d > 0, through points (N, 3): n their least-variance direction."""
+    c = inliers.mean(axis=0)
+    normal = np.linalg.eigh((inliers - c).T @ (inliers - c))[1][:, 0]
     plane = np.append(normal, -normal @ c)
     return plane if plane[3] > 0 else -plane
 
 
+def _resting_plane(plane: np.ndarray, P: np.ndarray, depth: np.ndarray, K: np.ndarray, objects: np.ndarray,
+                   cfg: PlaneConfig) -> np.ndarray:
+    """The plane the objects (bool (H, W)) rest on, from the dominant ``plane`` and the drawn points P (N, 3): the
+    plane parallel to it at the most common height (1 mm bins) of the valid pixels in a band ``rest_band`` wide around
+    the objects, refitted to the points of P within ``inlier_tol`` of it, when that band lies above ``plane`` by more
+    than ``rest_lift`` in the median and the refit holds ``rest_min_share`` of P; else ``plane``."""
+    r = max(1, round(cfg.rest_band * depth.shape[1] / 640))
+    obj = objects.astype(np.uint8)
+    band = (cv2.dilate(obj, np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > obj) & (depth > 0)
+    idx = np.flatnonzero(band)
+    if idx.size < 3:
+        return plane
+    h = plane_distance(plane, depth, K, idx)
+    if np.median(h) <= cfg.rest_lift:
+        return plane
+    counts, edges = np.histogram(h, bins=np.arange(cfg.rest_lift, max(h.max(), cfg.rest_lift) + 0.002, 0.001))
+    if not counts.any():
+        return plane
+    lift = 0.5 * (edges[counts.argmax()] + edges[counts.argmax() + 1])
+    inl = P[np.abs(P @ plane[:3] + plane[3] - lift) < cfg.inlier_tol]
+    return _refit(inl) if len(inl) >= max(3, cfg.rest_min_share * len(P)) else plane
+
+
 def clear_plane(labels: np.ndarray, depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: PlaneConfig | None = None
                 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """The class map ``labels`` (H, W) with its pixels within ``cfg.mask_tol`` of the frame's supporting plane set to
-    0 (background), and the plane (None, and ``labels`` unchanged, when the frame has none)."""
+    """The class map ``labels`` (H, W) with its pixels within ``cfg.mask_tol`` of the frame's supporting plane (the
+    one its segmented objects rest on) set to 0 (background), and the plane (None, and ``labels`` unchanged, when the
+    frame has none)."""
     cfg = cfg or PlaneConfig()
-    plane = fit_support_plane(depth, K, seed, cfg)
+    plane = fit_support_plane(depth, K, seed, cfg, objects=labels > 0)
     if plane is not None and cfg.mask_tol > 0:
         labels = np.where(plane_pixels(plane, depth, K, labels > 0, cfg.mask_tol), 0, labels)
     return labels, plane

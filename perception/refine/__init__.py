@@ -20,8 +20,8 @@ order ``refine_poses`` (``driver``) runs them, all objects of a frame as one bat
    fits on ``pattern_fits`` rests moved along the plane and turned about n by a pattern search on the score.
 
 The score (``score``, ``ScoreConfig``) is the mean truncated distance of the observed points to the model, plus
-weighted shares of model points in seen free space and beneath the plane, plus a term for a model floating above the
-plane. The context of a frame (observed points, weights, depth, K, plane, the objects' models) is a ``Frame``; each
+weighted shares of model points in seen free space and beneath the plane, plus a term for a model floating above its
+support: the plane, or the seen surface of a neighbouring object it may lie on (``Frame.supports``). The context of a frame (observed points, weights, depth, K, plane, the objects' models) is a ``Frame``; each
 object's shape an ``ObjectModel``. Points are camera-frame metres; K is the 3x3 intrinsic matrix.
 """
 

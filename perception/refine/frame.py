@@ -19,7 +19,8 @@ class Frame:
     (O, N, 3) (camera frame, m) with ``weights`` (O, N) (0: padding); the depth image (H, W) (m, 0: no depth) and
     intrinsics K (3, 3); the supporting plane (4,: n . x + d = 0, n unit, camera frame) or None; the models' ``grids``
     and stacked point columns (3, O M) (row o M + j: point j of model o); their rests' ups (O, U, 3) and classes
-    (O, U) (``stacked_rests``) and their symmetries."""
+    (O, U) (``stacked_rests``) and their symmetries; given the plane, ``supports`` (O, S): heights (m) above it on
+    which each object may rest besides the plane (``supports``; 0 where none)."""
 
     models: torch.Tensor
     model_ok: torch.Tensor
@@ -33,6 +34,7 @@ class Frame:
     ups: torch.Tensor
     rest_labels: torch.Tensor
     symmetries: list[Symmetries]
+    supports: torch.Tensor | None = None
 
     @classmethod
     def of(cls, models: list[ObjectModel], observed: list[np.ndarray], depth: np.ndarray, K: np.ndarray,
@@ -44,12 +46,36 @@ class Frame:
         return cls(m, m_ok, p, p_ok.float(), torch.from_numpy(np.asarray(depth, dtype=np.float32)), K,
                    None if plane is None else torch.from_numpy(np.asarray(plane, dtype=np.float32)),
                    Grids([x.grid for x in models], m.shape[1]), m.reshape(-1, 3).T.contiguous(), ups, labels,
-                   [x.symmetries for x in models])
+                   [x.symmetries for x in models],
+                   None if plane is None else supports(models, observed, np.asarray(plane, dtype=np.float64)))
 
     @property
     def normal(self) -> torch.Tensor:
         """The turns' axis (3,), camera frame: the plane's normal, or the optical axis without a plane."""
         return torch.tensor([0.0, 0.0, 1.0]) if self.plane is None else self.plane[:3]
+
+
+#: Heights per object in ``supports`` (quantiles of its neighbours' points).
+SUPPORT_HEIGHTS = 16
+
+
+def supports(models: list[ObjectModel], observed: list[np.ndarray], plane: np.ndarray) -> torch.Tensor:
+    """(O, 1 + SUPPORT_HEIGHTS) heights (m) above the plane (4,: n . x + d = 0, camera frame) on which each object
+    may rest: 0 (the plane), then the heights of the other objects' observed points (N_o, 3 each, camera frame, m) that
+    lie within the object's bounding radius of its own points' centroid along the plane, as quantiles (0 where there
+    are none): a part lying on other parts rests on their seen surfaces, not on the plane."""
+    out = np.zeros((len(models), 1 + SUPPORT_HEIGHTS), dtype=np.float32)
+    n, d = plane[:3], plane[3]
+    for o, (x, p) in enumerate(zip(models, observed)):
+        others = [q for j, q in enumerate(observed) if j != o and len(q)]
+        if not others or not len(p):
+            continue
+        q = np.concatenate(others) - np.mean(p, axis=0)
+        along = q - (q @ n)[:, None] * n  # the offsets along the plane
+        near = np.einsum("ij,ij->i", along, along) < float(np.max(np.einsum("ij,ij->i", x.points, x.points)))
+        if near.any():
+            out[o, 1:] = np.quantile(q[near] @ n + np.mean(p, axis=0) @ n + d, np.linspace(0.0, 1.0, SUPPORT_HEIGHTS))
+    return torch.from_numpy(out)
 
 
 def _padded(arrays: list[np.ndarray], fill: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:

@@ -8,8 +8,9 @@ d_i: the distance of p_i to the model, from the model's surface (its distance fi
 the grid's match among the model points (within a cell diagonal of the nearest). v: the share of model points that
 project onto valid depth pixels and lie more than ``violation_margin`` in front of the seen surface (the model would
 fill space the camera sees through), plus, given the supporting plane, the share more than ``violation_margin``
-beneath it (sunk into the table). f, given the plane: the height of the lowest model point above it less
-``float_margin``, in cm, clipped to [0, 1] (a block resting on nothing). The ranking scores take the first
+beneath it (sunk into the table). f, given the plane: the height of the lowest model point above the highest support
+not above it (the plane, or the seen surface of a neighbouring object: ``Frame.supports``) less ``float_margin``, in
+cm, clipped to [0, 1] (a block resting on nothing). The ranking scores take the first
 ``rank_points`` model points for v and f, the fine ones all of them.
 """
 
@@ -54,6 +55,9 @@ def score(frame: Frame, cfg: ScoreConfig, R: torch.Tensor, t: torch.Tensor, obj:
         height = (mc * plane[:3, None]).sum(dim=1) + plane[3]  # (H, k)
         viol = viol + (ok & (height < -cfg.violation_margin)).sum(dim=1) / ok.sum(dim=1)
         lowest = height.masked_fill(~ok, torch.inf).min(dim=1).values  # (H,)
+        if frame.supports is not None:  # the highest support not above the lowest point (the plane, 0, at least)
+            sup = frame.supports[obj]
+            lowest = lowest - sup.masked_fill(sup > lowest[:, None] + cfg.float_margin, 0.0).max(dim=1).values
         total = total + cfg.float_weight * ((lowest - cfg.float_margin) / 0.01).clamp(0, 1)
     return total + cfg.violation_weight * viol
 

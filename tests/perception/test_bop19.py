@@ -108,3 +108,18 @@ def test_scores_average_recall_over_thresholds():
     assert s["ar_vsd"] == pytest.approx(0.5 / 2) and s["ar"] == pytest.approx((0.4 + 0.3 + 0.25) / 3)
     assert s["targets"] == 2 and s["per_object"]["1"]["ar"] == s["ar"]
     assert B.scores([g], {1: BOX_INFO}, width=1280)["ar_mspd"] == pytest.approx(0.8 / 2)  # 10 ... 100 px
+
+
+def test_scores_by_visible_fraction_count_each_bins_instances():
+    E, G = 2, 3
+    g = B.ObjectErrors(obj_id=1, targets=2, valid=np.array([True, True, False]), mssd=np.full((E, G), np.inf),
+                       mspd=np.full((E, G), np.inf), vsd=np.ones((E, G, 10)), visib=np.array([0.2, 1.0, 0.05]))
+    g.mssd[1, 1] = g.mspd[1, 1] = 0.0  # the second estimate finds the fully visible instance exactly
+    g.vsd[1, 1] = 0.0
+    s = B.scores([g], {1: BOX_INFO}, width=640)
+    bins = {tuple(b["visib"]): b for b in s["by_visib"]}
+    assert [tuple(b["visib"]) for b in s["by_visib"]] == list(B.VISIB_BINS)
+    assert bins[(0.1, 0.3)]["targets"] == 1 and bins[(0.1, 0.3)]["ar"] == 0.0
+    assert bins[(0.9, 1.0)]["targets"] == 1 and bins[(0.9, 1.0)]["ar"] == pytest.approx(1.0)  # 1.0 is in the last
+    assert all(bins[b]["targets"] == 0 for b in B.VISIB_BINS[1:4])
+    assert sum(b["targets"] for b in s["by_visib"]) == s["targets"] == 2 and s["ar"] == pytest.approx(0.5)

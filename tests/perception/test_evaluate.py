@@ -8,6 +8,7 @@ from bop_helpers import read_results_csv
 
 from posegrasp import bop
 
+from posegrasp.perception import bop19 as B
 from posegrasp.perception.evaluate import EvalConfig, evaluate
 
 
@@ -25,6 +26,8 @@ def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
         assert 0 <= bop19[k] <= 1 and bop19[k] == rep["bop19"][k]
     assert bop19["ar"] == pytest.approx((bop19["ar_vsd"] + bop19["ar_mssd"] + bop19["ar_mspd"]) / 3)
     assert set(bop19["per_object"]) == {"1", "2", "3"}
+    assert sum(b["targets"] for b in rep["bop19"]["ar_by_visib"]) == n_targets
+    assert [b["visib"] for b in rep["bop19"]["ar_by_visib"]] == [list(b) for b in B.VISIB_BINS]
     o = rep["overall"]
     assert 0 <= o["re_sym_<15deg"] <= 100
     assert o["detected"] == 0 or o["re_sym_<15deg"] <= o["re_sym_<15deg_of_detected"]

@@ -67,3 +67,53 @@ def test_no_plane_without_a_table(tiny_bop):
     assert fit_support_plane(depth, K) is None
     table = np.where(depth > 0, depth, depth.max() + 0.01)  # a table 1 cm behind the objects
     np.testing.assert_allclose(fit_support_plane(table, K), [0.0, 0.0, -1.0, depth.max() + 0.01], atol=1e-5)
+
+
+def test_objects_in_a_tote_rest_on_its_floor_not_on_the_table():
+    """A tote's floor 1 cm above the table fills a quarter of the view, the table the rest: the dominant plane is the
+    table, but the block in the tote rests on the floor, which the band around its pixels finds."""
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), 0.5)  # the table, 0.5 m below the camera looking straight down
+    depth[(abs(u - 160) < 90) & (abs(v - 120) < 60)] = 0.49  # the tote's floor
+    block = (abs(u - 160) < 20) & (abs(v - 120) < 15)
+    depth[block] = 0.46
+    np.testing.assert_allclose(fit_support_plane(depth, K), [0.0, 0.0, -1.0, 0.5], atol=1e-6)
+    np.testing.assert_allclose(fit_support_plane(depth, K, objects=block), [0.0, 0.0, -1.0, 0.49], atol=1e-6)
+    strip = (abs(u - 60) < 5) & (abs(v - 30) < 5)  # a bit of the table, wrongly segmented
+    labels = np.where(block | strip, 2, 0)
+    cleared, p = clear_plane(labels, depth, K)  # the band's median height: the floor's
+    np.testing.assert_allclose(p, [0.0, 0.0, -1.0, 0.49], atol=1e-6)
+    np.testing.assert_array_equal(cleared > 0, block | strip)  # the table is not on that plane
+    table_only = np.full((240, 320), 0.5)
+    table_only[block] = 0.46
+    np.testing.assert_array_equal(fit_support_plane(table_only, K, objects=block), fit_support_plane(table_only, K))
+
+
+def test_a_block_lying_on_another_does_not_float():
+    """Two 4 cm cubes stacked on the table 0.5 m below the camera: the upper one's pose pays the floating term when
+    it is alone in the frame, not beside the cube it lies on (whose seen points support it); the lower one's score
+    is the same either way."""
+    import torch
+
+    from posegrasp.perception.refine.frame import Frame
+    from posegrasp.perception.refine.score import score
+
+    rng = np.random.default_rng(0)
+    plane = np.array([0.0, 0.0, -1.0, 0.5])
+    model = rng.uniform(-0.02, 0.02, (2000, 3))
+    cfg = RefineConfig()
+    cube = ObjectModel.of_points(model, cfg, np.eye(3)[None])
+    poses = [np.eye(4), np.eye(4)]
+    poses[0][2, 3], poses[1][2, 3] = 0.48, 0.44  # the lower cube on the table, the upper one on it
+    obs = [model[:300] @ T[:3, :3].T + T[:3, 3] for T in poses]
+    depth = np.zeros((240, 320))
+
+    def scores(objs: list[int]) -> np.ndarray:
+        frame = Frame.of([cube] * len(objs), [obs[i] for i in objs], depth, K, plane)
+        R = torch.eye(3).expand(len(objs), 3, 3)
+        t = torch.tensor(np.array([poses[i][:3, 3] for i in objs]), dtype=torch.float32)
+        return score(frame, cfg.score, R, t, torch.arange(len(objs)), fine=True).numpy()
+
+    both, upper, lower = scores([0, 1]), scores([1]), scores([0])
+    assert upper[0] - both[1] == pytest.approx(cfg.score.float_weight, abs=1e-6)
+    assert both[0] == pytest.approx(lower[0], abs=1e-7)
