@@ -30,7 +30,7 @@ from posegrasp.grasping.perception import PICK_LOOK, Estimate, PerceptionError, 
 from posegrasp.grasping.provider_registry import make_provider
 from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, FalseTarget, Failure, Target
 from posegrasp.grasping.support import rest_on_table
-from posegrasp.grasping.targets import (Plan, _look_q, blame, drive_to_look, gripper_yaw as _yaw,  # noqa: F401
+from posegrasp.grasping.targets import (Plan, _look_q, blame, drive_to_look, gripper_yaw as _yaw,
                                         look_down_q, match_block as _match, pose_errors, reachable)
 from posegrasp.grasping.tasks import get_task
 from posegrasp.grasping.tasks.base import EpisodeFailed, Goal, Pickable, SteadyConfig

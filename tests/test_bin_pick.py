@@ -17,7 +17,8 @@ from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse
 from posegrasp.grasping.config import TrialConfig, with_set
 from posegrasp.grasping.controller import ArmController
-from posegrasp.grasping.episode import Episode, EpisodeTask, Plan, _Log, run_episode
+from posegrasp.grasping.episode import Episode, EpisodeTask, _Log, run_episode
+from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.grasps import plan_grasps
 from posegrasp.grasping.record import Attempt, BinPickRecord, EpisodeRecord, Failure
 from posegrasp.grasping.runfolder import EPISODES, SUMMARY

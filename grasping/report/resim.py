@@ -31,7 +31,8 @@ def resimulate_look(run_dir: Path, rec: EpisodeRecord) -> Look | None:
     """Episode ``rec`` of the run in ``run_dir`` re-simulated from its seeds up to the look capture; None if it
     never got there."""
     from posegrasp.catalog import catalog_by_id
-    from posegrasp.grasping.episode import EpisodeTask, capture_look, drive_to_look, episode_draws, episode_workcell
+    from posegrasp.grasping.episode import EpisodeTask, capture_look, episode_draws, episode_workcell
+    from posegrasp.grasping.targets import drive_to_look
     from posegrasp.grasping.model_provider import ModelProvider
     from posegrasp.grasping.perception import PICK_LOOK, PerceptionError, observation, perceive
     from posegrasp.grasping.provider_registry import make_provider

@@ -56,7 +56,8 @@ from posegrasp.sim.workcell import Workcell
 
 if TYPE_CHECKING:
     from posegrasp.grasping.config import TrialConfig
-    from posegrasp.grasping.episode import Episode, Plan
+    from posegrasp.grasping.episode import Episode
+    from posegrasp.grasping.targets import Plan
 
 #: Height (m) of the place pad's surface.
 PAD_TOP = 0.003

@@ -22,7 +22,8 @@ from posegrasp.sim.workcell import BlockInstance, Workcell
 
 if TYPE_CHECKING:
     from posegrasp.grasping.config import TrialConfig
-    from posegrasp.grasping.episode import Episode, Plan
+    from posegrasp.grasping.episode import Episode
+    from posegrasp.grasping.targets import Plan
 
 #: Drops tried before a scene counts as one that never settles.
 MAX_DROPS = 20
