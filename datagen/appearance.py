@@ -44,14 +44,19 @@ class Look:
     distractors: tuple[Distractor, ...]
 
     def add_to(self, root: mjcf.RootElement) -> None:
-        """Add textures, block materials, extra lights and distractors to a workcell MJCF root."""
+        """Add textures, block materials (a textured part keeps its texture, with the sampled specular and
+        shininess), extra lights and distractors to a workcell MJCF root."""
         for name, tex in (("table", self.table), ("floor", self.floor)):
             geom = root.find("geom", name)
             geom.material = _add_texture_material(root, f"dr_{name}", tex)
             geom.rgba = None  # the material's texture gives the colour
         for k, (rgba, (spec, shin)) in enumerate(zip(self.block_rgba, self.block_material), start=1):
+            geom = root.find("geom", f"block_{k}_visual")
+            if geom.material is not None:  # a textured part keeps its texture's colours: only the sheen varies
+                geom.material.specular, geom.material.shininess = spec, shin
+                continue
             mat = root.asset.add("material", name=f"dr_block_{k}", rgba=rgba, specular=spec, shininess=shin)
-            root.find("geom", f"block_{k}_visual").material = mat
+            geom.material = mat
         for i in range(self.extra_lights):  # placed and dimmed after compiling (sim.scene.randomise_lights)
             root.worldbody.add("light", name=f"dr_light_{i}", pos=(0, 0, 1.5), dir=(0, 0, -1), castshadow=False)
         add_distractors(root, self.distractors)

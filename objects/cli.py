@@ -8,14 +8,20 @@ from posegrasp.arguments import number, out_dir, out_file
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("objects", help="object sets: import meshes (STL, OBJ, PLY, BOP models) or draw a set")
+    p = sub.add_parser("objects", help="object sets: import parts (STL, OBJ, PLY, GLB/GLTF, STEP, URDF, BOP models) or "
+                                        "draw a set")
     cmds = p.add_subparsers(dest="objects_command", required=True, metavar="import|show")
     imp = cmds.add_parser("import", help="make an object set from meshes: repaired, measured, symmetries found, "
                                          "collision pieces by convex decomposition (CoACD)")
-    imp.add_argument("meshes", nargs="+", metavar="MESH", help="STL, OBJ or PLY files, or BOP models folders")
+    imp.add_argument("meshes", nargs="+", metavar="MESH",
+                     help="STL, OBJ (+MTL), PLY, GLB, GLTF, STEP or URDF files, or BOP models folders")
     imp.add_argument("--out", required=True, type=out_dir(), help="the object set folder to write")
     imp.add_argument("--unit", nargs="+", default=["m"], metavar="m|cm|mm",
-                     help="length unit of the mesh files, one for all or one per mesh (default m; BOP models are mm)")
+                     help="length unit of the mesh files, one for all or one per mesh (default m; BOP models are mm; "
+                          "STEP files declare their own)")
+    imp.add_argument("--scale", nargs="+", type=number("--scale", 0.0, open_lo=True), default=None,
+                     metavar="FACTOR", help="factor multiplying --unit, one for all or one per mesh (default 1; e.g. "
+                                            "0.1 with --unit m for a mesh in decimetres)")
     imp.add_argument("--density", type=number("--density", 1.0, 25000.0), default=None,
                      help="density in kg/m^3 (default 1050, ABS plastic)")
     imp.add_argument("--name", nargs="+", default=None, metavar="NAME", help="one name per mesh (default: file names)")
@@ -39,7 +45,7 @@ def run_import(args: argparse.Namespace) -> int:
 
     cfg = override(load_toml(ImportConfig, args.config), density=args.density)
     check_writable_set(args.out)
-    srcs = sources(args.meshes, args.unit, args.name)
+    srcs = sources(args.meshes, args.unit, args.name, args.scale)
     cell = Workcell.default()
     lines: list[str] = []
 

@@ -18,6 +18,10 @@ class ImportConfig:
     density: float = field(default=1050.0, metadata=within(1.0, 25000.0))
     #: MuJoCo friction: sliding, torsional, rolling.
     friction: tuple[float, float, float] = (0.5, 0.005, 0.0001)
+    #: STEP tessellation: largest distance (m) between a triangle and the true surface it stands for.
+    step_linear_tolerance: float = field(default=1e-4, metadata=within(1e-6, 0.01))
+    #: STEP tessellation: largest angle (rad) between the normals of neighbouring triangles on a curved face.
+    step_angular_tolerance: float = field(default=0.5, metadata=within(0.01, 1.5))
     #: Largest hole patch closed, a fraction of the surface area; a larger opening is refused.
     max_hole_fraction: float = field(default=0.25, metadata=within(0.0, 1.0))
     #: Smallest bounding-box diagonal (m); smaller means the declared unit is wrong.

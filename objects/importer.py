@@ -20,7 +20,8 @@ from posegrasp.objects.checks import fit_warnings
 from posegrasp.objects.config import ImportConfig
 from posegrasp.objects.decompose import convex_pieces, union_volume
 from posegrasp.objects.mass import mass_properties
-from posegrasp.objects.mesh import UNITS, centred, check_file, read_mesh
+from posegrasp.objects.formats import check_file, read_part
+from posegrasp.objects.mesh import UNITS, centred
 from posegrasp.objects.objset import SetObject
 from posegrasp.objects.rest import upright
 from posegrasp.objects.symmetry import find_symmetries
@@ -33,13 +34,15 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 @dataclass(frozen=True)
 class Source:
-    """One mesh to import: its file, unit and name; ``models_info``/``bop_id`` when it comes from a BOP folder."""
+    """One mesh to import: its file, unit, extra scale factor and name; ``models_info``/``bop_id`` when it comes
+    from a BOP folder."""
 
     path: Path
     unit: str
     name: str
     models_info: Path | None = None
     bop_id: int | None = None
+    scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -68,20 +71,27 @@ def _default_name(path: Path) -> str:
     return re.sub(r"[^a-z0-9_.-]+", "_", path.stem.lower()).strip("_.-") or "object"
 
 
-def sources(paths: list[Path], units: list[str], names: list[str] | None = None) -> list[Source]:
+def sources(paths: list[Path], units: list[str], names: list[str] | None = None,
+            scales: list[float] | None = None) -> list[Source]:
     """The meshes named by ``paths`` (files, or BOP models folders / dataset roots, read in mm), with names.
 
     ``units``: one unit for every file, or one per path (a BOP folder's entry is ignored: BOP is in mm).
+    ``scales``: factors multiplying the unit, one for every path or one per path (default 1).
     """
     bad = [u for u in units if u not in UNITS]
     if bad or len(units) not in (1, len(paths)):
         raise UserError(f"--unit {' '.join(units)}: give one of {', '.join(UNITS)} for all meshes, or one per mesh "
                         f"({len(paths)})")
+    scales = scales or [1.0]
+    if len(scales) not in (1, len(paths)) or not all(np.isfinite(f) and f > 0 for f in scales):
+        raise UserError(f"--scale {' '.join(f'{f:g}' for f in scales)}: give one finite factor > 0 for all meshes, "
+                        f"or one per mesh ({len(paths)})")
     out: list[Source] = []
-    for p, unit in zip(map(Path, paths), units * len(paths) if len(units) == 1 else units):
+    for p, unit, scale in zip(map(Path, paths), units * len(paths) if len(units) == 1 else units,
+                              scales * len(paths) if len(scales) == 1 else scales):
         if not p.is_dir():
             check_file(p)
-            out.append(Source(p, unit, _default_name(p)))
+            out.append(Source(p, unit, _default_name(p), scale=scale))
             continue
         models = p / "models" if (p / "models").is_dir() else p
         plys = sorted(models.glob("obj_*.ply"))
@@ -98,7 +108,7 @@ def sources(paths: list[Path], units: list[str], names: list[str] | None = None)
     if names:
         if len(names) != len(out):
             raise UserError(f"--name gives {len(names)} names for {len(out)} meshes; give one name per mesh")
-        out = [Source(s.path, s.unit, n, s.models_info, s.bop_id) for s, n in zip(out, names)]
+        out = [Source(s.path, s.unit, n, s.models_info, s.bop_id, s.scale) for s, n in zip(out, names)]
     for s in out:
         if not _NAME.match(s.name):
             raise UserError(f"object name {s.name!r} is not allowed; use letters, digits, '_', '.', '-'")
@@ -135,8 +145,11 @@ def _given_symmetries(src: Source, offset: np.ndarray) -> Symmetries | None:
 
 def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -> SetObject:
     """One object of a set from ``src``, with id ``obj_id``."""
-    solid = centred(read_mesh(src.path, src.unit), UNITS[src.unit], str(src.path), src.unit,
-                    cfg.max_hole_fraction, (cfg.min_size, cfg.max_size))
+    step = src.path.suffix.lower() in (".step", ".stp")  # in its own declared unit
+    scale = src.scale * (1.0 if step else UNITS[src.unit])
+    part = read_part(src.path, scale, (cfg.step_linear_tolerance, cfg.step_angular_tolerance))
+    solid = centred(part.mesh, scale, str(src.path), "m" if step else src.unit, cfg.max_hole_fraction,
+                    (cfg.min_size, cfg.max_size))
     mesh = solid.mesh
     props = mass_properties(mesh, cfg.density)
     tol = cfg.sym_tol_rel * props.diameter
@@ -153,13 +166,15 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
                         "raise max_pieces or lower coacd_threshold in --config")
     return SetObject(
         obj_id=obj_id, name=src.name, vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces),
-        mass=props.mass, density=cfg.density, friction=cfg.friction, rgba=PALETTE[(obj_id - 1) % len(PALETTE)],
+        mass=props.mass, density=cfg.density, friction=cfg.friction,
+        rgba=part.rgba or (PALETTE[(obj_id - 1) % len(PALETTE)] if part.surface is None else (1.0, 1.0, 1.0, 1.0)),
+        surface=None if part.surface is None else part.surface.moved(1.0, solid.offset),
         collision=tuple({"type": "mesh", "vertices": p} for p in pieces),
         upright_quat=tuple(R_to_quat(up.R_table_obj).tolist()), upright_down=up.down, flat_top=up.flat_top,
         flat_bottom=up.flat_bottom, diameter=props.diameter, min_xyz=props.min_xyz,
         extents=props.extents, symmetries_discrete=tuple(disc), symmetries_continuous=tuple(cont),
         collision_volume_ratio=cover,
-        source={"file": src.path.name, "unit": src.unit, "scale": solid.scale,
+        source={"file": src.path.name, "unit": "m" if step else src.unit, "scale": solid.scale,
                 "offset": (np.round(solid.offset, 9) + 0.0).tolist(),
                 "symmetries": "found" if given is None else f"{src.models_info.name} (obj_id {src.bop_id})"},
         repairs=solid.repairs, warnings=tuple(warnings))

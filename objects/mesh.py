@@ -9,7 +9,6 @@ the defect (``UserError``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -18,8 +17,6 @@ from posegrasp.errors import UserError
 
 #: Metres per unit of ``--unit``.
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
-#: File types read by ``read_mesh`` (a BOP models folder is read by the importer).
-FORMATS = (".stl", ".obj", ".ply")
 
 
 @dataclass(frozen=True)
@@ -30,33 +27,6 @@ class SolidMesh:
     scale: float  # metres per file unit
     offset: np.ndarray  # (3,) translation applied after scaling (m)
     repairs: tuple[str, ...]  # what was repaired, in words
-
-
-def check_file(path: Path) -> None:
-    """Refuse a missing file or one of a type ``read_mesh`` does not read."""
-    if not path.is_file():
-        raise UserError(f"{path}: no such file")
-    if path.suffix.lower() not in FORMATS:
-        raise UserError(f"{path}: unknown mesh format {path.suffix or '(no suffix)'!r}; use STL, OBJ or PLY "
-                        "(or a BOP models/ folder)")
-
-
-def read_mesh(path: Path, unit: str) -> trimesh.Trimesh:
-    """The triangles of an STL, OBJ or PLY file, scaled to metres from ``unit``, unprocessed."""
-    if unit not in UNITS:
-        raise UserError(f"unit {unit!r} is unknown; use one of {', '.join(UNITS)}")
-    check_file(path)
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types on corrupt files
-        why = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise UserError(f"{path}: cannot read it as {path.suffix[1:].upper()}: {why}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise UserError(f"{path}: the file holds no triangles (empty mesh or a point cloud)")
-    v = np.asarray(mesh.vertices, np.float64)
-    if not np.isfinite(v).all():
-        raise UserError(f"{path}: some vertex coordinates are NaN or infinite")
-    return trimesh.Trimesh(v * UNITS[unit], np.asarray(mesh.faces, np.int64), process=False)
 
 
 def check_size(mesh: trimesh.Trimesh, name: str, unit: str, lo: float, hi: float) -> None:

@@ -5,6 +5,9 @@
     SET/models/models_info.json    BOP: diameter, min_x/y/z, size_x/y/z, symmetries (mm)
     SET/objects/obj_NNNNNN.json    the simulator's part, SI units: mass, density, friction, colour, collision
                                    pieces, upright resting face, and where the model came from
+    SET/objects/obj_NNNNNN_surface.ply, obj_NNNNNN_texture.png
+                                   only for a part with a texture or several colours: the surface it is drawn
+                                   with (``posegrasp.surface``), named by the json's ``surface`` entry
 
 Everything here is in SI units (m, kg) in the OBJECT frame: origin at the centre of the model's bounding box.
 The set is written in a temporary folder beside ``SET`` and renamed into place, so a failed or killed import
@@ -28,6 +31,7 @@ from posegrasp.bop_models import load_model
 from posegrasp.errors import DatasetError, UserError
 from posegrasp.geometry import quat_to_R
 from posegrasp.io import dumps_json
+from posegrasp.surface import TexturedSurface, read_surface
 
 MANIFEST = "objectset.json"
 FORMAT = "posegrasp object set"
@@ -63,6 +67,8 @@ class SetObject:
             offset``, m), ``symmetries`` ("found" or the models_info.json they were taken from).
         repairs: What the import repaired, in words.
         warnings: How the object does not suit the workcell, in words (empty when it does).
+        surface: The textured surface (m, object frame) it is drawn with, where one colour (``rgba``, then white)
+            does not say how it looks; None draws the model in ``rgba``.
     """
 
     obj_id: int
@@ -87,6 +93,7 @@ class SetObject:
     source: dict[str, Any] = field(default_factory=dict)
     repairs: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
+    surface: TexturedSurface | None = None
 
     @property
     def volume(self) -> float:
@@ -154,7 +161,13 @@ def _object_json(o: SetObject) -> dict[str, Any]:
         "collision": [_piece(p) for p in o.collision],
         "collision_volume_ratio": _r(o.collision_volume_ratio, 4),
         "source": o.source, "repairs": list(o.repairs), "warnings": list(o.warnings),
+        **({} if o.surface is None else {"surface": {"mesh": f"objects/{_surface_names(o.obj_id)[0]}",
+                                                     "texture": f"objects/{_surface_names(o.obj_id)[1]}"}}),
     }
+
+
+def _surface_names(obj_id: int) -> tuple[str, str]:
+    return f"obj_{obj_id:06d}_surface.ply", f"obj_{obj_id:06d}_texture.png"
 
 
 def set_files(objects: list[SetObject], firm_hold_tasks: tuple[str, ...] | None = None) -> dict[str, bytes]:
@@ -166,6 +179,9 @@ def set_files(objects: list[SetObject], firm_hold_tasks: tuple[str, ...] | None 
     text = {"models/models_info.json": {str(o.obj_id): _models_info(o) for o in objects}}
     for o in objects:
         text[f"objects/obj_{o.obj_id:06d}.json"] = _object_json(o)
+        if o.surface is not None:
+            mesh, tex = _surface_names(o.obj_id)
+            files[f"objects/{mesh}"], files[f"objects/{tex}"] = o.surface.ply(), o.surface.png()
     text[MANIFEST] = {
         "format": FORMAT, "version": VERSION,
         "units": "objects/*.json in SI units (m, kg); models/ in BOP's millimetres",
@@ -252,6 +268,16 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
     if not pieces or d["mass_kg"] <= 0 or d["density"] <= 0:
         raise DatasetError(f"{where}: needs a positive mass and density and at least one collision piece; "
                            "re-import the set")
+    surface = None
+    if "surface" in d:
+        ply, tex = root / d["surface"]["mesh"], root / d["surface"]["texture"]
+        for f in (ply, tex):
+            if not f.is_file():
+                raise DatasetError(f"object set file {f} is missing (the surface of {name}); re-import the set")
+        try:
+            surface = read_surface(ply.read_bytes(), tex.read_bytes())
+        except Exception as e:  # PIL and numpy raise many types on damaged files
+            raise DatasetError(f"{ply} or {tex.name} is damaged ({e}); re-import the set") from None
     up = d["upright"]
     quat, down = np.asarray(up["quat"], np.float64), np.asarray(up["down"], np.float64)
     if abs(np.linalg.norm(quat) - 1.0) > 1e-6 or np.abs(quat_to_R(quat) @ down - [0.0, 0.0, -1.0]).max() > 1e-6:
@@ -266,7 +292,7 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
         symmetries_discrete=tuple(mi.symmetries_discrete),
         symmetries_continuous=tuple((a / np.linalg.norm(a), c) for a, c in mi.symmetries_continuous),
         collision_volume_ratio=float(d.get("collision_volume_ratio", 1.0)), source=d.get("source", {}),
-        repairs=tuple(d.get("repairs", ())), warnings=tuple(d.get("warnings", ())))
+        repairs=tuple(d.get("repairs", ())), warnings=tuple(d.get("warnings", ())), surface=surface)
 
 
 def load_object_set(root: str | Path) -> ObjectSet:

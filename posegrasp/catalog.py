@@ -55,6 +55,8 @@ class PartType:
             (``R_table_obj @ upright_down = -z``).
         flat_top, flat_bottom: standing upright, is its top one flat face another object can stand on, and
             does its bottom rest flat on such a face (which pairs can stack)?
+        surface: ``posegrasp.surface.TexturedSurface`` (m, object frame) the object is drawn with, where its set
+            gives a texture or several colours; None: drawn as ``vertices``/``faces`` in one colour.
     """
 
     obj_id: int
@@ -73,6 +75,7 @@ class PartType:
     upright_quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     flat_top: bool = False
     flat_bottom: bool = False
+    surface: Any = None
 
 
 #: The former name of ``PartType``, kept so plug-ins written against it still import.
@@ -104,7 +107,8 @@ def _block(o: Any) -> PartType:
         collision=o.collision, diameter=o.diameter, extents=_frozen(o.extents), symmetries_discrete=tuple(disc),
         symmetries_continuous=tuple((_frozen(a), _frozen(c)) for a, c in o.symmetries_continuous),
         friction=tuple(o.friction), rgba=tuple(o.rgba), upright_down=_frozen(down / np.linalg.norm(down)),
-        upright_quat=tuple(o.upright_quat), flat_top=o.flat_top, flat_bottom=o.flat_bottom)
+        upright_quat=tuple(o.upright_quat), flat_top=o.flat_top, flat_bottom=o.flat_bottom,
+        surface=o.surface)
 
 
 @functools.lru_cache(maxsize=8)

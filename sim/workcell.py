@@ -51,15 +51,31 @@ def _element_T(elem) -> np.ndarray:
     return make_T(quat_to_R(quat), pos)
 
 
+def _add_surface(root: mjcf.RootElement, body, k: int, surface) -> None:
+    """Geom ``block_k_visual`` drawing a textured surface (``posegrasp.surface.TexturedSurface``, m) in white light."""
+    tex = root.asset.add("texture", name=f"block_{k}_texture", type="2d", file=mjcf.Asset(surface.png(), ".png"))
+    mat = root.asset.add("material", name=f"block_{k}_material", texture=tex, rgba=(1.0, 1.0, 1.0, 1.0))
+    uv = np.column_stack([surface.uv[:, 0], 1.0 - surface.uv[:, 1]])  # MuJoCo's v runs down the image
+    mesh = root.asset.add("mesh", name=f"block_{k}_surface", vertex=surface.vertices.ravel(),
+                          face=surface.faces.ravel(), texcoord=uv.ravel(), inertia="shell")
+    body.add("geom", name=f"block_{k}_visual", type="mesh", mesh=mesh, material=mat, mass=0, **_VISUAL)
+
+
 def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance) -> None:
-    """A free body ``block_k``: the visual mesh (exactly the PLY model) and the collision primitives."""
+    """A free body ``block_k``: the visual mesh (exactly the PLY model, or the part's textured surface where it
+    has one: then the model, carrying the mass, is hidden in the collision group) and the collision primitives."""
     b = inst.block
     mesh = root.asset.add("mesh", name=f"block_{k}_mesh", vertex=b.vertices.ravel(), face=b.faces.ravel())
     # parked apart, off the table, until placed: blocks compiled on top of each other and the arm overflow
     # the constraint solver's memory at the first forward pass (a scene of large hulls needed 1470 contacts)
     body = root.worldbody.add("body", name=f"block_{k}", pos=(0.0, PARKING_Y + PARKING_GAP * k, 0.5))
     body.add("freejoint", name=f"block_{k}_joint")
-    body.add("geom", name=f"block_{k}_visual", type="mesh", mesh=mesh, rgba=inst.rgba, mass=b.mass, **_VISUAL)
+    if b.surface is None:
+        body.add("geom", name=f"block_{k}_visual", type="mesh", mesh=mesh, rgba=inst.rgba, mass=b.mass, **_VISUAL)
+    else:
+        body.add("geom", name=f"block_{k}_solid", type="mesh", mesh=mesh, rgba=(0.5, 0.5, 0.5, 0.0), mass=b.mass,
+                 contype=0, conaffinity=0, group=_COLLISION_GROUP)
+        _add_surface(root, body, k, b.surface)
     for j, prim in enumerate(b.collision):
         kw = dict(name=f"block_{k}_col{j}", group=_COLLISION_GROUP, rgba=(0.5, 0.5, 0.5, 0.0), mass=0,
                   friction=(0.9, 0.01, 0.002), condim=6, pos=prim.get("pos", (0, 0, 0)),
