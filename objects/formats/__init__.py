@@ -10,43 +10,21 @@ looks, one colour or a textured surface (``posegrasp.surface``) in the same fram
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from posegrasp.errors import UserError
-from posegrasp.surface import TexturedSurface
+from posegrasp.objects.formats import meshfile, step, urdf
+from posegrasp.objects.formats.part import FORMATS, Part, check_file
 
-#: File types ``read_part`` reads (a BOP models folder is read by the importer).
-FORMATS = (".stl", ".obj", ".ply", ".glb", ".gltf", ".step", ".stp", ".urdf")
-
-
-@dataclass(frozen=True)
-class Part:
-    """A part as its file gives it: ``mesh`` (m, unprocessed), and its look: ``rgba`` when one colour says it,
-    ``surface`` (m, the mesh's frame) when it has a texture or several colours, neither when the file says none."""
-
-    mesh: trimesh.Trimesh
-    rgba: tuple[float, float, float, float] | None = None
-    surface: TexturedSurface | None = None
-
-
-def check_file(path: Path) -> None:
-    """Refuse a missing file or one of a type ``read_part`` does not read."""
-    if not path.is_file():
-        raise UserError(f"{path}: no such file")
-    if path.suffix.lower() not in FORMATS:
-        raise UserError(f"{path}: unknown mesh format {path.suffix or '(no suffix)'!r}; use STL, OBJ, PLY, GLB, "
-                        "GLTF, STEP or URDF (or a BOP models/ folder)")
+__all__ = ["FORMATS", "Part", "check_file", "read_part"]
 
 
 def read_part(path: Path, metres_per_unit: float, step_tolerance: tuple[float, float] = (1e-4, 0.5)) -> Part:
     """The part in ``path``, scaled to metres by ``metres_per_unit`` (``--unit`` times ``--scale``; a STEP file
     is in its own declared unit first). ``step_tolerance``: tessellation's (linear m, angular rad) deflection."""
-    from posegrasp.objects.formats import meshfile, step, urdf
-
     check_file(path)
     suffix = path.suffix.lower()
     if suffix in (".step", ".stp"):

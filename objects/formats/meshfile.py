@@ -15,7 +15,7 @@ import numpy as np
 import trimesh
 
 from posegrasp.errors import UserError
-from posegrasp.objects.formats import Part
+from posegrasp.objects.formats.part import Part
 from posegrasp.surface import TexturedSurface, baked, merged
 
 

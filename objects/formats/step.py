@@ -11,7 +11,8 @@ import tempfile
 from pathlib import Path
 
 from posegrasp.errors import UserError
-from posegrasp.objects.formats import Part, meshfile
+import posegrasp.objects.formats.meshfile as meshfile
+from posegrasp.objects.formats.part import Part
 
 
 def read(path: Path, linear: float, angular: float) -> Part:

@@ -13,7 +13,8 @@ import numpy as np
 import trimesh
 
 from posegrasp.errors import UserError
-from posegrasp.objects.formats import Part, check_file, meshfile
+import posegrasp.objects.formats.meshfile as meshfile
+from posegrasp.objects.formats.part import Part, check_file
 
 
 def _floats(text: str | None, n: int, default: float, where: str) -> np.ndarray:
