@@ -73,8 +73,9 @@ def test_readme_links_every_docs_page() -> None:
 
 
 def test_docs_stay_within_their_size() -> None:
-    size = sum(len(p.read_bytes()) for p in (ROOT / "docs").glob("*.md"))
-    assert size < 100 * 1024, f"docs/*.md hold {size} bytes; keep a user's reference (history: CHANGELOG.md)"
+    """The written pages, that is, all but the settings reference the generator writes from the code."""
+    size = sum(len(p.read_bytes()) for p in (ROOT / "docs").glob("*.md") if p.name != "settings.md")
+    assert size < 72 * 1024, f"docs/*.md hold {size} bytes; keep a user's reference (history: CHANGELOG.md)"
 
 
 _WORK_LOG = re.compile(r"this session|sessions so far|lent to|issue #?\d|\bcommit [0-9a-f]{7}|load average", re.I)
