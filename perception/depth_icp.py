@@ -48,7 +48,7 @@ class DepthIcpConfig:
     edge: float = 0.01
     #: Fewest pixels (px at 640x480) of a part; smaller blobs are dropped.
     min_px: int = 150
-    #: Slack (m) with which a model's bounding box must explain a blob's height and footprint to be fitted to it.
+    #: Slack (m) with which a model resting on one of its rests must match a blob's height and footprint to be fitted.
     size_tol: float = 0.008
     #: Chromaticity step between neighbouring pixels that cuts two parts apart (0: depth steps only).
     colour_edge: float = 0.1
