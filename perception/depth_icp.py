@@ -14,7 +14,8 @@ fitted by the depth refinement with every model of the set that can explain it.
    normal, exact ICP steps, yaw and pattern searches on the depth score), all pairs of a frame in one batch.
 5. Choice: per blob, the candidate with the lowest depth score + ``colour_weight`` |c_blob - c_model| (the blob's
    median chromaticity against the model's colour in the set, where a cell's parts have their set's colours); its
-   confidence is exp(-that / ``score_scale``).
+   confidence is exp(-that / ``score_scale``). Two fits of one model within ``duplicate`` of each other (a part cut
+   in two by a colour step across it) are one part.
 
 It reads nothing but the RGB-D frame, K and the object set's models, symmetries and colours. Points are camera-frame
 metres (OpenCV: x right, y down, z forward).
@@ -22,6 +23,7 @@ metres (OpenCV: x right, y down, z forward).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -57,6 +59,9 @@ class DepthIcpConfig:
     #: Weight (m) of the chromaticity distance between a blob and a model's colour in the object set in the choice of
     #: model; for cells whose parts have their set's colours (the trial scenes paint them from a palette: 0).
     colour_weight: float = 0.0
+    #: Distance (m) within which two fits of one model (to two pieces of a part cut apart) are one part: the more
+    #: confident stays.
+    duplicate: float = 0.01
     #: Confidence scale (m): confidence = exp(-(score + colour term) / score_scale).
     score_scale: float = 0.004
     #: Depth refinement of each blob's candidate models (``perception.refine``).
@@ -69,9 +74,9 @@ class DepthIcpConfig:
             raise ConfigError(f"depth_icp min_height ({self.min_height}), edge ({self.edge}), size_tol "
                               f"({self.size_tol}), colour_edge ({self.colour_edge}), min_brightness "
                               f"({self.min_brightness}) and colour_weight ({self.colour_weight}) must be >= 0")
-        if self.min_px < 1 or self.score_scale <= 0:
-            raise ConfigError(f"depth_icp min_px ({self.min_px}) must be >= 1 and score_scale ({self.score_scale}) "
-                              "positive")
+        if self.min_px < 1 or self.score_scale <= 0 or self.duplicate < 0:
+            raise ConfigError(f"depth_icp min_px ({self.min_px}) must be >= 1, score_scale ({self.score_scale}) "
+                              f"positive and duplicate ({self.duplicate}) >= 0")
         self.icp.validate()
 
 
@@ -175,7 +180,7 @@ class DepthIcp:
             mask.flat[idx] = True
             total = fits[j][1] + cfg.colour_weight * rows[j][4]
             out.append(DepthIcpDetection(rows[j][1].obj_id, fits[j][0], float(np.exp(-total / cfg.score_scale)), mask))
-        return out
+        return _distinct(out, cfg.duplicate)
 
     def _above(self, depth: np.ndarray, K: np.ndarray, plane: np.ndarray) -> np.ndarray:
         """Bool (H, W): the valid pixels standing more than ``min_height`` above ``plane``."""
@@ -223,3 +228,16 @@ class DepthIcp:
         return T, [p for p in self.parts if np.any((np.abs(p.sizes[:, 0] - height) <= tol) &
                                                     (span[0] <= p.sizes[:, 1] + tol) & (span[1] <= p.sizes[:, 2] + tol))]
 
+
+def _distinct(dets: list[DepthIcpDetection], within: float) -> list[DepthIcpDetection]:
+    """``dets`` less each one whose model a more confident one places within ``within`` (m) of it, its mask
+    joined to that one's."""
+    kept: list[DepthIcpDetection] = []
+    for d in sorted(dets, key=lambda d: -d.score):
+        k = next((i for i, e in enumerate(kept) if e.obj_id == d.obj_id and
+                  np.linalg.norm(e.T_cam_obj[:3, 3] - d.T_cam_obj[:3, 3]) < within), None)
+        if k is None:
+            kept.append(d)
+        else:
+            kept[k] = dataclasses.replace(kept[k], mask=kept[k].mask | d.mask)
+    return kept

@@ -28,9 +28,9 @@ from posegrasp.sim.workcell import HAND_CAMERA
 PICK_PLACE_DEPTH_ICP = (95, 100)
 
 
-def _look_frame(n_blocks: int, seed: int):
-    """The hand camera's capture of a settled scene from the look pose."""
-    scene = make_scene(n_blocks, seed)
+def _look_frame(seed: int, n_blocks: int):
+    """The hand camera's capture of a settled scene of ``n_blocks`` blocks from the look pose."""
+    scene = make_scene(seed, n_blocks)
     wc = scene.workcell
     assert wc.drive_arm(wc.look_q)
     mujoco.mj_forward(wc.model, wc.data)
