@@ -2,6 +2,7 @@
 
 - ``oracle`` and ``noisy-oracle[:TRANS_M,ROT_DEG]``: ``grasping.perception``;
 - ``model[:RUN]``: the learned network, ``grasping.model_provider``, imported (with torch) only when asked for;
+- ``depth-icp[:SETTINGS.toml]``: the training-free estimator of any object set, ``grasping.depth_icp_provider``;
 - ``bop-csv:RESULTS.csv``: a BOP results file's estimates for the campaign's captures, ``grasping.bop_csv``;
 - ``py:MODULE_OR_FILE:FACTORY[:ARGS]``: a plug-in, ``FACTORY(ARGS)`` of an importable module or a ``.py`` file;
 - ``NAME[:ARGS]`` registered by an installed package in the entry-point group ``posegrasp.perception``
@@ -36,6 +37,12 @@ def _model(args: str | None, objects: str) -> Provider:
     return from_spec(args, objects)
 
 
+def _depth_icp(args: str | None, objects: str) -> Provider:
+    from posegrasp.grasping.depth_icp_provider import from_spec
+
+    return from_spec(args, objects)
+
+
 def _bop_csv(args: str | None, objects: str) -> Provider:
     from posegrasp.grasping.bop_csv import from_spec
 
@@ -48,6 +55,7 @@ FACTORIES: dict[str, Callable[[str | None, str], Provider]] = {
     "oracle": lambda args, objects: oracle_from_spec(args),
     "noisy-oracle": lambda args, objects: noisy_oracle_from_spec(args),
     "model": _model,
+    "depth-icp": _depth_icp,
     "bop-csv": _bop_csv,
 }
 
@@ -75,8 +83,9 @@ def make_provider(spec: str, objects: str = "") -> Provider:
 
 def canonical_spec(spec: str) -> str:
     """``spec`` with a ``py:`` plug-in file's path made absolute, so that workers and later runs find it."""
-    if spec.startswith("bop-csv:") and spec[len("bop-csv:"):]:  # the results file's path absolute too
-        return "bop-csv:" + str(Path(spec[len("bop-csv:"):]).expanduser().resolve())
+    for name in ("bop-csv:", "depth-icp:"):  # the results or settings file's path absolute too
+        if spec.startswith(name) and spec[len(name):]:
+            return name + str(Path(spec[len(name):]).expanduser().resolve())
     if not spec.startswith("py:"):
         return spec
     target, factory, args = _plugin_parts(spec)

@@ -69,6 +69,8 @@ ROOTS: tuple[Root, ...] = (
          "Nested settings are dataclasses too: `EstimatorConfig(icp=RefineConfig(search=SearchConfig(pattern_rounds=0)))` "
          "([real camera](real_camera.md))."),
     Root("Grasp trials", "posegrasp.grasping.config:TrialConfig", "", "`posegrasp trials --config FILE`"),
+    Root("Training-free estimator", "posegrasp.perception.depth_icp:DepthIcpConfig", "depth_icp",
+         "`posegrasp trials --perception depth-icp:FILE`, table `[depth_icp]`"),
     Root("Object import", "posegrasp.objects.config:ImportConfig", "", "`posegrasp objects import --config FILE`"),
 )
 
