@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from posegrasp.arguments import in_dir, nonneg_int, number, out_dir, positive_int
 from posegrasp.config import load_toml, override
-from posegrasp.errors import DatasetError, UserError, WeightsError
+from posegrasp.errors import UserError, WeightsError
 
 if TYPE_CHECKING:
     from posegrasp.perception.training import StageTraining
@@ -98,6 +98,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def run_eval(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp eval``."""
+    from posegrasp.bop_check import require_valid
     from posegrasp.perception.evaluate import EvalConfig, evaluate
 
     cfg = load_toml(EvalConfig, args.config, section="eval")
@@ -108,26 +109,13 @@ def run_eval(args: argparse.Namespace) -> int:
                    plane=False if args.no_plane else None,
                    guided=False if args.no_guided else None, split_merged=False if args.no_split else None)
     out = args.out or out_dir("--weights")(str(args.weights / f"eval_{cfg.split}"))
-    check_ground_truth(args.data, cfg.split, cfg.max_images or None)
+    require_valid(args.data, cfg.split, cfg.max_images or None, scoring=True, progress=not args.no_progress)
     report = evaluate(args.data, args.weights, out, cfg, progress=not args.no_progress)
     summary = {"out": str(out), "segmentation": (report["segmentation"] or {}).get("mIoU"),
                **{k: report["overall"][k] for k in ("ADD-S_AUC", "ADD_AUC", "ADD(-S)_acc_0.1d")},
                "bop19": report["bop19"], "time_per_image_s": report["time_per_image_s"]}
     print(json.dumps(summary))
     return 0
-
-
-def check_ground_truth(data: Path, split: str, max_images: int | None) -> None:
-    """Refuse (DatasetError) a dataset whose labels ``dataset check`` would flag (schema, rotations, units,
-    object ids), before any scoring: a bad label would silently lower the score instead."""
-    from posegrasp.bop_check import check_dataset
-
-    if not (data / "models").is_dir():
-        raise DatasetError(f"--data {data} is not a BOP dataset (no models/ folder)")
-    report = check_dataset(data, split, max_images=max_images, max_problems=10, labels_only=True)
-    if report.problems:
-        raise DatasetError(f"--data {data}: {report.problems[0]} ({len(report.problems)} problem(s) in its models and "
-                           f"labels; 'posegrasp dataset check {data}' lists them)")
 
 
 def run_perturb(args: argparse.Namespace) -> int:

@@ -85,9 +85,7 @@ def label_map(rec: bop.ImageRecord, shape: tuple[int, int], num_classes: int | N
         if num_classes is not None and inst.obj_id >= num_classes:
             raise DatasetError(f"object id {inst.obj_id} in {rec.scene_dir} does not fit a model with "
                                f"{num_classes} classes")
-        p = rec.mask_path(inst.gt_index)
-        if p.exists():
-            lab[rec.load_mask(inst.gt_index)] = inst.obj_id
+        lab[rec.load_mask(inst.gt_index)] = inst.obj_id
     return lab
 
 

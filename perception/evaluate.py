@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -116,7 +117,7 @@ def _summary(rows: list[dict[str, Any]], diameter: float | None) -> dict[str, fl
     }
 
 
-def _plot_curves(path: Path, rows: list[dict[str, Any]], obj_ids: list[int]) -> None:
+def _curves_png(rows: list[dict[str, Any]], obj_ids: list[int]) -> bytes:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -145,7 +146,7 @@ def _plot_curves(path: Path, rows: list[dict[str, Any]], obj_ids: list[int]) -> 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
     plt.close(fig)
-    pio.write_bytes(path, buf.getvalue())
+    return buf.getvalue()
 
 
 def _csv_bytes(rows: list[dict[str, Any]], columns: list[str]) -> bytes:
@@ -237,22 +238,62 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
         report["segmentation"] = {"mPA": s["mPA"], "mIoU": s["mIoU"],
                                   "per_class": {str(c): {"PA": _f(s["pa"][c]), "IoU": _f(s["iou"][c])}
                                                 for c in range(nc)}}
-    out.mkdir(parents=True, exist_ok=True)
     cols = ["obj_id", "n", "detected", "ADD_AUC", "ADD-S_AUC", "ADD(-S)_AUC", "ADD-S_<2cm", "ADD(-S)_acc_0.1d",
             "mean_ADD", "mean_ADD-S", "median_re_sym_deg", "median_te"]
-    pio.write_bytes(out / "per_object.csv", _csv_bytes(
-        [{"obj_id": o, **per_object[o]} for o in obj_ids] + [{"obj_id": "all", **overall}], cols))
-    pio.write_bytes(out / "instances.csv", _csv_bytes(rows, ["scene_id", "im_id", "gt_index", "obj_id", "symmetric",
-                                                             "visib_fract", "detected", "score", "add", "adds",
-                                                             "add_or_adds", "re", "re_sym", "te"]))
-    _plot_curves(out / "curves.png", rows, obj_ids)
     scores = B.scores(groups, infos, bop.load_camera(data).width)
-    pio.write_json(out / "scores_bop19.json", pio.jsonable(scores, nan_to_null=True))
     report["bop19"] = {**{k: scores[k] for k in ("ar", "ar_vsd", "ar_mssd", "ar_mspd", "targets")},
                        "ar_by_visib": scores["by_visib"]}
-    bop_results.write_results_csv(out / f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv", results)
-    pio.write_json(out / "metrics.json", pio.jsonable(report, nan_to_null=True))
+    check_score_ranges(report, scores)
+    write_all(out, {
+        "per_object.csv": _csv_bytes([{"obj_id": o, **per_object[o]} for o in obj_ids] + [{"obj_id": "all", **overall}],
+                                     cols),
+        "instances.csv": _csv_bytes(rows, ["scene_id", "im_id", "gt_index", "obj_id", "symmetric", "visib_fract",
+                                           "detected", "score", "add", "adds", "add_or_adds", "re", "re_sym", "te"]),
+        "curves.png": _curves_png(rows, obj_ids),
+        "scores_bop19.json": (pio.dumps_json(pio.jsonable(scores, nan_to_null=True)) + "\n").encode(),
+        f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv": bop_results.results_csv(results),
+        "metrics.json": (pio.dumps_json(pio.jsonable(report, nan_to_null=True)) + "\n").encode()})
     return report
+
+
+#: Keys of eval's reports holding fractions in [0, 1] and percentages in [0, 100] (NaN: nothing to score).
+FRACTION_KEYS = frozenset({"ar", "ar_vsd", "ar_mssd", "ar_mspd"})
+PERCENT_KEYS = frozenset({"detected", "ADD_AUC", "ADD-S_AUC", "ADD(-S)_AUC", "ADD-S_<2cm", "ADD(-S)_acc_0.1d",
+                          "re_sym_<15deg_of_detected", "re_sym_<15deg", "re_sym_AUC_30deg", "mPA", "mIoU", "PA", "IoU"})
+
+
+def check_score_ranges(*reports: Any) -> None:
+    """Raise RuntimeError (an internal error: no file is written) if a score in ``reports`` (nested dicts and lists)
+    lies outside its range: ``FRACTION_KEYS`` in [0, 1], ``PERCENT_KEYS`` in [0, 100]."""
+    def walk(x: Any, where: str) -> None:
+        if isinstance(x, dict):
+            for k, v in x.items():
+                hi = 1.0 if k in FRACTION_KEYS else 100.0 if k in PERCENT_KEYS else None
+                if hi is not None and isinstance(v, (int, float)) and not (np.isnan(v) or 0.0 <= v <= hi):
+                    raise RuntimeError(f"internal error: score {where}{k} = {v} outside [0, {hi:g}]; nothing written")
+                walk(v, f"{where}{k}.")
+        elif isinstance(x, list):
+            for i, v in enumerate(x):
+                walk(v, f"{where}{i}.")
+    for r in reports:
+        walk(r, "")
+
+
+def write_all(out: Path, files: dict[str, bytes]) -> None:
+    """Write ``files`` (name -> bytes) into ``out`` all or none: each into a staging folder beside ``out`` (synced),
+    then renamed into ``out``, ``metrics.json`` last. A failed write (a full disk) leaves ``out`` as it was."""
+    import shutil
+    import tempfile
+
+    out.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        for name, data in files.items():
+            pio.write_bytes(stage / name, data)
+        for name in sorted(files, key=lambda n: n == "metrics.json"):
+            os.replace(stage / name, out / name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def _bop19_setup(data: Path, split: str, records: list[bop.ImageRecord], infos: dict[int, bop.ObjectInfo]

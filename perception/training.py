@@ -212,7 +212,9 @@ class StageTraining(ABC):
               seed: int | None = None, resume: bool = False, progress: bool = True) -> dict[str, Any]:
         """Train on ``data`` (BOP root) into run ``out``; ``steps`` and ``seed`` override the config. Returns the last
         logged metrics, the step and ``summary()``."""
-        data, run = Path(data), RunFolder(Path(out), cls.name, resume)
+        data = Path(data)
+        check_splits(data, cfg or cls.config(), progress)
+        run = RunFolder(Path(out), cls.name, resume)
         if cls.needs and not ckpt_mod.exists(run.out / cls.needs):
             raise WeightsError(f"{run.out / cls.needs} holds no {cls.needs} net: run 'train {cls.needs}' with --out "
                                f"{run.out} first")
@@ -312,6 +314,17 @@ def train_split(root: Path, split: str) -> str:
     if split:
         return split
     return "train_pbr" if split_exists(root, "train_pbr") else "train"
+
+
+def check_splits(data: Path, cfg: Any, progress: bool) -> None:
+    """Refuse (DatasetError) a training or validation split that ``dataset check`` would flag, before anything
+    is written or trained (``bop_check.require_valid``)."""
+    from posegrasp.bop_check import require_valid
+
+    for split in dict.fromkeys((train_split(data, cfg.train_split), cfg.val_split)):
+        if split == cfg.val_split and not split_exists(data, split):
+            continue
+        require_valid(data, split, progress=progress)
 
 
 def resumed_cfg(cls: type, prior: dict[str, Any] | None, cfg: Any, overrides: dict[str, Any]) -> Any:

@@ -18,7 +18,6 @@ codecs are in ``posegrasp.bop_images``, the models' meshes in ``posegrasp.bop_mo
 
 from __future__ import annotations
 
-import json
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,9 +25,10 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
+from posegrasp import bop_images, bop_schema
 from posegrasp import io as pio
 from posegrasp.bop_images import MM, depth_from_png
-from posegrasp.errors import DatasetError
+from posegrasp.errors import DatasetError, DatasetFileError
 
 TEST_TARGETS_FILE = "test_targets_bop19.json"
 MIN_TARGET_VISIB = 0.1  #: BOP 2019: instances less visible are no targets
@@ -166,7 +166,8 @@ class SceneCamera:
 
 @dataclass
 class ImageRecord:
-    """One image of a BOP split with its camera and annotations (all in metres)."""
+    """One image of a BOP split with its camera and annotations (all in metres); ``size`` (width, height) px is
+    camera.json's, which its images must have."""
 
     root: Path
     split: str
@@ -174,6 +175,7 @@ class ImageRecord:
     im_id: int
     camera: SceneCamera
     instances: list[GTInstance]
+    size: tuple[int, int] | None = None
 
     @property
     def scene_dir(self) -> Path:
@@ -195,35 +197,19 @@ class ImageRecord:
 
     def load_rgb(self) -> np.ndarray:
         """RGB uint8 (H, W, 3)."""
-        img = _read_image(self.rgb_path)
-        return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img
+        img = bop_images.read(self.rgb_path, "rgb", self.size)
+        return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img[..., :3]
 
     def load_depth(self) -> np.ndarray:
         """Depth float32 (H, W) in metres along the optical axis; 0 = no measurement."""
-        return depth_from_png(_read_image(self.depth_path), self.camera.depth_scale)
+        return depth_from_png(bop_images.read(self.depth_path, "depth", self.size), self.camera.depth_scale)
 
     def load_mask(self, gt_index: int, visible: bool = True) -> np.ndarray:
         """Boolean (H, W) mask of annotation ``gt_index``."""
-        return _read_image(self.mask_path(gt_index, visible)) > 0
+        return bop_images.read(self.mask_path(gt_index, visible), "mask", self.size) > 0
 
 
-def _read_image(path: Path) -> np.ndarray:
-    try:
-        return pio.read_image(path)
-    except OSError as e:
-        raise DatasetError(str(e)) from None
-
-
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"BOP file {path} does not exist") from None
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"BOP file {path} is not valid JSON: {e}") from None
-
-
-def pose_from_bop(R: list[float], t_mm: list[float]) -> np.ndarray:
+def pose_from_bop(R: list[float] | np.ndarray, t_mm: list[float] | np.ndarray) -> np.ndarray:
     """4x4 pose (m) from BOP's row-major rotation (9 values) and translation (mm)."""
     T = np.eye(4)
     T[:3, :3] = np.asarray(R, dtype=np.float64).reshape(3, 3)
@@ -231,59 +217,47 @@ def pose_from_bop(R: list[float], t_mm: list[float]) -> np.ndarray:
     return T
 
 
-# ---------------------------------------------------------------------------- readers
+# ---------------------------------------------------------------------------- readers (checked: ``bop_schema``)
+
+def _file(root_or_file: str | Path, default: Path) -> Path:
+    p = Path(root_or_file)
+    return p if p.suffix == ".json" else default
+
 
 def load_models_info(root_or_file: str | Path) -> dict[int, ObjectInfo]:
     """``models_info.json`` (given the dataset root or the file itself) -> {obj_id: ObjectInfo} (m)."""
-    p = Path(root_or_file)
-    data = _read_json(p if p.suffix == ".json" else models_info_path(p))
-    out: dict[int, ObjectInfo] = {}
-    for key, d in data.items():
-        disc = [np.asarray(s, dtype=np.float64).reshape(4, 4) for s in d.get("symmetries_discrete", [])]
+    out = {}
+    for oid, d in bop_schema.models_info(_file(root_or_file, models_info_path(root_or_file))).items():
+        disc = [s.copy() for s in d["symmetries_discrete"]]
         for s in disc:
             s[:3, 3] *= MM
-        cont = [(np.asarray(s["axis"], dtype=np.float64), np.asarray(s.get("offset", [0, 0, 0]), dtype=np.float64) * MM)
-                for s in d.get("symmetries_continuous", [])]
-        out[int(key)] = ObjectInfo(
-            obj_id=int(key), diameter=float(d["diameter"]) * MM,
-            min_xyz=np.array([d.get("min_x", 0.0), d.get("min_y", 0.0), d.get("min_z", 0.0)]) * MM,
-            size_xyz=np.array([d.get("size_x", 0.0), d.get("size_y", 0.0), d.get("size_z", 0.0)]) * MM,
-            symmetries_discrete=disc, symmetries_continuous=cont)
-    return dict(sorted(out.items()))
+        out[oid] = ObjectInfo(obj_id=oid, diameter=d["diameter"] * MM, min_xyz=d["min"] * MM, size_xyz=d["size"] * MM,
+                              symmetries_discrete=disc,
+                              symmetries_continuous=[(a, o * MM) for a, o in d["symmetries_continuous"]])
+    return out
 
 
 def load_camera(root_or_file: str | Path) -> Camera:
     """``camera.json`` (given the dataset root or the file) -> Camera."""
-    p = Path(root_or_file)
-    d = _read_json(p if p.suffix == ".json" else camera_path(p))
-    K = np.array([[d["fx"], 0.0, d["cx"]], [0.0, d["fy"], d["cy"]], [0.0, 0.0, 1.0]])
-    return Camera(width=int(d["width"]), height=int(d["height"]), K=K, depth_scale=float(d.get("depth_scale", 1.0)))
+    d = bop_schema.camera(_file(root_or_file, camera_path(root_or_file)))
+    return Camera(width=d["width"], height=d["height"], K=d["K"], depth_scale=d["depth_scale"])
 
 
 def load_scene_gt(path: str | Path) -> dict[int, list[tuple[int, np.ndarray]]]:
     """``scene_gt.json`` -> {im_id: [(obj_id, T_cam_obj 4x4 m), ...]} in annotation order."""
-    return {int(k): [(int(g["obj_id"]), pose_from_bop(g["cam_R_m2c"], g["cam_t_m2c"])) for g in v]
-            for k, v in _read_json(Path(path)).items()}
+    return {im: [(o, pose_from_bop(R, t)) for o, R, t in v] for im, v in bop_schema.scene_gt(path).items()}
 
 
 def load_scene_camera(path: str | Path) -> dict[int, SceneCamera]:
     """``scene_camera.json`` -> {im_id: SceneCamera} (T_cam_world in m when present)."""
-    out = {}
-    for k, v in _read_json(Path(path)).items():
-        T = pose_from_bop(v["cam_R_w2c"], v["cam_t_w2c"]) if "cam_R_w2c" in v and "cam_t_w2c" in v else None
-        out[int(k)] = SceneCamera(K=np.asarray(v["cam_K"], dtype=np.float64).reshape(3, 3),
-                                  depth_scale=float(v.get("depth_scale", 1.0)), T_cam_world=T)
-    return out
+    return {im: SceneCamera(K=v["K"], depth_scale=v["depth_scale"],
+                            T_cam_world=None if v["R_w2c"] is None else pose_from_bop(v["R_w2c"], v["t_w2c"]))
+            for im, v in bop_schema.scene_camera(path).items()}
 
 
 def load_scene_gt_info(path: str | Path) -> dict[int, list[GTInfo]]:
     """``scene_gt_info.json`` -> {im_id: [GTInfo, ...]} in annotation order."""
-    return {int(k): [GTInfo(bbox_obj=tuple(int(x) for x in g["bbox_obj"]),
-                            bbox_visib=tuple(int(x) for x in g["bbox_visib"]),
-                            px_count_all=int(g["px_count_all"]), px_count_valid=int(g["px_count_valid"]),
-                            px_count_visib=int(g["px_count_visib"]), visib_fract=float(g["visib_fract"]))
-                     for g in v]
-            for k, v in _read_json(Path(path)).items()}
+    return {im: [GTInfo(**g) for g in v] for im, v in bop_schema.scene_gt_info(path).items()}
 
 
 def list_scenes(root: str | Path, split: str) -> list[int]:
@@ -295,21 +269,33 @@ def list_scenes(root: str | Path, split: str) -> list[int]:
 
 
 def iter_scene_images(root: str | Path, split: str, scene_ids: Iterable[int] | None = None) -> Iterator[ImageRecord]:
-    """Every image of a split, scene by scene, with its camera and ground truth (m).
+    """Every image of a split, scene by scene, with its camera and ground truth (m), each file checked
+    (``bop_schema``) and against the others: ``scene_gt.json`` and ``scene_gt_info.json`` annotate images of
+    ``scene_camera.json``, the same number of objects each. The images' size is camera.json's.
 
     ``scene_gt.json`` and ``scene_gt_info.json`` are optional (test images without annotations).
     """
     root = Path(root)
+    cam = load_camera(root)
     for sid in (list_scenes(root, split) if scene_ids is None else scene_ids):
         sd = scene_dir(root, split, sid)
         cams = load_scene_camera(sd / "scene_camera.json")
         gts = load_scene_gt(sd / "scene_gt.json") if (sd / "scene_gt.json").exists() else {}
-        infos = load_scene_gt_info(sd / "scene_gt_info.json") if (sd / "scene_gt_info.json").exists() else {}
+        infos = load_scene_gt_info(sd / "scene_gt_info.json") if (sd / "scene_gt_info.json").exists() else None
+        for name, ims in (("scene_gt.json", gts), ("scene_gt_info.json", infos or {})):
+            if extra := sorted(set(ims) - set(cams)):
+                raise DatasetFileError(f"{sd / name}: image {extra[0]}: expected images of scene_camera.json "
+                                       f"(it has no image {extra[0]})")
         for im_id in sorted(cams):
-            gi = infos.get(im_id, [])
-            inst = [GTInstance(obj_id=o, T_cam_obj=T, gt_index=i, info=gi[i] if i < len(gi) else None)
-                    for i, (o, T) in enumerate(gts.get(im_id, []))]
-            yield ImageRecord(root=root, split=split, scene_id=sid, im_id=im_id, camera=cams[im_id], instances=inst)
+            gi = None if infos is None else infos.get(im_id, [])
+            gt = gts.get(im_id, [])
+            if gi is not None and len(gi) != len(gt):
+                raise DatasetFileError(f"{sd / 'scene_gt_info.json'}: im {im_id}: expected {len(gt)} entries as in "
+                                       f"scene_gt.json, got {len(gi)}")
+            inst = [GTInstance(obj_id=o, T_cam_obj=T, gt_index=i, info=None if gi is None else gi[i])
+                    for i, (o, T) in enumerate(gt)]
+            yield ImageRecord(root=root, split=split, scene_id=sid, im_id=im_id, camera=cams[im_id], instances=inst,
+                              size=(cam.width, cam.height))
 
 
 # ---------------------------------------------------------------------------- writers
@@ -436,11 +422,4 @@ def write_test_targets(root: str | Path, targets: Iterable[EvalTarget]) -> Path:
 def load_test_targets(root: str | Path) -> list[EvalTarget] | None:
     """``<root>/test_targets_bop19.json`` as EvalTargets, or None when the dataset has no such file."""
     p = targets_path(root)
-    if not p.is_file():
-        return None
-    rows = _read_json(p)
-    try:
-        return [EvalTarget(int(r["scene_id"]), int(r["im_id"]), int(r["obj_id"]), int(r["inst_count"])) for r in rows]
-    except (KeyError, TypeError, ValueError) as e:
-        raise DatasetError(f"BOP file {p}: each entry needs integer scene_id, im_id, obj_id, inst_count "
-                           f"({e})") from None
+    return [EvalTarget(*t) for t in bop_schema.targets(p)] if p.exists() else None

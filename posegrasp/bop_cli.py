@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from posegrasp.arguments import nonneg_int, number, out_file, positive_int
@@ -12,7 +13,8 @@ from posegrasp.errors import DatasetError, UserError
 def register(sub: argparse._SubParsersAction) -> None:
     d = sub.add_parser("dataset", help="check or draw a BOP dataset")
     dsub = d.add_subparsers(dest="dataset_command", required=True, parser_class=type(d))
-    c = dsub.add_parser("check", help="validate a BOP dataset and print a summary (exit 1 when invalid)")
+    c = dsub.add_parser("check", help="validate a BOP dataset and print a summary (exit 1 when invalid, with the "
+                        "first problem on stderr)")
     c.add_argument("dir", help="dataset root (holding models/, camera.json and split folders)")
     c.add_argument("--split", default=None, help="only this split (default: every split found)")
     c.add_argument("--depth-tol-mm", type=number("--depth-tol-mm", 0, open_lo=True), default=5.0,
@@ -34,6 +36,9 @@ def run_check(args: argparse.Namespace) -> int:
 
     report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images, progress=True)
     print_report(report, args.dir)
+    if not report.ok:
+        print(f"posegrasp: error: {args.dir}: {len(report.problems)} problem(s), the first: {report.problems[0]}",
+              file=sys.stderr)
     return 0 if report.ok else 1
 
 

@@ -1,4 +1,5 @@
-"""A BOP dataset's images: depth PNG values to and from metres, and the bytes of colour, depth and mask PNGs.
+"""A BOP dataset's images: read and checked against the camera (``read``), depth PNG values to and from metres,
+and the bytes of colour, depth and mask PNGs.
 
 Depth PNGs hold uint16 values; a value times the camera's ``depth_scale`` is millimetres.
 """
@@ -8,7 +9,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from pathlib import Path
+
 from posegrasp import io as pio
+from posegrasp.errors import DatasetFileError
 
 MM = 1e-3  # metres per millimetre
 #: PNG settings, the fastest (and smallest) measured for each kind: unfiltered rows for noisy depth, plus
@@ -49,3 +53,43 @@ def encode_depth(depth_m: np.ndarray, depth_scale: float = 1.0) -> bytes:
 def encode_mask(mask: np.ndarray) -> bytes:
     """A boolean mask as BOP mask PNG bytes (0/255, 8-bit)."""
     return pio.encode_image(".png", np.asarray(mask, bool).view(np.uint8) * np.uint8(255), _PNG_MASK)
+
+
+_PNG_SIGNATURE, _JPEG_SIGNATURE = b"\x89PNG\r\n\x1a\n", b"\xff\xd8"
+#: What each kind of image must be: (dtype, allowed channel counts, words for the message).
+_KINDS = {"rgb": (np.uint8, (1, 3, 4), "an 8-bit colour (or grey) PNG/JPEG"),
+          "depth": (np.uint16, (1,), "a 16-bit single-channel PNG (value x depth_scale = mm)"),
+          "mask": (np.uint8, (1,), "an 8-bit single-channel PNG")}
+
+
+def read(path: str | Path, kind: str, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Image ``path`` as stored (RGB (H, W, 3) or (H, W) uint8, depth (H, W) uint16), checked: a whole PNG or JPEG
+    (not truncated), of ``kind`` (``rgb``, ``depth`` or ``mask``: dtype and channels as ``_KINDS``), ``size``
+    (width, height) px when given, a depth image with some measurement, a mask not covering every pixel.
+    ``DatasetFileError`` naming the file and what was expected otherwise."""
+    import cv2
+
+    path = Path(path)
+    dtype, channels, what = _KINDS[kind]
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetFileError(f"{path}: expected {what} (it does not exist)") from None
+    except OSError as e:
+        raise DatasetFileError(f"{path}: expected a readable {what} ({e.strerror})") from None
+    whole = (data.startswith(_PNG_SIGNATURE) and b"IEND" in data[-12:]) or \
+            (data.startswith(_JPEG_SIGNATURE) and data.rstrip(b"\0").endswith(b"\xff\xd9"))
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if whole else None
+    if img is None:
+        raise DatasetFileError(f"{path}: expected {what}, got a truncated or corrupt file ({len(data)} bytes)")
+    c = 1 if img.ndim == 2 else img.shape[2]
+    if img.dtype != dtype or c not in channels:
+        got = f"{img.dtype.itemsize * 8}-bit, {c} channel{'s' if c > 1 else ''}"
+        raise DatasetFileError(f"{path}: expected {what}, got {got}")
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        raise DatasetFileError(f"{path}: expected {size[0]}x{size[1]} px as camera.json, got {img.shape[1]}x{img.shape[0]}")
+    if kind == "depth" and not img.any():
+        raise DatasetFileError(f"{path}: expected depth measurements, got an image of zeros")
+    if kind == "mask" and img.all():
+        raise DatasetFileError(f"{path}: expected a mask of one object, got every pixel set")
+    return img[..., :3][..., ::-1].copy() if c > 1 else img

@@ -7,20 +7,34 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp.bop import MM, model_path
-from posegrasp.errors import DatasetError
+from posegrasp.bop_schema import MAX_MM
+from posegrasp.errors import DatasetFileError
 
 
 def load_model(root_or_file: str | Path, obj_id: int | None = None):
-    """A model PLY (mm) as a ``trimesh.Trimesh`` in metres; pass the dataset root and obj_id, or a file."""
+    """A model PLY (mm) as a ``trimesh.Trimesh`` in metres; pass the dataset root and obj_id, or a file.
+
+    ``DatasetFileError`` unless it is a triangle mesh with finite vertices, within ``bop_schema.MAX_MM`` of its
+    origin and not flat to a point, whose faces index its vertices."""
     import trimesh
 
     p = model_path(root_or_file, obj_id) if obj_id is not None else Path(root_or_file)
-    if not p.exists():
-        raise DatasetError(f"model file {p} does not exist")
+    if not p.is_file():
+        raise DatasetFileError(f"{p}: expected a PLY model (it does not exist)")
     try:
         mesh = trimesh.load(p, force="mesh", process=False)
     except Exception as e:  # trimesh raises many types on corrupt files
-        raise DatasetError(f"cannot read model {p}: {e}") from None
+        raise DatasetFileError(f"{p}: expected a PLY triangle mesh, got an unreadable file "
+                               f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+    v, f = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3)))), np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
+    if not len(f):
+        raise DatasetFileError(f"{p}: expected a triangle mesh, got {len(v)} vertices and no faces")
+    if not np.isfinite(v).all() or np.abs(v).max() > MAX_MM:
+        raise DatasetFileError(f"{p}: expected finite vertices within {MAX_MM:g} mm of the origin")
+    if f.min() < 0 or f.max() >= len(v):
+        raise DatasetFileError(f"{p}: expected faces indexing its {len(v)} vertices")
+    if not np.ptp(v, axis=0).max() > 0:
+        raise DatasetFileError(f"{p}: expected a mesh with extent, got all vertices at one point")
     mesh.apply_scale(MM)
     return mesh
 

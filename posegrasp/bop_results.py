@@ -30,8 +30,8 @@ class PoseResult:
     time: float = -1.0
 
 
-def write_results_csv(path: str | Path, results: Iterable[PoseResult]) -> Path:
-    """Write BOP results: ``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm, space-separated.
+def results_csv(results: Iterable[PoseResult]) -> bytes:
+    """BOP results as CSV bytes: ``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm, space-separated.
     Lossless: R and the score as the shortest decimals that read back as the same floats, t as those of the
     metres with the decimal point moved (``read_results_csv`` gives back the very same poses)."""
     buf = io.StringIO()
@@ -42,7 +42,12 @@ def write_results_csv(path: str | Path, results: Iterable[PoseResult]) -> Path:
         w.writerow([r.scene_id, r.im_id, r.obj_id, repr(float(r.score)),
                     " ".join(repr(x) for x in T[:3, :3].ravel().tolist()),
                     " ".join(format(Decimal(repr(x)).scaleb(3), "f") for x in T[:3, 3].tolist()), f"{r.time:.6f}"])
-    return pio.write_bytes(path, buf.getvalue().encode())
+    return buf.getvalue().encode()
+
+
+def write_results_csv(path: str | Path, results: Iterable[PoseResult]) -> Path:
+    """Atomically write BOP results (``results_csv``)."""
+    return pio.write_bytes(path, results_csv(results))
 
 
 def read_results_csv(path: str | Path) -> list[PoseResult]:

@@ -29,6 +29,11 @@ class DatasetError(UserError):
     a trials run folder."""
 
 
+class DatasetFileError(DatasetError):
+    """One file of a BOP dataset is missing, unreadable, or holds a value of the wrong shape, type or range, or one
+    that disagrees with another file: the one-line message names the file, the key and what was expected."""
+
+
 class WeightsError(UserError):
     """Trained network weights are missing, corrupt, or do not match the model or the run they are used with."""
 

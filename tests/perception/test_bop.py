@@ -72,5 +72,5 @@ def test_missing_files_are_user_errors(tmp_path):
     with pytest.raises(UserError, match="does not exist"):
         list(bop.iter_scene_images(tmp_path, "test"))
     (tmp_path / "camera.json").write_text("{not json")
-    with pytest.raises(UserError, match="not valid JSON"):
+    with pytest.raises(UserError, match="camera.json: expected valid JSON"):
         bop.load_camera(tmp_path)
