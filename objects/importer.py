@@ -136,7 +136,7 @@ def _given_symmetries(src: Source, offset: np.ndarray) -> Symmetries | None:
 def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -> SetObject:
     """One object of a set from ``src``, with id ``obj_id``."""
     solid = centred(read_mesh(src.path, src.unit), UNITS[src.unit], str(src.path), src.unit,
-                    cfg.max_hole_fraction, (cfg.min_size, cfg.max_size))
+                    cfg.max_hole_fraction, (cfg.min_size, cfg.max_size), cfg.remesh_cells)
     mesh = solid.mesh
     props = mass_properties(mesh, cfg.density)
     tol = cfg.sym_tol_rel * props.diameter
@@ -162,7 +162,8 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
         source={"file": src.path.name, "unit": src.unit, "scale": solid.scale,
                 "offset": (np.round(solid.offset, 9) + 0.0).tolist(),
                 "symmetries": "found" if given is None else f"{src.models_info.name} (obj_id {src.bop_id})"},
-        repairs=solid.repairs, warnings=tuple(warnings))
+        repairs=solid.repairs, volume_change=solid.volume_change if solid.repairs else 0.0,
+        warnings=tuple(warnings))
 
 
 def import_objects(srcs: list[Source], cfg: ImportConfig, cell: Workcell,
