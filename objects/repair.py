@@ -35,7 +35,7 @@ class Repaired:
     """A repaired solid (m), what was done to it, and its volume over the input's.
 
     ``volume_change``: ``V_solid / V_input - 1``, where ``V_input`` is the signed volume of the cleaned, outward
-    input surface (holes count as closed by cones to the origin; overlaps count twice).
+    input surface with its holes closed where they could be (overlapping bodies count twice).
     ``surface``: the cleaned input surface when the solid was remeshed (for rendering), else None.
     """
 
@@ -173,10 +173,12 @@ def winding_numbers(mesh: trimesh.Trimesh, points: np.ndarray, chunk: int = 2_00
 
 
 def faces_inside_out(mesh: trimesh.Trimesh, samples: int = 256, seed: int = 0) -> float:
-    """Fraction of up to ``samples`` triangles (seeded choice) not facing from inside (w > 1/2) to outside: a
+    """Fraction of up to ``samples`` triangles (fewer on large meshes: the cost is samples x triangles; a seeded
+    choice) not facing from inside (w > 1/2) to outside: a
     self-intersection, an overlap or an inner shell shows as triangles with the solid on both sides or neither."""
     rng = np.random.default_rng(seed)
-    idx = rng.choice(len(mesh.faces), min(samples, len(mesh.faces)), replace=False)
+    n = int(np.clip(4_000_000 // len(mesh.faces), 16, samples))
+    idx = rng.choice(len(mesh.faces), min(n, len(mesh.faces)), replace=False)
     eps = 1e-4 * float(np.linalg.norm(mesh.extents))
     c, n = mesh.triangles_center[idx], mesh.face_normals[idx]
     w = winding_numbers(mesh, np.concatenate([c - eps * n, c + eps * n]))
@@ -266,8 +268,9 @@ def repair(mesh: trimesh.Trimesh, name: str, max_hole_fraction: float, remesh_ce
                         "needed")
     was_consistent = mesh.is_winding_consistent
     body_flips = _outward(mesh)
-    v_in = abs(float(mesh.volume))
-    local = _local(mesh, name, max_hole_fraction)
+    closed = close_holes(mesh, name, max_hole_fraction)
+    v_in = abs(float((closed[0] if closed is not None else mesh).volume))
+    local = _local(mesh, closed)
     if local is not None:
         solid, steps = local
         if not was_consistent:
@@ -296,16 +299,13 @@ def _outward(mesh: trimesh.Trimesh) -> int:
     return sum(v < 0 for v in before) if mesh.is_winding_consistent else 0
 
 
-def _local(mesh: trimesh.Trimesh, name: str, max_hole_fraction: float) -> tuple[trimesh.Trimesh, list[str]] | None:
-    """The local repair of an outward mesh: holes closed, overlapping bodies united; None when the result is not
-    a clean manifold solid."""
-    steps = []
-    closed = close_holes(mesh, name, max_hole_fraction)
+def _local(mesh: trimesh.Trimesh, closed: tuple[trimesh.Trimesh, int] | None) -> tuple[trimesh.Trimesh, list[str]] | None:
+    """The local repair of an outward mesh whose holes ``close_holes`` closed: overlapping bodies united; None when
+    the result is not a clean manifold solid."""
     if closed is None:
         return None
     mesh, holes = closed
-    if holes:
-        steps.append(f"closed {_plural(holes, 'hole')}")
+    steps = [f"closed {_plural(holes, 'hole')}"] if holes else []
     mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
     if not (mesh.is_watertight and mesh.is_winding_consistent) or mesh.volume <= 0:
         return None
