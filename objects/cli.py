@@ -58,6 +58,8 @@ def run_import(args: argparse.Namespace) -> int:
                      f"{n} collision piece{'s' if n != 1 else ''} covering {o.collision_volume_ratio:.3f} of its "
                      f"volume ({seconds:.1f} s)")
         lines.extend(f"  repaired: {r}" for r in o.repairs)
+        if o.repairs:
+            lines.append(f"  volume change by the repairs: {100 * o.volume_change:+.2f} %")
         lines.extend(f"  warning: {w}" for w in o.warnings)
         bar.advance(task)
 

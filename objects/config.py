@@ -24,6 +24,8 @@ class ImportConfig:
     step_angular_tolerance: float = field(default=0.5, metadata=within(0.01, 1.5))
     #: Largest hole patch closed, a fraction of the surface area; a larger opening is refused.
     max_hole_fraction: float = field(default=0.25, metadata=within(0.0, 1.0))
+    #: Cells across the bounding-box diagonal of the watertight remesh of a mesh local repairs cannot close.
+    remesh_cells: int = field(default=64, metadata=within(16, 256))
     #: Smallest bounding-box diagonal (m); smaller means the declared unit is wrong.
     min_size: float = 0.005
     #: Largest bounding-box diagonal (m); larger means the declared unit is wrong.

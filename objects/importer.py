@@ -149,7 +149,7 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
     scale = src.scale * (1.0 if step else UNITS[src.unit])
     part = read_part(src.path, scale, (cfg.step_linear_tolerance, cfg.step_angular_tolerance))
     solid = centred(part.mesh, scale, str(src.path), "m" if step else src.unit, cfg.max_hole_fraction,
-                    (cfg.min_size, cfg.max_size))
+                    (cfg.min_size, cfg.max_size), cfg.remesh_cells)
     mesh = solid.mesh
     props = mass_properties(mesh, cfg.density)
     tol = cfg.sym_tol_rel * props.diameter
@@ -177,7 +177,8 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
         source={"file": src.path.name, "unit": "m" if step else src.unit, "scale": solid.scale,
                 "offset": (np.round(solid.offset, 9) + 0.0).tolist(),
                 "symmetries": "found" if given is None else f"{src.models_info.name} (obj_id {src.bop_id})"},
-        repairs=solid.repairs, warnings=tuple(warnings))
+        repairs=solid.repairs, volume_change=solid.volume_change if solid.repairs else 0.0,
+        warnings=tuple(warnings))
 
 
 def import_objects(srcs: list[Source], cfg: ImportConfig, cell: Workcell,

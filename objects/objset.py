@@ -66,6 +66,7 @@ class SetObject:
         source: Where it came from: ``file``, ``unit``, ``scale`` and ``offset`` (``v_obj = v_file * scale +
             offset``, m), ``symmetries`` ("found" or the models_info.json they were taken from).
         repairs: What the import repaired, in words.
+        volume_change: The repaired model's volume over the input surface's, minus 1 (0 when nothing was repaired).
         warnings: How the object does not suit the workcell, in words (empty when it does).
         surface: The textured surface (m, object frame) it is drawn with, where one colour (``rgba``, then white)
             does not say how it looks; None draws the model in ``rgba``.
@@ -94,6 +95,7 @@ class SetObject:
     repairs: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
     surface: TexturedSurface | None = None
+    volume_change: float = 0.0
 
     @property
     def volume(self) -> float:
@@ -186,7 +188,8 @@ def set_files(objects: list[SetObject], firm_hold_tasks: tuple[str, ...] | None 
         "format": FORMAT, "version": VERSION,
         "units": "objects/*.json in SI units (m, kg); models/ in BOP's millimetres",
         "frame": "origin at the centre of each model's bounding box",
-        "objects": [{"obj_id": o.obj_id, "name": o.name, "file": f"objects/obj_{o.obj_id:06d}.json"}
+        "objects": [{"obj_id": o.obj_id, "name": o.name, "file": f"objects/obj_{o.obj_id:06d}.json",
+                     **({"repairs": list(o.repairs), "volume_change": _r(o.volume_change, 6)} if o.repairs else {})}
                     for o in objects]}
     if firm_hold_tasks is not None:
         text[MANIFEST]["firm_hold_tasks"] = list(firm_hold_tasks)
@@ -292,7 +295,8 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
         symmetries_discrete=tuple(mi.symmetries_discrete),
         symmetries_continuous=tuple((a / np.linalg.norm(a), c) for a, c in mi.symmetries_continuous),
         collision_volume_ratio=float(d.get("collision_volume_ratio", 1.0)), source=d.get("source", {}),
-        repairs=tuple(d.get("repairs", ())), warnings=tuple(d.get("warnings", ())), surface=surface)
+        repairs=tuple(d.get("repairs", ())), warnings=tuple(d.get("warnings", ())), surface=surface,
+        volume_change=float(entry.get("volume_change", 0.0)))
 
 
 def load_object_set(root: str | Path) -> ObjectSet:

@@ -35,9 +35,7 @@ def read_part(path: Path, metres_per_unit: float, step_tolerance: tuple[float, f
         part = meshfile.read(path)
     if len(part.mesh.faces) == 0:
         raise UserError(f"{path}: the file holds no triangles (empty mesh or a point cloud)")
-    v = np.asarray(part.mesh.vertices, np.float64)
-    if not np.isfinite(v).all():
-        raise UserError(f"{path}: some vertex coordinates are NaN or infinite")
+    v = np.asarray(part.mesh.vertices, np.float64)  # NaN vertices are the repair's to drop (``objects.repair``)
     surface = None if part.surface is None else part.surface.moved(metres_per_unit)
     return Part(trimesh.Trimesh(v * metres_per_unit, np.asarray(part.mesh.faces, np.int64), process=False),
                 part.rgba, surface)
