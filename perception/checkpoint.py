@@ -74,7 +74,7 @@ def save(ckpt: Path, stage: str, model: nn.Module, model_cfg: Any, train_cfg: An
     tmp.mkdir(parents=True)
     step = str(int(state.get("step", 0)))
     sd = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    pio.write_bytes(tmp / "model.safetensors", st_save(sd, metadata={"format": FORMAT, "stage": stage, "step": step}))
+    pio.write_bytes(tmp / "model.safetensors", safetensors_bytes(sd, {"format": FORMAT, "stage": stage, "step": step}))
     if optimizer is not None:
         pio.write_bytes(tmp / "optimizer.safetensors", _optimizer_bytes(optimizer, step))
     pio.write_json(tmp / "config.json", {"format": FORMAT, "version": VERSION, "stage": stage,
@@ -102,7 +102,20 @@ def _optimizer_bytes(opt: torch.optim.Optimizer, step: str) -> bytes:
                 scalars.setdefault(str(pid), {})[k] = v
     meta = {"format": FORMAT, "step": step, "param_groups": json.dumps(sd["param_groups"]),
             "scalars": json.dumps(scalars)}
-    return st_save(tensors, metadata=meta)
+    return safetensors_bytes(tensors, meta)
+
+
+def safetensors_bytes(tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> bytes:
+    """The safetensors file of ``tensors`` and ``metadata``, the same bytes for the same content: the header's
+    metadata keys sorted (safetensors writes them in a per-process hash order; the tensors it already orders by
+    dtype and name)."""
+    data = st_save(tensors, metadata=metadata)
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8:8 + n])
+    header["__metadata__"] = dict(sorted(header.get("__metadata__", {}).items()))
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)  # the tensor data stays 8-byte aligned
+    return len(text).to_bytes(8, "little") + text + data[8 + n:]
 
 
 def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
