@@ -236,10 +236,25 @@ def perturb_run(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...] 
     """A deliberately degraded copy of the run ``src`` in ``dst``: every learned parameter tensor W of the
     given stages (not scalars such as the attention gammas, not batch-norm statistics) gets Gaussian
     noise of standard deviation ``rel_sigma * std(W)`` (seeded); other stages are copied as they are.
-    For sensitivity studies: how much worse does grasping get with a worse model?"""
+    For sensitivity studies: how much worse does grasping get with a worse model? ``dst`` appears complete or not
+    at all."""
     if rel_sigma < 0:
         raise UserError(f"rel_sigma (--rel-sigma) must be >= 0, got {rel_sigma}")
     src, dst = Path(src), Path(dst)
+    tmp = dst.with_name(f".{dst.name}.tmp")  # built beside dst, renamed to it when complete
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        _perturb_into(src, tmp, rel_sigma, stages, seed)
+        if dst.is_dir() and not any(dst.iterdir()):
+            dst.rmdir()
+        os.replace(tmp, dst)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return dst
+
+
+def _perturb_into(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...], seed: int) -> None:
     gen = torch.Generator().manual_seed(seed)
     for stage in STAGES:
         ckpt = resolve(src / stage)
@@ -256,4 +271,3 @@ def perturb_run(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...] 
         save(dst / stage, stage, model, model_cfg, None, state)
         if train_cfg is not None:  # keep the training settings the weights came from
             pio.write_json(dst / stage / "config.json", {**read_config(dst / stage), "train": train_cfg})
-    return dst

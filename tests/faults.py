@@ -18,9 +18,9 @@ import pytest
 from helpers import cli
 
 #: Per file name, the keys holding wall-clock time (documented as such): left out when runs are compared.
-WALL_CLOCK_KEYS = {"state.json": ("elapsed_s",), "summary.json": ("wall",)}
-#: Per file name suffix, CSV columns of wall-clock time.
-WALL_CLOCK_COLUMNS = {"_metrics.csv": ("time_s",)}
+WALL_CLOCK_KEYS = {"state.json": ("elapsed_s",), "summary.json": ("wall",), "metrics.json": ("time_per_image_s",)}
+#: Per file name suffix, CSV columns of wall-clock time (training metrics, BOP results).
+WALL_CLOCK_COLUMNS = {".csv": ("time_s", "time")}
 #: Files holding wall-clock times only.
 WALL_CLOCK_FILES = ("timings.jsonl",)
 
@@ -108,9 +108,9 @@ def _without(obj, keys: tuple[str, ...]):
     return {k: v for k, v in obj.items() if k not in keys} if isinstance(obj, dict) else obj
 
 
-def comparable(path: Path) -> bytes:
-    """A file's bytes with its documented wall-clock fields left out."""
-    data = path.read_bytes()
+def comparable(path: Path, root: Path) -> bytes:
+    """A file's bytes with its documented wall-clock fields left out, and ``root`` (where the run was) as ``ROOT``."""
+    data = path.read_bytes().replace(str(root).encode(), b"ROOT")
     if path.name in WALL_CLOCK_FILES:
         return b""
     if path.name in WALL_CLOCK_KEYS:
@@ -124,7 +124,7 @@ def comparable(path: Path) -> bytes:
 
 def tree(root: Path) -> dict[str, bytes]:
     """Every file under ``root`` (relative path -> ``comparable`` bytes)."""
-    return {str(p.relative_to(root)): comparable(p) for p in sorted(root.rglob("*")) if p.is_file()}
+    return {str(p.relative_to(root)): comparable(p, root) for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 def assert_same_tree(got: Path, want: Path) -> None:

@@ -84,6 +84,7 @@ def full_disk_then_resume(case: Case, disk, ref: Path) -> None:
     r = run_cli(*case.args, cwd=ref)
     assert r.returncode == 0, r.stderr
     wrote = pages_kib(ref) - before
+    disk.resize(200 * 1024)
     case.prepare(disk.root)
     disk.resize(pages_kib(disk.root) + int(case.fraction * wrote) // 4 * 4 + 4)
     filler = disk.root / ".filler"  # a page, so that even a 0 KiB room is a non-zero tmpfs size
