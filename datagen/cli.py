@@ -39,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--objects", default=None,
                    help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(run=run_datagen)
+    p.set_defaults(run=run_datagen, resume_hint="run the same command again to resume")
 
 
 def load_config(args: argparse.Namespace):

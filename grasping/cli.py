@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--captures-only", action="store_true",
                    help="with --export-captures: only drive to the looks and capture, no grasps (no --out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(run=run_trials_cmd)
+    p.set_defaults(run=run_trials_cmd, resume_hint="run the same command again to resume")
 
     c = sub.add_parser("calibrate", help="hand-eye calibration of the hand camera with a ChArUco board")
     c.add_argument("--out", required=True, type=out_file("--out", (".json",)), help="output JSON file with T_gripper_cam")

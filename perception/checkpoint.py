@@ -74,7 +74,7 @@ def save(ckpt: Path, stage: str, model: nn.Module, model_cfg: Any, train_cfg: An
     tmp.mkdir(parents=True)
     step = str(int(state.get("step", 0)))
     sd = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    pio.write_bytes(tmp / "model.safetensors", st_save(sd, metadata={"format": FORMAT, "stage": stage, "step": step}))
+    pio.write_bytes(tmp / "model.safetensors", safetensors_bytes(sd, {"format": FORMAT, "stage": stage, "step": step}))
     if optimizer is not None:
         pio.write_bytes(tmp / "optimizer.safetensors", _optimizer_bytes(optimizer, step))
     pio.write_json(tmp / "config.json", {"format": FORMAT, "version": VERSION, "stage": stage,
@@ -102,7 +102,20 @@ def _optimizer_bytes(opt: torch.optim.Optimizer, step: str) -> bytes:
                 scalars.setdefault(str(pid), {})[k] = v
     meta = {"format": FORMAT, "step": step, "param_groups": json.dumps(sd["param_groups"]),
             "scalars": json.dumps(scalars)}
-    return st_save(tensors, metadata=meta)
+    return safetensors_bytes(tensors, meta)
+
+
+def safetensors_bytes(tensors: dict[str, torch.Tensor], metadata: dict[str, str]) -> bytes:
+    """The safetensors file of ``tensors`` and ``metadata``, the same bytes for the same content: the header's
+    metadata keys sorted (safetensors writes them in a per-process hash order; the tensors it already orders by
+    dtype and name)."""
+    data = st_save(tensors, metadata=metadata)
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8:8 + n])
+    header["__metadata__"] = dict(sorted(header.get("__metadata__", {}).items()))
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)  # the tensor data stays 8-byte aligned
+    return len(text).to_bytes(8, "little") + text + data[8 + n:]
 
 
 def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
@@ -223,10 +236,25 @@ def perturb_run(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...] 
     """A deliberately degraded copy of the run ``src`` in ``dst``: every learned parameter tensor W of the
     given stages (not scalars such as the attention gammas, not batch-norm statistics) gets Gaussian
     noise of standard deviation ``rel_sigma * std(W)`` (seeded); other stages are copied as they are.
-    For sensitivity studies: how much worse does grasping get with a worse model?"""
+    For sensitivity studies: how much worse does grasping get with a worse model? ``dst`` appears complete or not
+    at all."""
     if rel_sigma < 0:
         raise UserError(f"rel_sigma (--rel-sigma) must be >= 0, got {rel_sigma}")
     src, dst = Path(src), Path(dst)
+    tmp = dst.with_name(f".{dst.name}.tmp")  # built beside dst, renamed to it when complete
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        _perturb_into(src, tmp, rel_sigma, stages, seed)
+        if dst.is_dir() and not any(dst.iterdir()):
+            dst.rmdir()
+        os.replace(tmp, dst)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return dst
+
+
+def _perturb_into(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...], seed: int) -> None:
     gen = torch.Generator().manual_seed(seed)
     for stage in STAGES:
         ckpt = resolve(src / stage)
@@ -243,4 +271,3 @@ def perturb_run(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...] 
         save(dst / stage, stage, model, model_cfg, None, state)
         if train_cfg is not None:  # keep the training settings the weights came from
             pio.write_json(dst / stage / "config.json", {**read_config(dst / stage), "train": train_cfg})
-    return dst

@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue the checkpoint in RUN/<stage>")
     p.add_argument("--init", type=Path, help="seg, pose and cls: start from these weights (a run or its stage folder)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(run=run_train)
+    p.set_defaults(run=run_train, resume_hint="run the same command with --resume to continue")
 
     e = subparsers.add_parser("eval", help="evaluate a trained run on a BOP split",
                               description="mPA/mIoU, ADD, ADD-S, AUC, accuracies, curves, BOP results CSV.")

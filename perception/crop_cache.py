@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,8 @@ def write_crop_cache(path: Path, key: dict, crops: list[np.ndarray], labels: lis
     atomically, the ``.json`` last; returns them as ``read_crop_cache`` does."""
     def fill(tmp: Path) -> None:
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(len(crops), *crops[0].shape))
+        with open(tmp, "r+b") as f:  # the disk space taken now: a full disk is an OSError here, not a SIGBUS later
+            os.posix_fallocate(f.fileno(), 0, os.fstat(f.fileno()).st_size)
         for i, x in enumerate(crops):
             out[i] = x
         out.flush()

@@ -13,8 +13,11 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+import signal
+import threading
 import time
 from abc import ABC, abstractmethod
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Iterator
@@ -256,42 +259,73 @@ def loop(run: RunFolder, total: int, start: int, step_fn: Callable[[int], dict[s
          save: Callable[[int], None], cfg: Any, log: MetricsLog, progress: bool, state: dict[str, Any]
          ) -> dict[str, float]:
     """Run steps start..total-1, log every ``cfg.log_every`` (and after evaluations: keys of
-    ``after_step``'s dict starting with ``val_``), checkpoint every ``cfg.checkpoint_every``, at the
-    end and on Ctrl-C."""
-    acc: dict[str, list[float]] = {}
+    ``after_step``'s dict starting with ``val_``), checkpoint every ``cfg.checkpoint_every`` and at the end.
+
+    Ctrl-C lets the current step finish, checkpoints it and raises ``KeyboardInterrupt`` (a second Ctrl-C stops at
+    once, keeping the last checkpoint). A checkpoint holds the values not yet logged (``state["pending"]``), so a
+    resumed run logs the rows, and ends with the files, of an uninterrupted one."""
+    acc: dict[str, list[float]] = state.pop("pending", {})
     last: dict[str, float] = {}
     t0 = time.perf_counter() - float(state.get("elapsed_s", 0.0))
     step = start
 
     def checkpoint(step: int) -> None:
         state["elapsed_s"] = round(time.perf_counter() - t0, 3)
-        save(step)
-
-    with _progress(progress) as bar:
-        task = bar.add_task(run.stage, total=total, completed=start, loss="-", extra="")
+        if acc:
+            state["pending"] = acc
         try:
-            while step < total:
-                values = step_fn(step)
-                if not all(math.isfinite(v) for v in values.values()):
-                    raise UserError(f"{run.stage} training diverged at step {step}: {values}")
-                step += 1
-                for k, v in values.items():
-                    acc.setdefault(k, []).append(v)
-                extra = after_step(step, values)
-                evaluated = any(k.startswith("val_") for k in extra)
-                if step % cfg.log_every == 0 or step == total or evaluated:
-                    last = {k: float(np.mean(v)) for k, v in acc.items()}
-                    acc = {}
-                    log.write(step=step, time_s=round(time.perf_counter() - t0, 3), **last, **extra)
-                    shown = " ".join(f"{k} {v:.4g}" for k, v in extra.items() if isinstance(v, float))
-                    bar.update(task, loss=f"{last.get('loss', float('nan')):.4f}", extra=shown)
-                if step % cfg.checkpoint_every == 0 or step == total:
-                    checkpoint(step)
-                bar.update(task, completed=step)
-        except KeyboardInterrupt:
-            checkpoint(step)
-            raise
+            save(step)
+        finally:
+            state.pop("pending", None)
+
+    with _progress(progress) as bar, stop_at_step_end() as stop:
+        task = bar.add_task(run.stage, total=total, completed=start, loss="-", extra="")
+        while step < total:
+            values = step_fn(step)
+            if not all(math.isfinite(v) for v in values.values()):
+                raise UserError(f"{run.stage} training diverged at step {step}: {values}")
+            step += 1
+            for k, v in values.items():
+                acc.setdefault(k, []).append(v)
+            extra = after_step(step, values)
+            evaluated = any(k.startswith("val_") for k in extra)
+            if step % cfg.log_every == 0 or step == total or evaluated:
+                last = {k: float(np.mean(v)) for k, v in acc.items()}
+                acc = {}
+                log.write(step=step, time_s=round(time.perf_counter() - t0, 3), **last, **extra)
+                shown = " ".join(f"{k} {v:.4g}" for k, v in extra.items() if isinstance(v, float))
+                bar.update(task, loss=f"{last.get('loss', float('nan')):.4f}", extra=shown)
+            if step % cfg.checkpoint_every == 0 or step == total or stop.requested:
+                checkpoint(step)
+            bar.update(task, completed=step)
+            if stop.requested and step < total:
+                raise KeyboardInterrupt
     return last
+
+
+class _StopRequest:
+    requested = False
+
+
+@contextmanager
+def stop_at_step_end() -> Iterator[_StopRequest]:
+    """Inside the block, a first SIGINT (Ctrl-C) only sets ``requested``, for the loop to stop at a step's end; a
+    second one raises ``KeyboardInterrupt`` at once. Outside the main thread nothing is caught."""
+    stop = _StopRequest()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        if stop.requested:
+            raise KeyboardInterrupt
+        stop.requested = True
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield stop
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def build_model(stage: str, build: Callable[[Any], torch.nn.Module], model_cfg: Any) -> torch.nn.Module:

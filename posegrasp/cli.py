@@ -12,7 +12,11 @@ import os
 import sys
 
 from posegrasp.arguments import positive_int, workers_arg  # noqa: F401  (option types, re-exported)
-from posegrasp.errors import UserError
+from posegrasp.errors import NoSpaceError, UserError
+from posegrasp.io import is_no_space
+
+#: Exit status of a full disk (``EX_IOERR`` of sysexits.h); bad input exits 2, Ctrl-C 130.
+EXIT_NO_SPACE = 74
 
 
 #: Modules that register subcommands, in the order they appear in ``--help``.
@@ -44,15 +48,33 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    args = None
     try:
         args = build_parser().parse_args(argv)
         return int(args.run(args) or 0)
     except UserError as e:
         print(f"posegrasp: error: {e}", file=sys.stderr)
         return 2
+    except NoSpaceError as e:
+        print(f"posegrasp: error: {e}", file=sys.stderr)
+        return EXIT_NO_SPACE
+    except OSError as e:  # a full disk met outside the writers that name their folder
+        if not is_no_space(e):
+            raise
+        print(f"posegrasp: error: {NoSpaceError(_written_folder(e, args))}", file=sys.stderr)
+        return EXIT_NO_SPACE
     except KeyboardInterrupt:
-        print("posegrasp: interrupted", file=sys.stderr)
+        hint = getattr(args, "resume_hint", None)
+        print("posegrasp: interrupted" + (f"; {hint}" if hint else ""), file=sys.stderr)
         return 130
+
+
+def _written_folder(e: OSError, args: argparse.Namespace | None) -> str:
+    """The folder a failed write went to: the error's file's folder, else the command's output."""
+    if e.filename:
+        return os.path.dirname(os.path.abspath(e.filename))
+    out = getattr(args, "out", None) or getattr(args, "dir", None)
+    return str(out) if out else os.getcwd()
 
 
 if __name__ == "__main__":

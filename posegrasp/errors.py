@@ -2,6 +2,7 @@
 
 A ``UserError`` (and its kinds ``ConfigError``, ``DatasetError``, ``WeightsError``, ``ProviderError``) is bad
 input: the ``posegrasp`` command prints its one-line message and exits with status 2, without a traceback. A
+``NoSpaceError`` is a full disk: the command prints its one line and exits with status 74. A
 ``SimulationError`` or ``PerceptionError`` ends one trial episode, which records it as its failure. A function
 called with arguments outside its documented contract (a programming error, not input) raises the builtin
 ``ValueError``.
@@ -40,6 +41,17 @@ class WeightsError(UserError):
 
 class ProviderError(UserError):
     """A ``--perception`` spec names no provider, or its plugin fails to load or to build."""
+
+
+class NoSpaceError(PosegraspError):
+    """A write found the disk full (or the user's quota spent) in ``folder``; what it was writing was not kept."""
+
+    def __init__(self, folder: str):
+        super().__init__(folder)
+        self.folder = folder
+
+    def __str__(self) -> str:
+        return f"no space left on {self.folder}"
 
 
 class SimulationError(PosegraspError, RuntimeError):

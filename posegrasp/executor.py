@@ -5,7 +5,9 @@ Results come back keyed by task index, so they never depend on how many workers 
 their results to the caller, which alone writes files: a worker needs no access to the output folder (a Ray
 node needs no shared filesystem), and a worker whose parent is gone has nothing to write. Pool workers also
 die with their parent, whatever kills it (``die_with_parent``). Inside a ``with`` block an executor keeps its
-workers between ``imap`` calls: a trial campaign's warm pool also re-simulates the frames of its report.
+workers between ``imap`` calls: a trial campaign's warm pool also re-simulates the frames of its report. Ctrl-C
+(SIGINT to the whole process group) reaches the parent alone: pool workers ignore it, and the parent ends them
+when it stops, so no worker prints a traceback.
 """
 
 from __future__ import annotations
@@ -57,8 +59,10 @@ class SerialExecutor(_NothingToKeep):
 
 
 def die_with_parent(parent: int) -> None:
-    """Pool worker initializer: the kernel sends this process SIGKILL when ``parent`` dies (Linux
-    ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing is set); a parent already gone ends it at once."""
+    """Pool worker initializer: SIGINT ignored (the parent handles Ctrl-C), and the kernel sends this process SIGKILL
+    when ``parent`` dies (Linux ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing is set); a parent already gone ends it
+    at once."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if not sys.platform.startswith("linux"):
         return
     libc = ctypes.CDLL(None, use_errno=True)
@@ -105,9 +109,12 @@ class PoolExecutor:
         try:
             for fut in as_completed(futures):
                 yield futures[fut], fut.result()
-        except BaseException:
+        except BaseException as e:
             for f in futures:
                 f.cancel()
+            if isinstance(e, KeyboardInterrupt):  # stop now, not after the tasks running: their results are unwanted
+                for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                    proc.kill()
             raise
 
 

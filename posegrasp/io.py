@@ -1,15 +1,42 @@
-"""Files on disk: atomic writes (a killed run never leaves a partial file behind), JSON, and images."""
+"""Files on disk: atomic writes (a killed run never leaves a partial file behind), JSON, and images.
+
+A full disk (``ENOSPC``, or ``EDQUOT`` for a spent quota) while writing raises ``NoSpaceError`` naming the folder;
+the partial file is removed, so nothing half-written is ever read back as a result.
+"""
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
+
+from posegrasp.errors import NoSpaceError
+
+#: ``errno`` values of a full disk: no space left on the device, or the user's disk quota exceeded.
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+def is_no_space(e: BaseException) -> bool:
+    """Whether ``e`` is an ``OSError`` saying the disk (or the quota) is full."""
+    return isinstance(e, OSError) and e.errno in NO_SPACE
+
+
+@contextmanager
+def writing_into(folder: str | Path) -> Iterator[None]:
+    """Inside the block, a full disk raises ``NoSpaceError`` naming ``folder``."""
+    try:
+        yield
+    except OSError as e:
+        if is_no_space(e):
+            raise NoSpaceError(str(folder)) from None
+        raise
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None], fsync: bool = True) -> Path:
@@ -19,20 +46,21 @@ def atomic_write(path: str | Path, write: Callable[[Path], None], fsync: bool = 
     new one); without it, a killed process still never leaves a partial file.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        write(tmp_path)
-        os.chmod(tmp_path, 0o644)  # mkstemp creates 0600 files
-        if fsync:
-            with open(tmp_path, "rb+") as f:
-                os.fsync(f.fileno())
-        os.replace(tmp_path, path)
-    except BaseException:
-        tmp_path.unlink(missing_ok=True)
-        raise
+    with writing_into(path.parent):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+        tmp_path = Path(tmp)
+        try:
+            write(tmp_path)
+            os.chmod(tmp_path, 0o644)  # mkstemp creates 0600 files
+            if fsync:
+                with open(tmp_path, "rb+") as f:
+                    os.fsync(f.fileno())
+            os.replace(tmp_path, path)
+        except BaseException:
+            tmp_path.unlink(missing_ok=True)
+            raise
     return path
 
 
