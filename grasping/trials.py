@@ -64,7 +64,8 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     perceive there, as a BOP test split (``grasping.captures``)."""
     cfg, mount = campaign_settings(episodes, cfg)
     perception = canonical_spec(perception)  # a plug-in file's path absolute, for the workers and the record
-    check_rows(make_provider(perception, cfg.scene.workcell.objects), episodes, cfg.task)  # before any work starts
+    check_rows(make_provider(perception, cfg.scene.workcell.objects, cfg.perception_timeout_s), episodes,
+               cfg.task)  # before any work starts
     console = console or Console(stderr=True)
     # Ray connects in make_executor, before anything is written; the pool's workers stay for the report's frames
     out = Path(out).absolute()  # a provider changing the working directory cannot move the run's files
