@@ -49,7 +49,7 @@ class SegTrainConfig(StageConfig):
     #: Cross-entropy weight of the background class (objects 1).
     background_weight: float = 1.0
     #: Steps between evaluations on the validation split.
-    eval_every: int = field(default=2000, metadata=within(1, 100000000))
+    eval_every: int = field(default=2000, metadata=within(0, 100000000))
     #: Validation images per evaluation.
     eval_images: int = field(default=50, metadata=within(0, 1000000))
     #: A seg checkpoint (or a run holding `seg/`) to fine-tune, with a fresh optimizer; empty: from scratch.

@@ -50,7 +50,7 @@ class StageConfig:
     #: Steps between checkpoints (a killed run resumes from the last).
     checkpoint_every: int = field(default=500, metadata=within(1, 100000000))
     #: Steps between evaluations on the validation split.
-    eval_every: int = field(default=1000, metadata=within(1, 100000000))
+    eval_every: int = field(default=1000, metadata=within(0, 100000000))
     #: Seed of the batches and augmentations.
     seed: int = field(default=0, metadata=within(0, 9223372036854775807))
     #: Torch CPU threads.
