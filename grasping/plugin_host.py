@@ -4,8 +4,8 @@ A ``py:`` or installed provider (``grasping.provider_registry``) is imported, bu
 child process (``IsolatedProvider``): one that calls ``os._exit`` or ``sys.exit``, crashes (a segfault), changes the
 working directory or hangs fails the capture it was asked for (``PerceptionError``) or, at import and factory,
 the campaign's start (``ProviderError``), with one line naming the provider, and the next capture gets a fresh
-process. Loading (import and factory) and every ``estimate`` call get ``TrialConfig.perception_timeout_s`` wall
-seconds each (0: no limit); past it the child is killed. Estimates come back as ``Estimate``s; what the plug-in
+process. The plug-in's loading (its import and factory, once its process runs) and every ``estimate`` call get
+``TrialConfig.perception_timeout_s`` wall seconds each (0: no limit); past it the child is killed. Estimates come back as ``Estimate``s; what the plug-in
 returned is checked in the child (``checked_estimates``), so its own classes never cross the process boundary.
 """
 
@@ -29,6 +29,7 @@ def _host(conn: Connection, spec: str, objects: str, parent: int) -> None:
 
     die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the campaign's to handle
+    conn.send(("ready", None))  # posegrasp is loaded: the plug-in's own time starts
     try:
         provider = _plugin(spec, objects)
     except ProviderError as e:
@@ -67,6 +68,10 @@ def _death(proc: Any) -> str:
     return f"exited with status {code}"
 
 
+#: Wall seconds a plug-in's process may take to start and load posegrasp, before the plug-in's own time starts.
+READY_TIMEOUT_S = 300.0
+
+
 class IsolatedProvider:
     """A plug-in provider ``spec`` for the object set ``objects``, living in a child process (see the module's
     docstring); ``timeout_s`` (None or 0: no limit) bounds loading and each ``estimate``."""
@@ -86,7 +91,8 @@ class IsolatedProvider:
         proc.start()
         child.close()
         try:
-            kind, value = self._answer(conn, proc)
+            self._answer(conn, proc, READY_TIMEOUT_S)
+            kind, value = self._answer(conn, proc, self.timeout_s)
         except _Gone as e:
             raise ProviderError(f"perception {self.spec!r}: loading it (import and factory) {e}") from None
         if kind != "ok":
@@ -95,11 +101,13 @@ class IsolatedProvider:
         self._proc, self._conn = proc, conn
         return value
 
-    def _answer(self, conn: Connection, proc: Any) -> tuple[str, Any]:
-        """The child's next message; ``_Gone`` (the child killed when it ran out of time) if none comes."""
-        if not conn.poll(self.timeout_s or None):
+    @staticmethod
+    def _answer(conn: Connection, proc: Any, timeout_s: float | None) -> tuple[str, Any]:
+        """The child's next message within ``timeout_s`` (None or 0: no limit); ``_Gone`` if none comes (the child
+        killed when it ran out of time)."""
+        if not conn.poll(timeout_s or None):
             _kill(proc)
-            raise _Gone(f"did not finish within {self.timeout_s:g} s (TrialConfig.perception_timeout_s)")
+            raise _Gone(f"did not finish within {timeout_s:g} s (TrialConfig.perception_timeout_s)")
         try:
             return conn.recv()
         except (EOFError, OSError):
@@ -115,7 +123,7 @@ class IsolatedProvider:
                 raise PerceptionError(f"could not be restarted: {e}") from None
         try:
             self._conn.send((obs, seed))
-            kind, value = self._answer(self._conn, self._proc)
+            kind, value = self._answer(self._conn, self._proc, self.timeout_s)
         except _Gone as e:
             self._stop()
             raise PerceptionError(f"{e} in estimate") from None

@@ -164,14 +164,14 @@ class EpisodeRecord:
 
 
 def check_outcome(data: dict, where: str) -> None:
-    """A one-line UserError unless ``data`` (a record or attempt) has ``outcome`` "success" or "failure" and a
-    ``failure`` that is None or one of ``Failure``'s reasons (set whenever the outcome is "failure")."""
+    """A one-line UserError unless ``data`` (a record) has ``outcome`` "success" or "failure" and a ``failure``
+    that is None or one of ``Failure``'s reasons."""
     outcome, failure = data.get("outcome"), data.get("failure")
     if outcome not in ("success", "failure"):
         raise UserError(f"{where}: outcome = {json.dumps(outcome)[:40]} is not \"success\" or \"failure\"")
-    if failure not in {f.value for f in Failure} | ({None} if outcome == "success" else set()):
-        raise UserError(f"{where}: failure = {json.dumps(failure)[:40]} is not one of the failure reasons "
-                        f"({', '.join(f.value for f in Failure)})" + (" (the outcome is \"failure\")" if failure is None else ""))
+    if failure is not None and failure not in {f.value for f in Failure}:
+        raise UserError(f"{where}: failure = {json.dumps(failure)[:40]} is not null or one of the failure reasons "
+                        f"({', '.join(f.value for f in Failure)})")
 
 
 def _target(data: object, where: str) -> Target | FalseTarget | None:

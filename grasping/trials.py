@@ -71,11 +71,12 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     out = Path(out).absolute()  # a provider changing the working directory cannot move the run's files
     with folder_lock(out, owns=(CAMPAIGN, EPISODES)), open_export(export, seed, cfg) as captures, \
             make_executor(workers) as executor:
-        done = {i: rec for i, (rec, _) in read_episodes(out / EPISODES).items()}
+        done = read_records(out / EPISODES)
         check_kept(out, done, episodes)
         if not done:  # a campaign binds once it has an episode: settings of a failed start are replaced
             (out / CAMPAIGN).unlink(missing_ok=True)
         check_campaign(out, Campaign(seed, perception, cfg, mount))
+        read_episodes(out / EPISODES)  # every finished record well-formed, or a one-line error naming its line
         write_records(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
         timings = read_records(out / TIMINGS)
         write_records(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
