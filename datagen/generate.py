@@ -159,7 +159,8 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
     check_capacity(cfg)
     root = Path(out)
     c = cfg.workcell.hand_camera
-    with folder_lock(root, owns=(f"*/{SETTINGS_FILE}",)):  # a split's settings, written first, mark our datasets
+    # a split's settings, written first (or their temporary file, of a run killed meanwhile), mark our datasets
+    with folder_lock(root, owns=(f"*/{SETTINGS_FILE}", f"*/.{SETTINGS_FILE}.*.tmp")):
         todo = [s for s in range(scenes) if not is_complete(root, split, s)]
         if isinstance(workers, int) or workers is None:  # no idle worker processes
             workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))

@@ -58,10 +58,17 @@ def _created(folder: Path) -> list[Path]:
     return made
 
 
+def _holds_a_file(p: Path) -> bool:
+    """Is ``p`` a file, or a folder with a file somewhere inside?"""
+    return not p.is_dir() or any(not q.is_dir() for q in p.rglob("*"))
+
+
 def check_owned(folder: Path, owns: tuple[str, ...]) -> None:
-    """A one-line UserError if ``folder`` holds anything (besides a lock file) but nothing matching the glob
-    patterns ``owns`` (the files the command writing it leaves): a folder it did not create."""
-    entries = sorted(p.name for p in folder.iterdir() if p.name != LOCK_FILE) if folder.is_dir() else []
+    """A one-line UserError if ``folder`` holds a file (besides a lock file; empty folders do not count) but
+    nothing matching the glob patterns ``owns`` (the files the command writing it leaves): a folder it did not
+    create."""
+    entries = sorted(p.name for p in folder.iterdir() if p.name != LOCK_FILE and _holds_a_file(p)) \
+        if folder.is_dir() else []
     if entries and not any(next(folder.glob(pattern), None) is not None for pattern in owns):
         shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
         raise UserError(f"{folder} is not empty ({shown}) and was not written by this command (it has none of "
