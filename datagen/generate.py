@@ -166,11 +166,15 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
             workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
         executor = make_executor(workers)  # Ray connects here, before anything is written
         ext = rgb_extension(cfg, split)
-        check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
-                        {"seed": seed, "views": views, "rgb_format": ext, "config": recorded_config(cfg)},
-                        binding=has_scenes(root, split))
-        prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), cfg.depth_scale),
-                     cfg.workcell.objects)
+        steps = [lambda: check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
+                                        {"seed": seed, "views": views, "rgb_format": ext, "config": recorded_config(cfg)},
+                                        binding=has_scenes(root, split)),
+                 lambda: prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg),
+                                                       cfg.depth_scale), cfg.workcell.objects)]
+        # a new dataset's settings go first (they mark the folder as ours); a dataset with scenes checks its object
+        # set and camera first (the more telling refusal)
+        for step in steps[::-1] if has_scenes(root) else steps:
+            step()
         for tmp in bop.split_dir(root, split).glob(".*.tmp"):  # leftovers of a killed write
             tmp.unlink()
         jobs = [SceneJob(split, s, seed, views, cfg) for s in todo]

@@ -15,23 +15,27 @@ import multiprocessing as mp
 import os
 import signal
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, Callable
 
 from posegrasp.errors import PerceptionError, ProviderError
 
 
-def _host(conn: Connection, spec: str, objects: str, parent: int) -> None:
-    """The child's loop: build the provider, report its name (or why it cannot be built), then answer each
-    ``(obs, seed)`` with ``("ok", estimates)`` or ``("error", what went wrong)``."""
+def _why(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
+def _host(conn: Connection, build: Callable[[str, str], Any], spec: str, objects: str, parent: int) -> None:
+    """The child's loop: ``build(spec, objects)`` the provider, report its name (or why it cannot be built), then
+    answer each ``(obs, seed)`` with ``("ok", estimates)`` or ``("error", what went wrong)``."""
     from posegrasp.executor import die_with_parent
     from posegrasp.grasping.perception import checked_estimates
-    from posegrasp.grasping.provider_registry import _plugin, _why
 
     die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the campaign's to handle
     conn.send(("ready", None))  # posegrasp is loaded: the plug-in's own time starts
     try:
-        provider = _plugin(spec, objects)
+        provider = build(spec, objects)
     except ProviderError as e:
         conn.send(("error", str(e)))
         return
@@ -49,8 +53,7 @@ def _host(conn: Connection, spec: str, objects: str, parent: int) -> None:
         except PerceptionError as e:
             answer = ("error", str(e).strip())
         except BaseException as e:  # anything the plug-in raises, SystemExit included, fails this capture only
-            text = " ".join(str(e).split()) or "(no message)"
-            answer = ("error", f"raised {type(e).__name__}: {text[:200]}")
+            answer = ("error", f"raised {_why(e)[:200]}")
         conn.send(answer)
 
 
@@ -73,11 +76,12 @@ READY_TIMEOUT_S = 300.0
 
 
 class IsolatedProvider:
-    """A plug-in provider ``spec`` for the object set ``objects``, living in a child process (see the module's
-    docstring); ``timeout_s`` (None or 0: no limit) bounds loading and each ``estimate``."""
+    """A plug-in provider ``spec`` for the object set ``objects``, built by ``build(spec, objects)`` (a module-level
+    function) in a child process (see the module's docstring); ``timeout_s`` (None or 0: no limit) bounds loading
+    and each ``estimate``."""
 
-    def __init__(self, spec: str, objects: str, timeout_s: float | None):
-        self.spec, self.objects, self.timeout_s = spec, objects, timeout_s
+    def __init__(self, spec: str, objects: str, timeout_s: float | None, build: Callable[[str, str], Any]):
+        self.spec, self.objects, self.timeout_s, self.build = spec, objects, timeout_s, build
         self._proc: Any = None
         self._conn: Connection | None = None
         self.name = self._start()
@@ -86,7 +90,7 @@ class IsolatedProvider:
         """Start the child, wait for it to build the provider; its name, or a one-line ProviderError."""
         ctx = mp.get_context("spawn")
         conn, child = ctx.Pipe()
-        proc = ctx.Process(target=_host, args=(child, self.spec, self.objects, os.getpid()), daemon=True,
+        proc = ctx.Process(target=_host, args=(child, self.build, self.spec, self.objects, os.getpid()), daemon=True,
                            name="posegrasp-plugin")
         proc.start()
         child.close()

@@ -28,7 +28,7 @@ from typing import Callable
 from posegrasp.catalog import set_root
 from posegrasp.errors import ProviderError, UserError
 from posegrasp.grasping.perception import Provider, noisy_oracle_from_spec, oracle_from_spec
-from posegrasp.grasping.plugin_host import IsolatedProvider
+from posegrasp.grasping.plugin_host import IsolatedProvider, _why
 
 
 def _model(args: str | None, objects: str) -> Provider:
@@ -124,7 +124,7 @@ def _isolated(spec: str, objects: str, timeout_s: float) -> IsolatedProvider:
     """The plug-in ``spec`` in its own process, started once per process and object set (a failed start is
     tried again by the next call)."""
     if (spec, objects) not in _STARTED:
-        _STARTED[spec, objects] = IsolatedProvider(spec, objects, timeout_s)
+        _STARTED[spec, objects] = IsolatedProvider(spec, objects, timeout_s, _plugin)
     return _STARTED[spec, objects]
 
 
@@ -158,11 +158,6 @@ def _plugin(spec: str, objects: str) -> Provider:
         raise ProviderError(f"perception {spec!r}: the factory returned a {type(provider).__name__}, not a provider "
                             "(it needs a str 'name' and an 'estimate(obs, seed)' method; docs/estimators.md)")
     return provider
-
-
-def _why(e: BaseException) -> str:
-    text = " ".join(str(e).split())
-    return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
 
 def _import(spec: str, module: str) -> ModuleType:
