@@ -21,11 +21,15 @@ def parse_blocks(text: str) -> tuple[int, int]:
     return lo, hi
 
 
+#: Sanity bounds of ``--scenes`` and ``--views`` (per scene): beyond them a typo, not a dataset.
+MAX_SCENES, MAX_VIEWS = 1_000_000, 10_000
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("datagen", help="generate a randomised synthetic RGB-D dataset in BOP format (resumable)")
     p.add_argument("--out", required=True, type=out_dir(), help="dataset folder (created; an existing one is completed)")
-    p.add_argument("--scenes", type=positive_int("--scenes"), default=10, help="simulated scenes (one BOP scene each)")
-    p.add_argument("--views", type=positive_int("--views"), default=25, help="hand-camera views per scene")
+    p.add_argument("--scenes", type=positive_int("--scenes", MAX_SCENES), default=10, help="simulated scenes (one BOP scene each)")
+    p.add_argument("--views", type=positive_int("--views", MAX_VIEWS), default=25, help="hand-camera views per scene")
     p.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="dataset seed (same seed and settings, same bytes)")
     p.add_argument("--workers", type=workers_arg, default=None, help="worker processes (default: one per core), or 'ray'")
     p.add_argument("--split", choices=("train_pbr", "test"), default="train_pbr", help="BOP split to write")

@@ -159,19 +159,24 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
     check_capacity(cfg)
     root = Path(out)
     c = cfg.workcell.hand_camera
-    with folder_lock(root):
+    # a split's settings, written first (or their temporary file, of a run killed meanwhile), mark our datasets
+    with folder_lock(root, owns=(f"*/{SETTINGS_FILE}", f"*/.{SETTINGS_FILE}.*.tmp")):
         todo = [s for s in range(scenes) if not is_complete(root, split, s)]
         if isinstance(workers, int) or workers is None:  # no idle worker processes
             workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
         executor = make_executor(workers)  # Ray connects here, before anything is written
-        prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), cfg.depth_scale),
-                     cfg.workcell.objects)
         ext = rgb_extension(cfg, split)
+        steps = [lambda: check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
+                                        {"seed": seed, "views": views, "rgb_format": ext, "config": recorded_config(cfg)},
+                                        binding=has_scenes(root, split)),
+                 lambda: prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg),
+                                                       cfg.depth_scale), cfg.workcell.objects)]
+        # a new dataset's settings go first (they mark the folder as ours); a dataset with scenes checks its object
+        # set and camera first (the more telling refusal)
+        for step in steps[::-1] if has_scenes(root) else steps:
+            step()
         for tmp in bop.split_dir(root, split).glob(".*.tmp"):  # leftovers of a killed write
             tmp.unlink()
-        check_settings(bop.split_dir(root, split) / SETTINGS_FILE,
-                        {"seed": seed, "views": views, "rgb_format": ext, "config": recorded_config(cfg)},
-                        binding=has_scenes(root, split))
         jobs = [SceneJob(split, s, seed, views, cfg) for s in todo]
         t0 = time.perf_counter()
         frames = 0

@@ -9,9 +9,13 @@ from posegrasp.arguments import nonneg_int, out_dir, out_file, positive_int, wor
 from posegrasp.errors import UserError
 
 
+#: Sanity bound of ``--episodes``: beyond it a typo, not a campaign.
+MAX_EPISODES = 10_000_000
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("trials", help="grasp-and-place trials with a perception provider; resumable")
-    p.add_argument("--episodes", type=positive_int("--episodes"), default=200, help="number of episodes (default 200)")
+    p.add_argument("--episodes", type=positive_int("--episodes", MAX_EPISODES), default=200, help="number of episodes (default 200)")
     p.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="campaign seed: episode i draws from (seed, i) only")
     p.add_argument("--perception", default="oracle",
                    help="oracle (default) | noisy-oracle[:TRANS_M,ROT_DEG] | model[:RUN]: the learned network, "
@@ -34,8 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--sweep-noise", action="store_true",
                    help="run noisy-oracle campaigns at increasing noise and plot success against pose error")
-    p.add_argument("--noise", type=_noise_arg, default="both",
-                   help="--sweep-noise levels: rotation (0-45 deg) | translation (0-2 cm) | both (default)")
+    p.add_argument("--noise", type=_noise_arg, default=None,
+                   help="with --sweep-noise, its levels: rotation (0-45 deg) | translation (0-2 cm) | both (default)")
     p.add_argument("--export-captures", type=out_dir("--export-captures"), metavar="DIR",
                    help="also write every frame the robot perceives as a BOP test split with ground truth "
                         "(scene = episode, im 0 the pick look, 1 stack's look at the base), for any BOP method; "
@@ -104,6 +108,9 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
     if args.task:
         cfg = dataclasses.replace(cfg, task=args.task)
     cfg = with_scene(cfg, args.scene, args.blocks)
+    if args.noise is not None and not args.sweep_noise:
+        raise UserError(f"--noise {args.noise} sets the levels of --sweep-noise; add --sweep-noise, or use "
+                        "--perception noisy-oracle:TRANS_M,ROT_DEG for one noisy campaign")
     out, export = args.out, args.export_captures
     if args.captures_only or export:
         _check_export_args(args)
@@ -117,7 +124,8 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
     if out is None:
         raise UserError("--out is required: the run folder (episodes.jsonl, summary.json)")
     if args.sweep_noise:
-        sweep_noise(out, args.episodes, args.seed, args.workers, cfg, SWEEPS[args.noise], progress=not args.no_progress)
+        sweep_noise(out, args.episodes, args.seed, args.workers, cfg, SWEEPS[args.noise or "both"],
+                    progress=not args.no_progress)
         print(f"noise sweep -> {out / 'sweep.png'}")
     else:
         run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg, progress=not args.no_progress,
@@ -138,12 +146,18 @@ def _check_export_args(args: argparse.Namespace) -> None:
 
 
 def run_calibrate_cmd(args: argparse.Namespace) -> int:
-    from posegrasp.grasping.calibration import CalibrationConfig, calibrate, save_hand_eye
+    from posegrasp.grasping.calibration import CalibrationConfig, calibrate, load_hand_eye, save_hand_eye
     from posegrasp.sim.config import load_workcell_config
 
     if args.poses < 3:
         raise UserError(f"--poses must be at least 3 (10 or more for an accurate result), got {args.poses}")
     out = args.out
+    if out.exists():  # replace an earlier calibration only, never another file
+        try:
+            load_hand_eye(out)
+        except UserError:
+            raise UserError(f"--out {out} exists and is not a hand-eye calibration JSON (T_gripper_cam); choose a "
+                            "new file name") from None
     wcfg = load_workcell_config(args.config)
     result = calibrate(wcfg, dataclasses.replace(CalibrationConfig(), n_poses=args.poses), args.seed)
     try:

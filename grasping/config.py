@@ -32,41 +32,41 @@ class ControlConfig:
     """Closed-loop differential IK (mink) driving the arm's velocity actuators."""
 
     #: Control period (s): one IK solve per period, physics steps in between.
-    dt: float = 0.04
+    dt: float = field(default=0.04, metadata=within(0.0001, 1.0))
     #: Peak Cartesian speed of the gripper along a straight segment (m/s).
-    speed: float = 0.4
+    speed: float = field(default=0.4, metadata=within(0.001, 10))
     #: Peak rotation speed of the gripper (rad/s).
-    angular_speed: float = 2.0
+    angular_speed: float = field(default=2.0, metadata=within(0.001, 100))
     #: A segment is reached within this position error (m) and `rot_tol_deg`.
-    pos_tol: float = 0.004
+    pos_tol: float = field(default=0.004, metadata=within(1e-06, 0.5))
     #: A segment is reached within this orientation error (deg) and `pos_tol`.
-    rot_tol_deg: float = 3.0
+    rot_tol_deg: float = field(default=3.0, metadata=within(0.001, 180))
     #: The reference waits while the hand lags it by more than this (m) or `max_lag_deg`.
-    max_lag: float = 0.02
+    max_lag: float = field(default=0.02, metadata=within(0.0001, 1))
     #: The reference waits while the hand lags it by more than this angle (deg).
-    max_lag_deg: float = 10.0
+    max_lag_deg: float = field(default=10.0, metadata=within(0.1, 180))
     #: Time (s) allowed after a segment's nominal duration to reach it.
-    settle_timeout: float = 1.5
+    settle_timeout: float = field(default=1.5, metadata=within(0, 100))
     #: Fraction of the pose error the IK removes per control period.
-    frame_gain: float = 0.8
+    frame_gain: float = field(default=0.8, metadata=within(0.001, 1))
     #: Orientation weight of the IK's gripper task (position weight 1).
-    orientation_cost: float = 0.5
+    orientation_cost: float = field(default=0.5, metadata=within(0, 1000.0))
     #: Weight of the IK's pull toward the look pose's joint angles.
-    posture_cost: float = 0.01
+    posture_cost: float = field(default=0.01, metadata=within(0, 1000.0))
     #: Hand and arm keep this distance (m) from the table.
-    table_clearance: float = 0.002
+    table_clearance: float = field(default=0.002, metadata=within(0, 0.1))
     #: Finger closing velocity command (rad/s).
-    finger_speed: float = 4.0
+    finger_speed: float = field(default=4.0, metadata=within(0.001, 100))
     #: Finger opening speed when releasing a block (rad/s).
-    release_speed: float = 0.6
+    release_speed: float = field(default=0.6, metadata=within(0.001, 100))
     #: Any joint faster than this (rad/s or m/s) is a simulation error.
-    max_speed: float = 50.0
+    max_speed: float = field(default=50.0, metadata=within(0.001, 10000.0))
     #: The arm has reached the look pose when every joint is within this (rad).
-    look_tol: float = 0.01
+    look_tol: float = field(default=0.01, metadata=within(1e-06, 1))
     #: Time (s) allowed to reach the look pose, else the episode times out.
-    look_timeout: float = 4.0
+    look_timeout: float = field(default=4.0, metadata=within(0.01, 1000))
     #: P gain (1/s) of the joint drive to the look pose.
-    look_gain: float = 10.0
+    look_gain: float = field(default=10.0, metadata=within(0.001, 10000.0))
 
 
 @dataclass(frozen=True)
@@ -120,13 +120,13 @@ class GraspConfig:
     #: IK position residual accepted as reachable (m).
     reach_tol: float = 0.004
     #: The best this many grasps of each estimated block compete for the pick.
-    grasps_per_block: int = 4
+    grasps_per_block: int = field(default=4, metadata=within(1, 1000))
     #: Those grasps are ranked by grasp score plus this times the estimate's confidence.
     detection_weight: float = 0.2
     #: The best this many ranked grasps are checked for reachability, in rank order.
-    ik_checks: int = 8
+    ik_checks: int = field(default=8, metadata=within(1, 1000))
     #: Surface points sampled per neighbouring estimate for the clearance check.
-    neighbour_points: int = 300
+    neighbour_points: int = field(default=300, metadata=within(1, 100000))
     #: Height of the pre-grasp pose above the grasp, where the approach starts (m).
     pregrasp_height: float = 0.08
     #: Pre-shape and release opening beyond the grasp width (m); the clearance check models it.
@@ -169,7 +169,7 @@ class ScoringConfig:
     #: Grasp success: the block's bottom at least this high (m) for `hold_time`.
     lift_min: float = 0.05
     #: Grasp success: the block held up for this long (s).
-    hold_time: float = 1.0
+    hold_time: float = field(default=1.0, metadata=within(0, 100))
     #: Place success: the block within this xy distance (m) of its target, released and at rest.
     place_tol: float = 0.025
     #: Place success: the hand at least this far (m) from the block.
@@ -177,15 +177,15 @@ class ScoringConfig:
     #: The block is at rest below these speeds (m/s, rad/s).
     rest_speed: tuple[float, float] = (0.01, 0.2)
     #: The block is at rest after this many control periods in a row below `rest_speed`.
-    rest_periods: int = 3
+    rest_periods: int = field(default=3, metadata=within(1, 1000))
     #: Time (s) allowed for the block to come to rest after release.
-    rest_timeout: float = 1.5
+    rest_timeout: float = field(default=1.5, metadata=within(0, 100))
     #: A failed episode counts as "pose error" when the target's ADD(-S) exceeds this x its diameter.
     pose_error_frac: float = 0.1
     #: Surface points of the block model for ADD and ADD-S.
-    pose_error_points: int = 500
+    pose_error_points: int = field(default=500, metadata=within(1, 1000000))
     #: Oracle: blocks with fewer visible mask pixels (at 640x480) are not detected.
-    min_visible_px: int = 150
+    min_visible_px: int = field(default=150, metadata=within(0, 10000000))
 
 
 @dataclass(frozen=True)
@@ -198,7 +198,7 @@ class FirmHoldConfig:
     of a stack episode took half the time, noslip only 15 % more)."""
 
     #: Once two fingers grip, control periods the fingers may close more until all three touch.
-    finger_wait: int = 10
+    finger_wait: int = field(default=10, metadata=within(0, 1000))
     #: Noslip solver iterations per physics step (0: off).
     noslip_iterations: int = field(default=2, metadata=within(0, 1000))
     #: Whether bodies at rest sleep (MuJoCo's sleeping islands).
@@ -212,22 +212,22 @@ class TrialConfig:
     """One trial campaign: scenes of ``min_blocks``-``max_blocks`` blocks, control, grasps, scoring."""
 
     #: Fewest blocks in a scene.
-    min_blocks: int = 1
+    min_blocks: int = field(default=1, metadata=within(1, 200))
     #: Most blocks in a scene.
-    max_blocks: int = 5
+    max_blocks: int = field(default=5, metadata=within(1, 200))
     #: Hand-eye calibration file (`T_gripper_cam`) the planner uses (`posegrasp calibrate` writes it).
     hand_eye: str = str(HAND_EYE_JSON)
     #: Elliptic friction cones, so that grasped blocks do not creep out of the fingers.
     elliptic_cones: bool = True
     #: MuJoCo impedance ratio of the contacts (high: less creep in the fingers).
-    impratio: float = 10.0
+    impratio: float = field(default=10.0, metadata=within(0.001, 10000.0))
     #: Tasks that hold the block firmly (``firm_hold``); unset: the set's manifest's choice (imported sets: all; else
     #: kitting and stack).
     firm_hold_tasks: tuple[str, ...] | None = None
     #: How those tasks hold firmly.
     firm_hold: FirmHoldConfig = field(default_factory=FirmHoldConfig)
     #: MuJoCo solref time constant (s) of the table's and pad's contacts after settling (0.02 lets bricks walk).
-    support_timeconst: float = 0.01
+    support_timeconst: float = field(default=0.01, metadata=within(0.0001, 1.0))
     #: Arm control.
     control: ControlConfig = field(default_factory=ControlConfig)
     #: Grasp planning and motions.

@@ -288,7 +288,7 @@ class Episode:
         """The provider's checked estimates of capture ``im_id`` of the episode (``perception.perceive``: a
         ``PerceptionError`` if it fails, hangs or returns what the planner cannot use)."""
         try:
-            provider = make_provider(self.task.perception, self.wc.cfg.objects)
+            provider = make_provider(self.task.perception, self.wc.cfg.objects, self.cfg.perception_timeout_s)
         except UserError as e:  # built in the main process before the campaign, but not in this worker
             raise PerceptionError(f"cannot build perception {self.task.perception!r} in this worker: {e}") from None
         return perceive(provider, frame, seed, self.task.index, im_id, known_ids=catalog_by_id(self.wc.cfg.objects),
@@ -449,7 +449,7 @@ def _needs_images(ep: Episode) -> bool:
     if ep.on_capture is not None:
         return True
     try:
-        return not reads_labels(make_provider(ep.task.perception, ep.wc.cfg.objects))
+        return not reads_labels(make_provider(ep.task.perception, ep.wc.cfg.objects, ep.cfg.perception_timeout_s))
     except UserError:  # Episode.perceive reports it
         return True
 

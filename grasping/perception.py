@@ -106,6 +106,8 @@ def observation(frame: Frame, scene_id: int = 0, im_id: int = 0) -> Observation:
 
 #: Bounds of a usable estimate: rotation orthonormality and determinant (``ROT_TOL``), translation norm (m).
 ROT_TOL, MAX_TRANSLATION_M = 1e-3, 5.0
+#: Most estimates a provider may return for one capture (more is a runaway detector, not a scene).
+MAX_ESTIMATES = 1000
 
 
 def perceive(provider: Provider | GroundTruthProvider, frame: Frame, seed: int, scene_id: int = 0,
@@ -144,6 +146,8 @@ def checked_estimates(out: object, known_ids: Collection[int] | None = None, who
     one-line ``PerceptionError`` naming ``who`` and the first thing wrong (see ``perceive``)."""
     if not isinstance(out, (list, tuple)):
         raise PerceptionError(f"{who} returned {type(out).__name__}, not a list of Estimate")
+    if len(out) > MAX_ESTIMATES:
+        raise PerceptionError(f"{who} returned {len(out)} estimates for one capture, over {MAX_ESTIMATES}")
     ests = []
     for i, e in enumerate(out):
         where = f"{who} estimate {i}"

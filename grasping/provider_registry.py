@@ -9,8 +9,8 @@
   (``NAME = "module:factory"``); a built-in name wins over an installed one.
 
 A plug-in's factory gets ARGS (the text after its name, or None) and, if it has a parameter named ``objects``, the
-object set's folder (absolute); it returns a ``grasping.perception.Provider``. Plug-ins are built once per process
-(``docs/estimators.md``).
+object set's folder (absolute); it returns a ``grasping.perception.Provider``. A plug-in is loaded, built and asked
+for estimates in a child process of its own, once per process (``grasping.plugin_host``; ``docs/estimators.md``).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from typing import Callable
 from posegrasp.catalog import set_root
 from posegrasp.errors import ProviderError, UserError
 from posegrasp.grasping.perception import Provider, noisy_oracle_from_spec, oracle_from_spec
+from posegrasp.grasping.plugin_host import IsolatedProvider, _why
 
 
 def _model(args: str | None, objects: str) -> Provider:
@@ -64,18 +65,27 @@ FACTORIES: dict[str, Callable[[str | None, str], Provider]] = {
 ENTRY_POINT_GROUP = "posegrasp.perception"
 
 
-def make_provider(spec: str, objects: str = "") -> Provider:
+#: Wall seconds a plug-in may take to load and per estimate when the caller names no limit
+#: (``TrialConfig.perception_timeout_s``'s default).
+PLUGIN_TIMEOUT_S = 60.0
+
+
+def make_provider(spec: str, objects: str = "", timeout_s: float | None = None) -> Provider:
     """A provider from ``name[:ARGS]`` (``oracle``, ``noisy-oracle:0.005,5``, ``model:RUN``,
     ``py:MODULE_OR_FILE:FACTORY[:ARGS]`` or an installed name) for scenes of the object set ``objects`` (a set
-    folder; ``""``: the shipped blocks). Raises a one-line ProviderError when it cannot be built."""
+    folder; ``""``: the shipped blocks). A plug-in runs in a process of its own (``grasping.plugin_host``), with
+    ``timeout_s`` wall seconds to load and per estimate (0: no limit; None: as before, else ``PLUGIN_TIMEOUT_S``).
+    Raises a one-line ProviderError when it cannot be built."""
     name, _, args = spec.partition(":")
     if name in FACTORIES:
         return FACTORIES[name](args or None, objects)
-    if name == "py":
-        _plugin_parts(spec)  # a malformed spec says so before any import
-        return _plugin(spec, objects)
-    if name in installed_providers():
-        return _plugin(spec, objects)
+    if name == "py" or name in installed_providers():
+        if name == "py":
+            _plugin_parts(spec)  # a malformed spec says so before any process starts
+        provider = _isolated(spec, objects, PLUGIN_TIMEOUT_S if timeout_s is None else timeout_s)
+        if timeout_s is not None:
+            provider.timeout_s = timeout_s
+        return provider
     installed = ", ".join(sorted(installed_providers())) or f"none (entry-point group {ENTRY_POINT_GROUP})"
     raise ProviderError(f"unknown perception {spec!r}; choose one of: {', '.join(sorted(FACTORIES))}, "
                         f"py:MODULE_OR_FILE:FACTORY[:ARGS]; installed: {installed}")
@@ -115,6 +125,18 @@ def _is_file(target: str) -> bool:
     return target.endswith(".py") or "/" in target or os.sep in target
 
 
+#: The plug-ins started in this process, by spec and object set.
+_STARTED: dict[tuple[str, str], IsolatedProvider] = {}
+
+
+def _isolated(spec: str, objects: str, timeout_s: float) -> IsolatedProvider:
+    """The plug-in ``spec`` in its own process, started once per process and object set (a failed start is
+    tried again by the next call)."""
+    if (spec, objects) not in _STARTED:
+        _STARTED[spec, objects] = IsolatedProvider(spec, objects, timeout_s, _plugin)
+    return _STARTED[spec, objects]
+
+
 @functools.lru_cache(maxsize=8)
 def _plugin(spec: str, objects: str) -> Provider:
     """The provider a ``py:`` spec or an installed name builds (once per process and object set)."""
@@ -145,11 +167,6 @@ def _plugin(spec: str, objects: str) -> Provider:
         raise ProviderError(f"perception {spec!r}: the factory returned a {type(provider).__name__}, not a provider "
                             "(it needs a str 'name' and an 'estimate(obs, seed)' method; docs/estimators.md)")
     return provider
-
-
-def _why(e: BaseException) -> str:
-    text = " ".join(str(e).split())
-    return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
 
 def _import(spec: str, module: str) -> ModuleType:

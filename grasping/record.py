@@ -9,6 +9,7 @@ CPU seconds only in ``EpisodeTimings``). ``to_json()`` gives the JSON-ready dict
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -151,13 +152,26 @@ class EpisodeRecord:
             raise UserError(f"{where}: expected a JSON object, got {type(data).__name__}")
         missing = [f.name for f in dataclasses.fields(cls) if f.name not in data
                    and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+        missing += [k for k in ("outcome",) if k not in data]  # written by every record, though it has a default
         if missing:
             raise UserError(f"{where}: missing field(s) {missing}")
+        check_outcome(data, where)
         if cls is EpisodeRecord and data.get("task") == BIN_PICK:
             return BinPickRecord.from_json(data, where)
         rec = from_dict(cls, {k: v for k, v in data.items() if k not in ("target", "attempts")}, where)
         rec.target = _target(data.get("target"), f"{where}.target")
         return rec
+
+
+def check_outcome(data: dict, where: str) -> None:
+    """A one-line UserError unless ``data`` (a record) has ``outcome`` "success" or "failure" and a ``failure``
+    that is None or one of ``Failure``'s reasons."""
+    outcome, failure = data.get("outcome"), data.get("failure")
+    if outcome not in ("success", "failure"):
+        raise UserError(f"{where}: outcome = {json.dumps(outcome)[:40]} is not \"success\" or \"failure\"")
+    if failure is not None and failure not in {f.value for f in Failure}:
+        raise UserError(f"{where}: failure = {json.dumps(failure)[:40]} is not null or one of the failure reasons "
+                        f"({', '.join(f.value for f in Failure)})")
 
 
 def _target(data: object, where: str) -> Target | FalseTarget | None:

@@ -17,8 +17,9 @@ from typing import IO, Iterable
 
 from posegrasp.catalog import set_record
 from posegrasp.config import from_dict
-from posegrasp.errors import DatasetError
+from posegrasp.errors import DatasetError, UserError
 from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.record import EpisodeRecord
 from posegrasp.io import atomic_write, dumps_json, write_json
 
 EPISODES, TIMINGS, SUMMARY, CAMPAIGN = "episodes.jsonl", "timings.jsonl", "summary.json", "campaign.json"
@@ -31,7 +32,24 @@ def _line(rec: dict) -> str:
 def read_records(path: Path) -> dict[int, dict]:
     """Complete records of a (possibly torn) JSON-lines file, by episode index; a DatasetError naming the line
     for a complete line that is not a record."""
-    out: dict[int, dict] = {}
+    return {i: rec for i, (_, rec) in _numbered(path).items()}
+
+
+def read_episodes(path: Path) -> dict[int, tuple[dict, EpisodeRecord]]:
+    """The complete episode records of an ``episodes.jsonl`` by episode index, each as read and as checked
+    (``EpisodeRecord.from_json``); a one-line DatasetError naming the file, line and key of a malformed one."""
+    out = {}
+    for i, (n, rec) in _numbered(path).items():
+        try:
+            out[i] = rec, EpisodeRecord.from_json(rec, f"{path} line {n}")
+        except UserError as e:
+            raise DatasetError(f"{e}; the record is corrupt: rerun the trials into a new --out") from None
+    return out
+
+
+def _numbered(path: Path) -> dict[int, tuple[int, dict]]:
+    """``read_records`` with each record's line number (from 1)."""
+    out: dict[int, tuple[int, dict]] = {}
     if not path.exists():
         return out
     try:
@@ -49,7 +67,7 @@ def read_records(path: Path) -> dict[int, dict]:
         if not isinstance(episode, int) or isinstance(episode, bool) or episode < 0:
             raise DatasetError(f"{path} line {n} is not an episode record (a JSON object with an integer "
                                f"\"episode\"); the file is corrupt: rerun the trials into a new --out")
-        out[episode] = rec
+        out[episode] = n, rec
     return out
 
 

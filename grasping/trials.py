@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from posegrasp.errors import ConfigError, UserError
+from posegrasp.errors import ConfigError, DatasetError, UserError
 from posegrasp.executor import make_executor
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.bop_csv import check_rows
@@ -30,7 +30,7 @@ from posegrasp.grasping.provider_registry import canonical_spec, make_provider
 from posegrasp.grasping.record import Failure
 from posegrasp.grasping.report import write_report
 from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, SUMMARY, TIMINGS, Campaign, append_record,
-                                          check_campaign, read_records, write_records)
+                                          check_campaign, read_episodes, read_records, write_records)
 from posegrasp.grasping.stats import rate_row, summarise
 from posegrasp.grasping.tasks import get_task
 from posegrasp.io import write_bytes, write_json
@@ -64,15 +64,19 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     perceive there, as a BOP test split (``grasping.captures``)."""
     cfg, mount = campaign_settings(episodes, cfg)
     perception = canonical_spec(perception)  # a plug-in file's path absolute, for the workers and the record
-    check_rows(make_provider(perception, cfg.scene.workcell.objects), episodes, cfg.task)  # before any work starts
+    check_rows(make_provider(perception, cfg.scene.workcell.objects, cfg.perception_timeout_s), episodes,
+               cfg.task)  # before any work starts
     console = console or Console(stderr=True)
     # Ray connects in make_executor, before anything is written; the pool's workers stay for the report's frames
-    with folder_lock(out), open_export(export, seed, cfg) as captures, make_executor(workers) as executor:
-        recorded = read_records(out / EPISODES)
-        if not recorded:  # a campaign binds once it has an episode: settings of a failed start are replaced
+    out = Path(out).absolute()  # a provider changing the working directory cannot move the run's files
+    with folder_lock(out, owns=(CAMPAIGN, EPISODES)), open_export(export, seed, cfg) as captures, \
+            make_executor(workers) as executor:
+        done = read_records(out / EPISODES)
+        check_kept(out, done, episodes)
+        if not done:  # a campaign binds once it has an episode: settings of a failed start are replaced
             (out / CAMPAIGN).unlink(missing_ok=True)
         check_campaign(out, Campaign(seed, perception, cfg, mount))
-        done = {i: r for i, r in recorded.items() if i < episodes}
+        read_episodes(out / EPISODES)  # every finished record well-formed, or a one-line error naming its line
         write_records(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
         timings = read_records(out / TIMINGS)
         write_records(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
@@ -113,6 +117,17 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
         print_summary(summary, console)
         console.print(f"report -> {write_report(out, executor=executor)}")
     return summary
+
+
+def check_kept(out: Path, done: dict[int, dict], episodes: int) -> None:
+    """A one-line DatasetError unless a resume of ``episodes`` episodes keeps every finished one in ``done``,
+    and the records come with their ``campaign.json`` (records of an unknown campaign are never adopted)."""
+    if done and not (out / CAMPAIGN).is_file():
+        raise DatasetError(f"{out} holds {len(done)} episode record(s) but no {CAMPAIGN}, so their settings are "
+                           "unknown; use another --out")
+    if done and max(done) >= episodes:
+        raise DatasetError(f"{out} holds finished episodes up to {max(done)}; --episodes {episodes} would drop "
+                           f"them: give --episodes {max(done) + 1} or more, or another --out")
 
 
 def print_summary(s: dict, console: Console) -> None:
@@ -169,7 +184,7 @@ def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, 
     """Noisy-oracle campaigns at increasing noise (same seeds) for ``cfg.task``; writes ``sweep.json`` and
     ``sweep.png``."""
     console = console or Console(stderr=True)
-    with folder_lock(out):  # the sweep's own files; each campaign locks its subfolder
+    with folder_lock(out, owns=("sweep.json", "noise_*")):  # the sweep's files; each campaign locks its subfolder
         rows = []
         for t, r in levels:
             spec, run_dir = f"noisy-oracle:{t:g},{r:g}", out / f"noise_{t:g}m_{r:g}deg"

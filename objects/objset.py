@@ -17,6 +17,7 @@ leaves no partial set; the same objects give byte-identical files. ``load_object
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -253,6 +254,23 @@ def _not_a_set(root: Path) -> DatasetError:
     return UserError(f"{root} is not an object set (no {MANIFEST}); make one with `posegrasp objects import`")
 
 
+#: The numbers of an object file: key -> (count, 0 for a single number; lowest; highest value).
+OBJECT_NUMBERS = {"mass_kg": (0, 1e-6, 1e4), "density": (0, 1.0, 25000.0), "friction": (3, 0.0, 10.0),
+                  "rgba": (4, 0.0, 1.0)}
+
+
+def _check_numbers(where: Path, key: str, value: Any, n: int, lo: float, hi: float) -> None:
+    """A one-line DatasetError unless ``value`` is a finite number (``n`` = 0) or a list of ``n`` of them, each in
+    [lo, hi]."""
+    values = value if n and isinstance(value, list) and len(value) == n else [value] if not n else None
+    ok = values is not None and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                                    and lo <= v <= hi for v in values)
+    if not ok:
+        what = "a number" if not n else f"a list of {n} numbers"
+        raise DatasetError(f"{where}: {key} = {json.dumps(value)[:60]} is not {what} in [{lo:g}, {hi:g}]; "
+                           "re-import the set")
+
+
 def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> SetObject:
     oid, name = int(entry["obj_id"]), str(entry["name"])
     d = _read(root / entry["file"], f"object {name}")
@@ -267,10 +285,11 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
     if np.abs(mesh.bounds[0] - mi.min_xyz).max() > 1e-5 or np.abs(mesh.extents - mi.size_xyz).max() > 1e-5:
         raise DatasetError(f"{root / d['model']} does not match its models_info.json entry (bounding box); "
                            "re-import the set")
+    for key, (n, lo, hi) in OBJECT_NUMBERS.items():
+        _check_numbers(where, key, d.get(key), n, lo, hi)
     pieces = tuple(d["collision"])
-    if not pieces or d["mass_kg"] <= 0 or d["density"] <= 0:
-        raise DatasetError(f"{where}: needs a positive mass and density and at least one collision piece; "
-                           "re-import the set")
+    if not pieces:
+        raise DatasetError(f"{where}: needs at least one collision piece; re-import the set")
     surface = None
     if "surface" in d:
         ply, tex = root / d["surface"]["mesh"], root / d["surface"]["texture"]

@@ -129,6 +129,11 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
         meta = json.loads(data[8:8 + n]).get("__metadata__", {}) or {}
     except (SafetensorError, ValueError, json.JSONDecodeError, UnicodeDecodeError) as e:
         raise WeightsError(_one_line(f"weights file {path} is corrupt or not safetensors: {e}")) from None
+    for name, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            bad = int((~torch.isfinite(t)).sum())
+            raise WeightsError(f"weights file {path}: tensor {name!r} has {bad} of {t.numel()} values NaN or "
+                               "infinite; the weights are unusable: retrain or use another checkpoint")
     return tensors, meta
 
 

@@ -21,7 +21,7 @@ import csv
 import io
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +31,7 @@ from posegrasp import bop
 from posegrasp import bop_results
 from posegrasp import bop_models
 from posegrasp import io as pio
+from posegrasp.config import within
 from posegrasp.errors import ConfigError
 from posegrasp.lock import folder_lock
 from posegrasp.perception import bop19 as B
@@ -70,17 +71,17 @@ class EvalConfig:
     #: Ground-truth instances less visible are not evaluated (BOP: 0.1).
     min_visib_fract: float = 0.1
     #: Objects with fewer valid-depth pixels in their mask are skipped.
-    min_valid_points: int = 50
+    min_valid_points: int = field(default=50, metadata=within(0, 10000000))
     #: Drop detections with fewer mask pixels (at 640x480); the trials' model provider uses 150.
-    min_mask_px: int = 0
+    min_mask_px: int = field(default=0, metadata=within(0, 10000000))
     #: Surface points per model for ADD and ADD-S.
-    model_points: int = 1000
+    model_points: int = field(default=1000, metadata=within(1, 1000000))
     #: Images evaluated; 0: all (`--max-images`).
-    max_images: int = 0
+    max_images: int = field(default=0, metadata=within(0, 1000000000))
     #: Method name in the results CSV's file name.
     method: str = "posegrasp"
     #: Torch CPU threads (`--threads`).
-    threads: int = 2
+    threads: int = field(default=2, metadata=within(1, 256))
     #: Seed of the estimator's point sampling.
     seed: int = 0
 
@@ -158,11 +159,15 @@ def _csv_bytes(rows: list[dict[str, Any]], columns: list[str]) -> bytes:
     return buf.getvalue().encode()
 
 
+#: What ``evaluate`` writes into its folder (glob patterns): a folder holding none of it is not an eval's.
+EVAL_FILES = ("metrics.json", "per_object.csv", "instances.csv", "curves.png", "scores_bop19.json", "*_*-*.csv")
+
+
 def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalConfig | None = None,
              progress: bool = True) -> dict[str, Any]:
     """Evaluate the run ``weights`` on split ``cfg.split`` of BOP dataset ``data``; write reports in
     ``out`` (locked meanwhile: ``posegrasp.lock``); return the metrics dict (also in ``out/metrics.json``)."""
-    with folder_lock(out):
+    with folder_lock(out, owns=EVAL_FILES):
         return _evaluate(Path(data), weights, Path(out), cfg, progress)
 
 

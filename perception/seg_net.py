@@ -18,12 +18,13 @@ background, class k the object with BOP obj_id k). Every channel count is scaled
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from posegrasp.config import within
 from posegrasp.errors import ConfigError
 
 #: VGG16's 13 convs, then this model's 3 extra bottleneck convs; "M" = 2x2 max-pool.
@@ -37,15 +38,15 @@ class SegNetConfig:
     """Segmentation net hyper-parameters; every channel count is scaled by ``width``."""
 
     #: Classes: background + objects (class = BOP obj_id); set from the dataset.
-    num_classes: int = 4
+    num_classes: int = field(default=4, metadata=within(2, 100000))
     #: Channel multiplier (1.0 is the paper's net; 0.25 runs on a CPU).
-    width: float = 0.25
+    width: float = field(default=0.25, metadata=within(0.01, 4.0))
     #: (height, width) (px) the image is resized to; at least 32, multiples of 32 avoid rounding.
-    input_size: tuple[int, int] = (240, 320)
+    input_size: tuple[int, int] = field(default=(240, 320), metadata=within(32, 2048))
     #: Output channels of MFFM1..3 at width 1.0.
     mffm_channels: tuple[int, int, int] = (256, 128, 64)
     #: Conv width of every encoder input of an MFFM (64 in the paper).
-    encoder_skip_channels: int = 64
+    encoder_skip_channels: int = field(default=64, metadata=within(1, 4096))
     #: Channels of the two upsampling convs.
     up_channels: tuple[int, int] = (64, 32)
     #: Batch normalisation after the convs.

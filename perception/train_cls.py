@@ -13,6 +13,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from posegrasp.config import within
 from posegrasp.errors import WeightsError
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.classifier import ClassifierConfig, build_classifier
@@ -33,15 +34,15 @@ class ClsTrainConfig(StageConfig):
     #: Objects trained; empty: every object of `models_info.json`.
     obj_ids: list[int] = field(default_factory=list)
     #: Training steps (batches).
-    steps: int = 3000
+    steps: int = field(default=3000, metadata=within(1, 100000000))
     #: Crops per batch.
-    batch_size: int = 64
+    batch_size: int = field(default=64, metadata=within(1, 4096))
     #: Peak learning rate.
-    lr: float = 2e-3
+    lr: float = field(default=2e-3, metadata=within(0, 10))
     #: AdamW weight decay.
     weight_decay: float = 1e-4
     #: Share of the steps over which the learning rate rises linearly; then a cosine to 0.
-    warmup: float = 0.1
+    warmup: float = field(default=0.1, metadata=within(0, 1))
     #: Also learn on the run's `seg/` net's segments of the training images, labelled by the ground truth.
     use_seg: bool = True
     #: Also learn a class 0, "not a block", from segments mostly on background (needs `use_seg`).

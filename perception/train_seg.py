@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from posegrasp import bop
+from posegrasp.config import within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.data import DataConfig, SegDataset, collate
 from posegrasp.perception.metrics import confusion_matrix, segmentation_scores
@@ -32,9 +33,9 @@ class SegTrainConfig(StageConfig):
     #: Samples and augmentation.
     data: DataConfig = field(default_factory=DataConfig)
     #: Images per batch.
-    batch_size: int = 4
+    batch_size: int = field(default=4, metadata=within(1, 512))
     #: Initial learning rate.
-    lr: float = 1e-2
+    lr: float = field(default=1e-2, metadata=within(0, 10))
     #: SGD momentum.
     momentum: float = 0.9
     #: L2 weight decay.
@@ -42,21 +43,21 @@ class SegTrainConfig(StageConfig):
     #: Factor the learning rate is multiplied by every `lr_decay_every` steps.
     lr_decay: float = 0.8
     #: Steps between learning-rate decays.
-    lr_decay_every: int = 5000
+    lr_decay_every: int = field(default=5000, metadata=within(1, 100000000))
     #: `sgd` or `adam`.
     optimizer: str = "sgd"
     #: Cross-entropy weight of the background class (objects 1).
     background_weight: float = 1.0
     #: Steps between evaluations on the validation split.
-    eval_every: int = 2000
+    eval_every: int = field(default=2000, metadata=within(0, 100000000))
     #: Validation images per evaluation.
-    eval_images: int = 50
+    eval_images: int = field(default=50, metadata=within(0, 1000000))
     #: A seg checkpoint (or a run holding `seg/`) to fine-tune, with a fresh optimizer; empty: from scratch.
     init: str = ""
     #: Where the net trains: `cpu` or `cuda` (the checkpoint is the same either way).
     device: str = "cpu"
     #: Processes preparing batches ahead (0: the training process); batches do not depend on it.
-    workers: int = 0
+    workers: int = field(default=0, metadata=within(0, 64))
 
 
 class SegTraining(StageTraining):

@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import math
 import signal
 import threading
 import time
 from abc import ABC, abstractmethod
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Iterator
 
@@ -27,6 +28,7 @@ import torch
 
 from posegrasp import bop
 from posegrasp import io as pio
+from posegrasp.config import within
 from posegrasp.errors import ConfigError, UserError, WeightsError
 from posegrasp.lock import folder_lock
 from posegrasp.perception import checkpoint as ckpt_mod
@@ -41,21 +43,21 @@ class StageConfig:
     #: Validation split, evaluated every `eval_every` steps when the dataset has it.
     val_split: str = "val"
     #: Training steps (batches).
-    steps: int = 20000
+    steps: int = field(default=20000, metadata=within(1, 100000000))
     #: Samples per batch.
-    batch_size: int = 8
+    batch_size: int = field(default=8, metadata=within(1, 4096))
     #: Initial learning rate.
-    lr: float = 1e-4
+    lr: float = field(default=1e-4, metadata=within(0, 10))
     #: Steps between rows of the metrics CSV.
-    log_every: int = 20
+    log_every: int = field(default=20, metadata=within(1, 100000000))
     #: Steps between checkpoints (a killed run resumes from the last).
-    checkpoint_every: int = 500
+    checkpoint_every: int = field(default=500, metadata=within(1, 100000000))
     #: Steps between evaluations on the validation split.
-    eval_every: int = 1000
+    eval_every: int = field(default=1000, metadata=within(0, 100000000))
     #: Seed of the batches and augmentations.
-    seed: int = 0
+    seed: int = field(default=0, metadata=within(0, 9223372036854775807))
     #: Torch CPU threads.
-    threads: int = 2
+    threads: int = field(default=2, metadata=within(1, 256))
 
 
 def batch_keys(n: int, step: int, batch_size: int, seed: int) -> list[tuple[int, int]]:
@@ -228,7 +230,7 @@ class StageTraining(ABC):
             torch.manual_seed(t.cfg.seed)
             t.build()
             if prior is not None:
-                t.state = restore(run, prior, t.model, t.opt)
+                t.state = restore(run, prior, t.model, t.opt, t.state)
             elif cls.fine_tunes and t.cfg.init:
                 init_from(t.model, t.model_cfg, Path(t.cfg.init), cls.name)
             t.prepare(progress)
@@ -380,12 +382,44 @@ def dataset_objects(data: Path, wanted: list[int]) -> tuple[dict[int, bop.Object
     return infos, obj_ids
 
 
-def restore(run: RunFolder, prior: dict[str, Any], model: torch.nn.Module, opt: torch.optim.Optimizer
-            ) -> dict[str, Any]:
-    """Load the checkpoint's weights and optimizer state for a resumed run; its training state."""
+def restore(run: RunFolder, prior: dict[str, Any], model: torch.nn.Module, opt: torch.optim.Optimizer,
+            fresh: dict[str, Any]) -> dict[str, Any]:
+    """Load the checkpoint's weights and optimizer state for a resumed run; its training state, checked against
+    ``fresh`` (the state a new run starts with: same keys, values of the same kinds, finite, step >= 0)."""
+    state = checked_state(prior["state"], fresh, run.ckpt / "state.json")
     ckpt_mod.load_weights(run.ckpt, model)
     ckpt_mod.load_optimizer(run.ckpt, opt)
-    return prior["state"]
+    return state
+
+
+def checked_state(state: Any, fresh: dict[str, Any], where: Path) -> dict[str, Any]:
+    """``state`` (a checkpoint's ``state.json``) if it has ``fresh``'s keys with values of the same kind (a
+    number where ``fresh`` has one or None, finite; a bool for a bool; ...), ``step`` an integer >= 0 and any
+    ``elapsed_s`` a finite number >= 0; else a one-line WeightsError naming the key."""
+    def kind(v: Any) -> str:
+        return "bool" if isinstance(v, bool) else "number" if isinstance(v, (int, float)) else type(v).__name__
+
+    def bad(key: str, want: str, v: Any) -> WeightsError:
+        return WeightsError(f"{where}: {key} = {json.dumps(v)[:40]} is not {want}; the checkpoint is corrupt: train "
+                            "into a new --out")
+
+    if not isinstance(state, dict):
+        raise WeightsError(f"{where}: expected a JSON object, got {type(state).__name__}; the checkpoint is corrupt")
+    for key, like in {**fresh, "step": 0, "elapsed_s": 0.0}.items():
+        if key not in state:
+            if key == "elapsed_s":
+                continue
+            raise WeightsError(f"{where}: the key {key!r} is missing; the checkpoint is corrupt: train into a new --out")
+        v = state[key]
+        if key == "step" and (kind(v) != "number" or v != int(v) or v < 0):
+            raise bad(key, "an integer >= 0", v)
+        if kind(v) == "number" and not math.isfinite(v) or key == "elapsed_s" and kind(v) == "number" and v < 0:
+            raise bad(key, "a finite number" + (" >= 0" if key == "elapsed_s" else ""), v)
+        if like is not None and kind(v) != kind(like) and not (v is None and kind(like) == "number"):
+            raise bad(key, f"a {kind(like)}", v)
+        if like is None and v is not None and kind(v) != "number":
+            raise bad(key, "a number or null", v)
+    return state
 
 
 def init_checkpoint(src: Path, stage: str) -> Path:

@@ -13,9 +13,9 @@ from typing import Callable
 from posegrasp.errors import UserError
 
 
-def positive_int(name: str) -> Callable[[str], int]:
-    """Option ``name``: an integer >= 1."""
-    return _int(name, 1, "a positive integer")
+def positive_int(name: str, hi: int | None = None) -> Callable[[str], int]:
+    """Option ``name``: an integer >= 1 (and <= ``hi``: a sanity bound on a count)."""
+    return _int(name, 1, "a positive integer", hi)
 
 
 def nonneg_int(name: str) -> Callable[[str], int]:
@@ -23,13 +23,15 @@ def nonneg_int(name: str) -> Callable[[str], int]:
     return _int(name, 0, "a non-negative integer")
 
 
-def _int(name: str, lo: int, what: str) -> Callable[[str], int]:
+def _int(name: str, lo: int, what: str, hi: int | None = None) -> Callable[[str], int]:
+    what += "" if hi is None else f" up to {hi}"
+
     def parse(text: str) -> int:
         try:
             v = int(text)
         except ValueError:
             raise UserError(f"{name} must be {what}, got {text!r}") from None
-        if v < lo:
+        if v < lo or hi is not None and v > hi:
             raise UserError(f"{name} must be {what}, got {v}")
         return v
 

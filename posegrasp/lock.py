@@ -5,7 +5,8 @@ writes the holder's PID into the file. The kernel releases a flock when its hold
 lock left by a killed run is simply taken over (the PID then only tells who held it). A second process gets a
 one-line ``UserError`` naming the holder. On release the file is removed, so a finished folder holds only its
 results; a lock file found replaced after ``flock`` (removed by a holder releasing meanwhile) is opened again.
-Folders the lock created and nothing was written into are removed on release.
+Folders the lock created and nothing was written into are removed on release. ``owns`` names the files a command
+writes (glob patterns); a folder that holds something but none of them is someone else's and is refused.
 """
 
 from __future__ import annotations
@@ -57,10 +58,29 @@ def _created(folder: Path) -> list[Path]:
     return made
 
 
+def _holds_a_file(p: Path) -> bool:
+    """Is ``p`` a file, or a folder with a file somewhere inside?"""
+    return not p.is_dir() or any(not q.is_dir() for q in p.rglob("*"))
+
+
+def check_owned(folder: Path, owns: tuple[str, ...]) -> None:
+    """A one-line UserError if ``folder`` holds a file (besides a lock file; empty folders do not count) but
+    nothing matching the glob patterns ``owns`` (the files the command writing it leaves): a folder it did not
+    create."""
+    entries = sorted(p.name for p in folder.iterdir() if p.name != LOCK_FILE and _holds_a_file(p)) \
+        if folder.is_dir() else []
+    if entries and not any(next(folder.glob(pattern), None) is not None for pattern in owns):
+        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        raise UserError(f"{folder} is not empty ({shown}) and was not written by this command (it has none of "
+                        f"{', '.join(owns)}); choose a new or empty --out")
+
+
 @contextmanager
-def folder_lock(folder: str | Path) -> Iterator[Path]:
+def folder_lock(folder: str | Path, owns: tuple[str, ...] = ()) -> Iterator[Path]:
     """Create ``folder`` if needed and hold its exclusive lock inside the block; yields the folder. Folders it
-    created and that stay empty (a run that failed before writing) are removed again."""
+    created and that stay empty (a run that failed before writing) are removed again. With ``owns`` (glob
+    patterns of the files the command writes), a non-empty folder holding none of them is refused
+    (``check_owned``)."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise UserError(f"{folder} is a file, not a folder; choose another --out")
@@ -76,6 +96,8 @@ def folder_lock(folder: str | Path) -> Iterator[Path]:
     try:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
+        if owns:
+            check_owned(folder, owns)
         yield folder
     finally:
         path.unlink(missing_ok=True)  # while still holding the lock: a waiting opener sees another inode

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 
 from posegrasp.arguments import nonneg_int, out_dir, positive_int
 from posegrasp.config import check_range
 from posegrasp.errors import SimulationError, UserError
+from posegrasp.lock import folder_lock
 from posegrasp.sim.config import CameraConfig
 
 
@@ -37,11 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_scene(args: argparse.Namespace) -> int:
-    from posegrasp.io import write_image, write_json
     from posegrasp.sim.config import load_workcell_config, with_objects
     from posegrasp.sim.scene import SceneConfig, make_scene
-    from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA
-    from posegrasp.sim.camera import CameraRenderer
 
     wcfg = with_objects(load_workcell_config(args.config), args.objects)
     if args.resolution:
@@ -49,8 +48,21 @@ def run_scene(args: argparse.Namespace) -> int:
         wcfg = dataclasses.replace(wcfg, hand_camera=dataclasses.replace(wcfg.hand_camera, width=w, height=h))
     types = tuple(t.strip() for t in args.types.split(",") if t.strip())
     scene = make_scene(args.seed, args.blocks, SceneConfig(block_types=types, workcell=wcfg))
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(args.out, owns=SCENE_FILES) as out:
+        _write_scene(args, scene, wcfg, out)
+    return 0
+
+
+#: The files ``posegrasp scene`` writes: a non-empty --out holding none of them is someone else's folder.
+SCENE_FILES = ("rgb.png", "depth.png", "mask.png", "overview.png", "scene.json")
+
+
+def _write_scene(args: argparse.Namespace, scene, wcfg, out: Path) -> None:
+    """Capture the settled ``scene`` from the hand and overview cameras and write ``SCENE_FILES`` into ``out``."""
+    from posegrasp.io import write_image, write_json
+    from posegrasp.sim.camera import CameraRenderer
+    from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA
+
     wc = scene.workcell
     if not wc.drive_arm(wc.look_q):
         raise SimulationError("the arm did not reach the look pose")
@@ -81,4 +93,3 @@ def run_scene(args: argparse.Namespace) -> int:
     hand.close()
     over.close()
     print(f"scene seed {args.seed}: {len(wc.blocks)} blocks -> {out}")
-    return 0

@@ -336,7 +336,7 @@ def test_compare_a_folder_without_episodes(capsys, tmp_path):
 @pytest.mark.parametrize("lines, campaign, words", [
     ([NO_EPISODE], None, "line 1 is not an episode record"),
     ([json.dumps(_record(0))], "{\"seed\": 0}", "campaign.json is corrupt"),
-    ([json.dumps(_record(0))], None, "episode 0: missing field(s) ['scene_seed', 'n_blocks', 'perception']"),
+    ([json.dumps(_record(0))], None, "episodes.jsonl line 1: missing field(s) ['scene_seed', 'n_blocks', 'perception']"),
     ([json.dumps(EpisodeRecord(0, 0, 1, 1, "oracle").to_json())], None, "summary.json is corrupt"),
 ])
 def test_report_refuses_a_corrupt_run_folder(capsys, tmp_path, lines, campaign, words):

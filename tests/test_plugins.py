@@ -128,7 +128,7 @@ def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, 
     for calls in (calls1, calls2):  # the pick-area look of each episode (and the report's), its ids in obs
         assert {p.name.rsplit("_", 1)[0] for p in calls.glob("*.json")} == {"0_0", "1_0"}
     pids = [{int(p.stem.split("_")[2]) for p in calls.glob("*.json")} for calls in (calls1, calls2)]
-    assert pids[0] == {os.getpid()} and pids[1] - {os.getpid()}  # serial here; rebuilt in the pool's workers
+    assert os.getpid() not in pids[0] | pids[1]  # the plug-in runs in a process of its own (grasping.plugin_host)
     assert not (tmp_path / "__pycache__").exists()  # the plug-in file was loaded without writing beside it
 
 

@@ -69,7 +69,7 @@ def test_run_folder_reads_into_typed_records(run, tmp_path):
     bad = tmp_path / "bad"
     shutil.copytree(out, bad)
     (bad / EPISODES).write_text(re.sub(r'"n_blocks":\d+', '"n_blocks":"many"', lines[0]) + "\n")
-    with pytest.raises(UserError, match="episode 0.n_blocks: expected int"):
+    with pytest.raises(UserError, match="line 1.n_blocks: expected int"):
         read_run(bad)
 
 

@@ -10,7 +10,7 @@ from posegrasp.config import from_dict
 from posegrasp.errors import DatasetError
 from posegrasp.grasping.record import EpisodeRecord
 from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, SUMMARY, Campaign, read_campaign, read_json_object,
-                                          read_records)
+                                          read_episodes, read_records)
 
 
 @dataclass(frozen=True)
@@ -111,10 +111,10 @@ def read_run(run_dir: Path) -> TrialRun:
     for name in (EPISODES, CAMPAIGN):
         if not (run_dir / name).is_file():
             raise DatasetError(f"{run_dir} has no {name}: give a folder written by 'posegrasp trials --out'")
-    raw = [r for _, r in sorted(read_records(run_dir / EPISODES).items())]
-    if not raw:
+    if not read_records(run_dir / EPISODES):
         raise DatasetError(f"{run_dir / EPISODES} holds no finished episode: run (or resume) the trials first")
     campaign = read_campaign(run_dir)
-    episodes = [EpisodeRecord.from_json(r, f"{run_dir / EPISODES} episode {r['episode']}") for r in raw]
+    records = [r for _, r in sorted(read_episodes(run_dir / EPISODES).items())]
+    raw, episodes = [r for r, _ in records], [e for _, e in records]
     summary = read_json_object(run_dir / SUMMARY) if (run_dir / SUMMARY).is_file() else summarise(raw)
     return TrialRun(run_dir, campaign, episodes, Summary.from_json(summary, str(run_dir / SUMMARY)))
