@@ -25,6 +25,14 @@ WALL_CLOCK_COLUMNS = {".csv": ("time_s", "time")}
 WALL_CLOCK_FILES = ("timings.jsonl",)
 
 #: Training settings small enough for a few seconds a stage on the tiny dataset; a checkpoint every 2 steps.
+#: datagen settings for tiny frames (80 x 60) and few blocks.
+TINY_DATAGEN_TOML = """
+blocks = [2, 3]
+[workcell.hand_camera]
+width = 80
+height = 60
+"""
+
 TINY_TRAIN_TOML = """
 [seg]
 batch_size = 2

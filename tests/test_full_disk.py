@@ -15,17 +15,11 @@ from typing import Callable
 
 import pytest
 import trimesh
-from faults import TINY_TRAIN_TOML, assert_one_line, assert_same_tree, make_tiny_bop, small_disk  # noqa: F401
+from faults import TINY_DATAGEN_TOML, TINY_TRAIN_TOML, assert_one_line, assert_same_tree, make_tiny_bop, small_disk  # noqa: F401
 from helpers import run_cli
 
 PAGE = 4096
 NO_SPACE_LINE = r"posegrasp: error: no space left on \S+"
-TINY_DATAGEN_TOML = """
-blocks = [2, 3]
-[workcell.hand_camera]
-width = 80
-height = 60
-"""
 
 
 @pytest.fixture(scope="module")

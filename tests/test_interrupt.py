@@ -13,19 +13,13 @@ import time
 from pathlib import Path
 
 import pytest
-from faults import TINY_TRAIN_TOML, assert_one_line, assert_same_tree, interrupt_when, make_tiny_bop
+from faults import TINY_DATAGEN_TOML, TINY_TRAIN_TOML, assert_one_line, assert_same_tree, interrupt_when, make_tiny_bop
 from helpers import cli, run_cli
 
 pytestmark = pytest.mark.slow  # each test runs its command three times in child processes
 
 RERUN = r"posegrasp: interrupted; run the same command again to resume"
 RESUME = r"posegrasp: interrupted; run the same command with --resume to continue"
-TINY_DATAGEN_TOML = """
-blocks = [2, 3]
-[workcell.hand_camera]
-width = 80
-height = 60
-"""
 
 
 def lines(path: Path) -> int:
