@@ -41,7 +41,8 @@ class Repaired:
 
     ``volume_change``: ``V_solid / V_input - 1``, where ``V_input`` is the signed volume of the cleaned, outward
     input surface with its holes closed where they could be (overlapping bodies count twice).
-    ``surface``: the cleaned input surface when the solid was remeshed (for rendering), else None.
+    ``surface``: the cleaned input surface when the solid was remeshed and that surface covers it (every sampled
+    point of the solid within one grid cell of it: no hole a renderer would show through), for rendering; else None.
     """
 
     mesh: trimesh.Trimesh
@@ -291,7 +292,8 @@ def repair(mesh: trimesh.Trimesh, name: str, max_hole_fraction: float, remesh_ce
         surface, remeshed = None, False
     else:
         solid = remesh(mesh, remesh_cells)
-        surface, remeshed = mesh, True
+        remeshed = True
+        surface = mesh if _covers(mesh, solid, float(np.linalg.norm(mesh.extents)) / remesh_cells) else None
         repairs.append(f"remeshed watertight ({remesh_cells} cells across; the surface had non-manifold edges, "
                        "self-intersections or no consistent orientation)")
     if _flat(solid):
@@ -299,6 +301,17 @@ def repair(mesh: trimesh.Trimesh, name: str, max_hole_fraction: float, remesh_ce
                         "is needed")
     change = float(solid.volume) / v_in - 1.0 if v_in > 0 else 0.0
     return Repaired(mesh=solid, repairs=tuple(repairs), volume_change=change, remeshed=remeshed, surface=surface)
+
+
+def _covers(surface: trimesh.Trimesh, solid: trimesh.Trimesh, h: float, n: int = 4000) -> bool:
+    """Whether ``surface`` lies over all of ``solid``: ``n`` seeded samples of the solid within ``h`` (m) of a dense
+    sampling of the surface (one point per (h/4)^2 of its area, at most 10^6)."""
+    if len(solid.faces) == 0:
+        return False
+    m = int(min(1_000_000, max(n, 16 * surface.area / h ** 2)))
+    ref = trimesh.sample.sample_surface(surface, m, seed=0)[0]
+    probe = trimesh.sample.sample_surface(solid, n, seed=1)[0]
+    return bool((cKDTree(ref).query(probe, workers=1)[0] <= h).all())
 
 
 def _outward(mesh: trimesh.Trimesh) -> int:
