@@ -316,8 +316,9 @@ def _covers(surface: trimesh.Trimesh, solid: trimesh.Trimesh, h: float, n: int =
 
 def _outward(mesh: trimesh.Trimesh) -> int:
     """Make the winding consistent and each body outward, in place; the number of bodies turned."""
-    before = [float(b.volume) for b in mesh.split(only_watertight=False)] if mesh.body_count > 1 else [
-        float(mesh.volume)]
+    with np.errstate(divide="ignore", invalid="ignore"):  # a flat body's centre of mass is 0/0; its volume is 0
+        before = [float(b.volume) for b in mesh.split(only_watertight=False)] if mesh.body_count > 1 else [
+            float(mesh.volume)]
     mesh.fix_normals()
     return sum(v < 0 for v in before) if mesh.is_winding_consistent else 0
 
