@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from posegrasp.arguments import number, out_dir, out_file
+from posegrasp.arguments import number, out_dir, out_file, workers_arg
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -26,6 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="density in kg/m^3 (default 1050, ABS plastic)")
     imp.add_argument("--name", nargs="+", default=None, metavar="NAME", help="one name per mesh (default: file names)")
     imp.add_argument("--config", default=None, help="import settings TOML (fields of objects.config.ImportConfig)")
+    imp.add_argument("--workers", type=workers_arg, default=None,
+                     help="worker processes, one part each at a time (default: one per core), or 'ray'")
     imp.add_argument("--no-progress", action="store_true", help="no progress bar")
     imp.set_defaults(run=run_import)
     show = cmds.add_parser("show", help="draw each object of a set with its collision pieces and symmetry axes")
@@ -47,9 +49,10 @@ def run_import(args: argparse.Namespace) -> int:
     check_writable_set(args.out)
     srcs = sources(args.meshes, args.unit, args.name, args.scale)
     cell = Workcell.default()
-    lines: list[str] = []
+    reports: dict[int, list[str]] = {}
 
     def report(o, seconds: float) -> None:
+        lines = reports.setdefault(o.obj_id, [])
         sym = f"{len(o.symmetries_discrete)} discrete" + (
             f" + {len(o.symmetries_continuous)} continuous" if o.symmetries_continuous else "")
         n = len(o.collision)
@@ -66,9 +69,9 @@ def run_import(args: argparse.Namespace) -> int:
     with progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   enabled=not args.no_progress, transient=True) as bar:
         task = bar.add_task("import", total=len(srcs))
-        objects = import_objects(srcs, cfg, cell, report)
+        objects = import_objects(srcs, cfg, cell, report, args.workers)
     write_object_set(args.out, objects, cfg.firm_hold_tasks)
-    print("\n".join(lines))
+    print("\n".join(ln for i in sorted(reports) for ln in reports[i]))
     print(f"wrote object set {args.out} ({len(objects)} objects)")
     return 0
 

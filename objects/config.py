@@ -40,6 +40,10 @@ class ImportConfig:
     max_pieces: int = field(default=32, metadata=within(1, 256))
     #: CoACD concavity threshold.
     coacd_threshold: float = field(default=0.05, metadata=within(0.01, 1.0))
+    #: Most triangles of the solid handed to CoACD (decimated to this; its pieces need no finer surface).
+    collision_faces: int = field(default=3000, metadata=within(200, 1_000_000))
+    #: CoACD tree-search iterations per cut (its own default is 150: finer cuts, three times slower).
+    coacd_iterations: int = field(default=50, metadata=within(10, 1000))
     #: Seed of CoACD and the surface samples: the same mesh gives the same pieces.
     seed: int = 0
     #: Trial tasks that hold the set's objects firmly, written into the set's manifest.

@@ -6,6 +6,7 @@ All meshes are processed before anything is written, so a bad one leaves the dis
 
 from __future__ import annotations
 
+import os
 import re
 import time
 from dataclasses import dataclass
@@ -21,10 +22,12 @@ from posegrasp.objects.config import ImportConfig
 from posegrasp.objects.decompose import convex_pieces, union_volume
 from posegrasp.objects.mass import mass_properties
 from posegrasp.objects.formats import check_file, read_part
-from posegrasp.objects.mesh import UNITS, centred
+from posegrasp.objects.formats.part import Part
+from posegrasp.objects.mesh import UNITS, SolidMesh, centred
 from posegrasp.objects.objset import SetObject
 from posegrasp.objects.rest import upright
 from posegrasp.objects.symmetry import find_symmetries
+from posegrasp.surface import TexturedSurface, baked
 
 #: Display colours, one per object in turn.
 PALETTE = ((0.85, 0.15, 0.15, 1.0), (0.15, 0.45, 0.85, 1.0), (0.95, 0.75, 0.1, 1.0), (0.2, 0.7, 0.3, 1.0),
@@ -143,6 +146,22 @@ def _given_symmetries(src: Source, offset: np.ndarray) -> Symmetries | None:
     return disc, cont
 
 
+def _looks(part: Part, solid: SolidMesh, obj_id: int) -> tuple[tuple[float, float, float, float],
+                                                                 TexturedSurface | None]:
+    """The object's colour and drawn surface (m, object frame): the file's texture where it has one; else, for a
+    remeshed solid whose input surface covers it, that surface in the part's one colour (the detail the remesh
+    rounded off stays visible); else None, the model drawn in the colour."""
+    white = (1.0, 1.0, 1.0, 1.0)
+    if part.surface is not None:
+        return part.rgba or white, part.surface.moved(1.0, solid.offset)
+    rgba = part.rgba or PALETTE[(obj_id - 1) % len(PALETTE)]
+    if solid.surface is None:
+        return rgba, None
+    rgb = np.round(255 * np.asarray(rgba[:3])).astype(np.uint8)
+    faces = np.asarray(solid.surface.faces)
+    return white, baked(np.asarray(solid.surface.vertices), faces, np.tile(rgb, (len(faces), 1)))
+
+
 def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -> SetObject:
     """One object of a set from ``src``, with id ``obj_id``."""
     step = src.path.suffix.lower() in (".step", ".stp")  # in its own declared unit
@@ -157,18 +176,18 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
     disc, cont = given if given is not None else find_symmetries(
         mesh, props.center_of_mass, props.inertia, tol, cfg.sym_points, cfg.max_fold, cfg.seed)
     up = upright(mesh, props.center_of_mass, tol)
-    pieces = convex_pieces(mesh, cfg.max_pieces, cfg.coacd_threshold, cfg.seed)
+    pieces = convex_pieces(mesh, cfg.max_pieces, cfg.coacd_threshold, cfg.seed, cfg.collision_faces,
+                          cfg.coacd_iterations)
     warnings = fit_warnings(mesh, props.diameter, up.R_table_obj, cell.hand, cell.pick_area, cell.camera,
                             cfg.min_pixels)
     cover = union_volume(pieces) / props.volume
     if abs(cover - 1.0) > 0.10:
         warnings.append(f"its {len(pieces)} collision pieces hold {cover:.2f} times its volume (hulls over hollows); "
                         "raise max_pieces or lower coacd_threshold in --config")
+    rgba, surface = _looks(part, solid, obj_id)
     return SetObject(
         obj_id=obj_id, name=src.name, vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces),
-        mass=props.mass, density=cfg.density, friction=cfg.friction,
-        rgba=part.rgba or (PALETTE[(obj_id - 1) % len(PALETTE)] if part.surface is None else (1.0, 1.0, 1.0, 1.0)),
-        surface=None if part.surface is None else part.surface.moved(1.0, solid.offset),
+        mass=props.mass, density=cfg.density, friction=cfg.friction, rgba=rgba, surface=surface,
         collision=tuple({"type": "mesh", "vertices": p} for p in pieces),
         upright_quat=tuple(R_to_quat(up.R_table_obj).tolist()), upright_down=up.down, flat_top=up.flat_top,
         flat_bottom=up.flat_bottom, diameter=props.diameter, min_xyz=props.min_xyz,
@@ -181,13 +200,27 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
         warnings=tuple(warnings))
 
 
+def _import_job(job: tuple[Source, int, ImportConfig, Workcell]) -> tuple[SetObject, float]:
+    """One part imported (a worker's task), and the seconds it took."""
+    t0 = time.perf_counter()
+    obj = import_object(*job)
+    return obj, time.perf_counter() - t0
+
+
 def import_objects(srcs: list[Source], cfg: ImportConfig, cell: Workcell,
-                   on_done: Callable[[SetObject, float], None] | None = None) -> list[SetObject]:
-    """Every source imported in order (ids 1, 2, ...); ``on_done(obj, seconds)`` after each."""
-    out = []
-    for i, src in enumerate(srcs, start=1):
-        t0 = time.perf_counter()
-        out.append(import_object(src, i, cfg, cell))
-        if on_done is not None:
-            on_done(out[-1], time.perf_counter() - t0)
-    return out
+                   on_done: Callable[[SetObject, float], None] | None = None,
+                   workers: int | str | None = 1) -> list[SetObject]:
+    """Every source imported (ids 1, 2, ... in order), one task per part on ``workers`` processes
+    (``posegrasp.executor``: None one per core, 1 in this process, or ``"ray"``); ``on_done(obj, seconds)`` as each
+    finishes. Every part is imported on its own with seeded steps, so the set does not depend on ``workers``."""
+    from posegrasp.executor import make_executor
+
+    if isinstance(workers, int) or workers is None:
+        workers = max(1, min(len(srcs), workers or os.cpu_count() or 1))
+    out: list[SetObject | None] = [None] * len(srcs)
+    with make_executor(workers) as ex:
+        for i, (obj, seconds) in ex.imap(_import_job, [(s, i, cfg, cell) for i, s in enumerate(srcs, start=1)]):
+            out[i] = obj
+            if on_done is not None:
+                on_done(obj, seconds)
+    return out  # type: ignore[return-value]

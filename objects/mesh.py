@@ -26,6 +26,7 @@ class SolidMesh:
     offset: np.ndarray  # (3,) translation applied after scaling (m)
     repairs: tuple[str, ...]  # what was repaired, in words
     volume_change: float = 0.0  # the solid's volume over the input surface's, minus 1
+    surface: trimesh.Trimesh | None = None  # the input surface (m, same frame) to draw a remeshed solid with
 
 
 def check_size(mesh: trimesh.Trimesh, name: str, unit: str, lo: float, hi: float) -> None:
@@ -53,4 +54,6 @@ def centred(raw: trimesh.Trimesh, scale: float, label: str, unit: str, max_hole_
     mesh, repairs = fixed.mesh, fixed.repairs
     offset = -mesh.bounds.mean(axis=0)
     mesh.apply_translation(offset)
-    return SolidMesh(mesh=mesh, scale=scale, offset=offset, repairs=repairs, volume_change=fixed.volume_change)
+    surface = None if fixed.surface is None else fixed.surface.copy().apply_translation(offset)
+    return SolidMesh(mesh=mesh, scale=scale, offset=offset, repairs=repairs, volume_change=fixed.volume_change,
+                     surface=surface)

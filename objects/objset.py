@@ -6,8 +6,9 @@
     SET/objects/obj_NNNNNN.json    the simulator's part, SI units: mass, density, friction, colour, collision
                                    pieces, upright resting face, and where the model came from
     SET/objects/obj_NNNNNN_surface.ply, obj_NNNNNN_texture.png
-                                   only for a part with a texture or several colours: the surface it is drawn
-                                   with (``posegrasp.surface``), named by the json's ``surface`` entry
+                                   only for a part with a texture or several colours, or a remeshed part drawn
+                                   with its input surface: the surface it is drawn with (``posegrasp.surface``),
+                                   named by the json's ``surface`` entry
 
 Everything here is in SI units (m, kg) in the OBJECT frame: origin at the centre of the model's bounding box.
 The set is written in a temporary folder beside ``SET`` and renamed into place, so a failed or killed import
@@ -70,7 +71,8 @@ class SetObject:
         volume_change: The repaired model's volume over the input surface's, minus 1 (0 when nothing was repaired).
         warnings: How the object does not suit the workcell, in words (empty when it does).
         surface: The textured surface (m, object frame) it is drawn with, where one colour (``rgba``, then white)
-            does not say how it looks; None draws the model in ``rgba``.
+            does not say how it looks or the model was remeshed (its input surface, in one colour); None draws
+            the model in ``rgba``.
     """
 
     obj_id: int

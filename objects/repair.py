@@ -30,13 +30,19 @@ from scipy.spatial import cKDTree
 from posegrasp.errors import UserError
 
 
+#: Largest share of the surface area that may face the wrong way after a local repair (slivers whose normal
+#: rounding turns); more means the surface crosses itself or holds an inner sheet, and it is remeshed.
+INSIDE_OUT_TOLERANCE = 1e-3
+
+
 @dataclass(frozen=True)
 class Repaired:
     """A repaired solid (m), what was done to it, and its volume over the input's.
 
     ``volume_change``: ``V_solid / V_input - 1``, where ``V_input`` is the signed volume of the cleaned, outward
     input surface with its holes closed where they could be (overlapping bodies count twice).
-    ``surface``: the cleaned input surface when the solid was remeshed (for rendering), else None.
+    ``surface``: the cleaned input surface when the solid was remeshed and that surface covers it (every sampled
+    point of the solid within one grid cell of it: no hole a renderer would show through), for rendering; else None.
     """
 
     mesh: trimesh.Trimesh
@@ -173,17 +179,21 @@ def winding_numbers(mesh: trimesh.Trimesh, points: np.ndarray, chunk: int = 2_00
 
 
 def faces_inside_out(mesh: trimesh.Trimesh, samples: int = 256, seed: int = 0) -> float:
-    """Fraction of up to ``samples`` triangles (fewer on large meshes: the cost is samples x triangles; a seeded
-    choice) not facing from inside (w > 1/2) to outside: a
-    self-intersection, an overlap or an inner shell shows as triangles with the solid on both sides or neither."""
+    """Share of the area of up to ``samples`` triangles (fewer on large meshes: the cost is samples x triangles),
+    drawn with probability proportional to their area (a seeded choice), on triangles not facing from inside
+    (w > 1/2) to outside: a self-intersection, an overlap or an inner shell shows as triangles with the solid on
+    both sides or neither. Triangles of (near) zero area -- a hole patch over collinear boundary vertices -- have no
+    defined normal and are never drawn."""
+    area = np.asarray(mesh.area_faces, np.float64)
+    p = np.where(area > 1e-9 * area.sum(), area, 0.0)
     rng = np.random.default_rng(seed)
-    n = int(np.clip(4_000_000 // len(mesh.faces), 16, samples))
-    idx = rng.choice(len(mesh.faces), min(n, len(mesh.faces)), replace=False)
+    n = min(int(np.clip(4_000_000 // len(mesh.faces), 16, samples)), int(np.count_nonzero(p)))
+    idx = rng.choice(len(mesh.faces), n, replace=False, p=p / p.sum())
     eps = 1e-4 * float(np.linalg.norm(mesh.extents))
-    c, n = mesh.triangles_center[idx], mesh.face_normals[idx]
-    w = winding_numbers(mesh, np.concatenate([c - eps * n, c + eps * n]))
-    bad = (w[:len(idx)] < 0.5) | (w[len(idx):] > 0.5)
-    return float(bad.mean())
+    c, normal = mesh.triangles_center[idx], mesh.face_normals[idx]
+    w = winding_numbers(mesh, np.concatenate([c - eps * normal, c + eps * normal]))
+    bad = (w[:n] < 0.5) | (w[n:] > 0.5)
+    return float(area[idx][bad].sum() / area[idx].sum())
 
 
 def _manifold(mesh: trimesh.Trimesh) -> manifold3d.Manifold | None:
@@ -282,7 +292,8 @@ def repair(mesh: trimesh.Trimesh, name: str, max_hole_fraction: float, remesh_ce
         surface, remeshed = None, False
     else:
         solid = remesh(mesh, remesh_cells)
-        surface, remeshed = mesh, True
+        remeshed = True
+        surface = mesh if _covers(mesh, solid, float(np.linalg.norm(mesh.extents)) / remesh_cells) else None
         repairs.append(f"remeshed watertight ({remesh_cells} cells across; the surface had non-manifold edges, "
                        "self-intersections or no consistent orientation)")
     if _flat(solid):
@@ -292,10 +303,22 @@ def repair(mesh: trimesh.Trimesh, name: str, max_hole_fraction: float, remesh_ce
     return Repaired(mesh=solid, repairs=tuple(repairs), volume_change=change, remeshed=remeshed, surface=surface)
 
 
+def _covers(surface: trimesh.Trimesh, solid: trimesh.Trimesh, h: float, n: int = 4000) -> bool:
+    """Whether ``surface`` lies over all of ``solid``: ``n`` seeded samples of the solid within ``h`` (m) of a dense
+    sampling of the surface (one point per (h/4)^2 of its area, at most 10^6)."""
+    if len(solid.faces) == 0:
+        return False
+    m = int(min(1_000_000, max(n, 16 * surface.area / h ** 2)))
+    ref = trimesh.sample.sample_surface(surface, m, seed=0)[0]
+    probe = trimesh.sample.sample_surface(solid, n, seed=1)[0]
+    return bool((cKDTree(ref).query(probe, workers=1)[0] <= h).all())
+
+
 def _outward(mesh: trimesh.Trimesh) -> int:
     """Make the winding consistent and each body outward, in place; the number of bodies turned."""
-    before = [float(b.volume) for b in mesh.split(only_watertight=False)] if mesh.body_count > 1 else [
-        float(mesh.volume)]
+    with np.errstate(divide="ignore", invalid="ignore"):  # a flat body's centre of mass is 0/0; its volume is 0
+        before = [float(b.volume) for b in mesh.split(only_watertight=False)] if mesh.body_count > 1 else [
+            float(mesh.volume)]
     mesh.fix_normals()
     return sum(v < 0 for v in before) if mesh.is_winding_consistent else 0
 
@@ -316,6 +339,6 @@ def _local(mesh: trimesh.Trimesh, closed: tuple[trimesh.Trimesh, int] | None) ->
     mesh, before, after = united
     if after < before:
         steps.append(f"united {before} overlapping or touching bodies into {_plural(after, 'solid')}")
-    if faces_inside_out(mesh) > 0.0:
+    if faces_inside_out(mesh) > INSIDE_OUT_TOLERANCE:
         return None
     return mesh, steps
