@@ -250,3 +250,13 @@ def test_bad_input_is_one_line_and_writes_nothing(capsys, tmp_path: Path, case: 
     out = tmp_path / "set"
     refused(capsys, ["objects", "import", *args, "--out", out, "--no-progress"], words)
     assert not out.exists() and not list(tmp_path.glob(".set*"))
+
+
+def test_an_obj_whose_material_library_is_missing_imports_with_a_warning(tmp_path: Path) -> None:
+    """pybullet_data's lego.obj names a lego.mtl its package does not ship: the geometry is the part."""
+    text = trimesh.creation.box([0.05, 0.04, 0.03]).export(file_type="obj")
+    (tmp_path / "brick.obj").write_text("mtllib brick.mtl\nusemtl plastic\n" + text)
+    _import([tmp_path / "brick.obj"], tmp_path / "set")
+    o = load_object_set(tmp_path / "set").objects[0]
+    assert np.asarray(o.extents) == pytest.approx([0.05, 0.04, 0.03], abs=1e-9)
+    assert any("material library brick.mtl is not in" in w for w in o.warnings), o.warnings

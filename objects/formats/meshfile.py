@@ -7,6 +7,7 @@ texture or material file the part names but that is missing is refused rather th
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -19,8 +20,16 @@ from posegrasp.objects.formats.part import Part
 from posegrasp.surface import TexturedSurface, baked, merged
 
 
+def _missing_materials(path: Path) -> list[str]:
+    """Material libraries an OBJ names that are not beside it (its geometry is read without them)."""
+    if path.suffix.lower() != ".obj":
+        return []
+    text = path.read_text(errors="replace")
+    return [lib for lib in re.findall(r"^\s*mtllib\s+(.+?)\s*$", text, re.M) if not (path.parent / lib).is_file()]
+
+
 def _missing_files(path: Path) -> list[str]:
-    """Material and texture files an OBJ or glTF names that are not beside it."""
+    """Texture files an OBJ's material libraries or a glTF name, and a glTF's buffers, that are not beside it."""
     names: list[str] = []
     suffix = path.suffix.lower()
     if suffix == ".obj":
@@ -28,7 +37,6 @@ def _missing_files(path: Path) -> list[str]:
         for lib in re.findall(r"^\s*mtllib\s+(.+?)\s*$", text, re.M):
             mtl = path.parent / lib
             if not mtl.is_file():
-                names.append(lib)
                 continue
             names += [m for m in re.findall(r"^\s*map_Kd\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", mtl.read_text(errors="replace"),
                                             re.M) if not (mtl.parent / m).is_file()]
@@ -112,6 +120,8 @@ def read(path: Path) -> Part:
         raise UserError(f"{path}: cannot read it as {path.suffix[1:].upper()}: {why}") from None
     if not meshes:
         raise UserError(f"{path}: the file holds no triangles (empty mesh or a point cloud)")
+    notes = tuple(f"its material library {lib} is not in {path.parent}: drawn in the set's colours"
+                  for lib in _missing_materials(path))
     if len(meshes) == 1 and meshes[0].visual.kind is None:
-        return Part(trimesh.Trimesh(meshes[0].vertices, meshes[0].faces, process=False))
-    return combined(meshes, [look(m) for m in meshes])
+        return Part(trimesh.Trimesh(meshes[0].vertices, meshes[0].faces, process=False), notes=notes)
+    return dataclasses.replace(combined(meshes, [look(m) for m in meshes]), notes=notes)
