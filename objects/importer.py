@@ -158,8 +158,8 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
         mesh, props.center_of_mass, props.inertia, tol, cfg.sym_points, cfg.max_fold, cfg.seed)
     up = upright(mesh, props.center_of_mass, tol)
     pieces = convex_pieces(mesh, cfg.max_pieces, cfg.coacd_threshold, cfg.seed)
-    warnings = fit_warnings(mesh, props.diameter, up.R_table_obj, cell.hand, cell.pick_area, cell.camera,
-                            cfg.min_pixels)
+    warnings = list(part.notes) + fit_warnings(mesh, props.diameter, up.R_table_obj, cell.hand, cell.pick_area,
+                                               cell.camera, cfg.min_pixels)
     cover = union_volume(pieces) / props.volume
     if abs(cover - 1.0) > 0.10:
         warnings.append(f"its {len(pieces)} collision pieces hold {cover:.2f} times its volume (hulls over hollows); "

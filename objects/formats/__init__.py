@@ -38,4 +38,4 @@ def read_part(path: Path, metres_per_unit: float, step_tolerance: tuple[float, f
     v = np.asarray(part.mesh.vertices, np.float64)  # NaN vertices are the repair's to drop (``objects.repair``)
     surface = None if part.surface is None else part.surface.moved(metres_per_unit)
     return Part(trimesh.Trimesh(v * metres_per_unit, np.asarray(part.mesh.faces, np.int64), process=False),
-                part.rgba, surface)
+                part.rgba, surface, part.notes)

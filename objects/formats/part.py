@@ -17,11 +17,13 @@ FORMATS = (".stl", ".obj", ".ply", ".glb", ".gltf", ".step", ".stp", ".urdf")
 @dataclass(frozen=True)
 class Part:
     """A part as its file gives it: ``mesh`` (m, unprocessed), and its look: ``rgba`` when one colour says it,
-    ``surface`` (m, the mesh's frame) when it has a texture or several colours, neither when the file says none."""
+    ``surface`` (m, the mesh's frame) when it has a texture or several colours, neither when the file says none;
+    ``notes``: what of the file could not be used, in words (a material library it names but lacks)."""
 
     mesh: trimesh.Trimesh
     rgba: tuple[float, float, float, float] | None = None
     surface: TexturedSurface | None = None
+    notes: tuple[str, ...] = ()
 
 
 def check_file(path: Path) -> None:

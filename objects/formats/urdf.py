@@ -6,6 +6,7 @@ its own from the visual). ``package://PKG/rest`` and relative mesh paths are loo
 
 from __future__ import annotations
 
+import dataclasses
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -146,16 +147,19 @@ def read(path: Path) -> Part:
     named = {m.get("name"): c for m in robot.findall("material")
              if (c := _colour(m, {}, f"{path}: material {m.get('name')!r}")) is not None}
     poses = _link_poses(robot, str(path))
-    meshes, looks = [], []
+    meshes, looks, notes = [], [], ()
     for link in robot.findall("link"):
         for vis in link.findall("visual"):
             where = f"{path}: link {link.get('name')!r}"
             T = poses.get(link.get("name"), np.eye(4)) @ _origin(vis.find("origin"), f"{where} visual origin")
             colour = _colour(vis.find("material"), named, where)
+            shape = vis.find("geometry/mesh")
+            if colour is None and shape is not None and shape.get("filename"):  # the mesh file's look is used
+                notes += meshfile.unread_materials(_mesh_path(path, shape.get("filename"), where))
             for m in _geometry(path, vis.find("geometry"), where):
                 m.apply_transform(T)
                 meshes.append(m)
                 looks.append(colour if colour is not None else meshfile.look(m))
     if not meshes:
         raise UserError(f"{path}: no link has a visual geometry")
-    return meshfile.combined(meshes, looks)
+    return dataclasses.replace(meshfile.combined(meshes, looks), notes=notes)
