@@ -238,6 +238,16 @@ def test_obj_naming_a_missing_material_library_is_read_without_it(tmp_path: Path
     assert urdf.warnings == () and urdf.rgba == pytest.approx((1.0, 1.0, 0.4, 1.0), abs=0.003)
 
 
+def test_urdf_without_visuals_is_its_collision_shape(tmp_path: Path) -> None:
+    (tmp_path / "ball.urdf").write_text("""<?xml version="1.0"?>
+<robot name="ball"><link name="base"><collision><origin xyz="0.1 0 0"/><geometry><sphere radius="0.02"/></geometry>
+</collision></link></robot>""")
+    _import([tmp_path / "ball.urdf"], tmp_path / "set")
+    o = load_object_set(tmp_path / "set").objects[0]
+    assert np.asarray(o.extents) == pytest.approx([0.04, 0.04, 0.04], abs=1e-3)
+    assert [w for w in o.warnings if "no visual geometry: its collision geometry" in w]
+
+
 def _bad(d: Path) -> dict[str, list[str]]:
     (d / "notex").mkdir()
     _textured_box([0.05, 0.04, 0.03], ORANGE, 2).export(d / "notex" / "part.obj")
