@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 import trimesh
 
+from test_bad_input import refused
+
 from posegrasp.cli import main
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import SceneConfig, make_scene
@@ -37,3 +39,10 @@ def test_trial_scene_holds_the_parts_that_fit(boxes: Path) -> None:
     scene = make_scene(3, 5, cfg)
     assert 1 <= len(scene.blocks) <= 2
     assert scene.in_pick_area().all()
+
+
+def test_datagen_scene_that_does_not_settle_is_one_line(capsys, tmp_path: Path) -> None:
+    toml = tmp_path / "datagen.toml"
+    toml.write_text("area_margin = -0.5\n")  # no part can rest that far inside the pick area
+    refused(capsys, ["datagen", "--scenes", "1", "--views", "1", "--blocks", "1", "--workers", "1", "--config", toml,
+                     "--out", tmp_path / "ds", "--no-progress"], "did not come to rest inside the pick area")
