@@ -130,7 +130,7 @@ def _print(rows: list[dict]) -> None:
             print(head + "NOT IMPORTED: " + r["error"])
             continue
         x, y, z = r["extents_mm"]
-        print(head + f"{x:.0f} x {y:.0f} x {z:.0f} mm, {r['mass_g']:.0f} g, {r['pieces']} pieces, "
+        print(head + f"{x:.0f} x {y:.0f} x {z:.0f} mm, {r['mass_g']:.1f} g, {r['pieces']} pieces, "
                      f"{len(r['repairs'])} repairs, {len(r['warnings'])} warnings")
         for rep in r["repairs"]:
             print(f"{'':<14}repaired: {rep}")
