@@ -72,10 +72,14 @@ def load_config(args: argparse.Namespace):
 
 def run_datagen(args: argparse.Namespace) -> int:
     from posegrasp.datagen.generate import generate_dataset
+    from posegrasp.errors import SceneUnsettled, UserError
 
     out = args.out
-    s = generate_dataset(out, args.scenes, args.views, args.seed, load_config(args), split=args.split, workers=args.workers,
-                         progress=not args.no_progress)
+    try:
+        s = generate_dataset(out, args.scenes, args.views, args.seed, load_config(args), split=args.split,
+                             workers=args.workers, progress=not args.no_progress)
+    except SceneUnsettled as e:  # the scenes written before it are complete: a rerun resumes after them
+        raise UserError(str(e)) from None
     v = s["views"]
     if s["generated_scenes"] == 0:
         print(f"{out}: all {s['scenes']} scenes already complete; nothing to do")

@@ -18,7 +18,7 @@ from posegrasp.datagen.config import DatagenConfig
 from posegrasp.catalog import PartType, load_catalog
 from posegrasp.errors import ConfigError
 from posegrasp.sim.clutter import build_clutter_scene, check_clutter, clutter_workcell
-from posegrasp.sim.scene import SceneConfig, area_capacity, choose_types, drop_and_settle, randomise_lights
+from posegrasp.sim.scene import SceneConfig, area_capacity, choose_types, drop_and_settle, fitting, randomise_lights
 from posegrasp.sim.workcell import BlockInstance, Workcell
 
 
@@ -70,6 +70,9 @@ def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 2
     counts = cfg.blocks if cfg.scene == "table" else cfg.clutter.parts
     n = int(rng.integers(counts[0], counts[1] + 1))
     types = choose_types(scfg, n, rng)
+    if cfg.scene == "table":
+        types = fitting(types, scfg)
+        n = len(types)
     look = sample_look(cfg, n, rng)
     parts = [BlockInstance(b, c) for b, c in zip(types, look.block_rgba)]
     if cfg.scene == "table":

@@ -69,7 +69,8 @@ class SetObject:
             offset``, m), ``symmetries`` ("found" or the models_info.json they were taken from).
         repairs: What the import repaired, in words.
         volume_change: The repaired model's volume over the input surface's, minus 1 (0 when nothing was repaired).
-        warnings: How the object does not suit the workcell, in words (empty when it does).
+        warnings: How the object does not suit the workcell, and what of its file the import could not use, in
+            words (empty when neither).
         surface: The textured surface (m, object frame) it is drawn with, where one colour (``rgba``, then white)
             does not say how it looks or the model was remeshed (its input surface, in one colour); None draws
             the model in ``rgba``.

@@ -54,6 +54,25 @@ def area_capacity(cfg: SceneConfig) -> int:
     return int((2 * hx // s + 1) * (2 * hy // (s * np.sqrt(3) / 2) + 1) * 0.5)
 
 
+#: Most of the pick area the parts of one scene may cover, each lying on its largest face (the product of its two
+#: largest extents): more do not settle apart inside it, so a scene drops the parts drawn past this share.
+AREA_FILL = 0.5
+
+
+def fitting(types: list[PartType], cfg: SceneConfig) -> list[PartType]:
+    """The leading ``types`` whose footprints (two largest extents' product, m^2) cover at most ``AREA_FILL`` of the
+    pick area; at least the first. The shipped blocks never reach it; large imported parts (a cereal box) do."""
+    hx, hy = cfg.workcell.pick_area.half_size
+    room, out = AREA_FILL * 4 * hx * hy, []
+    for t in types:
+        e = np.sort(np.asarray(t.extents))
+        room -= e[1] * e[2]
+        if out and room < 0:
+            break
+        out.append(t)
+    return out
+
+
 def check_block_types(names: tuple[str, ...] | list[str], objects: str = "") -> None:
     """Raise a ConfigError naming the ``names`` that are not object types of the set ``objects``."""
     cat = load_catalog(objects)
@@ -184,7 +203,8 @@ def drop_and_settle(workcell: Workcell, cfg: SceneConfig, types: list[PartType],
 
 
 def make_scene(seed: int, n_blocks: int, cfg: SceneConfig | None = None, max_drops: int = 20) -> Scene:
-    """Build and settle a random scene of ``n_blocks`` blocks; the arm starts at home.
+    """Build and settle a random scene of ``n_blocks`` blocks (fewer where large parts would crowd the pick area:
+    ``fitting``); the arm starts at home.
 
     If a block ends outside the pick area, all blocks are dropped again (same rng stream), up to ``max_drops``.
     """
@@ -197,6 +217,7 @@ def make_scene(seed: int, n_blocks: int, cfg: SceneConfig | None = None, max_dro
     rng = np.random.default_rng(seed)
     types = choose_types(cfg, n_blocks, rng)
     colours = [cfg.palette[i] for i in rng.integers(0, len(cfg.palette), size=n_blocks)]
+    types = fitting(types, cfg)
     wc = Workcell(cfg.workcell, [BlockInstance(b, (*c, 1.0)) for b, c in zip(types, colours)])
     randomise_lights(wc, cfg, rng)
     drop_and_settle(wc, cfg, types, rng, max_drops)

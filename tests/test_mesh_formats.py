@@ -223,6 +223,31 @@ def test_scale_multiplies_the_unit(tmp_path: Path) -> None:
     assert np.asarray(load_object_set(tmp_path / "set2").objects[0].extents) == pytest.approx([0.05, 0.04, 0.03])
 
 
+def test_obj_naming_a_missing_material_library_is_read_without_it(tmp_path: Path) -> None:
+    """Public assets ship OBJs whose ``mtllib`` is not in the package (pybullet_data's lego.obj, cube.obj): the
+    geometry imports, the warning names the file; a URDF colour stands in for the materials without a warning."""
+    text = trimesh.creation.box([0.05, 0.04, 0.03]).export(file_type="obj")
+    (tmp_path / "brick.obj").write_text("mtllib brick.mtl\nusemtl yellow\n" + text)
+    (tmp_path / "brick.urdf").write_text("""<?xml version="1.0"?>
+<robot name="brick"><link name="base"><visual><geometry><mesh filename="brick.obj"/></geometry>
+<material name="y"><color rgba="1 1 0.4 1"/></material></visual></link></robot>""")
+    _import([tmp_path / "brick.obj", tmp_path / "brick.urdf"], tmp_path / "set", "--name", "obj", "urdf")
+    obj, urdf = load_object_set(tmp_path / "set").objects
+    assert np.asarray(obj.extents) == pytest.approx([0.05, 0.04, 0.03], abs=1e-9)
+    assert [w for w in obj.warnings if "material library 'brick.mtl'" in w]
+    assert urdf.warnings == () and urdf.rgba == pytest.approx((1.0, 1.0, 0.4, 1.0), abs=0.003)
+
+
+def test_urdf_without_visuals_is_its_collision_shape(tmp_path: Path) -> None:
+    (tmp_path / "ball.urdf").write_text("""<?xml version="1.0"?>
+<robot name="ball"><link name="base"><collision><origin xyz="0.1 0 0"/><geometry><sphere radius="0.02"/></geometry>
+</collision></link></robot>""")
+    _import([tmp_path / "ball.urdf"], tmp_path / "set")
+    o = load_object_set(tmp_path / "set").objects[0]
+    assert np.asarray(o.extents) == pytest.approx([0.04, 0.04, 0.04], abs=1e-3)
+    assert [w for w in o.warnings if "no visual geometry: its collision geometry" in w]
+
+
 def _bad(d: Path) -> dict[str, list[str]]:
     (d / "notex").mkdir()
     _textured_box([0.05, 0.04, 0.03], ORANGE, 2).export(d / "notex" / "part.obj")
@@ -251,12 +276,3 @@ def test_bad_input_is_one_line_and_writes_nothing(capsys, tmp_path: Path, case: 
     refused(capsys, ["objects", "import", *args, "--out", out, "--no-progress"], words)
     assert not out.exists() and not list(tmp_path.glob(".set*"))
 
-
-def test_an_obj_whose_material_library_is_missing_imports_with_a_warning(tmp_path: Path) -> None:
-    """pybullet_data's lego.obj names a lego.mtl its package does not ship: the geometry is the part."""
-    text = trimesh.creation.box([0.05, 0.04, 0.03]).export(file_type="obj")
-    (tmp_path / "brick.obj").write_text("mtllib brick.mtl\nusemtl plastic\n" + text)
-    _import([tmp_path / "brick.obj"], tmp_path / "set")
-    o = load_object_set(tmp_path / "set").objects[0]
-    assert np.asarray(o.extents) == pytest.approx([0.05, 0.04, 0.03], abs=1e-9)
-    assert any("material library brick.mtl is not in" in w for w in o.warnings), o.warnings

@@ -2,7 +2,9 @@
 
 A texture (OBJ ``map_Kd``, glTF ``baseColorTexture``) becomes a textured surface; vertex or face colours, or several
 material colours, are baked into one (``posegrasp.surface.baked``); one colour for the whole part is ``Part.rgba``. A
-texture or material file the part names but that is missing is refused rather than silently dropped.
+texture or glTF buffer the part names but that is missing is refused rather than silently dropped; an OBJ's missing
+material library (MTL) only says how it looks (public assets ship OBJs naming an MTL they lack), so the part is read
+without it and ``Part.notes`` says so.
 """
 
 from __future__ import annotations
@@ -20,16 +22,17 @@ from posegrasp.objects.formats.part import Part
 from posegrasp.surface import TexturedSurface, baked, merged
 
 
-def _missing_materials(path: Path) -> list[str]:
-    """Material libraries an OBJ names that are not beside it (its geometry is read without them)."""
+def unread_materials(path: Path) -> tuple[str, ...]:
+    """One sentence per material library (MTL) the OBJ ``path`` names that is not beside it (read without it)."""
     if path.suffix.lower() != ".obj":
-        return []
-    text = path.read_text(errors="replace")
-    return [lib for lib in re.findall(r"^\s*mtllib\s+(.+?)\s*$", text, re.M) if not (path.parent / lib).is_file()]
+        return ()
+    return tuple(f"{path.name} names the material library {lib!r}, which is not in {path.parent}: read without its "
+                 "materials" for lib in re.findall(r"^\s*mtllib\s+(.+?)\s*$", path.read_text(errors="replace"), re.M)
+                 if not (path.parent / lib).is_file())
 
 
 def _missing_files(path: Path) -> list[str]:
-    """Texture files an OBJ's material libraries or a glTF name, and a glTF's buffers, that are not beside it."""
+    """Texture files an OBJ's material libraries, or buffers and images a glTF, name that are not beside it."""
     names: list[str] = []
     suffix = path.suffix.lower()
     if suffix == ".obj":
@@ -120,8 +123,7 @@ def read(path: Path) -> Part:
         raise UserError(f"{path}: cannot read it as {path.suffix[1:].upper()}: {why}") from None
     if not meshes:
         raise UserError(f"{path}: the file holds no triangles (empty mesh or a point cloud)")
-    notes = tuple(f"its material library {lib} is not in {path.parent}: drawn in the set's colours"
-                  for lib in _missing_materials(path))
+    notes = unread_materials(path)
     if len(meshes) == 1 and meshes[0].visual.kind is None:
         return Part(trimesh.Trimesh(meshes[0].vertices, meshes[0].faces, process=False), notes=notes)
     return dataclasses.replace(combined(meshes, [look(m) for m in meshes]), notes=notes)

@@ -18,12 +18,12 @@ FORMATS = (".stl", ".obj", ".ply", ".glb", ".gltf", ".step", ".stp", ".urdf")
 class Part:
     """A part as its file gives it: ``mesh`` (m, unprocessed), and its look: ``rgba`` when one colour says it,
     ``surface`` (m, the mesh's frame) when it has a texture or several colours, neither when the file says none;
-    ``notes``: what of the file was left out (a material library that is not there)."""
+    ``notes``: what of the file could not be used, in words (a material library it names but lacks)."""
 
     mesh: trimesh.Trimesh
     rgba: tuple[float, float, float, float] | None = None
     surface: TexturedSurface | None = None
-    notes: tuple[str, ...] = ()  # what the file said that was not used, in words (the import's warnings)
+    notes: tuple[str, ...] = ()
 
 
 def check_file(path: Path) -> None:

@@ -1,11 +1,13 @@
 """URDF parts: every link's visual geometry (meshes, boxes, cylinders, spheres), placed where the links stand with
 all joints at zero, with its origin, scale and material colour. Collision geometry is ignored (the importer makes
-its own from the visual). ``package://PKG/rest`` and relative mesh paths are looked up beside the URDF (and, for
+its own from the visual), except in a URDF without any visual (pybullet_data's ``sphere_1cm.urdf``): then the
+collision geometry is the part's shape, and the notes say so. ``package://PKG/rest`` and relative mesh paths are looked up beside the URDF (and, for
 ``package://``, in a folder ``PKG`` in it or above it).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -136,7 +138,8 @@ def _link_poses(robot: ET.Element, where: str) -> dict[str, np.ndarray]:
 
 
 def read(path: Path) -> Part:
-    """The part a URDF describes (m): its links' visuals in one mesh, in the root link's frame."""
+    """The part a URDF describes (m): its links' visuals (or, without any, collision shapes) in one mesh, in the root
+    link's frame."""
     try:
         robot = ET.parse(path).getroot()
     except ET.ParseError as e:
@@ -146,16 +149,22 @@ def read(path: Path) -> Part:
     named = {m.get("name"): c for m in robot.findall("material")
              if (c := _colour(m, {}, f"{path}: material {m.get('name')!r}")) is not None}
     poses = _link_poses(robot, str(path))
-    meshes, looks = [], []
+    meshes, looks, notes = [], [], ()
+    kind = "visual" if robot.findall("link/visual") else "collision"
+    if kind == "collision":
+        notes += (f"{path.name} has no visual geometry: its collision geometry is the part's shape",)
     for link in robot.findall("link"):
-        for vis in link.findall("visual"):
+        for vis in link.findall(kind):
             where = f"{path}: link {link.get('name')!r}"
-            T = poses.get(link.get("name"), np.eye(4)) @ _origin(vis.find("origin"), f"{where} visual origin")
+            T = poses.get(link.get("name"), np.eye(4)) @ _origin(vis.find("origin"), f"{where} {kind} origin")
             colour = _colour(vis.find("material"), named, where)
+            shape = vis.find("geometry/mesh")
+            if colour is None and shape is not None and shape.get("filename"):  # the mesh file's look is used
+                notes += meshfile.unread_materials(_mesh_path(path, shape.get("filename"), where))
             for m in _geometry(path, vis.find("geometry"), where):
                 m.apply_transform(T)
                 meshes.append(m)
                 looks.append(colour if colour is not None else meshfile.look(m))
     if not meshes:
-        raise UserError(f"{path}: no link has a visual geometry")
-    return meshfile.combined(meshes, looks)
+        raise UserError(f"{path}: no link has a visual or collision geometry")
+    return dataclasses.replace(meshfile.combined(meshes, looks), notes=notes)
