@@ -45,15 +45,18 @@ def interrupted_then_resumed(tmp_path: Path, args: list[str], ready, message: st
     assert_same_tree(cut, ref)
 
 
+# Enough work that the signal lands while it runs, however busy the machine.
+
+
 def test_datagen(tmp_path):
     (tmp_path / "datagen.toml").write_text(TINY_DATAGEN_TOML)
-    args = ["datagen", "--out", "out", "--scenes", "8", "--views", "2", "--seed", "0", "--workers", "2", "--config",
+    args = ["datagen", "--out", "out", "--scenes", "24", "--views", "2", "--seed", "0", "--workers", "2", "--config",
             str(tmp_path / "datagen.toml"), "--no-progress"]
     interrupted_then_resumed(tmp_path, args, lambda d: any((d / "out" / "train_pbr").glob("*/scene_gt.json")), RERUN)
 
 
 def test_trials(tmp_path):
-    args = ["trials", "--episodes", "3", "--seed", "0", "--workers", "2", "--out", "out", "--no-progress"]
+    args = ["trials", "--episodes", "10", "--seed", "0", "--workers", "2", "--out", "out", "--no-progress"]
     interrupted_then_resumed(tmp_path, args, lambda d: lines(d / "out" / "episodes.jsonl") >= 1, RERUN)
 
 
