@@ -119,6 +119,23 @@ def test_writing_commands_refuse_folders_and_files_they_did_not_write(tmp_path):
     assert other.read_text() == '{"mine": 1}'
 
 
+def test_eval_and_capture_exports_refuse_folders_they_did_not_write(tmp_path, tiny_bop):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    dataset = _snapshot(tiny_bop)
+    model = ROOT / "assets" / "perception" / "model"
+    for out in (foreign, tiny_bop / "train_pbr", tiny_bop):  # a stranger's folder, a dataset and its own split
+        _one_line_error(run_cli("eval", "--data", str(tiny_bop), "--weights", str(model), "--split", "train_pbr",
+                                "--out", str(out), "--no-progress"), str(out), "not written by this command")
+    for args in (("--export-captures", str(foreign), "--out", str(tmp_path / "r")),
+                 ("--captures-only", "--export-captures", str(tiny_bop))):
+        _one_line_error(run_cli("trials", "--episodes", "1", "--workers", "1", "--no-progress", *args),
+                        "not written by this command")
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"] and not (tmp_path / "r").exists()
+    assert _snapshot(tiny_bop) == dataset
+
+
 def test_scene_rewrites_its_own_folder(tmp_path):
     for _ in range(2):
         run = run_cli("scene", "--seed", "1", "--blocks", "1", "--resolution", "64x48", "--out", str(tmp_path / "s"))
