@@ -166,6 +166,17 @@ def test_training_settings_are_bounded(data, key):
         from_dict(SegTrainConfig, data, "seg.toml")
 
 
+def test_a_seg_batch_leaving_batch_norm_one_value_is_refused(tmp_path, tiny_bop):
+    cfg = tmp_path / "seg.toml"
+    cfg.write_text("[seg]\nbatch_size = 1\n[seg.model]\ninput_size = [32, 32]\n")
+    run = run_cli("train", "seg", "--data", str(tiny_bop), "--out", str(tmp_path / "run"), "--config", str(cfg),
+                  "--steps", "1", "--no-progress")
+    _one_line_error(run, str(cfg), "batch_size = 1 with model.input_size = [32, 32]", "batch normalisation")
+    assert not (tmp_path / "run").exists()
+    from_dict(SegTrainConfig, {"batch_size": 1, "model": {"input_size": [64, 32]}})  # two values per channel
+    from_dict(SegTrainConfig, {"batch_size": 1, "model": {"input_size": [32, 32], "batch_norm": False}})
+
+
 def test_counts_on_the_command_line_are_bounded(tmp_path):
     _one_line_error(run_cli("datagen", "--views", "1000000000", "--out", str(tmp_path / "d")), "--views", "10000")
     _one_line_error(run_cli("datagen", "--views", "1e9", "--out", str(tmp_path / "d")), "--views")
