@@ -244,7 +244,7 @@ def reads(cmd: Command, rel: str) -> bool:
 TYPED = {"bop_json", "camera_json", "models_info", "test_targets", "object_json", "objset_json", "campaign_json",
          "episodes", "weights_state"}
 #: Kinds derived from others or only informative: a success after their mutation is no false OK.
-UNVOUCHED = {"datagen_json", "summary_json", "timings"}
+UNVOUCHED = {"datagen_json", "summary_json", "timings", "metrics_csv"}
 
 # -- mutations ----------------------------------------------------------------------------------------------------
 
@@ -356,7 +356,7 @@ def mutate_jsonl(rng: random.Random, data: bytes, typed: bool) -> Mutation:
         return Mutation(f"garbage line before line {i + 1}", ("\n".join(lines) + "\n").encode("utf-8", "replace"), True)
     i = rng.randrange(len(lines))
     doc, what, bad = mutate_doc(rng, json.loads(lines[i]), typed=typed)
-    lines[i] = json.dumps(doc)
+    lines[i] = json.dumps(doc, separators=(",", ":"), sort_keys=True)  # as the product writes records
     return Mutation(f"line {i + 1}: {what}", ("\n".join(lines) + "\n").encode(), bad)
 
 

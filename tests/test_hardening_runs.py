@@ -16,7 +16,7 @@ from helpers import run_cli
 from posegrasp.config import from_dict
 from posegrasp.errors import ConfigError, WeightsError
 from posegrasp.grasping.config import TrialConfig
-from posegrasp.perception.checkpoint import load_model
+from posegrasp.perception.checkpoint import load_model, read_state
 from posegrasp.perception.train_seg import SegTrainConfig
 from posegrasp.perception.training import checked_state
 
@@ -249,6 +249,32 @@ def test_non_finite_weights_are_refused(tmp_path):
     save_file(tensors, ckpt / "model.safetensors")
     with pytest.raises(WeightsError, match=rf"tensor '{name}' has \d+ of \d+ values NaN or infinite"):
         load_model(ckpt)
+
+
+@pytest.mark.parametrize("file, text, words", [
+    ("config.json", None, "version = 2; expected 1"), ("config.json", b"\xff\x00", "UTF-8 JSON text"),
+    ("config.json", '{"version": -Infinity}', "-Infinity is not a JSON number"),
+    ("state.json", '{"step": NaN}', "NaN is not a JSON number"), ("state.json", b"\x9c", "UTF-8 JSON text")])
+def test_checkpoint_json_is_strict(tmp_path, file, text, words):
+    ckpt = tmp_path / "seg"
+    shutil.copytree(ROOT / "assets" / "perception" / "model" / "seg", ckpt)
+    p = ckpt / file
+    if text is None:
+        p.write_text(p.read_text().replace('"version": 1', '"version": 2'))
+    else:
+        p.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(WeightsError, match=words):
+        load_model(ckpt) if file == "config.json" else read_state(ckpt)
+
+
+def test_compare_checks_every_record(run2, tmp_path):
+    run = tmp_path / "r"
+    shutil.copytree(run2, run)
+    lines = (run / "episodes.jsonl").read_text().splitlines()
+    rec = json.loads(lines[0])
+    rec["target"] = 7
+    (run / "episodes.jsonl").write_text("\n".join([json.dumps(rec), *lines[1:]]) + "\n")
+    _one_line_error(run_cli("compare", str(run2), str(run)), "episodes.jsonl line 1", "target")
 
 
 def test_report_names_the_line_of_a_malformed_record(run2, tmp_path):
