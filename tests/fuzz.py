@@ -135,8 +135,10 @@ class Command:
     kinds: tuple[str, ...]
     #: Scores or says OK: a success on data ``dataset check`` rejects is a false OK.
     vouches: bool = True
-    #: Run-folder files a success may rewrite.
+    #: Files a success may rewrite.
     may_rewrite: tuple[str, ...] = ()
+    #: Files a success may append to (their complete lines kept as they were; a torn last line may go).
+    may_append: tuple[str, ...] = ()
 
 
 DS = ("bop_json", "camera_json", "models_info", "test_targets", "rgb", "depth", "mask", "model_ply", "datagen_json")
@@ -160,11 +162,11 @@ COMMANDS = [
                              "2", "--resume", "--no-progress"), True,
             ("weights_config", "safetensors", "weights_state", "metrics_csv"),
             may_rewrite=("trun/seg/model.safetensors", "trun/seg/optimizer.safetensors", "trun/seg/state.json",
-                         "trun/seg/config.json", "trun/seg_metrics.csv")),
+                         "trun/seg/config.json"), may_append=("trun/seg_metrics.csv",)),
     Command("trials-resume", ("trials", "--episodes", "2", "--seed", "0", "--perception", "oracle", "--out", "run",
                               "--workers", "1", "--no-progress"), False,
             ("campaign_json", "summary_json", "episodes", "timings"),
-            may_rewrite=("run/report.html", "run/summary.json")),
+            may_rewrite=("run/report.html", "run/summary.json"), may_append=("run/episodes.jsonl", "run/timings.jsonl")),
     Command("report", ("report", "run"), False, ("campaign_json", "summary_json", "episodes", "timings"),
             vouches=False, may_rewrite=("run/report.html",)),
     Command("compare", ("compare", "run2", "run", "--out", "{out}/cmp.json"), False, ("campaign_json", "episodes")),
@@ -734,14 +736,15 @@ class Fuzzer:
         target.unlink()  # a file of its own, not a link into the corpus
         target.write_bytes(m.data)
         before = tree_hashes(d)
-        metrics = (d / "trun" / "seg_metrics.csv").read_bytes()
+        kept = {rel: (d / rel).read_bytes() for rel in cmd.may_append}
         fill = {"out": "out", **_show_args(case.rel)}
         argv = [a.format(**fill) for a in cmd.argv]
         o = zygote.run(argv, d, self.heavy_s if cmd.heavy else self.light_s)
         problem, category = self._judge(case, cmd, m, o, d, before, zygote)
-        if problem is None and cmd.name == "train-resume" and o.rc == 0:
-            if not (d / "trun" / "seg_metrics.csv").read_bytes().startswith(metrics):
-                problem, category = "the resume lost rows of seg_metrics.csv", "changed"
+        for rel, old in kept.items():
+            complete = old[:old.rfind(b"\n") + 1]
+            if problem is None and o.rc == 0 and not (d / rel).read_bytes().startswith(complete):
+                problem, category = f"{rel}: lines written before were lost or changed", "changed"
         if problem is None or not keep:
             shutil.rmtree(d, ignore_errors=True)
         return Verdict(case, m.what, o.rc, o.seconds, problem, category)
@@ -756,7 +759,7 @@ class Fuzzer:
             return f"killed by signal {-o.rc}", "crash"
         after = tree_hashes(d)
         changed = sorted(k for k in before if after.get(k) != before[k]
-                         and not (o.rc == 0 and k in cmd.may_rewrite))
+                         and not (o.rc == 0 and k in cmd.may_rewrite + cmd.may_append))
         if changed:
             return f"changed {changed[:3]}", "changed"
         if o.rc != 0:

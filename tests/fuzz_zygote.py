@@ -15,6 +15,7 @@ import os
 import signal
 import sys
 import time
+import traceback
 
 
 def _preload() -> None:
@@ -46,7 +47,14 @@ def _child(req: dict) -> None:
     sys.argv = ["posegrasp", *req["argv"]]
     from posegrasp.cli import main
 
-    sys.exit(main(req["argv"]))  # an uncaught exception prints its traceback on the way out, as the real command's
+    try:
+        rc = main(req["argv"])
+    except SystemExit:
+        raise
+    except BaseException:  # what the real command prints on its way out
+        traceback.print_exc()
+        rc = 1
+    sys.exit(rc)
 
 
 def _serve() -> None:

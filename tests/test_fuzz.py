@@ -4,7 +4,7 @@ traceback, no hang, no false OK, no score out of range, nothing already written 
 
 ``make test`` runs a fixed, seeded selection (``POSEGRASP_FUZZ_CASES``, default 24) covering every file kind and
 command; ``POSEGRASP_FUZZ=full`` runs 1000 cases (``POSEGRASP_FUZZ_CASES`` to change) on two workers and prints the
-counts and every failing case to stdout.
+counts and every failing case to stdout (``POSEGRASP_FUZZ_ONLY=N,M`` reruns cases N and M of that draw).
 """
 
 from __future__ import annotations
@@ -55,6 +55,9 @@ def test_mutations_are_seeded(fuzzer):
 
 def test_fuzz(fuzzer):
     cases = fuzz.draw_cases(fuzzer.base, N_CASES, SEED)
+    if os.environ.get("POSEGRASP_FUZZ_ONLY"):  # case numbers, comma-separated: rerun those of a report
+        only = {int(n) for n in os.environ["POSEGRASP_FUZZ_ONLY"].split(",")}
+        cases = [c for c in cases if c.number in only]
     progress = (lambda v: print(f"case {v.case.number} {v.category} {v.case.command} {v.case.rel} ({v.mutation}) "
                                 f"{v.seconds:.1f}s", flush=True)) if FULL else None
     verdicts = fuzzer.run_cases(cases, keep_failures=FULL, progress=progress)
