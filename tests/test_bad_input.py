@@ -376,6 +376,7 @@ def test_eval_validates_ground_truth_first(capsys, copy, tmp_path, corrupt, word
     (["--out", "file"], "is a file; name an output folder"),
     (["--out", ""], "--out is empty"),
     (["--split", "val"], "split 'val' not found"),
+    (["--threads", "100000"], "threads = 100000 is out of range"),
 ])
 def test_eval_bad_options(capsys, dataset, tmp_path, argv, words):
     (tmp_path / "file").write_text("x")
