@@ -306,7 +306,7 @@ def test_trials_unreadable_hand_eye_calibration(capsys, tmp_path):
 
 
 def test_compare_refuses_a_record_without_episode(capsys, tmp_path):
-    a = _run_folder(tmp_path / "a", [json.dumps(_record(0))])
+    a = _run_folder(tmp_path / "a", [json.dumps(EpisodeRecord(0, 0, 1, 1, "oracle").to_json())])
     b = _run_folder(tmp_path / "b", [NO_EPISODE])
     before = snapshot(tmp_path)
     refused(capsys, ["compare", a, b], "episodes.jsonl line 1 is not an episode record")
@@ -322,7 +322,7 @@ def test_compare_refuses_a_record_without_episode(capsys, tmp_path):
 ])
 def test_compare_bad_options(capsys, tmp_path, monkeypatch, argv, words):
     monkeypatch.chdir(tmp_path)
-    a = _run_folder(tmp_path / "a", [json.dumps(_record(0))])
+    a = _run_folder(tmp_path / "a", [json.dumps(EpisodeRecord(0, 0, 1, 1, "oracle").to_json())])
     (tmp_path / "file").write_text("x")
     before = snapshot(tmp_path)
     refused(capsys, ["compare", a, a, *argv], words)

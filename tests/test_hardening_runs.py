@@ -275,6 +275,10 @@ def test_compare_checks_every_record(run2, tmp_path):
     rec["target"] = 7
     (run / "episodes.jsonl").write_text("\n".join([json.dumps(rec), *lines[1:]]) + "\n")
     _one_line_error(run_cli("compare", str(run2), str(run)), "episodes.jsonl line 1", "target")
+    rec["target"] = {"type": "cube"}  # a target without its other fields
+    (run / "episodes.jsonl").write_text("\n".join([json.dumps(rec), *lines[1:]]) + "\n")
+    for cmd in (("compare", str(run2), str(run)), ("report", str(run))):
+        _one_line_error(run_cli(*cmd), "episodes.jsonl line 1", "target: missing key(s) ['instance', 'class_ok'")
 
 
 def test_report_names_the_line_of_a_malformed_record(run2, tmp_path):
