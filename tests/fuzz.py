@@ -166,7 +166,8 @@ COMMANDS = [
     Command("trials-resume", ("trials", "--episodes", "2", "--seed", "0", "--perception", "oracle", "--out", "run",
                               "--workers", "1", "--no-progress"), False,
             ("campaign_json", "summary_json", "episodes", "timings"),
-            may_rewrite=("run/report.html", "run/summary.json"), may_append=("run/episodes.jsonl", "run/timings.jsonl")),
+            may_rewrite=("run/report.html", "run/summary.json", "run/timings.jsonl"),  # a rerun's timings differ
+            may_append=("run/episodes.jsonl",)),
     Command("report", ("report", "run"), False, ("campaign_json", "summary_json", "episodes", "timings"),
             vouches=False, may_rewrite=("run/report.html",)),
     Command("compare", ("compare", "run2", "run", "--out", "{out}/cmp.json"), False, ("campaign_json", "episodes")),
@@ -286,12 +287,13 @@ def _type(v: Any) -> str:
     return "number" if isinstance(v, (int, float)) and not isinstance(v, bool) else type(v).__name__
 
 
-def _surely_bad(op: str, old: Any, typed: bool) -> bool:
+def _surely_bad(op: str, old: Any, typed: bool, root: bool = False) -> bool:
     """A replacement that no reader may accept: NaN/inf anywhere, a container swapped for another shape, or (in a
-    ``typed`` file, one whose every value has a fixed type) a value of another type."""
+    ``typed`` file, one whose every value has a fixed type) a value of another type; null only as the whole file
+    (elsewhere it may be an optional value's "none")."""
     if op in ("nan", "inf", "-inf"):
         return True
-    if op == "delete":
+    if op == "delete" or (op == "null" and not root):
         return False
     new = _replacement(op, old)
     if isinstance(old, (dict, list)):
@@ -307,7 +309,7 @@ def mutate_doc(rng: random.Random, doc: Any, allow_null: bool = True, typed: boo
     op = rng.choice(ops if path else [o for o in ops if o != "delete"])
     if not path:
         old = doc
-        return _replacement(op, old), f"root -> {op}", _surely_bad(op, old, typed)
+        return _replacement(op, old), f"root -> {op}", _surely_bad(op, old, typed, root=True)
     parent = doc
     for k in path[:-1]:
         parent = parent[k]
