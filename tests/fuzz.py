@@ -464,13 +464,13 @@ def mutate_image(rng: random.Random, data: bytes, kind: str, suffix: str) -> Mut
     else:
         out = np.full_like(im, np.iinfo(im.dtype).max)
         what, bad = "all white", kind in ("mask", "depth")
-    buf = io.BytesIO()
-    fmt = "JPEG" if suffix == ".jpg" else "PNG"
-    if fmt == "JPEG" and (out.dtype != np.uint8 or (out.ndim == 3 and out.shape[2] == 4)):
-        fmt = "PNG"  # written as PNG bytes under the .jpg name: still a wrong file
+    import cv2
+
+    ext = ".jpg" if suffix == ".jpg" else ".png"
+    if ext == ".jpg" and (out.dtype != np.uint8 or (out.ndim == 3 and out.shape[2] == 4)):
+        ext = ".png"  # written as PNG bytes under the .jpg name: still a wrong file
         bad = True
-    Image.fromarray(out).save(buf, format=fmt)
-    return Mutation(what, buf.getvalue(), bad)
+    return Mutation(what, cv2.imencode(ext, out)[1].tobytes(), bad)
 
 
 def mutate_ply(rng: random.Random, data: bytes) -> Mutation:
@@ -734,7 +734,10 @@ class Fuzzer:
             shutil.rmtree(d)
         _link_copy(self.base, d)
         target = d / case.rel
-        m = mutate(random.Random(f"mutation:{case.number}"), case.rel, case.kind, target.read_bytes())
+        try:
+            m = mutate(random.Random(f"mutation:{case.number}"), case.rel, case.kind, target.read_bytes())
+        except Exception as e:  # the harness's own failure: reported, the other cases still run
+            return Verdict(case, "(no mutation)", 0, 0.0, f"mutation failed: {e!r}", "harness")
         target.unlink()  # a file of its own, not a link into the corpus
         target.write_bytes(m.data)
         before = tree_hashes(d)
@@ -795,7 +798,7 @@ def format_report(verdicts: list[Verdict]) -> str:
     counts = summarize(verdicts)
     lines = ["fuzz: " + ", ".join(f"{k} {counts.get(k, 0)}" for k in
                                   ("cases", "refused", "accepted", "traceback", "hang", "crash", "stderr",
-                                   "false-ok", "changed", "range"))]
+                                   "false-ok", "changed", "range", "harness"))]
     by_cmd: dict[str, int] = {}
     by_kind: dict[str, int] = {}
     for v in verdicts:
