@@ -239,22 +239,19 @@ def write_object_set(out: Path, objects: list[SetObject], firm_hold_tasks: tuple
 
 
 def _read(path: Path, what: str) -> dict[str, Any]:
-    """The JSON object in the set's file ``path`` (UTF-8, no NaN or Infinity); a one-line DatasetError if not."""
+    """The JSON object in the set's file ``path`` (UTF-8; a NaN is refused by the key's own check); a one-line
+    DatasetError if not."""
     if not path.is_file():
         raise DatasetError(f"object set file {path} is missing ({what}); re-import the set")
     try:
-        d = json.loads(path.read_text(encoding="utf-8"), parse_constant=_no_constant)
-    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, NaN / Infinity, binary data
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, binary data
         raise DatasetError(f"object set file {path} is not valid JSON ({str(e).splitlines()[0]}); "
                            "re-import the set") from None
     if not isinstance(d, dict):
         raise DatasetError(f"object set file {path}: expected a JSON object, got {type(d).__name__}; "
                            "re-import the set")
     return d
-
-
-def _no_constant(name: str) -> float:
-    raise ValueError(f"{name} is not a JSON number")
 
 
 def _not_a_set(root: Path) -> DatasetError:

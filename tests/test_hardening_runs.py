@@ -281,6 +281,20 @@ def test_compare_checks_every_record(run2, tmp_path):
         _one_line_error(run_cli(*cmd), "episodes.jsonl line 1", "target: missing key(s) ['instance', 'class_ok'")
 
 
+@pytest.mark.parametrize("edit", [lambda c: c.update(perception=7), lambda c: c.update(seed=-1),
+                                  lambda c: c["T_gripper_cam"][0].__setitem__(0, "1"), lambda c: c.update(objects=[])])
+def test_a_mistyped_campaign_is_refused(run2, tmp_path, edit):
+    run = tmp_path / "r"
+    shutil.copytree(run2, run)
+    campaign = json.loads((run / "campaign.json").read_text())
+    edit(campaign)
+    (run / "campaign.json").write_text(json.dumps(campaign))
+    before = _snapshot(run)
+    _one_line_error(run_cli("compare", str(run2), str(run)), "campaign.json is corrupt")
+    _one_line_error(_trials(run, 2), str(run), "campaign")
+    assert _snapshot(run) == before
+
+
 def test_report_names_the_line_of_a_malformed_record(run2, tmp_path):
     run = tmp_path / "r"
     shutil.copytree(run2, run)
