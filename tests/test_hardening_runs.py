@@ -254,6 +254,8 @@ def test_non_finite_weights_are_refused(tmp_path):
 @pytest.mark.parametrize("file, text, words", [
     ("config.json", None, "version = 2; expected 1"), ("config.json", b"\xff\x00", "UTF-8 JSON text"),
     ("config.json", '{"version": -Infinity}', "-Infinity is not a JSON number"),
+    ("config.json", '{"format": "posegrasp-perception", "version": 1, "stage": "seg", "train": -1}',
+     "train = -1; expected a JSON object"),
     ("state.json", '{"step": NaN}', "NaN is not a JSON number"), ("state.json", b"\x9c", "UTF-8 JSON text")])
 def test_checkpoint_json_is_strict(tmp_path, file, text, words):
     ckpt = tmp_path / "seg"
