@@ -116,7 +116,8 @@ def read_campaign(run_dir: Path) -> Campaign:
         objects = data.get("objects")  # absent in runs made before object sets: the shipped blocks
         seed, perception, config = data["seed"], data["perception"], data["config"]
         if type(seed) is not int or seed < 0 or not isinstance(perception, str) or not isinstance(config, dict) \
-                or not isinstance(objects, (dict, type(None))):
+                or not (objects is None or isinstance(objects, dict) and all(isinstance(objects.get(k), str)
+                                                                       for k in ("name", "path", "sha256"))):
             raise ValueError
     except (KeyError, TypeError, ValueError):
         raise DatasetError(f"{path} is corrupt (needs seed, perception, config and a 4x4 T_gripper_cam); "

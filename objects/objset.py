@@ -294,6 +294,8 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
                            "re-import the set")
     for key, (n, lo, hi) in OBJECT_NUMBERS.items():
         _check_numbers(where, key, d.get(key), n, lo, hi)
+    if "collision_volume_ratio" in d:  # written by the importer since it decomposes shapes
+        _check_numbers(where, "collision_volume_ratio", d["collision_volume_ratio"], 0, 1e-6, 1e3)
     pieces = tuple(d["collision"])
     if not pieces:
         raise DatasetError(f"{where}: needs at least one collision piece; re-import the set")
@@ -333,7 +335,7 @@ def load_object_set(root: str | Path) -> ObjectSet:
     if not (root / MANIFEST).is_file():
         raise _not_a_set(root)
     man = _read(root / MANIFEST, "the manifest")
-    if man.get("format") != FORMAT or man.get("version") != VERSION:
+    if man.get("format") != FORMAT or man.get("version") != VERSION or type(man.get("version")) is not int:
         raise DatasetError(f"{root / MANIFEST}: format {man.get('format')!r} version {man.get('version')!r} is not "
                            f"{FORMAT!r} version {VERSION}; re-import the set")
     entries = man.get("objects") or []

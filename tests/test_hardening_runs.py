@@ -103,6 +103,19 @@ def test_resume_never_drops_finished_episodes_nor_adopts_records(run2, tmp_path)
     assert _snapshot(run) == before
 
 
+@pytest.mark.parametrize("key, value", [("scene_seed", 0), ("n_blocks", -4), ("seed", 3)])
+def test_resume_refuses_a_record_its_campaign_did_not_draw(run2, tmp_path, key, value):
+    run = tmp_path / "r"
+    shutil.copytree(run2, run)
+    lines = (run / "episodes.jsonl").read_text().splitlines()
+    rec = json.loads(lines[1])
+    rec[key] = value
+    (run / "episodes.jsonl").write_text("\n".join([lines[0], json.dumps(rec)]) + "\n")
+    before = _snapshot(run)
+    _one_line_error(_trials(run, 2), "episode 1 of", "does not re-simulate")
+    assert _snapshot(run) == before
+
+
 def test_writing_commands_refuse_folders_and_files_they_did_not_write(tmp_path):
     foreign = tmp_path / "foreign"
     foreign.mkdir()
@@ -228,7 +241,8 @@ def test_train_resume_with_a_bad_state_keeps_the_metrics(tmp_path, tiny_bop):
 
 def test_object_set_numbers_are_checked(tmp_path):
     for key, value, words in (("mass_kg", float("nan"), "mass_kg = NaN"), ("friction", "high", 'friction = "high"'),
-                              ("rgba", [1, 0, 0], "rgba")):
+                              ("rgba", [1, 0, 0], "rgba"),
+                              ("collision_volume_ratio", float("inf"), "collision_volume_ratio = Infinity")):
         root = tmp_path / key
         shutil.copytree(ROOT / "assets" / "blocks", root, ignore=shutil.ignore_patterns("*.py"))
         obj = root / "objects" / "obj_000001.json"
@@ -237,6 +251,25 @@ def test_object_set_numbers_are_checked(tmp_path):
         obj.write_text(json.dumps(d))
         _one_line_error(_trials(tmp_path / f"r_{key}", 1, "--objects", str(root)), str(obj), words)
         assert not (tmp_path / f"r_{key}").exists()
+
+
+@pytest.mark.parametrize("edit, words", [(lambda m: m.update(version=True), "version True is not"),
+                                         (lambda m: m.update(objects={"1": "cube"}), "objects must be a list"),
+                                         (lambda m: m["objects"][0].update(obj_id="1"), "an integer obj_id")])
+def test_object_set_manifest_is_typed(tmp_path, edit, words):
+    from posegrasp.errors import DatasetError
+    from posegrasp.objects.objset import load_object_set
+
+    root = tmp_path / "set"
+    shutil.copytree(ROOT / "assets" / "blocks", root, ignore=shutil.ignore_patterns("*.py"))
+    man = json.loads((root / "objectset.json").read_text())
+    edit(man)
+    (root / "objectset.json").write_text(json.dumps(man))
+    with pytest.raises(DatasetError, match=words):
+        load_object_set(root)
+    (root / "objectset.json").write_text("[]")
+    with pytest.raises(DatasetError, match="expected a JSON object, got list"):
+        load_object_set(root)
 
 
 def test_non_finite_weights_are_refused(tmp_path):
@@ -284,7 +317,8 @@ def test_compare_checks_every_record(run2, tmp_path):
 
 
 @pytest.mark.parametrize("edit", [lambda c: c.update(perception=7), lambda c: c.update(seed=-1),
-                                  lambda c: c["T_gripper_cam"][0].__setitem__(0, "1"), lambda c: c.update(objects=[])])
+                                  lambda c: c["T_gripper_cam"][0].__setitem__(0, "1"), lambda c: c.update(objects=[]),
+                                  lambda c: c.update(objects={"name": "blocks", "path": -1, "sha256": "0"})])
 def test_a_mistyped_campaign_is_refused(run2, tmp_path, edit):
     run = tmp_path / "r"
     shutil.copytree(run2, run)
