@@ -488,6 +488,7 @@ CSV_ROW = "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1"
     ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,0.01 -0.02 0.5,-1"], "BOP results give t in mm, not metres"),
     ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 -500,-1"], "line 2: t = 10 -20 -500 is -500 mm in front"),
     ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 500000,-1"], "mm is over 5 m from the camera"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,1e300 -20 500,-1"], "mm is over 5 m from the camera"),
     ([CSV_HEADER, "0,0,99,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1"], "line 2: obj_id 99 is not in the object set"),
     ([CSV_HEADER, CSV_ROW, "0,0,2,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1", CSV_ROW.replace("0.9", "0.1")],
      "line 4: duplicates line 2 (same scene_id, im_id, obj_id, R and t)"),

@@ -231,6 +231,13 @@ def test_train_resume_with_a_bad_state_keeps_the_metrics(tmp_path, tiny_bop):
     assert first.returncode == 0, first.stderr[-2000:]
     metrics = (out / "seg_metrics.csv").read_bytes()
     state = out / "seg" / "state.json"
+    good = state.read_bytes()
+    (out / "seg_metrics.csv").write_bytes(b"\x8f\x00")
+    run = run_cli("train", "seg", "--data", str(tiny_bop), "--out", str(out), "--config", str(cfg), "--steps", "3",
+                  "--resume", "--no-progress")
+    _one_line_error(run, "seg_metrics.csv is not a metrics CSV")
+    assert state.read_bytes() == good and (out / "seg_metrics.csv").read_bytes() == b"\x8f\x00"
+    (out / "seg_metrics.csv").write_bytes(metrics)
     for bad in ('{"step": -5, "lr": 0.01}', '{"step": "2", "lr": 0.01}', '{"step": 2, "lr": NaN}', "[]"):
         state.write_text(bad)
         run = run_cli("train", "seg", "--data", str(tiny_bop), "--out", str(out), "--config", str(cfg),
