@@ -118,6 +118,6 @@ def _row_problem(r: bop_results.PoseResult, known: dict) -> str | None:
     if t_mm[2] < MIN_Z_MM:
         return (f"t = {' '.join(f'{v:.6g}' for v in t_mm)} is {t_mm[2]:.6g} mm in front of the camera (< {MIN_Z_MM:g}):"
                 " BOP results give t in mm, not metres")
-    if np.linalg.norm(t_mm) > MAX_TRANSLATION_M / bop.MM:
+    if np.abs(t_mm).max() > MAX_TRANSLATION_M / bop.MM or np.linalg.norm(t_mm) > MAX_TRANSLATION_M / bop.MM:
         return f"t = {' '.join(f'{v:.6g}' for v in t_mm)} mm is over {MAX_TRANSLATION_M:g} m from the camera"
     return None

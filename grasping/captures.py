@@ -108,13 +108,13 @@ def open_export(root: Path | None, seed: int, cfg: TrialConfig) -> Iterator[Capt
         yield None
         return
     c = cfg.scene.workcell.hand_camera
-    with folder_lock(root):
+    with folder_lock(root, owns=(SETTINGS_FILE,)):  # its settings file first: a folder without it is not ours
+        check_settings(root / SETTINGS_FILE, {"seed": seed, "task": cfg.task, "config": dataclasses.asdict(cfg)},
+                       binding=has_scenes(root, SPLIT))
         prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), DEPTH_SCALE),
                      cfg.scene.workcell.objects)
         for tmp in bop.split_dir(root, SPLIT).glob(".*.tmp"):  # leftovers of a killed write
             tmp.unlink()
-        check_settings(root / SETTINGS_FILE, {"seed": seed, "task": cfg.task, "config": dataclasses.asdict(cfg)},
-                       binding=has_scenes(root, SPLIT))
         yield CaptureExport(root)
         scenes = [s for s in bop.list_scenes(root, SPLIT) if CaptureExport(root).has(s)] \
             if bop.split_dir(root, SPLIT).is_dir() else []

@@ -23,7 +23,7 @@ from rich.table import Table
 from posegrasp.arguments import number, out_file
 from posegrasp.errors import DatasetError, UserError
 from posegrasp.grasping.record import BIN_PICK
-from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, read_campaign, read_records
+from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, read_campaign, read_episodes
 from posegrasp.grasping.stats import newcombe, rate_row
 from posegrasp.io import write_json
 
@@ -47,7 +47,7 @@ def load_run(path: str | Path) -> dict[int, dict]:
     """Episode records of a trial run folder (or its episodes.jsonl), by episode index; DatasetError if none."""
     p = Path(path)
     f = p / EPISODES if p.is_dir() else p
-    recs = read_records(f)
+    recs = {i: raw for i, (raw, _) in read_episodes(f).items()}  # each record checked, as a resume checks it
     if not recs:
         raise DatasetError(f"{path} holds no trial episodes (expected {EPISODES} written by 'posegrasp trials')")
     return recs

@@ -15,13 +15,14 @@ from __future__ import annotations
 import functools
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable
 
 import mujoco
 import numpy as np
 
 from posegrasp.catalog import catalog_by_id
-from posegrasp.errors import SimulationError, UserError
+from posegrasp.errors import DatasetError, SimulationError, UserError
 from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import GraspConfig, ScoringConfig, TrialConfig, holds_firmly
 from posegrasp.grasping.controller import ArmController
@@ -142,6 +143,18 @@ def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
     scene_seed, percept_seed = (int(v) for v in rng.integers(0, 2**31 - 1, size=2))
     place_offset = rng.uniform(-cfg.grasp.place_jitter, cfg.grasp.place_jitter, size=2)
     return n_blocks, scene_seed, percept_seed, place_offset
+
+
+def check_draws(task: EpisodeTask, rec: EpisodeRecord, run_dir: Path) -> tuple[int, int, int, np.ndarray]:
+    """``episode_draws(task)``, after checking that the record ``rec`` of the run in ``run_dir`` was drawn so
+    (campaign seed, block count, scene seed): a DatasetError if not (an edited record, or other code)."""
+    draws = episode_draws(task)
+    if (rec.seed, rec.n_blocks, rec.scene_seed) != (task.seed, draws[0], draws[1]):
+        raise DatasetError(f"episode {rec.episode} of {run_dir} does not re-simulate (seed {task.seed}, "
+                           f"{draws[0]} blocks, scene seed {draws[1]} != recorded {rec.seed}, {rec.n_blocks}, "
+                           f"{rec.scene_seed}): the record was edited or the code changed since the run; rerun the "
+                           "trials into a new --out")
+    return draws
 
 
 def further_seed(task: EpisodeTask, j: int) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -109,16 +110,27 @@ def read_campaign(run_dir: Path) -> Campaign:
     path = run_dir / CAMPAIGN
     data = read_json_object(path)
     try:
-        mount = tuple(tuple(float(v) for v in row) for row in data["T_gripper_cam"])
+        mount = tuple(tuple(_number(v) for v in row) for row in data["T_gripper_cam"])
         if len(mount) != 4 or any(len(row) != 4 for row in mount):
             raise ValueError
         objects = data.get("objects")  # absent in runs made before object sets: the shipped blocks
-        seed, perception, config = int(data["seed"]), str(data["perception"]), data["config"]
+        seed, perception, config = data["seed"], data["perception"], data["config"]
+        if type(seed) is not int or seed < 0 or not isinstance(perception, str) or not isinstance(config, dict) \
+                or not (objects is None or isinstance(objects, dict) and all(isinstance(objects.get(k), str)
+                                                                       for k in ("name", "path", "sha256"))):
+            raise ValueError
     except (KeyError, TypeError, ValueError):
         raise DatasetError(f"{path} is corrupt (needs seed, perception, config and a 4x4 T_gripper_cam); "
                            "rerun the trials into a new --out") from None
     return Campaign(seed, perception, from_dict(TrialConfig, config, where=f"{path} config"), mount,
                     dict(objects) if isinstance(objects, dict) else None)
+
+
+def _number(v: object) -> float:
+    """``v`` if it is a finite JSON number (a ValueError if not)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(v)
+    return float(v)
 
 
 def read_json_object(path: Path) -> dict:

@@ -25,7 +25,7 @@ from posegrasp.grasping.bop_csv import check_rows
 from posegrasp.grasping.captures import open_export, run_capturing
 from posegrasp.catalog import set_record
 from posegrasp.grasping.config import TrialConfig, check_task, with_set
-from posegrasp.grasping.episode import EpisodeTask, run_episode
+from posegrasp.grasping.episode import EpisodeTask, check_draws, run_episode
 from posegrasp.grasping.provider_registry import canonical_spec, make_provider
 from posegrasp.grasping.record import Failure
 from posegrasp.grasping.report import write_report
@@ -76,7 +76,8 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
         if not done:  # a campaign binds once it has an episode: settings of a failed start are replaced
             (out / CAMPAIGN).unlink(missing_ok=True)
         check_campaign(out, Campaign(seed, perception, cfg, mount))
-        read_episodes(out / EPISODES)  # every finished record well-formed, or a one-line error naming its line
+        for i, (_, rec) in read_episodes(out / EPISODES).items():  # well-formed, or one line naming its line
+            check_draws(EpisodeTask(seed, i, perception, cfg, mount), rec, out)  # and drawn by this campaign
         write_records(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
         timings = read_records(out / TIMINGS)
         write_records(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])

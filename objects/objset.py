@@ -241,13 +241,20 @@ def write_object_set(out: Path, objects: list[SetObject], firm_hold_tasks: tuple
 # ----------------------------------------------------------------------------- reading
 
 
-def _read(path: Path, what: str) -> Any:
+def _read(path: Path, what: str) -> dict[str, Any]:
+    """The JSON object in the set's file ``path`` (UTF-8; a NaN is refused by the key's own check); a one-line
+    DatasetError if not."""
     if not path.is_file():
         raise DatasetError(f"object set file {path} is missing ({what}); re-import the set")
     try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"object set file {path} is not valid JSON ({e}); re-import the set") from None
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, binary data
+        raise DatasetError(f"object set file {path} is not valid JSON ({str(e).splitlines()[0]}); "
+                           "re-import the set") from None
+    if not isinstance(d, dict):
+        raise DatasetError(f"object set file {path}: expected a JSON object, got {type(d).__name__}; "
+                           "re-import the set")
+    return d
 
 
 def _not_a_set(root: Path) -> DatasetError:
@@ -290,6 +297,8 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
                            "re-import the set")
     for key, (n, lo, hi) in OBJECT_NUMBERS.items():
         _check_numbers(where, key, d.get(key), n, lo, hi)
+    if "collision_volume_ratio" in d:  # written by the importer since it decomposes shapes
+        _check_numbers(where, "collision_volume_ratio", d["collision_volume_ratio"], 0, 1e-6, 1e3)
     pieces = tuple(d["collision"])
     if not pieces:
         raise DatasetError(f"{where}: needs at least one collision piece; re-import the set")
@@ -329,12 +338,15 @@ def load_object_set(root: str | Path) -> ObjectSet:
     if not (root / MANIFEST).is_file():
         raise _not_a_set(root)
     man = _read(root / MANIFEST, "the manifest")
-    if man.get("format") != FORMAT or man.get("version") != VERSION:
+    if man.get("format") != FORMAT or man.get("version") != VERSION or type(man.get("version")) is not int:
         raise DatasetError(f"{root / MANIFEST}: format {man.get('format')!r} version {man.get('version')!r} is not "
                            f"{FORMAT!r} version {VERSION}; re-import the set")
     entries = man.get("objects") or []
-    if not all(isinstance(e, dict) and {"obj_id", "name", "file"} <= set(e) for e in entries):
-        raise DatasetError(f"{root / MANIFEST}: each object needs obj_id, name and file; re-import the set")
+    if not isinstance(entries, list) or not all(
+            isinstance(e, dict) and {"obj_id", "name", "file"} <= set(e) and type(e["obj_id"]) is int
+            and isinstance(e["name"], str) and isinstance(e["file"], str) for e in entries):
+        raise DatasetError(f"{root / MANIFEST}: objects must be a list, each with an integer obj_id, a name and a "
+                           "file; re-import the set")
     if [int(e["obj_id"]) for e in entries] != list(range(1, len(entries) + 1)):
         raise DatasetError(f"{root / MANIFEST}: obj_ids must run 1, 2, ... in order; re-import the set")
     if len({e["name"] for e in entries}) != len(entries):

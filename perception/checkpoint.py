@@ -140,26 +140,33 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
 def read_config(ckpt: Path) -> dict[str, Any]:
     """``config.json`` of a checkpoint, checked for format and stage."""
     p = resolve(Path(ckpt)) / "config.json"
-    try:
-        cfg = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise WeightsError(f"{p} does not exist: {ckpt} is not a trained checkpoint") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise WeightsError(_one_line(f"{p} is corrupt: {e}")) from None
+    cfg = _read_json(p, f"{p} does not exist: {ckpt} is not a trained checkpoint")
     if not isinstance(cfg, dict) or cfg.get("format") != FORMAT or cfg.get("stage") not in STAGES:
         raise WeightsError(f"{p} is not a {FORMAT} config")
+    if cfg.get("version") != VERSION or isinstance(cfg.get("version"), bool):
+        raise WeightsError(f"{p}: version = {json.dumps(cfg.get('version'))[:40]}; expected {VERSION}")
+    for key in ("model", "train"):
+        if not isinstance(cfg.get(key, {}), dict):
+            raise WeightsError(f"{p}: {key} = {json.dumps(cfg[key])[:40]}; expected a JSON object")
     return cfg
+
+
+def _read_json(p: Path, missing: str) -> Any:
+    """The JSON of a checkpoint file ``p`` (UTF-8, no NaN or Infinity); a WeightsError (``missing`` if absent)."""
+    from posegrasp.bop_schema import read_json
+    from posegrasp.errors import DatasetError
+
+    if not p.exists():
+        raise WeightsError(missing)
+    try:
+        return read_json(p)
+    except DatasetError as e:
+        raise WeightsError(f"{e}; the checkpoint is corrupt") from None
 
 
 def read_state(ckpt: Path) -> dict[str, Any]:
     """``state.json`` of a checkpoint."""
-    p = resolve(Path(ckpt)) / "state.json"
-    try:
-        return json.loads(p.read_text())
-    except FileNotFoundError:
-        raise WeightsError(f"{p} does not exist") from None
-    except json.JSONDecodeError as e:
-        raise WeightsError(_one_line(f"{p} is corrupt: {e}")) from None
+    return _read_json(resolve(Path(ckpt)) / "state.json", f"{resolve(Path(ckpt)) / 'state.json'} does not exist")
 
 
 def load_model(ckpt: Path, stage: str | None = None) -> tuple[nn.Module, Any, dict[str, Any]]:

@@ -59,6 +59,15 @@ class SegTrainConfig(StageConfig):
     #: Processes preparing batches ahead (0: the training process); batches do not depend on it.
     workers: int = field(default=0, metadata=within(0, 64))
 
+    def __post_init__(self) -> None:
+        """Batch normalisation needs two values per channel at the net's coarsest scale (1/32 of the input):
+        ``batch_size * (height // 32) * (width // 32) >= 2``."""
+        h, w = self.model.input_size
+        if self.model.batch_norm and self.batch_size * (h // 32) * (w // 32) < 2:
+            raise ConfigError(f"batch_size = {self.batch_size} with model.input_size = {list(self.model.input_size)} "
+                              "leaves batch normalisation one value per channel at 1/32 scale; use batch_size >= 2 "
+                              "or an input_size of at least 64 px on one side")
+
 
 class SegTraining(StageTraining):
     """Per-pixel cross-entropy on the training images at the net's input size; mPA / mIoU on ``val_split``."""

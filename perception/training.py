@@ -120,13 +120,17 @@ class MetricsLog:
         self.path, self.columns = path, columns
         rows: list[dict[str, str]] = []
         if resume_step is not None and path.exists():
-            with open(path, newline="") as f:
-                for r in csv.DictReader(f):
-                    try:
-                        if int(r["step"]) <= resume_step and None not in r.values():
-                            rows.append(r)
-                    except (KeyError, TypeError, ValueError):
-                        continue
+            try:
+                with open(path, newline="", encoding="utf-8") as f:
+                    for r in csv.DictReader(f):
+                        try:
+                            if int(r["step"]) <= resume_step and None not in r.values():
+                                rows.append(r)
+                        except (KeyError, TypeError, ValueError):
+                            continue
+            except (UnicodeDecodeError, csv.Error) as e:
+                raise UserError(f"{path} is not a metrics CSV ({str(e).splitlines()[0][:80]}); move it away to "
+                                "resume") from None
         buf = [",".join(columns)] + [",".join(r.get(c, "") or "" for c in columns) for r in rows]
         pio.write_bytes(path, ("\n".join(buf) + "\n").encode())
 

@@ -27,7 +27,14 @@ def from_dict(cls: type[C], data: dict[str, Any], where: str = "config") -> C:
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
         kwargs[key] = check_range(fields[key], _coerce(hints[key], value, f"{where}.{key}"), f"{where}.{key}")
-    return cls(**kwargs)
+    missing = [f.name for f in dataclasses.fields(cls) if f.init and f.name not in data
+               and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise ConfigError(f"{where}: missing key(s) {missing}")
+    try:
+        return cls(**kwargs)
+    except ConfigError as e:  # a check across fields (``__post_init__``): name the file
+        raise ConfigError(f"{where}: {e}") from None
 
 
 def within(lo: float, hi: float) -> dict[str, Any]:

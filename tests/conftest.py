@@ -8,7 +8,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 #: Fixtures whose set-up alone is minutes on 2 cores: a test using one is marked slow (``make test-fast`` skips it).
-SLOW_FIXTURES = {"tiny_run"}  # four networks trained for a few steps on the tiny BOP dataset
+SLOW_FIXTURES = {"tiny_run",  # four networks trained for a few steps on the tiny BOP dataset
+                 "fuzzer"}  # the fuzz harness's corpus and its seeded cases
 
 
 @pytest.hookimpl(tryfirst=True)  # before ``-m`` deselects by mark

@@ -306,7 +306,7 @@ def test_trials_unreadable_hand_eye_calibration(capsys, tmp_path):
 
 
 def test_compare_refuses_a_record_without_episode(capsys, tmp_path):
-    a = _run_folder(tmp_path / "a", [json.dumps(_record(0))])
+    a = _run_folder(tmp_path / "a", [json.dumps(EpisodeRecord(0, 0, 1, 1, "oracle").to_json())])
     b = _run_folder(tmp_path / "b", [NO_EPISODE])
     before = snapshot(tmp_path)
     refused(capsys, ["compare", a, b], "episodes.jsonl line 1 is not an episode record")
@@ -322,7 +322,7 @@ def test_compare_refuses_a_record_without_episode(capsys, tmp_path):
 ])
 def test_compare_bad_options(capsys, tmp_path, monkeypatch, argv, words):
     monkeypatch.chdir(tmp_path)
-    a = _run_folder(tmp_path / "a", [json.dumps(_record(0))])
+    a = _run_folder(tmp_path / "a", [json.dumps(EpisodeRecord(0, 0, 1, 1, "oracle").to_json())])
     (tmp_path / "file").write_text("x")
     before = snapshot(tmp_path)
     refused(capsys, ["compare", a, a, *argv], words)
@@ -376,6 +376,7 @@ def test_eval_validates_ground_truth_first(capsys, copy, tmp_path, corrupt, word
     (["--out", "file"], "is a file; name an output folder"),
     (["--out", ""], "--out is empty"),
     (["--split", "val"], "split 'val' not found"),
+    (["--threads", "100000"], "threads = 100000 is out of range"),
 ])
 def test_eval_bad_options(capsys, dataset, tmp_path, argv, words):
     (tmp_path / "file").write_text("x")
@@ -487,6 +488,7 @@ CSV_ROW = "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1"
     ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,0.01 -0.02 0.5,-1"], "BOP results give t in mm, not metres"),
     ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 -500,-1"], "line 2: t = 10 -20 -500 is -500 mm in front"),
     ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,10 -20 500000,-1"], "mm is over 5 m from the camera"),
+    ([CSV_HEADER, "0,0,1,0.9,1 0 0 0 1 0 0 0 1,1e300 -20 500,-1"], "mm is over 5 m from the camera"),
     ([CSV_HEADER, "0,0,99,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1"], "line 2: obj_id 99 is not in the object set"),
     ([CSV_HEADER, CSV_ROW, "0,0,2,0.9,1 0 0 0 1 0 0 0 1,10 -20 500,-1", CSV_ROW.replace("0.9", "0.1")],
      "line 4: duplicates line 2 (same scene_id, im_id, obj_id, R and t)"),

@@ -57,7 +57,8 @@ def test_cli_fail_if_worse(tmp_path):
     a, b = _runs([True] * 12, [True] * 2 + [False] * 10)
     for name, recs in (("A", a), ("B", b)):
         (tmp_path / name).mkdir()
-        (tmp_path / name / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs.values()))
+        full = ({**r, "scene_seed": 0, "n_blocks": 1, "perception": "oracle", "target": None} for r in recs.values())
+        (tmp_path / name / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in full))
     assert run_cli("compare", str(tmp_path / "A"), str(tmp_path / "B")).returncode == 0
     r = run_cli("compare", str(tmp_path / "A"), str(tmp_path / "B"), "--fail-if-worse")
     assert r.returncode == 1 and "worse" in r.stdout

@@ -16,7 +16,7 @@ from helpers import run_cli
 from posegrasp.config import from_dict
 from posegrasp.errors import ConfigError, WeightsError
 from posegrasp.grasping.config import TrialConfig
-from posegrasp.perception.checkpoint import load_model
+from posegrasp.perception.checkpoint import load_model, read_state
 from posegrasp.perception.train_seg import SegTrainConfig
 from posegrasp.perception.training import checked_state
 
@@ -103,6 +103,19 @@ def test_resume_never_drops_finished_episodes_nor_adopts_records(run2, tmp_path)
     assert _snapshot(run) == before
 
 
+@pytest.mark.parametrize("key, value", [("scene_seed", 0), ("n_blocks", -4), ("seed", 3)])
+def test_resume_refuses_a_record_its_campaign_did_not_draw(run2, tmp_path, key, value):
+    run = tmp_path / "r"
+    shutil.copytree(run2, run)
+    lines = (run / "episodes.jsonl").read_text().splitlines()
+    rec = json.loads(lines[1])
+    rec[key] = value
+    (run / "episodes.jsonl").write_text("\n".join([lines[0], json.dumps(rec)]) + "\n")
+    before = _snapshot(run)
+    _one_line_error(_trials(run, 2), "episode 1 of", "does not re-simulate")
+    assert _snapshot(run) == before
+
+
 def test_writing_commands_refuse_folders_and_files_they_did_not_write(tmp_path):
     foreign = tmp_path / "foreign"
     foreign.mkdir()
@@ -117,6 +130,23 @@ def test_writing_commands_refuse_folders_and_files_they_did_not_write(tmp_path):
     other.write_text('{"mine": 1}')
     _one_line_error(run_cli("calibrate", "--out", str(other), "--poses", "3"), "not a hand-eye calibration")
     assert other.read_text() == '{"mine": 1}'
+
+
+def test_eval_and_capture_exports_refuse_folders_they_did_not_write(tmp_path, tiny_bop):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    dataset = _snapshot(tiny_bop)
+    model = ROOT / "assets" / "perception" / "model"
+    for out in (foreign, tiny_bop / "train_pbr", tiny_bop):  # a stranger's folder, a dataset and its own split
+        _one_line_error(run_cli("eval", "--data", str(tiny_bop), "--weights", str(model), "--split", "train_pbr",
+                                "--out", str(out), "--no-progress"), str(out), "not written by this command")
+    for args in (("--export-captures", str(foreign), "--out", str(tmp_path / "r")),
+                 ("--captures-only", "--export-captures", str(tiny_bop))):
+        _one_line_error(run_cli("trials", "--episodes", "1", "--workers", "1", "--no-progress", *args),
+                        "not written by this command")
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"] and not (tmp_path / "r").exists()
+    assert _snapshot(tiny_bop) == dataset
 
 
 def test_scene_rewrites_its_own_folder(tmp_path):
@@ -147,6 +177,17 @@ def test_trial_settings_are_typed_and_bounded(tmp_path, toml, words):
 def test_training_settings_are_bounded(data, key):
     with pytest.raises(ConfigError, match=rf"^seg.toml.{key}"):
         from_dict(SegTrainConfig, data, "seg.toml")
+
+
+def test_a_seg_batch_leaving_batch_norm_one_value_is_refused(tmp_path, tiny_bop):
+    cfg = tmp_path / "seg.toml"
+    cfg.write_text("[seg]\nbatch_size = 1\n[seg.model]\ninput_size = [32, 32]\n")
+    run = run_cli("train", "seg", "--data", str(tiny_bop), "--out", str(tmp_path / "run"), "--config", str(cfg),
+                  "--steps", "1", "--no-progress")
+    _one_line_error(run, str(cfg), "batch_size = 1 with model.input_size = [32, 32]", "batch normalisation")
+    assert not (tmp_path / "run").exists()
+    from_dict(SegTrainConfig, {"batch_size": 1, "model": {"input_size": [64, 32]}})  # two values per channel
+    from_dict(SegTrainConfig, {"batch_size": 1, "model": {"input_size": [32, 32], "batch_norm": False}})
 
 
 def test_counts_on_the_command_line_are_bounded(tmp_path):
@@ -190,6 +231,13 @@ def test_train_resume_with_a_bad_state_keeps_the_metrics(tmp_path, tiny_bop):
     assert first.returncode == 0, first.stderr[-2000:]
     metrics = (out / "seg_metrics.csv").read_bytes()
     state = out / "seg" / "state.json"
+    good = state.read_bytes()
+    (out / "seg_metrics.csv").write_bytes(b"\x8f\x00")
+    run = run_cli("train", "seg", "--data", str(tiny_bop), "--out", str(out), "--config", str(cfg), "--steps", "3",
+                  "--resume", "--no-progress")
+    _one_line_error(run, "seg_metrics.csv is not a metrics CSV")
+    assert state.read_bytes() == good and (out / "seg_metrics.csv").read_bytes() == b"\x8f\x00"
+    (out / "seg_metrics.csv").write_bytes(metrics)
     for bad in ('{"step": -5, "lr": 0.01}', '{"step": "2", "lr": 0.01}', '{"step": 2, "lr": NaN}', "[]"):
         state.write_text(bad)
         run = run_cli("train", "seg", "--data", str(tiny_bop), "--out", str(out), "--config", str(cfg),
@@ -200,7 +248,8 @@ def test_train_resume_with_a_bad_state_keeps_the_metrics(tmp_path, tiny_bop):
 
 def test_object_set_numbers_are_checked(tmp_path):
     for key, value, words in (("mass_kg", float("nan"), "mass_kg = NaN"), ("friction", "high", 'friction = "high"'),
-                              ("rgba", [1, 0, 0], "rgba")):
+                              ("rgba", [1, 0, 0], "rgba"),
+                              ("collision_volume_ratio", float("inf"), "collision_volume_ratio = Infinity")):
         root = tmp_path / key
         shutil.copytree(ROOT / "assets" / "blocks", root, ignore=shutil.ignore_patterns("*.py"))
         obj = root / "objects" / "obj_000001.json"
@@ -209,6 +258,25 @@ def test_object_set_numbers_are_checked(tmp_path):
         obj.write_text(json.dumps(d))
         _one_line_error(_trials(tmp_path / f"r_{key}", 1, "--objects", str(root)), str(obj), words)
         assert not (tmp_path / f"r_{key}").exists()
+
+
+@pytest.mark.parametrize("edit, words", [(lambda m: m.update(version=True), "version True is not"),
+                                         (lambda m: m.update(objects={"1": "cube"}), "objects must be a list"),
+                                         (lambda m: m["objects"][0].update(obj_id="1"), "an integer obj_id")])
+def test_object_set_manifest_is_typed(tmp_path, edit, words):
+    from posegrasp.errors import DatasetError
+    from posegrasp.objects.objset import load_object_set
+
+    root = tmp_path / "set"
+    shutil.copytree(ROOT / "assets" / "blocks", root, ignore=shutil.ignore_patterns("*.py"))
+    man = json.loads((root / "objectset.json").read_text())
+    edit(man)
+    (root / "objectset.json").write_text(json.dumps(man))
+    with pytest.raises(DatasetError, match=words):
+        load_object_set(root)
+    (root / "objectset.json").write_text("[]")
+    with pytest.raises(DatasetError, match="expected a JSON object, got list"):
+        load_object_set(root)
 
 
 def test_non_finite_weights_are_refused(tmp_path):
@@ -221,6 +289,53 @@ def test_non_finite_weights_are_refused(tmp_path):
     save_file(tensors, ckpt / "model.safetensors")
     with pytest.raises(WeightsError, match=rf"tensor '{name}' has \d+ of \d+ values NaN or infinite"):
         load_model(ckpt)
+
+
+@pytest.mark.parametrize("file, text, words", [
+    ("config.json", None, "version = 2; expected 1"), ("config.json", b"\xff\x00", "UTF-8 JSON text"),
+    ("config.json", '{"version": -Infinity}', "-Infinity is not a JSON number"),
+    ("config.json", '{"format": "posegrasp-perception", "version": 1, "stage": "seg", "train": -1}',
+     "train = -1; expected a JSON object"),
+    ("state.json", '{"step": NaN}', "NaN is not a JSON number"), ("state.json", b"\x9c", "UTF-8 JSON text")])
+def test_checkpoint_json_is_strict(tmp_path, file, text, words):
+    ckpt = tmp_path / "seg"
+    shutil.copytree(ROOT / "assets" / "perception" / "model" / "seg", ckpt)
+    p = ckpt / file
+    if text is None:
+        p.write_text(p.read_text().replace('"version": 1', '"version": 2'))
+    else:
+        p.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(WeightsError, match=words):
+        load_model(ckpt) if file == "config.json" else read_state(ckpt)
+
+
+def test_compare_checks_every_record(run2, tmp_path):
+    run = tmp_path / "r"
+    shutil.copytree(run2, run)
+    lines = (run / "episodes.jsonl").read_text().splitlines()
+    rec = json.loads(lines[0])
+    rec["target"] = 7
+    (run / "episodes.jsonl").write_text("\n".join([json.dumps(rec), *lines[1:]]) + "\n")
+    _one_line_error(run_cli("compare", str(run2), str(run)), "episodes.jsonl line 1", "target")
+    rec["target"] = {"type": "cube"}  # a target without its other fields
+    (run / "episodes.jsonl").write_text("\n".join([json.dumps(rec), *lines[1:]]) + "\n")
+    for cmd in (("compare", str(run2), str(run)), ("report", str(run))):
+        _one_line_error(run_cli(*cmd), "episodes.jsonl line 1", "target: missing key(s) ['instance', 'class_ok'")
+
+
+@pytest.mark.parametrize("edit", [lambda c: c.update(perception=7), lambda c: c.update(seed=-1),
+                                  lambda c: c["T_gripper_cam"][0].__setitem__(0, "1"), lambda c: c.update(objects=[]),
+                                  lambda c: c.update(objects={"name": "blocks", "path": -1, "sha256": "0"})])
+def test_a_mistyped_campaign_is_refused(run2, tmp_path, edit):
+    run = tmp_path / "r"
+    shutil.copytree(run2, run)
+    campaign = json.loads((run / "campaign.json").read_text())
+    edit(campaign)
+    (run / "campaign.json").write_text(json.dumps(campaign))
+    before = _snapshot(run)
+    _one_line_error(run_cli("compare", str(run2), str(run)), "campaign.json is corrupt")
+    _one_line_error(_trials(run, 2), str(run), "campaign")
+    assert _snapshot(run) == before
 
 
 def test_report_names_the_line_of_a_malformed_record(run2, tmp_path):

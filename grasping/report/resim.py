@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from posegrasp.errors import DatasetError, SimulationError
+from posegrasp.errors import SimulationError
 from posegrasp.executor import Executor, SerialExecutor
 from posegrasp.grasping.record import EpisodeRecord
 from posegrasp.grasping.runfolder import read_campaign
@@ -31,7 +31,7 @@ def resimulate_look(run_dir: Path, rec: EpisodeRecord) -> Look | None:
     """Episode ``rec`` of the run in ``run_dir`` re-simulated from its seeds up to the look capture; None if it
     never got there."""
     from posegrasp.catalog import catalog_by_id
-    from posegrasp.grasping.episode import EpisodeTask, capture_look, episode_draws, episode_workcell
+    from posegrasp.grasping.episode import EpisodeTask, capture_look, check_draws, episode_workcell
     from posegrasp.grasping.targets import drive_to_look
     from posegrasp.grasping.model_provider import ModelProvider
     from posegrasp.grasping.perception import PICK_LOOK, PerceptionError, observation, perceive
@@ -41,10 +41,7 @@ def resimulate_look(run_dir: Path, rec: EpisodeRecord) -> Look | None:
 
     campaign = read_campaign(run_dir)
     task = EpisodeTask(rec.seed, rec.episode, rec.perception, campaign.config, campaign.T_gripper_cam)
-    n_blocks, scene_seed, percept_seed, _ = episode_draws(task)
-    if scene_seed != rec.scene_seed:
-        raise DatasetError(f"episode {rec.episode} of {run_dir} does not re-simulate (scene seed {scene_seed} "
-                           f"!= recorded {rec.scene_seed}): the code changed since the run; rerun the trials")
+    n_blocks, scene_seed, percept_seed, _ = check_draws(task, rec, run_dir)
     try:
         wc = episode_workcell(task.cfg, scene_seed, n_blocks)
     except SimulationError:  # a scene that never settles (recorded as a simulation error)
