@@ -164,9 +164,9 @@ def test_settings_reference_is_generated() -> None:
     from posegrasp import settings_doc
 
     page = ROOT / "docs" / "reference" / "settings.md"
-    assert page.read_text(encoding="utf-8") == settings_doc.render(), \
+    assert page.read_text(encoding="utf-8") == settings_doc.render(), (
         "docs/reference/settings.md is not the generator's output: run "
-        "`python -m posegrasp.settings_doc > docs/reference/settings.md`"
+        "`python -m posegrasp.settings_doc > docs/reference/settings.md`")
 
 
 def test_every_setting_has_a_description() -> None:
