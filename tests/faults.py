@@ -100,12 +100,12 @@ class SmallDisk:
 def small_disk(tmp_path: Path):
     """A 64 KiB tmpfs under ``tmp_path``, unmounted afterwards; skipped where it cannot be mounted."""
     if os.geteuid() != 0:
-        pytest.skip("mounting a small tmpfs (a disk to fill up) needs root")
+        pytest.skip(reason="mounting a small tmpfs (a disk to fill up) needs root")
     root = tmp_path / "disk"
     root.mkdir()
     r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(root)], capture_output=True, text=True)
     if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+        pytest.skip(reason=f"cannot mount a tmpfs here: {r.stderr.strip()}")
     try:
         yield SmallDisk(root)
     finally:
