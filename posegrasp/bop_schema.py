@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -165,44 +165,43 @@ def scene_camera(path: str | Path) -> dict[int, dict[str, Any]]:
     return out
 
 
+def _per_image(path: Path, row: Callable[[dict, str], Any]) -> dict[int, list[Any]]:
+    """{im_id: [row(entry, key), ...]} of a per-image list file (``scene_gt``, ``scene_gt_info``), ``key`` naming
+    the entry in messages ("im 3 gt 1")."""
+    out = {}
+    for im, v in by_id(read_json(path), path, "image").items():
+        out[im] = [row(obj(g, path, f"im {im} gt {i}"), f"im {im} gt {i}")
+                   for i, g in enumerate(entries(v, path, f"im {im}"))]
+    return out
+
+
 def scene_gt(path: str | Path) -> dict[int, list[tuple[int, np.ndarray, np.ndarray]]]:
     """``scene_gt.json`` -> {im_id: [(obj_id, R_m2c (3, 3), t_m2c (3,) mm), ...]} in annotation order."""
     path = Path(path)
-    out = {}
-    for im, v in by_id(read_json(path), path, "image").items():
-        rows = []
-        for i, g in enumerate(entries(v, path, f"im {im}")):
-            key = f"im {im} gt {i}"
-            g = obj(g, path, key)
-            rows.append((integer(get(g, "obj_id", path, key), path, f"{key} 'obj_id'", 0, MAX_ID),
-                         nums(get(g, "cam_R_m2c", path, key), 9, path, f"{key} 'cam_R_m2c'", 2.0).reshape(3, 3),
-                         nums(get(g, "cam_t_m2c", path, key), 3, path, f"{key} 'cam_t_m2c'", MAX_MM)))
-        out[im] = rows
-    return out
+    return _per_image(path, lambda g, key: (
+        integer(get(g, "obj_id", path, key), path, f"{key} 'obj_id'", 0, MAX_ID),
+        nums(get(g, "cam_R_m2c", path, key), 9, path, f"{key} 'cam_R_m2c'", 2.0).reshape(3, 3),
+        nums(get(g, "cam_t_m2c", path, key), 3, path, f"{key} 'cam_t_m2c'", MAX_MM)))
 
 
 def scene_gt_info(path: str | Path) -> dict[int, list[dict[str, Any]]]:
     """``scene_gt_info.json`` -> {im_id: [{bbox_obj, bbox_visib (4 ints), px_count_* (ints >= 0), visib_fract
     in [0, 1]}, ...]} in annotation order."""
     path = Path(path)
-    out = {}
-    for im, v in by_id(read_json(path), path, "image").items():
-        rows = []
-        for i, g in enumerate(entries(v, path, f"im {im}")):
-            key = f"im {im} gt {i}"
-            g = obj(g, path, key)
-            r: dict[str, Any] = {}
-            for k in ("bbox_obj", "bbox_visib"):
-                box = nums(get(g, k, path, key), 4, path, f"{key} '{k}'", 3 * MAX_PX)
-                if not np.array_equal(box, np.round(box)) or (box[2:] < -1).any():
-                    raise fail(path, f"{key} '{k}'", "[x, y, w, h] integers with w, h >= 0 (or all -1)", g[k])
-                r[k] = tuple(int(x) for x in box)
-            for k in ("px_count_all", "px_count_valid", "px_count_visib"):
-                r[k] = integer(get(g, k, path, key), path, f"{key} '{k}'", 0, 9 * MAX_PX ** 2)
-            r["visib_fract"] = num(get(g, "visib_fract", path, key), path, f"{key} 'visib_fract'", 0.0, 1.0)
-            rows.append(r)
-        out[im] = rows
-    return out
+
+    def row(g: dict, key: str) -> dict[str, Any]:
+        r: dict[str, Any] = {}
+        for k in ("bbox_obj", "bbox_visib"):
+            box = nums(get(g, k, path, key), 4, path, f"{key} '{k}'", 3 * MAX_PX)
+            if not np.array_equal(box, np.round(box)) or (box[2:] < -1).any():
+                raise fail(path, f"{key} '{k}'", "[x, y, w, h] integers with w, h >= 0 (or all -1)", g[k])
+            r[k] = tuple(int(x) for x in box)
+        for k in ("px_count_all", "px_count_valid", "px_count_visib"):
+            r[k] = integer(get(g, k, path, key), path, f"{key} '{k}'", 0, 9 * MAX_PX ** 2)
+        r["visib_fract"] = num(get(g, "visib_fract", path, key), path, f"{key} 'visib_fract'", 0.0, 1.0)
+        return r
+
+    return _per_image(path, row)
 
 
 def targets(path: str | Path) -> list[tuple[int, int, int, int]]:
