@@ -145,9 +145,10 @@ def read_config(ckpt: Path) -> dict[str, Any]:
         raise WeightsError(f"{p} is not a {FORMAT} config")
     if cfg.get("version") != VERSION or isinstance(cfg.get("version"), bool):
         raise WeightsError(f"{p}: version = {json.dumps(cfg.get('version'))[:40]}; expected {VERSION}")
-    for key in ("model", "train"):
-        if not isinstance(cfg.get(key, {}), dict):
-            raise WeightsError(f"{p}: {key} = {json.dumps(cfg[key])[:40]}; expected a JSON object")
+    for key, optional in (("model", False), ("train", True)):  # weights made by no training (perturb): train null
+        v = cfg.get(key, {})
+        if not isinstance(v, dict) and not (optional and v is None):
+            raise WeightsError(f"{p}: {key} = {json.dumps(v)[:40]}; expected a JSON object{' or null' * optional}")
     return cfg
 
 
