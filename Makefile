@@ -31,8 +31,13 @@ demo: setup sysdeps
 	$(BIN)/posegrasp trials --episodes 20 --seed 0 --perception model --workers 2 --out demo_out
 	@echo "Open demo_out/report.html (episodes.jsonl and summary.json beside it)"
 
+# The fault tests (full disks on a mounted tmpfs, Ctrl-C, the fuzz harness) run in a pytest process of their own,
+# after the rest: they drive the commands in child processes and leave the main process's rendering to the others.
+FAULT_TESTS := tests/test_full_disk.py tests/test_interrupt.py tests/test_fuzz.py
+
 test: setup sysdeps
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $(addprefix --ignore=,$(FAULT_TESTS))
+	$(BIN)/python -m pytest -q $(FAULT_TESTS)
 
 test-fast: setup sysdeps
 	$(BIN)/python -m pytest -q -m "not slow"
