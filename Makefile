@@ -32,8 +32,9 @@ demo: setup sysdeps
 	@echo "Open demo_out/report.html (episodes.jsonl and summary.json beside it)"
 
 # The fault tests (full disks on a mounted tmpfs, Ctrl-C, the fuzz harness) run in a pytest process of their own,
-# after the rest: they drive the commands in child processes and leave the main process's rendering to the others.
-FAULT_TESTS := tests/test_full_disk.py tests/test_interrupt.py tests/test_fuzz.py
+# after the rest: their tiny dataset is drawn with pyrender in the test process, whose EGL teardown ends the display
+# MuJoCo renders with there.
+FAULT_TESTS := tests/test_fuzz.py tests/test_full_disk.py tests/test_interrupt.py
 
 test: setup sysdeps
 	$(BIN)/python -m pytest -q $(addprefix --ignore=,$(FAULT_TESTS))
