@@ -4,12 +4,12 @@ tiny BOP dataset and training settings, and a command interrupted once its progr
 from __future__ import annotations
 
 import csv
-import importlib.util
 import io
 import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Callable
@@ -152,11 +152,16 @@ def assert_one_line(stderr: str, pattern: str) -> None:
 
 
 def make_tiny_bop(root: Path) -> Path:
-    """The perception tests' tiny BOP dataset (3 objects, train and test splits of 160 x 120 px) at ``root``."""
-    spec = importlib.util.spec_from_file_location("tiny_bop_maker", Path(__file__).parent / "perception" / "conftest.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.make_tiny_bop(root)
+    """The perception tests' tiny BOP dataset (3 objects, train and test splits of 160 x 120 px) at ``root``, drawn
+    in a child process: pyrender's EGL teardown would end the display this process's MuJoCo renders with."""
+    tests = Path(__file__).parent
+    code = ("import sys, importlib.util; from pathlib import Path; sys.path[:0] = [sys.argv[1]]; "
+            "spec = importlib.util.spec_from_file_location('tiny_bop_maker', Path(sys.argv[1]) / 'perception' / "
+            "'conftest.py'); mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod); "
+            "mod.make_tiny_bop(Path(sys.argv[2]))")
+    r = subprocess.run([sys.executable, "-c", code, str(tests), str(root)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return root
 
 
 def interrupt_when(args: list[str], cwd: Path, ready: Callable[[], bool], timeout: float = 120
