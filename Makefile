@@ -34,11 +34,14 @@ demo: setup sysdeps
 # The fault tests (full disks on a mounted tmpfs, Ctrl-C, the fuzz harness) run in a pytest process of their own,
 # after the rest: their tiny dataset is drawn with pyrender in the test process, whose EGL teardown ends the display
 # MuJoCo renders with there.
-FAULT_TESTS := tests/test_fuzz.py tests/test_full_disk.py tests/test_interrupt.py
+# The Ctrl-C tests signal their commands' process groups: they too get a process of their own.
+FAULT_TESTS := tests/test_fuzz.py tests/test_full_disk.py
+SIGNAL_TESTS := tests/test_interrupt.py
 
 test: setup sysdeps
-	$(BIN)/python -m pytest -q $(addprefix --ignore=,$(FAULT_TESTS))
+	$(BIN)/python -m pytest -q $(addprefix --ignore=,$(FAULT_TESTS) $(SIGNAL_TESTS))
 	$(BIN)/python -m pytest -q $(FAULT_TESTS)
+	$(BIN)/python -m pytest -q $(SIGNAL_TESTS)
 
 test-fast: setup sysdeps
 	$(BIN)/python -m pytest -q -m "not slow"
