@@ -168,8 +168,9 @@ def interrupt_when(args: list[str], cwd: Path, ready: Callable[[], bool], timeou
                    ) -> subprocess.CompletedProcess:
     """Run ``posegrasp ARGS`` in ``cwd`` in a new process group, send the group SIGINT (as Ctrl-C in a terminal
     does) once ``ready()`` holds, and return the finished process."""
+    # Ctrl-C's default action in the child, whatever this process (a test runner that ignores it) passes on
     proc = subprocess.Popen(cli(*args), cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.monotonic()
     try:
         while not ready():
