@@ -25,41 +25,32 @@ ROOT = Path(__file__).resolve().parents[1]
 #: A plug-in misbehaving as ``$EVIL`` says at import, as ARGS says in its factory, and by episode in estimate.
 EVIL = '''
 import ctypes, os, sys, time
-MODE = os.environ.get("EVIL", "")
-if MODE == "exit":
-    os._exit(3)
-if MODE == "sysexit":
-    sys.exit(7)
-if MODE == "segv":
-    ctypes.string_at(0)
-if MODE == "sleep":
-    time.sleep(3600)
-if MODE == "chdir":
-    os.chdir(os.environ["ELSEWHERE"])
+
+
+def misbehave(mode):
+    if mode == "exit":
+        os._exit(3)
+    if mode == "sysexit":
+        sys.exit(7)
+    if mode == "segv":
+        ctypes.string_at(0)
+    if mode == "sleep":
+        time.sleep(3600)
+    if mode == "chdir":
+        os.chdir(os.environ["ELSEWHERE"])
+
+
+misbehave(os.environ.get("EVIL", ""))
 
 class P:
     name = "evil"
 
     def estimate(self, obs, seed):
-        mode = ["exit", "sysexit", "segv", "sleep", "chdir"][obs.scene_id]
-        if mode == "exit":
-            os._exit(3)
-        if mode == "sysexit":
-            sys.exit(7)
-        if mode == "segv":
-            ctypes.string_at(0)
-        if mode == "sleep":
-            time.sleep(3600)
-        os.chdir(os.environ["ELSEWHERE"])
+        misbehave(["exit", "sysexit", "segv", "sleep", "chdir"][obs.scene_id])
         return []
 
 def make(args):
-    if args == "exit":
-        os._exit(3)
-    if args == "sleep":
-        time.sleep(3600)
-    if args == "segv":
-        ctypes.string_at(0)
+    misbehave(args)
     return P()
 '''
 
