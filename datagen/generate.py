@@ -180,7 +180,7 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
         jobs = [SceneJob(split, s, seed, views, cfg) for s in todo]
         t0 = time.perf_counter()
         frames = 0
-        with _progress(progress) as bar:
+        with executor, _progress(progress) as bar:  # Ctrl-C ends the workers at once
             task = bar.add_task("datagen", total=len(todo) * views, fps=0.0)
             for _, scene in executor.imap(generate_scene, jobs):
                 scene.write(bop.scene_dir(root, split, scene.extra["scene_id"]))

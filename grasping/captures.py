@@ -135,9 +135,9 @@ def export_captures(root: Path, episodes: int, seed: int, workers: int | str | N
         todo = [EpisodeTask(seed, i, "oracle", cfg, mount, captures_only=True) for i in range(episodes)
                 if not export.has(i)]
         images = 0
-        with progress_bar(TextColumn("[bold]captures[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
-                          TextColumn("ETA"), TimeRemainingColumn(), enabled=progress, console=console,
-                          transient=True) as bar:
+        with executor, progress_bar(TextColumn("[bold]captures[/] {task.description}"), BarColumn(),
+                                    MofNCompleteColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                                    enabled=progress, console=console, transient=True) as bar:
             task = bar.add_task(cfg.task, total=episodes, completed=episodes - len(todo))
             for _, (_, _, scene) in executor.imap(run_capturing, todo):
                 export.write(scene)

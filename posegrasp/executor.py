@@ -90,32 +90,38 @@ class PoolExecutor:
         self._pool = self._new_pool()
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
         pool, self._pool = self._pool, None
-        if pool is not None:
+        if pool is None:
+            return
+        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt):
+            _stop_now(pool)
+        else:  # an error or the end: the tasks not started are dropped, the running ones finish
             pool.shutdown(cancel_futures=True)
 
     def imap(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         if self._pool is not None:
             yield from self._run(self._pool, fn, items)
             return
-        with self._new_pool() as pool:
-            yield from self._run(pool, fn, items)
+        with self:
+            yield from self._run(self._pool, fn, items)
 
     @staticmethod
     def _run(pool: ProcessPoolExecutor, fn: Callable[[Any], Any], items: Sequence[Any]
              ) -> Iterator[tuple[int, Any]]:
+        # no future is cancelled here: the pool's exit does that, or ends the workers on Ctrl-C
         futures = {pool.submit(fn, item): i for i, item in enumerate(items)}
-        try:
-            for fut in as_completed(futures):
-                yield futures[fut], fut.result()
-        except BaseException as e:
-            for f in futures:
-                f.cancel()
-            if isinstance(e, KeyboardInterrupt):  # stop now, not after the tasks running: their results are unwanted
-                for proc in list((getattr(pool, "_processes", None) or {}).values()):
-                    proc.kill()
-            raise
+        for fut in as_completed(futures):
+            yield futures[fut], fut.result()
+
+
+def _stop_now(pool: ProcessPoolExecutor) -> None:
+    """Ctrl-C: end ``pool``'s workers now (their results are unwanted) and wait for its manager thread to see them
+    gone. No future is cancelled first: the manager thread of a broken pool sets an exception on every pending
+    future, and one cancelled under it raises ``InvalidStateError`` in that thread (a traceback on stderr)."""
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        proc.kill()
+    pool.shutdown(wait=True)
 
 
 def _check_reachable(address: str) -> None:

@@ -48,8 +48,6 @@ def interrupted_then_resumed(tmp_path: Path, args: list[str], ready, message: st
 # Enough work that the signal lands while it runs, however busy the machine.
 
 
-@pytest.mark.xfail(strict=False, reason="known defect: now and then a worker-pool thread of the interrupted command "
-                   "prints a traceback beside the one line (seen when the test runner's parent ignores SIGINT)")
 def test_datagen(tmp_path):
     (tmp_path / "datagen.toml").write_text(TINY_DATAGEN_TOML)
     args = ["datagen", "--out", "out", "--scenes", "24", "--views", "2", "--seed", "0", "--workers", "2", "--config",
@@ -57,8 +55,6 @@ def test_datagen(tmp_path):
     interrupted_then_resumed(tmp_path, args, lambda d: any((d / "out" / "train_pbr").glob("*/scene_gt.json")), RERUN)
 
 
-@pytest.mark.xfail(strict=False, reason="known defect: now and then a worker-pool thread of the interrupted command "
-                   "prints a traceback beside the one line (seen when the test runner's parent ignores SIGINT)")
 def test_trials(tmp_path):
     args = ["trials", "--episodes", "10", "--seed", "0", "--workers", "2", "--out", "out", "--no-progress"]
     interrupted_then_resumed(tmp_path, args, lambda d: lines(d / "out" / "episodes.jsonl") >= 1, RERUN)

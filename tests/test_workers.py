@@ -151,3 +151,35 @@ def _alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     return True
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("where", ["consumer", "waiting"])
+def test_ctrl_c_ends_the_pool_at_once_without_a_thread_traceback(where, monkeypatch):
+    """Ctrl-C inside the caller's loop, or while it waits for a result: the running tasks (a minute long) are not
+    waited for, and no thread of the pool reports an exception (a future cancelled under the manager thread of a
+    broken pool raises InvalidStateError there)."""
+    import threading
+
+    from posegrasp.executor import PoolExecutor
+
+    errors: list[str] = []
+    monkeypatch.setattr(threading, "excepthook", lambda a: errors.append(f"{a.thread.name}: {a.exc_type.__name__}"))
+    t0 = time.monotonic()
+    pids: list[int] = []
+    with pytest.raises(KeyboardInterrupt):
+        with PoolExecutor(2) as ex:
+            for _, pid in ex.imap(_pid_then_sleep, range(12)):  # task 0 answers at once, the rest sleep
+                pids.append(pid)
+                if where == "consumer":
+                    raise KeyboardInterrupt
+                threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()
+    assert time.monotonic() - t0 < 30, "the running tasks were waited for"
+    assert errors == []
+    assert not _alive(pids[0])
+
+
+def _pid_then_sleep(i: int) -> int:
+    if i:
+        time.sleep(60)
+    return os.getpid()
