@@ -132,7 +132,20 @@ def check_kept(out: Path, done: dict[int, dict], episodes: int) -> None:
 
 
 def print_summary(s: dict, console: Console) -> None:
-    """The success rate, per-block and per-failure tables, printed with rich."""
+    """The success rate, per-block and per-failure tables, printed with rich; bin picking's attempt-level lines
+    and the reasons its episodes ended instead of the per-episode rate and blocks."""
+    if "bin_pick" in s:
+        console.print(f"[bold]{s['task']}, {s['perception']}, {s.get('objects', {}).get('name', 'blocks')}[/]")
+        print_bin_pick(s["bin_pick"], console)
+        _print_failures(s["failures"], "episodes ended by", console)
+    else:
+        _print_episodes(s, console)
+    if s["wall"]["episodes_per_min"]:
+        console.print(f"{s['wall']['episodes_run']} episodes in {s['wall']['seconds']:.1f} s wall = "
+                      f"{s['wall']['episodes_per_min']:.0f} episodes/min")
+
+
+def _print_episodes(s: dict, console: Console) -> None:
     lo, hi = s["wilson95"]
     objects = s.get("objects", {}).get("name", "blocks")
     console.print(f"[bold]{s.get('task', 'pick-place')}, {s['perception']}, {objects}[/]: "
@@ -147,18 +160,17 @@ def print_summary(s: dict, console: Console) -> None:
         t.add_row(b, str(row["success"]), str(row["n"]), f"{100 * row['rate']:.1f} %",
                   f"{100 * row['wilson95'][0]:.1f}-{100 * row['wilson95'][1]:.1f} %")
     console.print(t)
-    f = Table(title="failures")
+    _print_failures(s["failures"], "failures", console)
+
+
+def _print_failures(counts: dict[str, int], title: str, console: Console) -> None:
+    f = Table(title=title)
     f.add_column("reason")
     f.add_column("count")
     for reason in Failure:
-        if s["failures"].get(reason):
-            f.add_row(reason, str(s["failures"][reason]))
+        if counts.get(reason):
+            f.add_row(reason, str(counts[reason]))
     console.print(f)
-    if "bin_pick" in s:
-        print_bin_pick(s["bin_pick"], console)
-    if s["wall"]["episodes_per_min"]:
-        console.print(f"{s['wall']['episodes_run']} episodes in {s['wall']['seconds']:.1f} s wall = "
-                      f"{s['wall']['episodes_per_min']:.0f} episodes/min")
 
 
 def print_bin_pick(b: dict, console: Console) -> None:

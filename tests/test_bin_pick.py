@@ -4,10 +4,12 @@ each way an episode ends, determinism, a short oracle run, the comparison of two
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 
 import numpy as np
 import pytest
+from rich.console import Console
 
 from helpers import run_cli, success_floor
 from posegrasp.catalog import load_catalog
@@ -144,7 +146,11 @@ def test_an_episode_ends_when_no_part_it_sees_has_a_grasp():
 @pytest.mark.slow
 def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path):
     cfg = _cfg(4)
-    s = run_trials(tmp_path / "a", 2, 0, "oracle", 2, cfg, progress=False)
+    console = Console(file=io.StringIO(), width=200)
+    s = run_trials(tmp_path / "a", 2, 0, "oracle", 2, cfg, console=console, progress=False)
+    printed = console.file.getvalue()
+    assert "bin picking: cleared" in printed and "episodes ended by" in printed
+    assert "per target block" not in printed  # the table tasks' lines say nothing of a tote
     run_trials(tmp_path / "b", 2, 0, "oracle", 1, cfg, progress=False)
     assert (tmp_path / "a" / EPISODES).read_bytes() == (tmp_path / "b" / EPISODES).read_bytes()
     b = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]
