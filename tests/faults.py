@@ -96,22 +96,6 @@ class SmallDisk:
         subprocess.run(["mount", "-o", f"remount,size={kib}k", str(self.root)], check=True, capture_output=True)
 
 
-@pytest.fixture
-def small_disk(tmp_path: Path):
-    """A 64 KiB tmpfs under ``tmp_path``, unmounted afterwards; skipped where it cannot be mounted."""
-    if os.geteuid() != 0:
-        pytest.skip(reason="mounting a small tmpfs (a disk to fill up) needs root")
-    root = tmp_path / "disk"
-    root.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(root)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(reason=f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
-        yield SmallDisk(root)
-    finally:
-        subprocess.run(["umount", "-l", str(root)], capture_output=True)
-
-
 def _without(obj, keys: tuple[str, ...]):
     return {k: v for k, v in obj.items() if k not in keys} if isinstance(obj, dict) else obj
 

@@ -8,18 +8,37 @@ these tests are skipped with that reason."""
 
 from __future__ import annotations
 
+import os
 import shutil
+import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import pytest
 import trimesh
-from faults import TINY_DATAGEN_TOML, TINY_TRAIN_TOML, assert_one_line, assert_same_tree, make_tiny_bop, small_disk  # noqa: F401
+from faults import (TINY_DATAGEN_TOML, TINY_TRAIN_TOML, SmallDisk, assert_one_line, assert_same_tree,
+                    make_tiny_bop)
 from helpers import run_cli
 
 PAGE = 4096
 NO_SPACE_LINE = r"posegrasp: error: no space left on \S+"
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path):
+    """A 64 KiB tmpfs under ``tmp_path``, unmounted afterwards; skipped where it cannot be mounted."""
+    if os.geteuid() != 0:
+        pytest.skip(reason="mounting a small tmpfs (a disk to fill up) needs root")
+    root = tmp_path / "disk"
+    root.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(root)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(reason=f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield SmallDisk(root)
+    finally:
+        subprocess.run(["umount", "-l", str(root)], capture_output=True)
 
 
 @pytest.fixture(scope="module")
