@@ -61,9 +61,35 @@ def _add_surface(root: mjcf.RootElement, body, k: int, surface) -> None:
     body.add("geom", name=f"block_{k}_visual", type="mesh", mesh=mesh, material=mat, mass=0, **_VISUAL)
 
 
-def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance) -> None:
+#: MuJoCo's default contact time constant (s): soft contacts of the table, the pad and the shipped blocks.
+CONTACT_TIMECONST = 0.02
+#: Speed (m/s) of a part's hardest contact: dropped onto the table in a scene, or met by a closing finger.
+CONTACT_SPEED = 1.0
+
+
+def thickness(vertices: np.ndarray) -> float:
+    """Smallest width (m) of a part, vertices (N, 3) m: their extent along the least of their principal axes."""
+    v = np.asarray(vertices, dtype=float).reshape(-1, 3)
+    v = v - v.mean(axis=0)
+    return float(np.ptp(v @ np.linalg.svd(v, full_matrices=False)[2].T, axis=0).min())
+
+
+def contact_timeconst(width: float, timestep: float) -> float:
+    """Contact time constant (s) of a part ``width`` m thin (``thickness``): ``width / CONTACT_SPEED``, at least
+    two physics steps and at most ``CONTACT_TIMECONST``.
+
+    A soft contact of time constant ``tc`` hit at speed ``v`` sinks about ``v tc / e`` before it holds. Where that
+    passes half a part's thickness, the nearest way out of the table (or out of a finger) is through the part's
+    far face: the contact pushes it through the table, or the solver blows up (NaN accelerations). Parts 20 mm
+    thick or more (all the shipped blocks) keep MuJoCo's default."""
+    return float(np.clip(width / CONTACT_SPEED, 2.0 * timestep, CONTACT_TIMECONST))
+
+
+def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance, timestep: float) -> None:
     """A free body ``block_k``: the visual mesh (exactly the PLY model, or the part's textured surface where it
-    has one: then the model, carrying the mass, is hidden in the collision group) and the collision primitives."""
+    has one: then the model, carrying the mass, is hidden in the collision group) and the collision primitives;
+    those of a thin part with stiffer, harder contacts (``contact_timeconst``; the fingers' ``solimp``) that rule
+    its contacts with the table and the hand (``solmix``)."""
     b = inst.block
     mesh = root.asset.add("mesh", name=f"block_{k}_mesh", vertex=b.vertices.ravel(), face=b.faces.ravel())
     # parked apart, off the table, until placed: blocks compiled on top of each other and the arm overflow
@@ -76,10 +102,12 @@ def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance) -> None:
         body.add("geom", name=f"block_{k}_solid", type="mesh", mesh=mesh, rgba=(0.5, 0.5, 0.5, 0.0), mass=b.mass,
                  contype=0, conaffinity=0, group=_COLLISION_GROUP)
         _add_surface(root, body, k, b.surface)
+    tc = contact_timeconst(thickness(b.vertices), timestep)
+    stiff = dict(solref=(tc, 1.0), solimp=(0.99, 0.999, 0.001, 0.5, 2), solmix=1e3) if tc < CONTACT_TIMECONST else {}
     for j, prim in enumerate(b.collision):
         kw = dict(name=f"block_{k}_col{j}", group=_COLLISION_GROUP, rgba=(0.5, 0.5, 0.5, 0.0), mass=0,
                   friction=(0.9, 0.01, 0.002), condim=6, pos=prim.get("pos", (0, 0, 0)),
-                  quat=prim.get("quat", (1, 0, 0, 0)), **_COLLIDE)
+                  quat=prim.get("quat", (1, 0, 0, 0)), **_COLLIDE, **stiff)
         if prim["type"] == "mesh":
             hull = root.asset.add("mesh", name=f"block_{k}_hull{j}", vertex=np.ravel(prim["vertices"]))
             body.add("geom", type="mesh", mesh=hull, **kw)
@@ -138,7 +166,7 @@ def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjc
     arm.attach(hand)
     root.attach(arm.mjcf_model)
     for k, inst in enumerate(blocks, start=1):
-        _add_block(root, k, inst)
+        _add_block(root, k, inst, cfg.timestep)
     return root
 
 

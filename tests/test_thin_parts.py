@@ -1,0 +1,53 @@
+"""Thin parts (a 6.4 mm domino) come to rest on the table: their collision pieces get contacts stiff enough that a
+drop does not sink them past half their thickness (then MuJoCo pushes them through the table or blows up)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import trimesh
+
+from posegrasp.cli import main
+from posegrasp.sim.config import WorkcellConfig, with_objects
+from posegrasp.sim.scene import SceneConfig, choose_types, drop_poses, settle
+from posegrasp.sim.workcell import CONTACT_TIMECONST, BlockInstance, Workcell, contact_timeconst, thickness
+
+DOMINO = (0.0064, 0.0254, 0.0508)  # m: pybullet_data's domino
+
+
+@pytest.fixture(scope="module")
+def dominoes(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("thin")
+    trimesh.creation.box(DOMINO).export(d / "domino.obj")
+    assert main(["objects", "import", str(d / "domino.obj"), "--out", str(d / "set"), "--no-progress"]) == 0
+    return d / "set"
+
+
+def test_contact_time_constant_follows_the_thinnest_width():
+    box = trimesh.creation.box(DOMINO)
+    box.apply_transform(trimesh.transformations.random_rotation_matrix(np.random.default_rng(0).random(3)))
+    assert thickness(box.vertices) == pytest.approx(0.0064)
+    assert contact_timeconst(0.0064, 0.002) == pytest.approx(0.0064)
+    assert contact_timeconst(0.001, 0.002) == pytest.approx(0.004)  # never under two physics steps
+    assert contact_timeconst(0.0237, 0.002) == CONTACT_TIMECONST  # the shipped blocks keep MuJoCo's default
+
+
+def test_dropped_dominoes_rest_on_the_table(dominoes):
+    wcfg = with_objects(WorkcellConfig(), dominoes)
+    cfg = SceneConfig(workcell=wcfg)
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        types = choose_types(cfg, 3, rng)
+        wc = Workcell(wcfg, [BlockInstance(t, (1.0, 0.0, 0.0, 1.0)) for t in types])
+        assert wc.model.geom_solref[wc.model.geom("block_1_col0").id][0] == pytest.approx(0.0064)
+        for k, T in enumerate(drop_poses(cfg, types, rng), start=1):
+            wc.set_block_pose(k, T)
+        mujoco.mj_forward(wc.model, wc.data)
+        rested = settle(wc, cfg)
+        z = wc.block_poses()[:, 2, 3]
+        # lying flat (3.2 mm) or on one another (12.7 mm on the one below); never sunk into or through the table
+        assert rested and np.all((z > 0.0028) & (z < 0.015)), (seed, z)
+        assert wc.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number == 0, seed
