@@ -1,8 +1,10 @@
 """Thin parts (a 6.4 mm domino) come to rest on the table: their collision pieces get contacts stiff enough that a
-drop does not sink them past half their thickness (then MuJoCo pushes them through the table or blows up)."""
+drop does not sink them past half their thickness (then MuJoCo pushes them through the table or blows up); lying
+flat, they are pinched low enough for the fingertips to grip their edges, and picked."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import mujoco
@@ -10,7 +12,12 @@ import numpy as np
 import pytest
 import trimesh
 
+from posegrasp.catalog import load_catalog
 from posegrasp.cli import main
+from posegrasp.geometry import make_T
+from posegrasp.grasping.config import GraspConfig
+from posegrasp.grasping.grasps import plan_grasps
+from posegrasp.grasping.hand import FLAT_PINCH_DROP
 from posegrasp.sim.config import WorkcellConfig, with_objects
 from posegrasp.sim.scene import SceneConfig, choose_types, drop_poses, settle
 from posegrasp.sim.workcell import CONTACT_TIMECONST, BlockInstance, Workcell, contact_timeconst, thickness
@@ -51,3 +58,20 @@ def test_dropped_dominoes_rest_on_the_table(dominoes):
         # lying flat (3.2 mm) or on one another (12.7 mm on the one below); never sunk into or through the table
         assert rested and np.all((z > 0.0028) & (z < 0.015)), (seed, z)
         assert wc.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number == 0, seed
+
+
+def test_a_flat_domino_is_pinched_low_and_picked(dominoes, tmp_path):
+    """Lying flat, its top 6.4 mm up, below the lowest pinch height: pinched ``FLAT_PINCH_DROP`` lower, where the
+    fingertips grip its edges (at the lowest pinch height 2 of these 5 episodes slipped out of the fingers)."""
+    cfg = GraspConfig()
+    domino = load_catalog(dominoes)["domino"]
+    thin = int(np.argmin(domino.extents))
+    R = np.eye(3)[:, [(j - thin + 2) % 3 for j in range(3)]]  # the thin axis up
+    lying = make_T(R, (0.45, 0.0, -(domino.vertices @ R.T)[:, 2].min()))
+    grasps = plan_grasps(domino, lying, np.zeros((0, 3)), cfg, yaw_now=0.0)
+    assert grasps and {round(g.T_world_gripper[2, 3], 4) for g in grasps} == {cfg.min_pinch_height - FLAT_PINCH_DROP}
+    out = tmp_path / "trials"
+    assert main(["trials", "--task", "pick-place", "--objects", str(dominoes), "--episodes", "5", "--seed", "1000",
+                 "--workers", "1", "--perception", "oracle", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["success"] == 5, summary["failures"]
