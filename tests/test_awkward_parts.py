@@ -1,10 +1,13 @@
-"""Thin parts (a 6.4 mm domino) come to rest on the table: their collision pieces get contacts stiff enough that a
-drop does not sink them past half their thickness (then MuJoCo pushes them through the table or blows up); lying
-flat, they are pinched low enough for the fingertips to grip their edges, and picked."""
+"""Parts of awkward shapes from public object libraries. Thin parts (a 6.4 mm domino) come to rest on the table:
+their collision pieces get contacts stiff enough that a drop does not sink them past half their thickness (then
+MuJoCo pushes them through the table or blows up); lying flat, they are pinched low enough for the fingertips to
+grip their edges, and picked. A sphere's symmetry is three orthogonal continuous axes, sampled so that grasp
+planning stays quick."""
 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import mujoco
@@ -12,7 +15,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from posegrasp.catalog import load_catalog
+from posegrasp.catalog import load_catalog, symmetry_transforms
 from posegrasp.cli import main
 from posegrasp.datagen.scene import stack_drops
 from posegrasp.geometry import make_T
@@ -100,3 +103,17 @@ def test_thin_bars_dropped_in_a_stack_never_sink_into_the_table(tmp_path):
         settle(wc, cfg)
         assert lowest[0] > 0.0, (seed, lowest[0])  # a bar's centre lies 9 mm or more above the table
         assert wc.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number == 0, seed
+
+
+def test_a_sphere_turns_about_three_orthogonal_axes_and_is_planned_quickly(tmp_path):
+    trimesh.creation.icosphere(3, radius=0.03).export(tmp_path / "ball.stl")
+    assert main(["objects", "import", str(tmp_path / "ball.stl"), "--out", str(tmp_path / "set"), "--no-progress"]) == 0
+    ball = load_catalog(tmp_path / "set")["ball"]
+    axes = np.array([a for a, _ in ball.symmetries_continuous])
+    assert axes.shape == (3, 3) and np.allclose(axes @ axes.T, np.eye(3), atol=1e-6)
+    assert len(symmetry_transforms(ball)) == 27  # 3 turns about each axis, not 36 ** 3
+    t0 = time.perf_counter()
+    on_table = make_T(np.eye(3), (0.45, 0.0, 0.03))
+    grasps = plan_grasps(ball, on_table, np.zeros((0, 3)), GraspConfig(), yaw_now=0.0)
+    assert grasps and time.perf_counter() - t0 < 10.0
+    assert abs(grasps[0].width - 0.06) < 0.003
