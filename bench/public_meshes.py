@@ -124,7 +124,8 @@ def _check(m: Mesh, args: argparse.Namespace) -> dict:
                        args.timeout)
     if not err:
         z = [b["T_world_obj"][2][3] for b in json.loads((out / "scene" / "scene.json").read_text())["blocks"]]
-        err = "" if all(-0.01 < v < 0.25 for v in z) else "exploded: z " + ", ".join(f"{v * 1000:.0f}" for v in z) + " mm"
+        if not all(-0.01 < v < 0.25 for v in z):
+            err = "exploded: z " + ", ".join(f"{v * 1000:.0f}" for v in z) + " mm"
     row = {"scene": (err or "ok") + _unstable(log)}
     err, _, log = _cli(["datagen", "--objects", str(part), "--scenes", "3", "--views", "2", "--workers", "1",
                         "--out", str(out / "ds"), "--no-progress"], args.timeout)
@@ -132,7 +133,8 @@ def _check(m: Mesh, args: argparse.Namespace) -> dict:
         err, _, _ = _cli(["dataset", "check", str(out / "ds")], args.timeout)
     row["datagen"] = (err or "ok") + _unstable(log)
     err, _, log = _cli(["trials", "--task", "pick-place", "--objects", str(part), "--episodes", "10", "--seed", "1000",
-                        "--workers", "1", "--perception", "oracle", "--out", str(out / "trials"), "--no-progress"], args.timeout)
+                        "--workers", "1", "--perception", "oracle", "--out", str(out / "trials"), "--no-progress"],
+                       args.timeout)
     if err:
         row["oracle"] = err + _unstable(log)
     else:
