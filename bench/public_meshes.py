@@ -12,7 +12,9 @@ Without ``--all`` it imports the chosen eight (``CHOSEN``) into one object set `
 it imports every mesh in ``MESHES`` on its own, each under ``OUT/parts/NAME``. Each import runs the real command
 line in a subprocess under ``--timeout`` seconds; the table gives per part the file, unit and scale, imported or
 the refusal, the repairs, the volume change, the workcell warnings, the size and the wall seconds, with the load
-average (other processes on the machine slow the imports; say so when you quote the figures).
+average (other processes on the machine slow the imports; say so when you quote the figures). With ``--all --check``
+each imported part is then dropped into a scene (``posegrasp scene``), made into a 3-scene dataset that
+``posegrasp dataset check`` must pass, and picked in 10 oracle pick-place episodes, under ``OUT/checks/NAME``.
 """
 
 from __future__ import annotations
@@ -84,20 +86,61 @@ def _root(m: Mesh, args: argparse.Namespace) -> Path:
 
 def _import(meshes: list[Mesh], args: argparse.Namespace, out: Path) -> tuple[str, float]:
     """Run ``posegrasp objects import`` on ``meshes`` into ``out``: (error line or "", wall seconds)."""
-    cmd = [sys.executable, "-m", "posegrasp.cli", "objects", "import",
-           *[str(_root(m, args) / m.path) for m in meshes], "--out", str(out), "--no-progress",
-           "--unit", *[m.unit for m in meshes], "--scale", *[f"{m.scale:g}" for m in meshes],
-           "--name", *[m.name for m in meshes]]
+    err, s, _ = _cli(["objects", "import", *[str(_root(m, args) / m.path) for m in meshes], "--out", str(out),
+                      "--unit", *[m.unit for m in meshes], "--scale", *[f"{m.scale:g}" for m in meshes],
+                      "--name", *[m.name for m in meshes], "--no-progress"], args.timeout)
+    return err, s
+
+
+def _cli(argv: list[str], timeout: float) -> tuple[str, float, str]:
+    """Run ``posegrasp ARGV``: (last error line or "", wall seconds, stderr)."""
+    cmd = [sys.executable, "-m", "posegrasp.cli", *argv]
     t0 = time.perf_counter()
     try:
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
-        return f"timed out after {args.timeout:g} s", time.perf_counter() - t0
+        return f"timed out after {timeout:g} s", time.perf_counter() - t0, ""
     s = time.perf_counter() - t0
     if r.returncode != 0:
         lines = (r.stderr.strip() or r.stdout.strip() or f"exit {r.returncode}").splitlines()
-        return lines[-1], s
-    return "", s
+        return lines[-1], s, r.stderr
+    return "", s, r.stderr
+
+
+def _unstable(stderr: str) -> str:
+    """" (unstable: N)" when MuJoCo warned of NaN/Inf accelerations N times, else ""."""
+    n = stderr.count("The simulation is unstable")
+    return f" (unstable: {n})" if n else ""
+
+
+def _check(m: Mesh, args: argparse.Namespace) -> dict:
+    """Drop ``OUT/parts/NAME`` into a scene, make a 3-scene dataset of it and check it, and run 10 oracle pick-place
+    episodes, each through the real command line under ``OUT/checks/NAME``: a dict of the steps' results."""
+    part, out = args.out / "parts" / m.name, args.out / "checks" / m.name
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    err, _, log = _cli(["scene", "--objects", str(part), "--blocks", "3", "--seed", "0", "--out", str(out / "scene")],
+                       args.timeout)
+    if not err:
+        z = [b["T_world_obj"][2][3] for b in json.loads((out / "scene" / "scene.json").read_text())["blocks"]]
+        if not all(-0.01 < v < 0.25 for v in z):
+            err = "exploded: z " + ", ".join(f"{v * 1000:.0f}" for v in z) + " mm"
+    row = {"scene": (err or "ok") + _unstable(log)}
+    err, _, log = _cli(["datagen", "--objects", str(part), "--scenes", "3", "--views", "2", "--workers", "1",
+                        "--out", str(out / "ds"), "--no-progress"], args.timeout)
+    if not err:
+        err, _, _ = _cli(["dataset", "check", str(out / "ds")], args.timeout)
+    row["datagen"] = (err or "ok") + _unstable(log)
+    err, _, log = _cli(["trials", "--task", "pick-place", "--objects", str(part), "--episodes", "10", "--seed", "1000",
+                        "--workers", "1", "--perception", "oracle", "--out", str(out / "trials"), "--no-progress"],
+                       args.timeout)
+    if err:
+        row["oracle"] = err + _unstable(log)
+    else:
+        s = json.loads((out / "trials" / "summary.json").read_text())
+        row["oracle"] = f"{s['success']}/{s['n']} {s['failures'] or ''}".strip() + _unstable(log)
+    return row
 
 
 def _row(m: Mesh, error: str, seconds: float, entry: dict | None) -> dict:
@@ -136,6 +179,9 @@ def _print(rows: list[dict]) -> None:
             print(f"{'':<14}repaired: {rep}")
         for w in r["warnings"]:
             print(f"{'':<14}warning: {w}")
+        if "check" in r:
+            c = r["check"]
+            print(f"{'':<14}scene {c['scene']}; datagen+check {c['datagen']}; oracle pick-place {c['oracle']}")
 
 
 def main() -> None:
@@ -145,8 +191,12 @@ def main() -> None:
     ap.add_argument("--out", required=True, type=Path, help="folder to write (the set, or parts/NAME with --all)")
     ap.add_argument("--all", action="store_true", help="import every mesh in MESHES on its own")
     ap.add_argument("--only", nargs="+", default=None, help="with --all: just these names")
-    ap.add_argument("--timeout", type=float, default=600.0, help="seconds allowed per import")
+    ap.add_argument("--check", action="store_true", help="with --all: also drop each part into a scene, make and "
+                    "check a 3-scene dataset, and run 10 oracle pick-place episodes (OUT/checks/NAME)")
+    ap.add_argument("--timeout", type=float, default=600.0, help="seconds allowed per import or check step")
     args = ap.parse_args()
+    if args.check and not args.all:
+        ap.error("--check goes with --all")
     os.environ.setdefault("MUJOCO_GL", "egl")
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     by_name = {m.name: m for m in MESHES}
@@ -168,6 +218,8 @@ def main() -> None:
             shutil.rmtree(out)
         err, s = _import([m], args, out)
         rows.append(_row(m, err, s, None if err else _entries(out)[m.name]))
+        if args.check and not err:
+            rows[-1]["check"] = _check(m, args)
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     print(f"load average {load0:.1f} before, {os.getloadavg()[0]:.1f} after (2 cores)")
     _print(rows)

@@ -22,8 +22,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from posegrasp.grasping.config import GraspConfig
-from posegrasp.grasping.hand import (CONTACT_BAND, FACE_REACH, FINGER23_Y, HAND_Y, ON_PLANE_TOL, PAD_FACE_HEIGHT,
-                                     PAD_HALF_WIDTH, PAD_OVERLAP, hand_boxes)
+from posegrasp.grasping.hand import (CONTACT_BAND, FACE_REACH, FINGER23_Y, FLAT_PINCH_DROP, HAND_Y, ON_PLANE_TOL,
+                                     PAD_FACE_HEIGHT, PAD_HALF_WIDTH, PAD_OVERLAP, hand_boxes)
 from posegrasp.catalog import PartType, sample_surface, symmetry_transforms
 from posegrasp.geometry import make_T, transform_points
 
@@ -314,8 +314,10 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     if not column.any():
         return None
     best = None
+    top = h[column].max()
+    lowest = cfg.min_pinch_height - (FLAT_PINCH_DROP if top < cfg.min_pinch_height else 0.0)
     for depth in cfg.contact_depths:  # the pinch height with the flattest contact faces ...
-        z_pinch = max(h[column].max() - depth, cfg.min_pinch_height)
+        z_pinch = max(top - depth, lowest)
         band = column & (h > z_pinch + CONTACT_BAND[0]) & (h < z_pinch + CONTACT_BAND[1])
         if not band.any():
             continue

@@ -18,6 +18,10 @@ CONTACT_BAND = (-0.008, 0.012)
 ON_PLANE_TOL = 0.0015
 #: Fingertips reach this far (m) past the pinch point along z (they curl past it when closing).
 TIP_BELOW = 0.012
+#: A part whose top lies below the lowest pinch height (``GraspConfig.min_pinch_height``) is pinched this much
+#: lower (m): the curling fingertips then brush the table without catching on it, and grip a flat part's edges
+#: (a 6.4 mm domino lying flat) with more than their very ends. Lower, they strike the table.
+FLAT_PINCH_DROP = 0.004
 #: Thickness (m) of a finger, outward along x from its pad (at half the opening).
 FINGER_THICKNESS = 0.03
 #: Extent (m) along the gripper y axis of finger 1, and of fingers 2 and 3 (one span each).

@@ -181,6 +181,8 @@ def find_symmetries(mesh: trimesh.Trimesh, center_of_mass: np.ndarray, inertia: 
             n = next((n for n in _POLY_FOLDS if check(axis_angle_R(a, 2 * np.pi / n))), 0)
             found += _turns(a, n) if n else []
         cont = _distinct_axes(np.array(cont), 3) if cont else []
+        if len(cont) == 3:  # a sphere turns about every axis: its three principal ones say so best
+            cont, found = axes, []
     else:  # one distinct axis a
         a = axes[2] if same[0] else axes[0]
         if check.continuous(a):

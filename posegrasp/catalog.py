@@ -169,13 +169,16 @@ def symmetry_transforms(block: PartType, n_continuous: int = 36) -> np.ndarray:
 
     Discrete symmetries plus identity; each continuous symmetry is sampled every ``360 / n_continuous``
     degrees about its axis (through its offset) and composed with every discrete one (``C @ D``,
-    BOP's convention), so a cylinder gives ``2 * n_continuous`` transforms.
+    BOP's convention), so a cylinder gives ``2 * n_continuous`` transforms. With ``k`` continuous axes (a
+    sphere's) each is sampled ``n_continuous ** (1 / k)`` times (at least twice), so that together they give
+    about ``n_continuous`` transforms, not ``n_continuous ** k``.
     """
     out = [np.eye(4)] + [np.array(T) for T in block.symmetries_discrete]
+    n = max(2, round(n_continuous ** (1.0 / max(1, len(block.symmetries_continuous)))))
     for axis, offset in block.symmetries_continuous:
         conts = []
-        for k in range(n_continuous):
-            R = axis_angle_R(axis, 2.0 * np.pi * k / n_continuous)
+        for k in range(n):
+            R = axis_angle_R(axis, 2.0 * np.pi * k / n)
             conts.append(make_T(R, offset - R @ offset))
         out = [C @ D for C in conts for D in out]
     return np.stack(out)

@@ -142,14 +142,16 @@ SETTLE_PERIOD = 0.02
 
 
 def run_held(workcell: Workcell, timeout: float, done: Callable[[], bool]) -> bool:
-    """Step physics in control periods of ``SETTLE_PERIOD`` s, the arm held at its pose, until ``done()`` (asked
-    after each period) is true; False after ``timeout`` simulated seconds."""
+    """Step physics in control periods of ``SETTLE_PERIOD`` s, the arm held at its pose, thin parts falling no
+    faster than their contacts hold (``Workcell.cap_thin_speeds``), until ``done()`` (asked after each period) is
+    true; False after ``timeout`` simulated seconds."""
     m = workcell.model
     hold = workcell.arm_q
     steps = max(1, round(SETTLE_PERIOD / m.opt.timestep))
     for _ in range(int(timeout / SETTLE_PERIOD)):
         workcell.command_arm(4.0 * (hold - workcell.arm_q) + workcell.gravity_feedforward())
         workcell.step(steps)
+        workcell.cap_thin_speeds()
         if done():
             return True
     return False

@@ -61,9 +61,50 @@ def _add_surface(root: mjcf.RootElement, body, k: int, surface) -> None:
     body.add("geom", name=f"block_{k}_visual", type="mesh", mesh=mesh, material=mat, mass=0, **_VISUAL)
 
 
-def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance) -> None:
+#: MuJoCo's default contact time constant (s): soft contacts of the table, the pad and parts ``THIN_PART`` thick or
+#: more (the shipped blocks).
+CONTACT_TIMECONST = 0.02
+#: Impedance of the Jaco's finger contacts (dm-control's model): thin parts' contacts take it too, so that the
+#: fingers grip them as hard as the shipped blocks (a domino's edges slip out of MuJoCo's default, 0.9-0.95).
+FINGER_SOLIMP = (0.99, 0.999, 0.001, 0.5, 2.0)
+#: Parts thinner than this (m) get stiffer contacts (``contact_timeconst``).
+THIN_PART = 0.02
+#: Fastest a thin part's point moves in a scene's drop (m/s; ``Workcell.cap_thin_speeds``) and the speed its
+#: contacts are made for.
+CONTACT_SPEED = 1.0
+
+
+def thickness(vertices: np.ndarray) -> float:
+    """Smallest width (m) of a part, vertices (N, 3) m: their extent along the least of their principal axes."""
+    v = np.asarray(vertices, dtype=float).reshape(-1, 3)
+    v = v - v.mean(axis=0)
+    return float(np.ptp(v @ np.linalg.svd(v, full_matrices=False)[2].T, axis=0).min())
+
+
+@functools.lru_cache(maxsize=64)
+def part_timeconst(part: PartType, timestep: float) -> float:
+    """``contact_timeconst`` of a part's ``thickness``."""
+    return contact_timeconst(thickness(part.vertices), timestep)
+
+
+def contact_timeconst(width: float, timestep: float) -> float:
+    """Contact time constant (s) of a part ``width`` m thin (``thickness``): MuJoCo's default from ``THIN_PART``
+    up, else ``e width / (8 CONTACT_SPEED)``, at least three physics steps (stiffer, they jitter and never rest).
+
+    A soft contact of time constant ``tc`` hit at speed ``v`` sinks about ``v tc / e`` before it holds: an
+    eighth of the part's width at ``CONTACT_SPEED``. Where it passes half the width, the nearest way out of the
+    table (or out of a finger) is through the part's far face: the contact pushes it through the table, or the
+    solver blows up (NaN accelerations)."""
+    if width >= THIN_PART:
+        return CONTACT_TIMECONST
+    return float(np.clip(np.e * width / (8.0 * CONTACT_SPEED), 3.0 * timestep, CONTACT_TIMECONST))
+
+
+def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance, timestep: float) -> None:
     """A free body ``block_k``: the visual mesh (exactly the PLY model, or the part's textured surface where it
-    has one: then the model, carrying the mass, is hidden in the collision group) and the collision primitives."""
+    has one: then the model, carrying the mass, is hidden in the collision group) and the collision primitives;
+    those of a thin part with stiffer, harder contacts (``contact_timeconst``, ``FINGER_SOLIMP``) that rule its
+    contacts with the table and the hand (``solmix``)."""
     b = inst.block
     mesh = root.asset.add("mesh", name=f"block_{k}_mesh", vertex=b.vertices.ravel(), face=b.faces.ravel())
     # parked apart, off the table, until placed: blocks compiled on top of each other and the arm overflow
@@ -76,10 +117,12 @@ def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance) -> None:
         body.add("geom", name=f"block_{k}_solid", type="mesh", mesh=mesh, rgba=(0.5, 0.5, 0.5, 0.0), mass=b.mass,
                  contype=0, conaffinity=0, group=_COLLISION_GROUP)
         _add_surface(root, body, k, b.surface)
+    tc = part_timeconst(b, timestep)
+    stiff = dict(solref=(tc, 1.0), solimp=FINGER_SOLIMP, solmix=1e3) if tc < CONTACT_TIMECONST else {}
     for j, prim in enumerate(b.collision):
         kw = dict(name=f"block_{k}_col{j}", group=_COLLISION_GROUP, rgba=(0.5, 0.5, 0.5, 0.0), mass=0,
                   friction=(0.9, 0.01, 0.002), condim=6, pos=prim.get("pos", (0, 0, 0)),
-                  quat=prim.get("quat", (1, 0, 0, 0)), **_COLLIDE)
+                  quat=prim.get("quat", (1, 0, 0, 0)), **_COLLIDE, **stiff)
         if prim["type"] == "mesh":
             hull = root.asset.add("mesh", name=f"block_{k}_hull{j}", vertex=np.ravel(prim["vertices"]))
             body.add("geom", type="mesh", mesh=hull, **kw)
@@ -138,7 +181,7 @@ def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjc
     arm.attach(hand)
     root.attach(arm.mjcf_model)
     for k, inst in enumerate(blocks, start=1):
-        _add_block(root, k, inst)
+        _add_block(root, k, inst, cfg.timestep)
     return root
 
 
@@ -179,6 +222,9 @@ class Workcell:
         self.block_body = np.array([m.body(f"block_{k}").id for k in range(1, len(self.blocks) + 1)], dtype=int)
         self.block_qadr = np.array([m.joint(f"block_{k}_joint").qposadr[0] for k in range(1, len(self.blocks) + 1)],
                                    dtype=int)
+        #: (body id, half diameter m) of the thin blocks, whose contacts are stiffened (``contact_timeconst``).
+        self.thin_blocks = [(b, 0.5 * inst.block.diameter) for b, inst in zip(self.block_body, self.blocks)
+                            if part_timeconst(inst.block, cfg.timestep) < CONTACT_TIMECONST]
         # geom id -> instance index (0 background / robot / table, k for block_k); used for masks.
         self.geom_instance = np.zeros(m.ngeom + 1, dtype=np.int32)  # last slot: background (-1)
         for k, b in enumerate(self.block_body, start=1):
@@ -216,6 +262,18 @@ class Workcell:
             out[i, :3, :3] = self.data.xmat[b].reshape(3, 3)
             out[i, :3, 3] = self.data.xpos[b]
         return out
+
+    def cap_thin_speeds(self) -> None:
+        """Slow the thin blocks (stiffened contacts, ``contact_timeconst``) whose fastest point (linear speed plus
+        spin times half the diameter) moves faster than ``CONTACT_SPEED`` down to it, as air would: dropped from
+        high (a scene's parts stacked above each other) or spun by a bounce, they would hit the table faster than
+        their contacts hold and sink through it."""
+        for b, radius in self.thin_blocks:
+            d = self.model.jnt_dofadr[self.model.body_jntadr[b]]
+            v = self.data.qvel[d:d + 6]
+            fastest = np.linalg.norm(v[:3]) + radius * np.linalg.norm(v[3:])
+            if fastest > CONTACT_SPEED:
+                v *= CONTACT_SPEED / fastest
 
     def block_speeds(self) -> np.ndarray:
         """Per block (linear m/s, angular rad/s) speed magnitudes, (K, 2)."""
