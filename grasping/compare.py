@@ -161,14 +161,15 @@ def print_comparison(result: dict, names: tuple[str, str], console: Console) -> 
     m = result["mcnemar"]
     console.print(f"difference B - A: {100 * result['difference']:+.1f} points; McNemar exact: "
                   f"A-only {m['a_only']}, B-only {m['b_only']}, p = {m['p_value']:.4g}")
-    pb = Table(title="per block (target type)")
-    for col in ("block", "n", "A", "B", "B - A"):
-        pb.add_column(col)
-    for k, v in result["per_block"].items():
-        pb.add_row(k, str(v["n"]), str(v["a"]), str(v["b"]), f"{100 * v['difference']:+.0f}")
-    console.print(pb)
-    if "bin_pick" in result:
+    if "bin_pick" in result:  # an episode succeeds when it empties the tote; it has no one target block
         print_bin_pick_comparison(result["bin_pick"], console)
+    else:
+        pb = Table(title="per block (target type)")
+        for col in ("block", "n", "A", "B", "B - A"):
+            pb.add_column(col)
+        for k, v in result["per_block"].items():
+            pb.add_row(k, str(v["n"]), str(v["a"]), str(v["b"]), f"{100 * v['difference']:+.0f}")
+        console.print(pb)
     for key, label in (("a_success_b_failure", "A succeeded, B failed"), ("a_failure_b_success", "A failed, B succeeded")):
         eps = result["flipped"][key]
         if eps:

@@ -16,7 +16,7 @@ from posegrasp.catalog import load_catalog
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.bin_picking import _look, area_of, empty_tote, pick_and_drop, tally
 from posegrasp.grasping.calibration import load_hand_eye
-from posegrasp.grasping.compare import compare_runs, is_worse
+from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison
 from posegrasp.grasping.config import TrialConfig, with_set
 from posegrasp.grasping.controller import ArmController
 from posegrasp.grasping.episode import Episode, EpisodeTask, _Log, run_episode
@@ -175,6 +175,10 @@ def test_compare_pairs_bin_pick_episodes_by_percent_cleared():
     lo, hi = r["attempts"]["difference_ci95"]
     assert r["attempts"]["difference"] == pytest.approx(-0.4) and lo < -0.4 < hi < 0
     assert is_worse(compare_runs(a, b), 0.05) and not is_worse(compare_runs(b, a), 0.05)
+    console = Console(file=io.StringIO(), width=200)
+    print_comparison(compare_runs(a, b), ("a", "b"), console)
+    printed = console.file.getvalue()
+    assert "percent cleared: A 100.0 %, B 51.2 %" in printed and "per block" not in printed, printed
 
 
 @pytest.mark.parametrize("args, message", [
