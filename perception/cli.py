@@ -21,12 +21,15 @@ from posegrasp.errors import UserError, WeightsError
 if TYPE_CHECKING:
     from posegrasp.perception.training import StageTraining
 
+TRAIN_STAGES = ("seg", "pose", "refine", "cls")  #: ``train``'s stages, each a table of a training TOML
+SECTIONS = (*TRAIN_STAGES, "eval")  #: the tables a training or evaluation TOML may hold
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``train``, ``eval`` and ``perturb`` subcommands."""
     p = subparsers.add_parser("train", help="train the segmentation net, the pose net or the refiner",
                               description="Train one stage of the perception network on a BOP dataset.")
-    p.add_argument("stage", choices=["seg", "pose", "refine", "cls"],
+    p.add_argument("stage", choices=TRAIN_STAGES,
                    help="which network to train (cls: the instance classifier, after seg)")
     p.add_argument("--data", required=True, type=in_dir("--data"), help="BOP dataset root")
     p.add_argument("--out", required=True, type=out_dir(), help="run directory (RUN/<stage> holds the checkpoint)")
@@ -85,7 +88,7 @@ def training_stages() -> dict[str, type[StageTraining]]:
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp train``."""
     training = training_stages()[args.stage]
-    cfg = load_toml(training.config, args.config, section=args.stage)
+    cfg = load_toml(training.config, args.config, section=args.stage, sections=SECTIONS)
     if args.init is not None:
         if not training.fine_tunes:
             raise UserError("--init is only for 'train seg', 'train pose' and 'train cls' (fine-tuning)")
@@ -101,7 +104,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from posegrasp.bop_check import require_valid
     from posegrasp.perception.evaluate import EvalConfig, evaluate
 
-    cfg = load_toml(EvalConfig, args.config, section="eval")
+    cfg = load_toml(EvalConfig, args.config, section="eval", sections=SECTIONS)
     cfg = override(cfg, split=args.split, max_images=args.max_images, min_mask_px=args.min_mask_px,
                    threads=args.threads,
                    masks="gt" if args.gt_masks else None, refine_iterations=0 if args.no_refine else None,

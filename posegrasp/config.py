@@ -79,8 +79,10 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
     return value
 
 
-def load_toml(cls: type[C], path: str | Path | None, section: str | None = None) -> C:
-    """Load ``cls`` from a TOML file (optionally one ``[section]`` of it); defaults when ``path`` is None."""
+def load_toml(cls: type[C], path: str | Path | None, section: str | None = None,
+              sections: tuple[str, ...] = ()) -> C:
+    """Load ``cls`` from a TOML file (optionally one ``[section]`` of it); defaults when ``path`` is None. A file
+    of several ``sections`` (the tables it may hold: a typo such as ``[sge]`` is refused, not ignored)."""
     if path is None:
         return cls()
     path = Path(path)
@@ -96,6 +98,9 @@ def load_toml(cls: type[C], path: str | Path | None, section: str | None = None)
         raise ConfigError(f"config file {path} is not UTF-8 text; save it as a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+    unknown = sorted(set(data) - set(sections)) if sections else []
+    if unknown:
+        raise ConfigError(f"{path}: unknown section(s) {unknown}; valid sections are {sorted(sections)}")
     if section is not None:
         data = data.get(section, {})
     return from_dict(cls, data, where=str(path))

@@ -402,11 +402,21 @@ def test_train_and_perturb_bad_options(capsys, dataset, tmp_path, argv, words):
     assert snapshot(tmp_path) == {}
 
 
-def test_train_config_of_the_wrong_type(capsys, dataset, tmp_path):
-    cfg = _toml(tmp_path, "[seg]\nlr = 'fast'\n")
-    refused(capsys, ["train", "seg", "--data", dataset, "--out", tmp_path / "run", "--config", cfg],
-            "lr: expected a finite number")
+@pytest.mark.parametrize("text, words", [
+    ("[seg]\nlr = 'fast'\n", "lr: expected a finite number"),
+    ("[sge]\nlr = 0.1\n", "unknown section(s) ['sge']; valid sections are ['cls', 'eval', 'pose', 'refine', 'seg']"),
+])
+def test_train_config_of_the_wrong_type_or_a_misspelt_table(capsys, dataset, tmp_path, text, words):
+    cfg = _toml(tmp_path, text)
+    refused(capsys, ["train", "seg", "--data", dataset, "--out", tmp_path / "run", "--config", cfg], words)
     assert not (tmp_path / "run").exists()
+
+
+def test_eval_config_with_a_misspelt_table(capsys, dataset, tmp_path):
+    cfg = _toml(tmp_path, "[evl]\nthreads = 1\n")
+    refused(capsys, ["eval", "--data", dataset, "--weights", SHIPPED_MODEL, "--out", tmp_path / "ev", "--config",
+                     cfg], "unknown section(s) ['evl']")
+    assert not (tmp_path / "ev").exists()
 
 
 # -- the program, scene and calibrate -----------------------------------------------------------------------------
