@@ -155,7 +155,7 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("where", ["consumer", "waiting"])
-def test_ctrl_c_ends_the_pool_at_once_without_a_thread_traceback(where, monkeypatch):
+def test_ctrl_c_ends_the_pool_at_once_without_a_thread_traceback(where, monkeypatch, request):
     """Ctrl-C inside the caller's loop, or while it waits for a result: the running tasks (a minute long) are not
     waited for, and no thread of the pool reports an exception (a future cancelled under the manager thread of a
     broken pool raises InvalidStateError there)."""
@@ -165,6 +165,9 @@ def test_ctrl_c_ends_the_pool_at_once_without_a_thread_traceback(where, monkeypa
 
     errors: list[str] = []
     monkeypatch.setattr(threading, "excepthook", lambda a: errors.append(f"{a.thread.name}: {a.exc_type.__name__}"))
+    # Ctrl-C raises KeyboardInterrupt here even when the test runner was started with SIGINT ignored
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    request.addfinalizer(lambda: signal.signal(signal.SIGINT, previous))
     t0 = time.monotonic()
     pids: list[int] = []
     with pytest.raises(KeyboardInterrupt):
