@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from posegrasp.config import within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.seg_net import ConvBNReLU
 
@@ -39,9 +40,9 @@ class ClassifierConfig:
     #: Classes (BOP ids; 0: not a block); set from the dataset.
     obj_ids: list[int] = field(default_factory=lambda: [1, 2, 3])
     #: Channels of the conv stages, a 2x max-pool between stages.
-    widths: tuple[int, ...] = (16, 32, 64, 128)
+    widths: tuple[int, ...] = field(default=(16, 32, 64, 128), metadata=within(1, 4096))
     #: Input side (px).
-    crop_size: int = 64
+    crop_size: int = field(default=64, metadata=within(8, 1024))
     #: The crop's side (m) at the segment's median depth.
     crop_side: float = 0.16
     #: Depths relative to the segment's are clipped to +-this (m), scaled to [-1, 1].

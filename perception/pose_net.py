@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from posegrasp.config import within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.attention import CAM, GFEM, PAM
 
@@ -30,19 +31,19 @@ class PoseNetConfig:
     #: Per object, whether its loss is ADD-S; set from the dataset.
     symmetric: list[bool] = field(default_factory=lambda: [False, False, False])
     #: Depth points sampled per object (500 LineMOD, 1000 YCB).
-    num_points: int = 500
+    num_points: int = field(default=500, metadata=within(1, 100000))
     #: Side (px) the colour crop is resized to; a multiple of 8.
-    crop_size: int = 80
+    crop_size: int = field(default=80, metadata=within(8, 1024))
     #: ResNet18 base channels (64).
-    backbone_width: int = 16
+    backbone_width: int = field(default=16, metadata=within(1, 4096))
     #: Colour embedding channels per pixel (32).
-    emb_dim: int = 32
+    emb_dim: int = field(default=32, metadata=within(1, 4096))
     #: Per-point convs of geometry and colour (64, 128).
-    point_widths: tuple[int, int] = (32, 64)
+    point_widths: tuple[int, int] = field(default=(32, 64), metadata=within(1, 4096))
     #: Convs before the average pool (512, 1024).
-    global_widths: tuple[int, int] = (128, 256)
+    global_widths: tuple[int, int] = field(default=(128, 256), metadata=within(1, 4096))
     #: 1D-conv head widths (640, 256, 128).
-    head_widths: tuple[int, int, int] = (128, 64, 32)
+    head_widths: tuple[int, int, int] = field(default=(128, 64, 32), metadata=within(1, 4096))
     #: The paper's position attention module (all three off: DenseFusion).
     use_pam: bool = True
     #: The paper's channel attention module.
@@ -50,9 +51,9 @@ class PoseNetConfig:
     #: The paper's global feature enhancement module.
     use_gfem: bool = True
     #: Channel reduction of the position attention's queries and keys.
-    pam_reduction: int = 8
+    pam_reduction: int = field(default=8, metadata=within(1, 4096))
     #: GFEM output channels.
-    gfem_channels: int = 128
+    gfem_channels: int = field(default=128, metadata=within(1, 4096))
 
     @property
     def num_objects(self) -> int:

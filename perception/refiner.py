@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from posegrasp.config import within
 from posegrasp.perception.pose_net import PointFusion
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 
@@ -25,15 +26,15 @@ class RefinerConfig:
     #: Per object, whether its loss is ADD-S, as the pose net's.
     symmetric: list[bool] = field(default_factory=lambda: [False, False, False])
     #: The pose net's colour embedding channels (32).
-    emb_dim: int = 32
+    emb_dim: int = field(default=32, metadata=within(1, 4096))
     #: Per-point conv widths (64, 128).
-    point_widths: tuple[int, int] = (32, 64)
+    point_widths: tuple[int, int] = field(default=(32, 64), metadata=within(1, 4096))
     #: Conv widths before the pool (512, 1024).
-    global_widths: tuple[int, int] = (128, 256)
+    global_widths: tuple[int, int] = field(default=(128, 256), metadata=within(1, 4096))
     #: Fully connected widths (512, 128).
-    fc_widths: tuple[int, int] = (128, 64)
+    fc_widths: tuple[int, int] = field(default=(128, 64), metadata=within(1, 4096))
     #: Refinement steps at inference (2 YCB, 4 LineMOD).
-    iterations: int = 2
+    iterations: int = field(default=2, metadata=within(0, 100))
 
     @property
     def num_objects(self) -> int:

@@ -44,11 +44,11 @@ class SegNetConfig:
     #: (height, width) (px) the image is resized to; at least 32, multiples of 32 avoid rounding.
     input_size: tuple[int, int] = field(default=(240, 320), metadata=within(32, 2048))
     #: Output channels of MFFM1..3 at width 1.0.
-    mffm_channels: tuple[int, int, int] = (256, 128, 64)
+    mffm_channels: tuple[int, int, int] = field(default=(256, 128, 64), metadata=within(1, 4096))
     #: Conv width of every encoder input of an MFFM (64 in the paper).
     encoder_skip_channels: int = field(default=64, metadata=within(1, 4096))
     #: Channels of the two upsampling convs.
-    up_channels: tuple[int, int] = (64, 32)
+    up_channels: tuple[int, int] = field(default=(64, 32), metadata=within(1, 4096))
     #: Batch normalisation after the convs.
     batch_norm: bool = True
 

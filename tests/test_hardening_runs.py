@@ -14,7 +14,7 @@ from safetensors.torch import load_file, save_file
 
 from helpers import run_cli
 from posegrasp.config import from_dict
-from posegrasp.errors import ConfigError, WeightsError
+from posegrasp.errors import ConfigError, PosegraspError, WeightsError
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.perception.checkpoint import load_model, read_state
 from posegrasp.perception.train_seg import SegTrainConfig
@@ -299,6 +299,18 @@ def test_checkpoint_json_is_strict(tmp_path, file, text, words):
     with pytest.raises(WeightsError, match=words):
         load_model(ckpt) if file == "config.json" else read_state(ckpt)
 
+
+
+@pytest.mark.parametrize("stage, key", [("pose", "head_widths"), ("seg", "up_channels"), ("cls", "widths")])
+def test_a_layer_of_width_zero_is_refused_before_a_module_is_built(tmp_path, recwarn, stage, key):
+    ckpt = tmp_path / stage
+    shutil.copytree(ROOT / "assets" / "perception" / "model" / stage, ckpt)
+    cfg = json.loads((ckpt / "config.json").read_text())
+    cfg["model"][key][-1] = 0
+    (ckpt / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(PosegraspError, match=rf"{key} = .* is out of range: use 1 to 4096"):
+        load_model(ckpt)
+    assert not [w for w in recwarn if "zero-element" in str(w.message)]  # torch's warning: a module was built
 
 def test_compare_checks_every_record(run2, tmp_path):
     run = tmp_path / "r"
