@@ -184,12 +184,7 @@ def print_bin_pick(b: dict, console: Console) -> None:
                   f"{b['episodes_cleared']}/{pc['n']} totes emptied; attempts {a['success']}/{a['n']} succeeded = "
                   f"{rate} (Wilson 95 % {100 * a['wilson95'][0]:.1f}-{100 * a['wilson95'][1]:.1f} %); "
                   f"{pph} picks per simulated hour")
-    f = Table(title="failed attempts")
-    f.add_column("reason")
-    f.add_column("count")
-    for reason, n in b["attempt_failures"].items():
-        f.add_row(reason, str(n))
-    console.print(f)
+    _print_failures(b["attempt_failures"], "failed attempts", console)
 
 
 def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, cfg: TrialConfig,
