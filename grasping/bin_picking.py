@@ -7,10 +7,11 @@ workcell's, known. A grasp (``grasping.grasps.plan_grasps``, top-down) must keep
 (``grasping.hand.hand_boxes``, open ``finger_margin`` wider than the part) and the camera's (``hand.camera_box``)
 ``grasp.clearance_min`` from the tote's inner wall faces and rims, and ``part_clearance`` (negative: the fingers
 may push into the heap that far) from the other estimates' surfaces and the depth image's points above the floor
-(less those on the target's estimated surface: they are the target). Its pinch stays
-``grasp.min_pinch_height`` above the floor; the approach starts above the walls. Among the parts, highest first,
-the best grasps of ``plan_parts`` parts compete (score plus ``height_weight`` per metre of the part's top); the
-first that passes the IK check is taken.
+(less those on the target's estimated surface: they are the target); the open fingers must not land on the
+target's own estimated surface either (an L-block's other leg: the descending finger shoves the part away). Its
+pinch stays ``grasp.min_pinch_height`` above the floor; the approach starts above the walls. Among the parts,
+highest first, the best grasps of ``plan_parts`` parts compete (score plus ``height_weight`` per metre of the
+part's top); the first that passes the IK check is taken.
 
 The robot judges only from what it perceives: it stops when it sees no part in the tote and the depth image shows
 nothing above the floor. The verdicts of an attempt use the simulator's truth: a robot touching the tote's walls
@@ -182,6 +183,7 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
         wall = near(walls)
         grasps = [g for g in plan_grasps(block, T, others, plan_cfg, yaw_now, yaw_stable=holds_firmly(cfg))
                   if not _tried(g, failed, b) and _clear_of(g, others, [cam], b.part_clearance)
+                  and _clear_of(g, own.data, hand_boxes((g.width + b.finger_margin) / 2)[:3], 0.0)
                   and _clear_of(g, wall, [cam, *hand_boxes((g.width + b.finger_margin) / 2)], g_cfg.clearance_min)
                   ][:g_cfg.grasps_per_block]
         options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), j, g)
@@ -286,7 +288,8 @@ def _bottoms(wc: Workcell) -> np.ndarray:
 def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None:
     """Pick ``plan``'s part, lift it clear of the walls, carry it over the out-box ``box`` and let it go; marks
     ``att.grasped``; ``EpisodeFailed`` when the robot hits a wall, the floor on a failed grasp, the part slips or
-    falls, or another part came up with it (after the drop)."""
+    falls, or another part came up with it (after the drop). A neighbour that stops the hand short of the grasp
+    (``_stopped_near``) does not end the attempt: the fingers close where the hand stopped."""
     ctl, cfg, k = ep.ctl, ep.cfg, plan.k
     g_cfg, b = cfg.grasp, cfg.bin_pick
     m = ep.wc.model
@@ -306,7 +309,9 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
         reached = ctl.move(T_grasp, speed=g_cfg.approach_speed, until=watch.stop)
         watch.check()
         if not reached:
-            raise EpisodeFailed(watch.blocked())
+            if not _stopped_near(ep.wc.gripper_pose(), T_grasp, b) or watch.floor:
+                raise EpisodeFailed(watch.blocked())
+            ctl.target = ep.wc.gripper_pose()
         if not ctl.close(k, wait_all=cfg.firm_hold.finger_wait if holds_firmly(cfg) else 0):
             raise EpisodeFailed(Failure.COLLISION if watch.floor else Failure.SLIP)
         ep.log.stop("pick", ctl, add=True)
@@ -335,6 +340,13 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
             raise EpisodeFailed(Failure.DOUBLE_PICK)
     finally:
         ctl.monitor = None
+
+
+def _stopped_near(T: np.ndarray, T_grasp: np.ndarray, b: BinPickConfig) -> bool:
+    """Did the hand stop (gripper pose ``T``, world) close enough to ``T_grasp`` to close there: at most
+    ``close_slack`` above it and ``close_slack_side`` beside it?"""
+    d = T[:3, 3] - T_grasp[:3, 3]
+    return bool(0.0 <= d[2] <= b.close_slack and np.linalg.norm(d[:2]) <= b.close_slack_side)
 
 
 def _swung(T: np.ndarray, xy: np.ndarray) -> np.ndarray:

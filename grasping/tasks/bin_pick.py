@@ -79,6 +79,11 @@ class BinPickConfig:
     #: The open hand keeps this distance (m) from the other parts' estimated surfaces and the depth image's points
     #: (negative: it may push into the heap that far); from the walls it keeps ``grasp.clearance_min``.
     part_clearance: float = field(default=-0.015, metadata=within(-0.05, 0.1))
+    #: A neighbour that stops the hand on its way down to the grasp (a guarded move): the fingers close where the hand
+    #: stopped if its pinch point stands at most this far (m) above the grasp ...
+    close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))
+    #: ... and this far (m) beside it; else the attempt fails ("collision").
+    close_slack_side: float = field(default=0.012, metadata=within(0.0, 0.1))
     #: A grasp that failed is not tried again: no grasp within this distance (m) of its pose ...
     retry_distance: float = field(default=0.01, metadata=within(0.0, 1.0))
     #: ... and this angle (deg) of its squeeze axis.
