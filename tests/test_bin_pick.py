@@ -14,14 +14,17 @@ from rich.console import Console
 from helpers import run_cli, success_floor
 from posegrasp.catalog import load_catalog
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
-from posegrasp.grasping.bin_picking import _look, area_of, empty_tote, pick_and_drop, tally
+from posegrasp.grasping.bin_picking import (_clear_of, _look, _stopped_near, area_of, choose_part, empty_tote,
+                                            pick_and_drop, tally)
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison
 from posegrasp.grasping.config import TrialConfig, with_set
 from posegrasp.grasping.controller import ArmController
 from posegrasp.grasping.episode import Episode, EpisodeTask, _Log, run_episode
 from posegrasp.grasping.targets import Plan
-from posegrasp.grasping.grasps import plan_grasps
+from posegrasp.grasping.grasps import plan_grasps, surface_points
+from posegrasp.grasping.hand import hand_boxes
+from posegrasp.grasping.perception import Estimate
 from posegrasp.grasping.record import Attempt, BinPickRecord, EpisodeRecord, Failure
 from posegrasp.grasping.runfolder import EPISODES, SUMMARY
 from posegrasp.grasping.tasks.base import EpisodeFailed
@@ -93,6 +96,32 @@ def test_a_part_riding_on_the_target_is_two_parts_lifted():
     with pytest.raises(EpisodeFailed) as e:
         pick_and_drop(ep, plan, area_of(ep.wc, cfg.bin_pick), outbox_of(ep.wc.cfg, cfg.bin_pick), Attempt(0))
     assert e.value.reason == Failure.DOUBLE_PICK
+
+
+def test_the_hand_closes_where_a_neighbour_stopped_it_only_just_above_the_grasp():
+    b = BinPickConfig()
+    T_grasp = make_T(np.diag([1.0, -1.0, -1.0]), (0.45, 0.0, 0.03))
+    at = lambda dx, dz: make_T(T_grasp[:3, :3], T_grasp[:3, 3] + (dx, 0.0, dz))  # noqa: E731
+    assert _stopped_near(at(0.008, 0.014), T_grasp, b)  # on a neighbour's edge, beside and above the grasp
+    assert not _stopped_near(at(0.0, b.close_slack + 0.005), T_grasp, b)  # on a neighbour's top: too high
+    assert not _stopped_near(at(b.close_slack_side + 0.005, 0.0), T_grasp, b)  # shoved aside
+    assert not _stopped_near(at(0.0, 0.014), T_grasp, BinPickConfig(close_slack=0.0))  # switched off
+
+
+def test_the_open_fingers_keep_off_the_targets_own_surface():
+    cfg = _cfg(1)
+    c = np.asarray(area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.center)
+    R = axis_angle_R(Z, np.pi / 2) @ axis_angle_R(np.array([1.0, 0.0, 0.0]), -np.pi / 2)  # the L seen from above
+    z = 0.011 - (CAT["l_block"].vertices @ R.T)[:, 2].min()
+    ep = _episode(cfg, ["l_block"], [make_T(R, (c[0], c[1], z))])
+    block, T = ep.wc.blocks[0].block, ep.wc.block_poses()[0]
+    own = transform_points(T, surface_points(block))
+    fingers = lambda g: hand_boxes((g.width + cfg.bin_pick.finger_margin) / 2)[:3]  # noqa: E731
+    assert not all(_clear_of(g, own, fingers(g), 0.0) for g in _plan(ep, 1, list).grasp)  # some land on the L's leg
+    T_world_cam = ep.T_world_cam()
+    est = Estimate(block.obj_id, np.linalg.inv(T_world_cam) @ T, 1.0)
+    _, grasp, _ = choose_part(ep.wc, cfg, [est], T_world_cam, np.zeros((0, 3)), 0.0)
+    assert _clear_of(grasp, own, fingers(grasp), 0.0)
 
 
 def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
