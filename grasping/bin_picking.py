@@ -3,15 +3,16 @@ choose the next part, pick it, lift it clear of the walls and drop it into the o
 
 The planner sees the parts only through the provider's estimates and the hand camera's depth image, mapped to
 the world with the calibrated mount (``Episode.T_world_cam``); the tote's and the out-box's geometry is the
-workcell's, known. A grasp (``grasping.grasps.plan_grasps``, top-down) must keep the open hand's boxes
-(``grasping.hand.hand_boxes``, open ``finger_margin`` wider than the part) and the camera's (``hand.camera_box``)
-``grasp.clearance_min`` from the tote's inner wall faces and rims, and ``part_clearance`` (negative: the fingers
-may push into the heap that far) from the other estimates' surfaces and the depth image's points above the floor
-(less those on the target's estimated surface: they are the target); the open fingers must not land on the
-target's own estimated surface either (an L-block's other leg: the descending finger shoves the part away). Its
-pinch stays ``grasp.min_pinch_height`` above the floor; the approach starts above the walls. Among the parts,
-highest first, the best grasps of ``plan_parts`` parts compete (score plus ``height_weight`` per metre of the
-part's top); the first that passes the IK check is taken.
+workcell's, known. A grasp (``grasping.grasps.plan_grasps``, top-down) must keep the open fingers' meshes
+(``controller.open_finger_points``, open ``finger_margin`` wider than the part) and the camera's box
+(``hand.camera_box``) ``grasp.clearance_min`` from the tote's inner wall faces and rims, the open hand's boxes
+(``grasping.hand.hand_boxes``) ``part_clearance`` (negative: the fingers may push into the heap that far) from
+the other estimates' surfaces and the depth image's points above the floor (less those on the target's estimated
+surface: they are the target); the open fingers must not land on the target's own estimated surface either (an
+L-block's other leg: the descending finger shoves the part away). Its pinch stays ``grasp.min_pinch_height``
+above the floor; the approach starts above the walls. Among the parts, highest first, the best grasps of
+``plan_parts`` parts compete (score plus ``height_weight`` per metre of the part's top); the first that passes the
+IK check is taken.
 
 The robot judges only from what it perceives: it stops when it sees no part in the tote and the depth image shows
 nothing above the floor. The verdicts of an attempt use the simulator's truth: a robot touching the tote's walls
@@ -34,6 +35,7 @@ from posegrasp.catalog import PartType, catalog_by_id
 from posegrasp.errors import SimulationError
 from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import ScoringConfig, TrialConfig, holds_firmly
+from posegrasp.grasping.controller import open_finger_points
 from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
 from posegrasp.grasping.hand import camera_box, hand_boxes
 from posegrasp.grasping.perception import Estimate, PerceptionError
@@ -184,7 +186,8 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
         grasps = [g for g in plan_grasps(block, T, others, plan_cfg, yaw_now, yaw_stable=holds_firmly(cfg))
                   if not _tried(g, failed, b) and _clear_of(g, others, [cam], b.part_clearance)
                   and _clear_of(g, own.data, hand_boxes((g.width + b.finger_margin) / 2)[:3], 0.0)
-                  and _clear_of(g, wall, [cam, *hand_boxes((g.width + b.finger_margin) / 2)], g_cfg.clearance_min)
+                  and _clear_of(g, wall, [cam], g_cfg.clearance_min)
+                  and (not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, g_cfg.clearance_min))
                   ][:g_cfg.grasps_per_block]
         options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), j, g)
                     for g in grasps]
@@ -199,6 +202,16 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
         if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, g_cfg.clearance_min)):
             return j, g, poses[j]
     raise EpisodeFailed(Failure.UNREACHABLE)
+
+
+def _fingers_inside(grasp: Grasp, wc_cfg, margin: float, tote: Tote, clearance: float) -> bool:
+    """Do the fingers, open ``margin`` (m) wider than the ``grasp`` (``controller.open_finger_points``, their
+    meshes), stay ``clearance`` (m) inside the tote's inner walls wherever they are lower than the walls' top plus
+    ``clearance``?"""
+    pts = transform_points(grasp.T_world_gripper, open_finger_points(wc_cfg, round(1000 * (grasp.width + margin))))
+    lo, hi = tote.inner_bounds()
+    low = pts[pts[:, 2] < hi[2] + clearance, :2]
+    return bool(np.all((low >= lo[:2] + clearance) & (low <= hi[:2] - clearance)))
 
 
 @functools.lru_cache(maxsize=4)

@@ -311,3 +311,23 @@ def finger_angle_for_opening(cfg: WorkcellConfig, opening: float) -> float:
     angles, gaps = _opening_table(cfg)
     order = np.argsort(gaps)
     return float(np.interp(opening, gaps[order], angles[order]))
+
+
+@functools.lru_cache(maxsize=64)
+def open_finger_points(cfg: WorkcellConfig, opening_mm: int) -> np.ndarray:
+    """(N, 3) vertices (m, gripper frame) of the three fingers' collision meshes, knuckles and tips, held at the
+    angle leaving ``opening_mm`` (mm) between the fingertips: the hand as it comes down on a grasp. A mesh's
+    extreme point along any direction is one of its vertices, so they give its exact distance to a plane."""
+    robot = robot_workcell(cfg)
+    m = robot.model
+    d = mujoco.MjData(m)
+    d.qpos[robot.arm_qadr] = cfg.home_qpos
+    d.qpos[robot.finger_qadr] = finger_angle_for_opening(cfg, opening_mm / 1000.0)
+    mujoco.mj_kinematics(m, d)
+    s = robot.gripper_site
+    R_s, p_s = d.site_xmat[s].reshape(3, 3), d.site_xpos[s]
+    pts = []
+    for g in np.flatnonzero((finger_geoms(m) > 0) & (m.geom_contype > 0) & (m.geom_dataid >= 0)):
+        a, n = m.mesh_vertadr[m.geom_dataid[g]], m.mesh_vertnum[m.geom_dataid[g]]
+        pts.append((m.mesh_vert[a:a + n] @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g] - p_s) @ R_s)
+    return np.concatenate(pts)

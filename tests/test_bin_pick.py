@@ -124,6 +124,21 @@ def test_the_open_fingers_keep_off_the_targets_own_surface():
     assert _clear_of(grasp, own, fingers(grasp), 0.0)
 
 
+def test_a_part_22_mm_from_a_wall_is_pinched_along_it_without_touching_it():
+    cfg = _cfg(1)
+    lo, hi = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
+    ep = _episode(cfg, ["cube"], [_flat("cube", (0.5 * (lo[0] + hi[0]), hi[1] - 0.02 - 0.022))])  # 22 mm from the wall
+    T = ep.wc.block_poses()[0]
+    T_world_cam = ep.T_world_cam()
+    _, grasp, _ = choose_part(ep.wc, cfg, [Estimate(CAT["cube"].obj_id, np.linalg.inv(T_world_cam) @ T, 1.0)],
+                              T_world_cam, np.zeros((0, 3)), 0.0)
+    assert abs(grasp.T_world_gripper[0, 0]) > 0.99  # squeezed along the wall: the open hand's boxes reach into it
+    att = Attempt(0)
+    pick_and_drop(ep, Plan(1, CAT["cube"], grasp, T, CAT["cube"]), area_of(ep.wc, cfg.bin_pick),
+                  outbox_of(ep.wc.cfg, cfg.bin_pick), att)
+    assert att.grasped
+
+
 def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
     cfg = _cfg()
     wc0 = bin_workcell(cfg, [])
