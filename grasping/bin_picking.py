@@ -331,7 +331,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
         start = _bottoms(ep.wc)
         bottom_est, _ = plan.height_range()
         clear = max(area.top, box.top_z) + b.wall_margin  # the part's bottom above both boxes' walls
-        T_lift = T_grasp.copy()
+        T_lift = ctl.target.copy()  # the grasp, or where a neighbour stopped the hand above it
         T_lift[2, 3] += max(clear - bottom_est, ep.cfg.scoring.lift_min)
         ctl.move(T_lift, until=watch.stop)
         watch.check()
