@@ -199,8 +199,8 @@ def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path
     assert (tmp_path / "a" / EPISODES).read_bytes() == (tmp_path / "b" / EPISODES).read_bytes()
     b = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]
     assert b == s["bin_pick"] and b["parts_present"] == 8
-    # 224 of 332 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes)
-    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(224, 332, b["attempts"]["n"]), b
+    # 288 of 399 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes: docs/benchmarks.md)
+    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(288, 399, b["attempts"]["n"]), b
     recs = {i: json.loads(line) for i, line in enumerate((tmp_path / "a" / EPISODES).read_text().splitlines())}
     r = compare_runs(recs, recs)
     assert r["bin_pick"]["percent_cleared"]["wilcoxon_p"] == 1.0 and not is_worse(r, 0.05)
