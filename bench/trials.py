@@ -64,14 +64,16 @@ def main(episodes: int = 60, workers: int = 2, task: str = "pick-place", scene: 
     if "bin_pick" in s:
         b = s["bin_pick"]
         out.update(scene=cfg.bin_pick.scene, parts=list(cfg.bin_pick.clutter.parts),
-                   percent_cleared=b["percent_cleared"], attempt_success=b["attempts"], picks=b["picks"],
+                   percent_cleared=b["percent_cleared"], attempt_success=b["attempts"], grasp_success=b["grasps"],
+                   picks=b["picks"],
                    picks_per_sim_hour=round(b["picks_per_sim_hour"] or 0.0, 1),
                    picks_per_wall_min=round(60 * b["picks"] / s["wall"]["seconds"], 1),
                    cpu_bound_picks_per_min=round(60 * workers * b["picks"] / (cpu * episodes), 1) if cpu else None,
                    attempt_failures=b["attempt_failures"], episode_ends=b["episode_ends"])
         pc = b["percent_cleared"]
         print(f"bin picking ({out['scene']}): cleared {pc['mean']:.1f} % per episode (t 95 % {pc['ci95']}), attempts "
-              f"{b['attempts']['success']}/{b['attempts']['n']}; {out['picks_per_wall_min']} picks per wall-clock minute "
+              f"{b['attempts']['success']}/{b['attempts']['n']}, grasps {b['grasps']['success']}/{b['grasps']['n']}; "
+              f"{out['picks_per_wall_min']} picks per wall-clock minute "
               f"(episodes alone), {out['cpu_bound_picks_per_min']} if {workers} cores were free; "
               f"{out['picks_per_sim_hour']} picks per simulated hour")
     for k, v in out["mean_wall_per_phase_s"].items():

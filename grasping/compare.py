@@ -108,29 +108,33 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
 
 def compare_bin_pick(a: dict[int, dict], b: dict[int, dict], common: list[int]) -> dict:
     """Two bin-picking runs on their common episodes: percent cleared paired episode by episode (mean difference
-    B - A in points, Wilcoxon signed-rank test, two-sided; p = 1 when no episode differs) and attempt success
-    (each run's Wilson 95 % interval, the difference B - A with Newcombe's 95 % interval; attempts differ in number
-    and are not paired)."""
+    B - A in points, Wilcoxon signed-rank test, two-sided; p = 1 when no episode differs), attempt success and grasp
+    success (the attempts that went for a part; each run's Wilson 95 % interval, the difference B - A with
+    Newcombe's 95 % interval; attempts differ in number and are not paired)."""
     from scipy.stats import wilcoxon
 
     ca = [100.0 * a[i]["cleared"] for i in common]
     cb = [100.0 * b[i]["cleared"] for i in common]
     diffs = [y - x for x, y in zip(ca, cb)]
     p = float(wilcoxon(cb, ca).pvalue) if any(diffs) else 1.0
-    rows = []
-    for run in (a, b):
-        att = [t["outcome"] == "success" for i in common for t in run[i].get("attempts", [])]
-        rows.append(rate_row(sum(att), len(att)))
-    ra, rb = rows
     mean = sum(diffs) / len(diffs)
     return {
         "percent_cleared": {"a_mean": sum(ca) / len(ca), "b_mean": sum(cb) / len(cb), "difference": mean,
                             "b_better": sum(d > 0 for d in diffs), "a_better": sum(d < 0 for d in diffs),
                             "wilcoxon_p": p},
-        "attempts": {"a": ra, "b": rb, "difference": (rb["rate"] if rb["n"] else 0.0) - (ra["rate"] if ra["n"] else 0.0),
-                     "difference_ci95": list(newcombe(ra["success"], ra["n"], rb["success"], rb["n"]))},
+        "attempts": _unpaired([[t for i in common for t in run[i].get("attempts", [])] for run in (a, b)]),
+        "grasps": _unpaired([[t for i in common for t in run[i].get("attempts", []) if t.get("target")]
+                             for run in (a, b)]),
         "better": "B" if mean > 0 else "A" if mean < 0 else "neither",
     }
+
+
+def _unpaired(attempts: list[list[dict]]) -> dict:
+    """Two runs' attempts (JSON records): each run's success (``rate_row``) and the difference B - A with
+    Newcombe's 95 % interval."""
+    ra, rb = (rate_row(sum(t["outcome"] == "success" for t in run), len(run)) for run in attempts)
+    return {"a": ra, "b": rb, "difference": (rb["rate"] if rb["n"] else 0.0) - (ra["rate"] if ra["n"] else 0.0),
+            "difference_ci95": list(newcombe(ra["success"], ra["n"], rb["success"], rb["n"]))}
 
 
 def is_worse(result: dict, alpha: float) -> bool:
@@ -177,13 +181,15 @@ def print_comparison(result: dict, names: tuple[str, str], console: Console) -> 
 
 
 def print_bin_pick_comparison(r: dict, console: Console) -> None:
-    c, t = r["percent_cleared"], r["attempts"]
-    lo, hi = t["difference_ci95"]
+    c = r["percent_cleared"]
     console.print(f"percent cleared: A {c['a_mean']:.1f} %, B {c['b_mean']:.1f} %, B - A {c['difference']:+.1f} points "
                   f"(B better in {c['b_better']} episodes, A in {c['a_better']}); Wilcoxon signed-rank p = "
                   f"{c['wilcoxon_p']:.4g}")
-    console.print(f"attempt success: A {t['a']['success']}/{t['a']['n']}, B {t['b']['success']}/{t['b']['n']}, "
-                  f"B - A {100 * t['difference']:+.1f} points (Newcombe 95 % {100 * lo:+.1f} to {100 * hi:+.1f})")
+    for key, label in (("attempts", "attempt success"), ("grasps", "grasp success (attempts that went for a part)")):
+        t = r[key]
+        lo, hi = t["difference_ci95"]
+        console.print(f"{label}: A {t['a']['success']}/{t['a']['n']}, B {t['b']['success']}/{t['b']['n']}, "
+                      f"B - A {100 * t['difference']:+.1f} points (Newcombe 95 % {100 * lo:+.1f} to {100 * hi:+.1f})")
     sure = "significant at p < 0.05" if c["wilcoxon_p"] < 0.05 else "not significant (p >= 0.05)"
     console.print(f"better at clearing the tote: {r['better']} ({sure})")
 

@@ -173,17 +173,24 @@ def _print_failures(counts: dict[str, int], title: str, console: Console) -> Non
     console.print(f)
 
 
+def _rate_text(r: dict) -> str:
+    """``rate_row``'s row as "k/n succeeded = p % (Wilson 95 % lo-hi %)"."""
+    if not r["n"]:
+        return "0/0 succeeded"
+    return (f"{r['success']}/{r['n']} succeeded = {100 * r['rate']:.1f} % "
+            f"(Wilson 95 % {100 * r['wilson95'][0]:.1f}-{100 * r['wilson95'][1]:.1f} %)")
+
+
 def print_bin_pick(b: dict, console: Console) -> None:
-    """Bin picking's lines of the summary: percent cleared, attempt success, picks per hour, attempt failures."""
-    pc, a = b["percent_cleared"], b["attempts"]
+    """Bin picking's lines of the summary: percent cleared, attempt and grasp success, picks per hour, attempt
+    failures."""
+    pc = b["percent_cleared"]
     ci = f" (t 95 % interval {pc['ci95'][0]:.1f}-{pc['ci95'][1]:.1f} %)" if pc["ci95"] else ""
     mean = f"{pc['mean']:.1f} %" if pc["mean"] is not None else "-"
-    rate = f"{100 * a['rate']:.1f} %" if a["n"] else "-"
     pph = f"{b['picks_per_sim_hour']:.0f}" if b["picks_per_sim_hour"] else "-"
     console.print(f"[bold]bin picking[/]: cleared {mean} of the parts per episode{ci}, "
-                  f"{b['episodes_cleared']}/{pc['n']} totes emptied; attempts {a['success']}/{a['n']} succeeded = "
-                  f"{rate} (Wilson 95 % {100 * a['wilson95'][0]:.1f}-{100 * a['wilson95'][1]:.1f} %); "
-                  f"{pph} picks per simulated hour")
+                  f"{b['episodes_cleared']}/{pc['n']} totes emptied; attempts {_rate_text(b['attempts'])}; grasps "
+                  f"(attempts that went for a part) {_rate_text(b['grasps'])}; {pph} picks per simulated hour")
     _print_failures(b["attempt_failures"], "failed attempts", console)
 
 

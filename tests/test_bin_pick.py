@@ -199,6 +199,10 @@ def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path
     assert (tmp_path / "a" / EPISODES).read_bytes() == (tmp_path / "b" / EPISODES).read_bytes()
     b = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]
     assert b == s["bin_pick"] and b["parts_present"] == 8
+    went = [a["outcome"] == "success" for r in map(json.loads, (tmp_path / "a" / EPISODES).read_text().splitlines())
+            for a in r["attempts"] if a["target"]]
+    assert (b["grasps"]["success"], b["grasps"]["n"]) == (sum(went), len(went)) == (b["picks"], len(went))
+    assert "grasps (attempts that went for a part)" in printed
     # 288 of 399 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes: docs/benchmarks.md)
     assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(288, 399, b["attempts"]["n"]), b
     recs = {i: json.loads(line) for i, line in enumerate((tmp_path / "a" / EPISODES).read_text().splitlines())}
@@ -209,20 +213,23 @@ def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path
 def test_compare_pairs_bin_pick_episodes_by_percent_cleared():
     def run(cleared: list[float], ok: int) -> dict[int, dict]:
         return {i: {"episode": i, "seed": 0, "task": "bin-pick", "outcome": "failure", "cleared": c,
-                    "attempts": [{"outcome": "success" if j < ok else "failure"} for j in range(10)]}
-                for i, c in enumerate(cleared)}
+                    "attempts": [{"outcome": "success" if j < ok else "failure", "target": {"type": "cube"}}
+                                 for j in range(10)] + [{"outcome": "failure", "target": None}] * 2}
+                for i, c in enumerate(cleared)}  # two looks that found nothing to go for: no grasps
 
     a = run([1.0] * 8, 9)
     b = run([0.5, 0.6, 0.4, 0.7, 0.5, 0.3, 0.6, 0.5], 5)
     r = compare_runs(a, b)["bin_pick"]
     assert r["better"] == "A" and r["percent_cleared"]["wilcoxon_p"] < 0.05
-    lo, hi = r["attempts"]["difference_ci95"]
-    assert r["attempts"]["difference"] == pytest.approx(-0.4) and lo < -0.4 < hi < 0
+    lo, hi = r["grasps"]["difference_ci95"]
+    assert r["grasps"]["difference"] == pytest.approx(-0.4) and lo < -0.4 < hi < 0
+    assert r["attempts"]["a"]["n"] == 96 and r["attempts"]["difference"] == pytest.approx(-4 / 12)
     assert is_worse(compare_runs(a, b), 0.05) and not is_worse(compare_runs(b, a), 0.05)
     console = Console(file=io.StringIO(), width=200)
     print_comparison(compare_runs(a, b), ("a", "b"), console)
     printed = console.file.getvalue()
     assert "percent cleared: A 100.0 %, B 51.2 %" in printed and "per block" not in printed, printed
+    assert "grasp success (attempts that went for a part): A 72/80, B 40/80" in printed, printed
 
 
 @pytest.mark.parametrize("args, message", [

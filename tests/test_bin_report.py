@@ -42,8 +42,8 @@ def test_the_bin_pick_report_shows_statistics_attempts_tote_and_film(run):
     b = s["bin_pick"]
     page = (out / REPORT).read_text()
     assert "http://" not in page and "https://" not in page
-    a = b["attempts"]
-    assert f"{a['success']}/{a['n']} = {100 * a['rate']:.1f} %" in page
+    for a in (b["attempts"], b["grasps"]):
+        assert f"{a['success']}/{a['n']} = {100 * a['rate']:.1f} %" in page
     assert f"{b['parts_removed']}/{b['parts_present']}" in page
     rec = read_run(out).episodes[0]
     assert isinstance(rec, BinPickRecord) and rec.attempts

@@ -33,6 +33,7 @@ class BinPickSummary:
     parts_present: int
     parts_removed: int
     attempts: Rate  # attempts that put their part alone into the out-box
+    grasps: Rate | None  # those of the attempts that went for a part (None: a summary written before it was kept)
     sim_hours: float
     picks_per_sim_hour: float | None
     attempt_failures: dict[str, int]  # attempts by failure reason
@@ -48,7 +49,8 @@ class BinPickSummary:
             return cls(None if pc["mean"] is None else float(pc["mean"]),
                        None if pc["ci95"] is None else (float(pc["ci95"][0]), float(pc["ci95"][1])),
                        int(data["episodes_cleared"]), int(data["parts_present"]), int(data["parts_removed"]),
-                       _rate(data["attempts"], f"{where}.attempts"), float(data["sim_hours"]),
+                       _rate(data["attempts"], f"{where}.attempts"),
+                       _rate(data["grasps"], f"{where}.grasps") if "grasps" in data else None, float(data["sim_hours"]),
                        None if data["picks_per_sim_hour"] is None else float(data["picks_per_sim_hour"]),
                        {str(f): int(k) for f, k in data["attempt_failures"].items()},
                        {str(f): int(k) for f, k in data["episode_ends"].items()},

@@ -151,19 +151,21 @@ def _counts(title: str, head: str, counts: Mapping[str, int]) -> str:
 
 
 def bin_summary(run: TrialRun) -> str:
-    """Bin picking's statistics: percent cleared, attempt success, picks per simulated hour, attempt failures and
-    episode ends by reason, attempt success by part type and by the target's visible fraction."""
+    """Bin picking's statistics: percent cleared, attempt and grasp success, picks per simulated hour, attempt
+    failures and episode ends by reason, attempt success by part type and by the target's visible fraction."""
     b = run.summary.bin_pick
     cleared = "-" if b.percent_cleared is None else f"{b.percent_cleared:.1f} %"
     if b.percent_cleared_ci95 is not None:
         cleared += f" (t 95 % interval {b.percent_cleared_ci95[0]:.1f}-{b.percent_cleared_ci95[1]:.1f} %)"
     per_hour = "-" if b.picks_per_sim_hour is None else f"{b.picks_per_sim_hour:.0f}"
-    a = b.attempts
+    a, g = b.attempts, b.grasps
     return ("<h2>Bin picking</h2>" + _table(["measure", "value"], [
         ["parts cleared per episode (mean)", cleared],
         ["totes emptied", f"{b.episodes_cleared}/{run.summary.overall.n}"],
         ["parts removed", f"{b.parts_removed}/{b.parts_present}"],
         ["attempt success", f"{a.success}/{a.n} = {_pct(a.rate)} (Wilson 95 % interval {_interval(a)})"],
+        ["grasp success (attempts that went for a part)",
+         "-" if g is None else f"{g.success}/{g.n} = {_pct(g.rate)} (Wilson 95 % interval {_interval(g)})"],
         ["picks per simulated hour", per_hour], ["simulated hours", f"{b.sim_hours:.3f}"]])
         + _counts("Failed attempts", "reason", b.attempt_failures)
         + _counts("Episode ends", "end", b.episode_ends)

@@ -11,7 +11,8 @@ record (``record.BinPickRecord``) says how many parts went into the out-box.
 
 Its scene: ``sim.clutter``'s heap of parts (``ClutterConfig.parts``, drawn per episode) settled in the tote or on
 the table, and the out-box (a tote of its own, ``outbox``) on the place area. Its summary (``metrics``): percent
-cleared per episode (mean, t 95 % interval), attempt success (Wilson 95 %), picks per simulated hour, attempt
+cleared per episode (mean, t 95 % interval), attempt success (Wilson 95 %), grasp success (the attempts that went
+for a part: VGN's grasp success rate, where a look that finds no grasp is no grasp), picks per simulated hour, attempt
 failures by reason, success by part type and by the target's visible fraction.
 """
 
@@ -163,6 +164,7 @@ def bin_metrics(records: list[dict]) -> dict:
     eps = [r for r in records if r.get("task") == BIN_PICK]
     attempts = [a for r in eps for a in r.get("attempts", [])]
     ok = [a["outcome"] == "success" for a in attempts]
+    went = [s for a, s in zip(attempts, ok) if a.get("target")]  # the robot went for a part (or a false detection)
     by_type: dict[str, list[bool]] = defaultdict(list)
     by_vis: dict[str, list[bool]] = defaultdict(list)
     for a, s in zip(attempts, ok):
@@ -177,6 +179,7 @@ def bin_metrics(records: list[dict]) -> dict:
         "parts_present": sum(r["n_blocks"] for r in eps),
         "parts_removed": sum(r["removed"] for r in eps),
         "attempts": rate_row(sum(ok), len(ok)),
+        "grasps": rate_row(sum(went), len(went)),
         "picks": sum(ok),
         "sim_hours": sim_hours,
         "picks_per_sim_hour": sum(ok) / sim_hours if sim_hours > 0 else None,
