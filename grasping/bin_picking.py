@@ -9,7 +9,9 @@ workcell's, known. A grasp (``grasping.grasps.plan_grasps``, top-down) must keep
 (``grasping.hand.hand_boxes``) ``part_clearance`` (negative: the fingers may push into the heap that far) from
 the other estimates' surfaces and the depth image's points above the floor (less those on the target's estimated
 surface: they are the target); the open fingers must not land on the target's own estimated surface either (an
-L-block's other leg: the descending finger shoves the part away). Its pinch stays ``grasp.min_pinch_height``
+L-block's other leg: the descending finger shoves the part away). A grasp whose open fingers would reach a wall
+is moved along the gripper's y axis (``wall_shifts``), the part off-centre in the hand, while the part's contact
+faces still meet the pads (a part lying against a wall). Its pinch stays ``grasp.min_pinch_height``
 above the floor; the approach starts above the walls. Among the parts, highest first, the best grasps of
 ``plan_parts`` parts compete (score plus ``height_weight`` per metre of the part's top); the first that passes the
 IK check is taken.
@@ -25,7 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import mujoco
 import numpy as np
@@ -37,7 +39,8 @@ from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import ScoringConfig, TrialConfig, holds_firmly
 from posegrasp.grasping.controller import open_finger_points
 from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
-from posegrasp.grasping.hand import camera_box, hand_boxes
+from posegrasp.grasping.hand import (CONTACT_BAND, FINGER1_Y, FINGER23_Y, ON_PLANE_TOL, camera_box,
+                                      hand_boxes)
 from posegrasp.grasping.perception import Estimate, PerceptionError
 from posegrasp.grasping.record import Attempt, BinPickRecord, FalseTarget, Failure, Target
 from posegrasp.grasping.support import rest_on_table
@@ -183,11 +186,13 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
         depth = depth[own.query(depth, distance_upper_bound=b.own_margin)[0] > b.own_margin] if len(depth) else depth
         others = np.concatenate([near(c) for i, c in enumerate(clouds) if i != j] + [depth])
         wall = near(walls)
-        grasps = [g for g in plan_grasps(block, T, others, plan_cfg, yaw_now, yaw_stable=holds_firmly(cfg))
+        clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
+            not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
+        shifted_clear = lambda g: clear_of_walls(g, b.shift_clearance)  # noqa: E731
+        grasps = [g for g0 in plan_grasps(block, T, others, plan_cfg, yaw_now, yaw_stable=holds_firmly(cfg))
+                  for g in ([g0] if clear_of_walls(g0) else _shifted(g0, own.data, others, b, shifted_clear))
                   if not _tried(g, failed, b) and _clear_of(g, others, [cam], b.part_clearance)
                   and _clear_of(g, own.data, hand_boxes((g.width + b.finger_margin) / 2)[:3], 0.0)
-                  and _clear_of(g, wall, [cam], g_cfg.clearance_min)
-                  and (not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, g_cfg.clearance_min))
                   ][:g_cfg.grasps_per_block]
         options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), j, g)
                     for g in grasps]
@@ -202,6 +207,31 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
         if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, g_cfg.clearance_min)):
             return j, g, poses[j]
     raise EpisodeFailed(Failure.UNREACHABLE)
+
+
+def _shifted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig,
+             clear: Callable[[Grasp], bool]) -> list[Grasp]:
+    """``grasp`` with the hand moved along its y axis by each of ``wall_shifts`` (nearest first) where it is
+    ``clear`` of the walls, the open hand keeps ``part_clearance`` from the ``others`` points, and the part's
+    contact faces (its surface points ``own``, world) still meet finger 1's pad and finger 2's or finger 3's by
+    ``shift_contact`` (m) along y: the part sits off-centre in the hand, away from the wall that the fingers'
+    sides would touch."""
+    out = []
+    half, o = grasp.width / 2, (grasp.width + b.finger_margin) / 2
+    for d in sorted(b.wall_shifts, key=abs):
+        T = grasp.T_world_gripper.copy()
+        T[:3, 3] += d * T[:3, 1]
+        g = dataclasses.replace(grasp, T_world_gripper=T)
+        local = (own - T[:3, 3]) @ T[:3, :3]
+        band = (local[:, 2] > CONTACT_BAND[0]) & (local[:, 2] < CONTACT_BAND[1])
+        faces = [local[band & (s * local[:, 0] > half - ON_PLANE_TOL), 1] for s in (1.0, -1.0)]
+        if not all(len(f) for f in faces):
+            continue
+        meets = [[min(f.max(), y1) - max(f.min(), y0) >= b.shift_contact for y0, y1 in spans]
+                 for f, spans in zip(faces, (FINGER1_Y, FINGER23_Y))]
+        if any(meets[0]) and any(meets[1]) and clear(g) and _clear_of(g, others, hand_boxes(o), b.part_clearance):
+            out.append(g)
+    return out
 
 
 def _fingers_inside(grasp: Grasp, wc_cfg, margin: float, tote: Tote, clearance: float) -> bool:

@@ -139,6 +139,24 @@ def test_a_part_22_mm_from_a_wall_is_pinched_along_it_without_touching_it():
     assert att.grasped
 
 
+def test_a_part_against_a_wall_is_pinched_off_centre_in_the_hand_without_touching_it():
+    cfg = _cfg(1)
+    lo, hi = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
+    ep = _episode(cfg, ["cube"], [_flat("cube", (0.5 * (lo[0] + hi[0]), hi[1] - 0.02 - 0.008))])  # 8 mm from the wall
+    T = ep.wc.block_poses()[0]
+    T_world_cam = ep.T_world_cam()
+    ests = [Estimate(CAT["cube"].obj_id, np.linalg.inv(T_world_cam) @ T, 1.0)]
+    no_shift = dataclasses.replace(cfg, bin_pick=dataclasses.replace(cfg.bin_pick, wall_shifts=()))
+    with pytest.raises(EpisodeFailed) as e:
+        choose_part(ep.wc, no_shift, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    assert e.value.reason == Failure.NOTHING_GRASPABLE  # centred in the hand, the fingers' sides reach the wall
+    _, grasp, _ = choose_part(ep.wc, cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    att = Attempt(0)
+    pick_and_drop(ep, Plan(1, CAT["cube"], grasp, T, CAT["cube"]), area_of(ep.wc, cfg.bin_pick),
+                  outbox_of(ep.wc.cfg, cfg.bin_pick), att)
+    assert att.grasped
+
+
 def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
     cfg = _cfg()
     wc0 = bin_workcell(cfg, [])

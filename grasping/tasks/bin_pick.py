@@ -80,6 +80,15 @@ class BinPickConfig:
     #: The open hand keeps this distance (m) from the other parts' estimated surfaces and the depth image's points
     #: (negative: it may push into the heap that far); from the walls it keeps ``grasp.clearance_min``.
     part_clearance: float = field(default=-0.015, metadata=within(-0.05, 0.1))
+    #: A grasp whose open fingers would touch a wall is tried again with the hand moved this far (m) along the
+    #: gripper y axis (nearest first), the part sitting off-centre in the hand ...
+    wall_shifts: tuple[float, ...] = (-0.024, -0.02, -0.016, -0.012, -0.008, -0.004, 0.004, 0.008, 0.012, 0.016, 0.02,
+                                      0.024)
+    #: ... while its contact faces still meet finger 1's pad and finger 2's or 3's this far (m) along y ...
+    shift_contact: float = field(default=0.016, metadata=within(0.0, 0.05))
+    #: ... and the fingers and the camera keep this far (m) from the walls (more than ``grasp.clearance_min``:
+    #: neighbours push the descending fingers sideways, and off-centre they are nearer a wall).
+    shift_clearance: float = field(default=0.008, metadata=within(0.0, 0.05))
     #: A neighbour that stops the hand on its way down to the grasp (a guarded move): the fingers close where the hand
     #: stopped if its pinch point stands at most this far (m) above the grasp ...
     close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))
