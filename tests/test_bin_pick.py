@@ -124,37 +124,38 @@ def test_the_open_fingers_keep_off_the_targets_own_surface():
     assert _clear_of(grasp, own, fingers(grasp), 0.0)
 
 
+def _cube_off_the_wall(gap: float) -> tuple[Episode, list[Estimate], np.ndarray]:
+    """A cube lying ``gap`` (m) from the tote's +y wall: the episode, the oracle's estimate and ``T_world_cam``."""
+    cfg = _cfg(1)
+    lo, hi = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
+    ep = _episode(cfg, ["cube"], [_flat("cube", (0.5 * (lo[0] + hi[0]), hi[1] - 0.02 - gap))])
+    T_world_cam = ep.T_world_cam()
+    return ep, [Estimate(CAT["cube"].obj_id, np.linalg.inv(T_world_cam) @ ep.wc.block_poses()[0], 1.0)], T_world_cam
+
+
+def _picked(ep: Episode, grasp) -> bool:
+    """Does the hand, on ``grasp``, lift the episode's only part clear of the walls?"""
+    b, att = ep.cfg.bin_pick, Attempt(0)
+    pick_and_drop(ep, Plan(1, CAT["cube"], grasp, ep.wc.block_poses()[0], CAT["cube"]), area_of(ep.wc, b),
+                  outbox_of(ep.wc.cfg, b), att)
+    return att.grasped
+
+
 def test_a_part_22_mm_from_a_wall_is_pinched_along_it_without_touching_it():
-    cfg = _cfg(1)
-    lo, hi = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
-    ep = _episode(cfg, ["cube"], [_flat("cube", (0.5 * (lo[0] + hi[0]), hi[1] - 0.02 - 0.022))])  # 22 mm from the wall
-    T = ep.wc.block_poses()[0]
-    T_world_cam = ep.T_world_cam()
-    _, grasp, _ = choose_part(ep.wc, cfg, [Estimate(CAT["cube"].obj_id, np.linalg.inv(T_world_cam) @ T, 1.0)],
-                              T_world_cam, np.zeros((0, 3)), 0.0)
+    ep, ests, T_world_cam = _cube_off_the_wall(0.022)
+    _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
     assert abs(grasp.T_world_gripper[0, 0]) > 0.99  # squeezed along the wall: the open hand's boxes reach into it
-    att = Attempt(0)
-    pick_and_drop(ep, Plan(1, CAT["cube"], grasp, T, CAT["cube"]), area_of(ep.wc, cfg.bin_pick),
-                  outbox_of(ep.wc.cfg, cfg.bin_pick), att)
-    assert att.grasped
+    assert _picked(ep, grasp)
 
 
-def test_a_part_against_a_wall_is_pinched_off_centre_in_the_hand_without_touching_it():
-    cfg = _cfg(1)
-    lo, hi = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
-    ep = _episode(cfg, ["cube"], [_flat("cube", (0.5 * (lo[0] + hi[0]), hi[1] - 0.02 - 0.008))])  # 8 mm from the wall
-    T = ep.wc.block_poses()[0]
-    T_world_cam = ep.T_world_cam()
-    ests = [Estimate(CAT["cube"].obj_id, np.linalg.inv(T_world_cam) @ T, 1.0)]
-    no_shift = dataclasses.replace(cfg, bin_pick=dataclasses.replace(cfg.bin_pick, wall_shifts=()))
+def test_a_part_8_mm_from_a_wall_is_pinched_off_centre_in_the_hand_without_touching_it():
+    ep, ests, T_world_cam = _cube_off_the_wall(0.008)
+    no_shift = dataclasses.replace(ep.cfg, bin_pick=dataclasses.replace(ep.cfg.bin_pick, wall_shifts=()))
     with pytest.raises(EpisodeFailed) as e:
         choose_part(ep.wc, no_shift, ests, T_world_cam, np.zeros((0, 3)), 0.0)
     assert e.value.reason == Failure.NOTHING_GRASPABLE  # centred in the hand, the fingers' sides reach the wall
-    _, grasp, _ = choose_part(ep.wc, cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
-    att = Attempt(0)
-    pick_and_drop(ep, Plan(1, CAT["cube"], grasp, T, CAT["cube"]), area_of(ep.wc, cfg.bin_pick),
-                  outbox_of(ep.wc.cfg, cfg.bin_pick), att)
-    assert att.grasped
+    _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    assert _picked(ep, grasp)
 
 
 def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
@@ -221,8 +222,8 @@ def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path
             for a in r["attempts"] if a["target"]]
     assert (b["grasps"]["success"], b["grasps"]["n"]) == (sum(went), len(went)) == (b["picks"], len(went))
     assert "grasps (attempts that went for a part)" in printed
-    # 288 of 399 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes: docs/benchmarks.md)
-    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(288, 399, b["attempts"]["n"]), b
+    # 316 of 437 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes: docs/benchmarks.md)
+    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(316, 437, b["attempts"]["n"]), b
     recs = {i: json.loads(line) for i, line in enumerate((tmp_path / "a" / EPISODES).read_text().splitlines())}
     r = compare_runs(recs, recs)
     assert r["bin_pick"]["percent_cleared"]["wilcoxon_p"] == 1.0 and not is_worse(r, 0.05)
