@@ -14,11 +14,14 @@ is moved along the gripper's y axis (``wall_shifts``), the part off-centre in th
 faces still meet the pads (a part lying against a wall). Its pinch stays ``grasp.min_pinch_height``
 above the floor; the approach starts above the walls. Among the parts, highest first, the best grasps of
 ``plan_parts`` parts compete (score plus ``height_weight`` per metre of the part's top); the first that passes the
-IK check is taken.
+IK check is taken. ``part_clearance`` holds several distances, strictest first: a looser one is tried only when no
+part has a reachable grasp at the stricter (a finger that lands on a neighbour stalls there, and the fingers
+opposite push the part away: clean grasps first, a shove into the heap only when nothing else is left).
 
 The robot judges only from what it perceives: it stops when it sees no part in the tote and the depth image shows
 nothing above the floor. The verdicts of an attempt use the simulator's truth: a robot touching the tote's walls
-(a protective stop: "hit the wall"), another part rising with the target ("two parts lifted"), a part leaving the
+(a protective stop: "hit the wall"; so is a hand that contacts turn ``tilt_stop_deg`` from straight down,
+"collision"), another part rising with the target ("two parts lifted"), a part leaving the
 tote elsewhere than into the out-box ("part thrown out"), the target not landing in the out-box ("misplaced").
 """
 
@@ -172,47 +175,55 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
     tops = [float(transform_points(T, cat[e.obj_id].vertices)[:, 2].max()) for e, T in zip(ests, poses)]
     clouds = [transform_points(T, surface_points(cat[e.obj_id], g_cfg.neighbour_points)) for e, T in zip(ests, poses)]
     walls = wall_points(area.tote) if area.walls else np.zeros((0, 3))
-    plan_cfg = dataclasses.replace(g_cfg, min_pinch_height=area.floor + g_cfg.min_pinch_height,
-                                   finger_margin=b.finger_margin, clearance_min=b.part_clearance,
-                                   score=dataclasses.replace(g_cfg.score, turn=b.turn_weight))
     cam = camera_box(wc.cfg.hand_camera.mount_pos)
     reach = g_cfg.max_width / 2 + b.finger_margin + 0.1  # the open hand and camera lie within this of the part
-    options, parts = [], 0
-    for j in sorted(range(len(ests)), key=lambda i: -tops[i]):
-        block, T = cat[ests[j].obj_id], poses[j]
-        near = lambda p: p[np.linalg.norm(p[:, :2] - T[:2, 3], axis=1) < reach + 0.5 * block.diameter]  # noqa: E731
-        own = cKDTree(transform_points(T, surface_points(block)))
+
+    @functools.cache
+    def around(j: int) -> tuple[cKDTree, np.ndarray, np.ndarray]:
+        """Part ``j``'s surface points (a tree), the obstacle points and the wall points near it (world)."""
+        T, r = poses[j], reach + 0.5 * cat[ests[j].obj_id].diameter
+        near = lambda p: p[np.linalg.norm(p[:, :2] - T[:2, 3], axis=1) < r]  # noqa: E731
+        own = cKDTree(transform_points(T, surface_points(cat[ests[j].obj_id])))
         depth = near(heap)
         depth = depth[own.query(depth, distance_upper_bound=b.own_margin)[0] > b.own_margin] if len(depth) else depth
-        others = np.concatenate([near(c) for i, c in enumerate(clouds) if i != j] + [depth])
-        wall = near(walls)
-        clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
-            not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
-        shifted_clear = lambda g: clear_of_walls(g, b.shift_clearance)  # noqa: E731
-        grasps = [g for g0 in plan_grasps(block, T, others, plan_cfg, yaw_now, yaw_stable=holds_firmly(cfg))
-                  for g in ([g0] if clear_of_walls(g0) else _shifted(g0, own.data, others, b, shifted_clear))
-                  if not _tried(g, failed, b) and _clear_of(g, others, [cam], b.part_clearance)
-                  and _clear_of(g, own.data, hand_boxes((g.width + b.finger_margin) / 2)[:3], 0.0)
-                  ][:g_cfg.grasps_per_block]
-        options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), j, g)
-                    for g in grasps]
-        parts += bool(grasps)
-        if parts >= b.plan_parts:
-            break
-    if not options:
-        raise EpisodeFailed(Failure.NOTHING_GRASPABLE)
-    options.sort(key=lambda o: -o[0])
-    for _, j, g in options[:g_cfg.ik_checks]:
-        qs = reach_q(wc, g_cfg, g.T_world_gripper, pregrasp_height(cfg, area, g.T_world_gripper))
-        if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, g_cfg.clearance_min)):
-            return j, g, poses[j]
-    raise EpisodeFailed(Failure.UNREACHABLE)
+        return own, np.concatenate([near(c) for i, c in enumerate(clouds) if i != j] + [depth]), near(walls)
+
+    seen_any = False
+    for clearance in b.part_clearance:
+        plan_cfg = dataclasses.replace(g_cfg, min_pinch_height=area.floor + g_cfg.min_pinch_height,
+                                       finger_margin=b.finger_margin, clearance_min=clearance,
+                                       score=dataclasses.replace(g_cfg.score, turn=b.turn_weight))
+        options, parts = [], 0
+        for j in sorted(range(len(ests)), key=lambda i: -tops[i]):
+            own, others, wall = around(j)
+            clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
+                not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
+            shifted_clear = lambda g: clear_of_walls(g, b.shift_clearance)  # noqa: E731
+            grasps = [g for g0 in plan_grasps(cat[ests[j].obj_id], poses[j], others, plan_cfg, yaw_now,
+                                              yaw_stable=holds_firmly(cfg))
+                      for g in ([g0] if clear_of_walls(g0) else
+                                _shifted(g0, own.data, others, b, clearance, shifted_clear))
+                      if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
+                      and _clear_of(g, own.data, hand_boxes((g.width + b.finger_margin) / 2)[:3], 0.0)
+                      ][:g_cfg.grasps_per_block]
+            options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor),
+                         j, g) for g in grasps]
+            parts += bool(grasps)
+            if parts >= b.plan_parts:
+                break
+        seen_any |= bool(options)
+        options.sort(key=lambda o: -o[0])
+        for _, j, g in options[:g_cfg.ik_checks]:
+            qs = reach_q(wc, g_cfg, g.T_world_gripper, pregrasp_height(cfg, area, g.T_world_gripper))
+            if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, g_cfg.clearance_min)):
+                return j, g, poses[j]
+    raise EpisodeFailed(Failure.UNREACHABLE if seen_any else Failure.NOTHING_GRASPABLE)
 
 
-def _shifted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig,
+def _shifted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig, clearance: float,
              clear: Callable[[Grasp], bool]) -> list[Grasp]:
     """``grasp`` with the hand moved along its y axis by each of ``wall_shifts`` (nearest first) where it is
-    ``clear`` of the walls, the open hand keeps ``part_clearance`` from the ``others`` points, and the part's
+    ``clear`` of the walls, the open hand keeps ``clearance`` (m) from the ``others`` points, and the part's
     contact faces (its surface points ``own``, world) still meet finger 1's pad and finger 2's or finger 3's by
     ``shift_contact`` (m) along y: the part sits off-centre in the hand, away from the wall that the fingers'
     sides would touch."""
@@ -229,7 +240,7 @@ def _shifted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig
             continue
         meets = [[min(f.max(), y1) - max(f.min(), y0) >= b.shift_contact for y0, y1 in spans]
                  for f, spans in zip(faces, (FINGER1_Y, FINGER23_Y))]
-        if any(meets[0]) and any(meets[1]) and clear(g) and _clear_of(g, others, hand_boxes(o), b.part_clearance):
+        if any(meets[0]) and any(meets[1]) and clear(g) and _clear_of(g, others, hand_boxes(o), clearance):
             out.append(g)
     return out
 
@@ -289,37 +300,36 @@ def visible_fraction(ep: Episode, frame: Frame, k: int) -> float | None:
 
 
 class _Contacts:
-    """Control-period monitor: has the robot touched the tote's walls (``wall``), the floor or the table (``floor``)
-    or another part than the target ``k`` (``parts``)?"""
+    """Control-period monitor: has the robot touched the floor or the table (``floor``) or another part than the
+    target ``k`` (``parts``)? A protective stop (``EpisodeFailed``, raised in the control period, the arm stopping
+    where it is) when it touches the tote's walls ("hit the wall") or, once ``down`` (at the pre-grasp: every move
+    of a pick from there keeps the hand pointing straight down), contacts turn the hand more than ``tilt_stop_deg``
+    from straight down ("collision")."""
 
     def __init__(self, ep: Episode, walls: np.ndarray, floors: np.ndarray, k: int):
         self.ep, self.walls, self.floors = ep, walls, floors
         inst = ep.wc.geom_instance[:-1]
         self.others = np.flatnonzero((inst > 0) & (inst != k))
-        self.wall = self.floor = self.parts = False
+        self.cos_tilt = float(np.cos(np.radians(ep.cfg.bin_pick.tilt_stop_deg)))
+        self.floor = self.parts = self.down = False
 
     def __call__(self) -> None:
         d = self.ep.wc.data
-        if not d.ncon:
-            return
-        g = d.contact.geom[: d.ncon]
-        rob = self.ep.ctl.robot_geom[g]
-        for flag, ids in (("wall", self.walls), ("floor", self.floors), ("parts", self.others)):
-            hit = np.isin(g, ids)
-            if np.any(rob[:, 0] & hit[:, 1] | rob[:, 1] & hit[:, 0]):
-                setattr(self, flag, True)
+        if d.ncon:
+            g = d.contact.geom[: d.ncon]
+            rob = self.ep.ctl.robot_geom[g]
+            touch = [bool(np.any(rob[:, 0] & np.isin(g[:, 1], ids) | rob[:, 1] & np.isin(g[:, 0], ids)))
+                     for ids in (self.walls, self.floors, self.others)]
+            self.floor |= touch[1]
+            self.parts |= touch[2]
+            if touch[0]:
+                raise EpisodeFailed(Failure.WALL_HIT)
+        if self.down and -d.site_xmat[self.ep.wc.gripper_site][8] < self.cos_tilt:  # approach axis against down
+            raise EpisodeFailed(Failure.COLLISION)
 
     def blocked(self) -> Failure:
         """Why the hand did not get to the grasp or close on the part: it hit something, or (else) it timed out."""
         return Failure.COLLISION if self.floor or self.parts else Failure.TIMEOUT
-
-    def stop(self) -> bool:
-        """A protective stop: the robot touched a wall."""
-        return self.wall
-
-    def check(self) -> None:
-        if self.wall:
-            raise EpisodeFailed(Failure.WALL_HIT)
 
 
 def _bottoms(wc: Workcell) -> np.ndarray:
@@ -346,12 +356,10 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
     ctl.preshape(opening)
     ctl.monitor = watch
     try:
-        if not ctl.move(T_pre, until=watch.stop):
+        if not ctl.move(T_pre):
             raise EpisodeFailed(Failure.TIMEOUT)
-        watch.check()
-        reached = ctl.move(T_grasp, speed=g_cfg.approach_speed, until=watch.stop)
-        watch.check()
-        if not reached:
+        watch.down = True
+        if not ctl.move(T_grasp, speed=g_cfg.approach_speed):
             if not _stopped_near(ep.wc.gripper_pose(), T_grasp, b) or watch.floor:
                 raise EpisodeFailed(watch.blocked())
             ctl.target = ep.wc.gripper_pose()
@@ -363,8 +371,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
         clear = max(area.top, box.top_z) + b.wall_margin  # the part's bottom above both boxes' walls
         T_lift = ctl.target.copy()  # the grasp, or where a neighbour stopped the hand above it
         T_lift[2, 3] += max(clear - bottom_est, ep.cfg.scoring.lift_min)
-        ctl.move(T_lift, until=watch.stop)
-        watch.check()
+        ctl.move(T_lift)
         att.grasped = bool(_bottoms(ep.wc)[k - 1] >= area.top + 0.5 * b.wall_margin and ctl.finger_contacts(k).any())
         if not att.grasped:
             raise EpisodeFailed(Failure.SLIP)
@@ -373,8 +380,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
         double = bool(np.any(rose > b.double_rise))
         ep.log.stop("lift", ctl, add=True)
         T_drop = _swung(T_lift, np.asarray(box.center) + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3]))
-        ctl.move(T_drop, speed=g_cfg.carry_speed, until=watch.stop)
-        watch.check()
+        ctl.move(T_drop, speed=g_cfg.carry_speed)
         if not ctl.finger_contacts(k).any():
             raise EpisodeFailed(Failure.DROP)
         ctl.release(k, opening, g_cfg.release_time)
@@ -404,8 +410,10 @@ def _swung(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def _open_and_retreat(ep: Episode, area: Area) -> None:
-    """Open the hand wide and raise it straight up above the walls (after a failed pick, before the look)."""
+    """Open the hand wide and raise it straight up above the walls from where it is (after a failed pick, before the
+    look): a hand stopped by a wall or a part lags its target, and a move from the target would drag it across."""
     ctl = ep.ctl
+    ctl.target = ep.wc.gripper_pose()
     ctl.preshape(ep.cfg.grasp.max_width + ep.cfg.grasp.finger_margin, ctl.cfg.release_speed)
     ctl.hold(0.2)
     T = ctl.target.copy()

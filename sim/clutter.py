@@ -55,6 +55,9 @@ class ClutterConfig:
     wave_size: int = field(default=12, metadata=within(1, 200))
     #: Extra waves that drop again the parts that came to rest out of place.
     max_redrops: int = field(default=4, metadata=within(0, 100))
+    #: Drops of the whole scene, from the same generator, before it counts as unsettled: a wave that never settles
+    #: (a cylinder on its side rolls on: the contacts have no rolling resistance) starts the scene again.
+    draws: int = field(default=5, metadata=within(1, 100))
 
 
 @dataclass(frozen=True)
@@ -222,7 +225,7 @@ def build_clutter_scene(workcell: Workcell, kind: str, cfg: ClutterConfig,
     Each wave must settle (``settle_heap``) within ``settle_timeout`` of its drop. Parts that come to rest out of
     place (``in_place``: over or outside the walls, pushed there by a later wave too) go back and drop again in a
     later wave, ``max_redrops`` such waves at most; a wave that does not settle, or parts still out of place
-    then, raise SceneUnsettled.
+    then, start the scene again (the generator drawn on), ``draws`` times at most before SceneUnsettled.
 
     ``workcell`` comes from ``clutter_workcell(…, kind, …)`` (a bin's has the tote). The scene is the same for the
     same ``seed`` (or generator state), settings and MuJoCo version; velocities and time are zeroed at the end.
@@ -230,6 +233,21 @@ def build_clutter_scene(workcell: Workcell, kind: str, cfg: ClutterConfig,
     if (kind == "bin") != bool(tote_geoms(workcell.model).size):
         raise ValueError(f"a {kind} scene needs a workcell from clutter_workcell(..., {kind!r}, ...)")
     rng = np.random.default_rng(seed)
+    for draw in range(cfg.draws):
+        try:
+            waves, sim_time = _drop_waves(workcell, kind, cfg, rng)
+            break
+        except SceneUnsettled as e:
+            if draw == cfg.draws - 1:
+                raise SceneUnsettled(f"{e} (the last of {cfg.draws} draws of the scene)") from None
+    workcell.data.qvel[:] = 0.0
+    workcell.data.time = 0.0
+    return SettledClutter(list(zip([b.block for b in workcell.blocks], workcell.block_poses())), waves, sim_time)
+
+
+def _drop_waves(workcell: Workcell, kind: str, cfg: ClutterConfig, rng: np.random.Generator) -> tuple[int, float]:
+    """One draw of ``build_clutter_scene``: every part parked, then dropped in waves; the waves and their simulated
+    settling time (s); SceneUnsettled when a wave does not settle or parts stay out of place."""
     tote = tote_of(workcell.cfg, cfg)
     n = len(workcell.blocks)
     workcell.reset(workcell.arm_q)
@@ -260,6 +278,4 @@ def build_clutter_scene(workcell: Workcell, kind: str, cfg: ClutterConfig,
     if pending:
         raise SceneUnsettled(f"{len(pending)} of the {n} parts of a {kind} scene still came to rest out of place "
                            f"after {waves} waves; use fewer parts or a larger tote")
-    workcell.data.qvel[:] = 0.0
-    workcell.data.time = 0.0
-    return SettledClutter(list(zip([b.block for b in workcell.blocks], workcell.block_poses())), waves, sim_time)
+    return waves, sim_time

@@ -14,8 +14,8 @@ from rich.console import Console
 from helpers import run_cli, success_floor
 from posegrasp.catalog import load_catalog
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
-from posegrasp.grasping.bin_picking import (_clear_of, _look, _stopped_near, area_of, choose_part, empty_tote,
-                                            pick_and_drop, tally)
+from posegrasp.grasping.bin_picking import (_Contacts, _clear_of, _look, _stopped_near, area_of, choose_part,
+                                            empty_tote, pick_and_drop, tally)
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison
 from posegrasp.grasping.config import TrialConfig, with_set
@@ -31,6 +31,7 @@ from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick import BinPickConfig, bin_workcell, outbox_of
 from posegrasp.grasping.trials import run_trials
 from posegrasp.sim.clutter import ClutterConfig, settle_heap
+from posegrasp.sim.tote import WALLS
 from posegrasp.sim.workcell import BlockInstance
 
 CAT = load_catalog()
@@ -96,6 +97,52 @@ def test_a_part_riding_on_the_target_is_two_parts_lifted():
     with pytest.raises(EpisodeFailed) as e:
         pick_and_drop(ep, plan, area_of(ep.wc, cfg.bin_pick), outbox_of(ep.wc.cfg, cfg.bin_pick), Attempt(0))
     assert e.value.reason == Failure.DOUBLE_PICK
+
+
+def test_a_hand_that_contacts_turn_from_straight_down_is_a_protective_stop():
+    cfg = _cfg()
+    c = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.center
+    ep = _episode(cfg, ["cube"], [_flat("cube", c)])
+    m, wc = ep.wc.model, ep.wc
+    watch = _Contacts(ep, np.array([m.geom(f"tote/{w}").id for w in WALLS]), np.array([m.geom("table").id]), 1)
+    watch()  # at the look the camera points down and the hand is turned 12 deg: not a stop before the pre-grasp
+    watch.down = True
+    down = make_T(np.diag([1.0, -1.0, -1.0]), (c[0], c[1], 0.15))
+    for tilt_deg, stops in ((cfg.bin_pick.tilt_stop_deg - 3.0, False), (cfg.bin_pick.tilt_stop_deg + 3.0, True)):
+        T = down.copy()
+        T[:3, :3] = axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(tilt_deg)) @ down[:3, :3]
+        q, dp, _ = wc.solve_gripper_ik(T, wc.arm_q)
+        assert dp < 1e-3
+        wc.reset(q)
+        if stops:
+            with pytest.raises(EpisodeFailed) as e:
+                watch()
+            assert e.value.reason == Failure.COLLISION
+        else:
+            watch()
+
+
+def test_a_looser_part_clearance_is_tried_only_when_no_part_has_a_grasp_at_the_stricter():
+    cfg = _cfg(1)
+    c = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.center
+    ep = _episode(cfg, ["cube"], [_flat("cube", c)])
+    T_world_cam, T = ep.T_world_cam(), ep.wc.block_poses()[0]
+    ests = [Estimate(CAT["cube"].obj_id, np.linalg.inv(T_world_cam) @ T, 1.0)]
+    half = 0.5 * float(np.ptp(CAT["cube"].vertices[:, 0])) + 0.012  # a ring of depth points 12 mm from its faces
+    u = np.arange(-half, half + 1e-9, 0.003)
+    side = np.concatenate([np.stack([u, np.full_like(u, s)], 1) for s in (-half, half)]
+                          + [np.stack([np.full_like(u, s), u], 1) for s in (-half, half)])
+    ring = np.concatenate([np.column_stack([side + T[:2, 3], np.full(len(side), z)]) for z in (0.015, 0.025, 0.035)])
+    g_cfg = dataclasses.replace(cfg.grasp, min_pinch_height=0.01 + cfg.grasp.min_pinch_height,
+                                finger_margin=cfg.bin_pick.finger_margin, clearance_min=-0.05)
+    tight = max(g.clearance for g in plan_grasps(CAT["cube"], T, ring, g_cfg, 0.0))
+    assert tight < 0.0  # every grasp's open fingers reach into the ring
+    strict = _cfg(1, part_clearance=(tight + 0.002,))
+    with pytest.raises(EpisodeFailed) as e:
+        choose_part(ep.wc, strict, ests, T_world_cam, ring, 0.0)
+    assert e.value.reason == Failure.NOTHING_GRASPABLE
+    tiers = _cfg(1, part_clearance=(tight + 0.002, tight - 0.002))
+    assert choose_part(ep.wc, tiers, ests, T_world_cam, ring, 0.0)[1].clearance >= tight - 0.002
 
 
 def test_the_hand_closes_where_a_neighbour_stopped_it_only_just_above_the_grasp():
@@ -266,8 +313,10 @@ def test_bad_bin_pick_input_is_one_line_and_writes_nothing(tmp_path, args, messa
 @pytest.mark.parametrize("toml, args, message", [
     ("[grasp]\nmax_width = 0.02\n", [], "wider than the hand opens"),
     ("[bin_pick.clutter]\nmax_parts = 100\n", ["--blocks", "40"], "do not fit the tote"),
+    ("[bin_pick]\npart_clearance = []\n", [], "bin_pick.part_clearance must be one or more distances"),
+    ("[bin_pick]\npart_clearance = [0.0, 0.5]\n", [], "bin_pick.part_clearance must be one or more distances"),
 ])
-def test_parts_too_big_for_the_hand_or_too_many_for_the_tote_are_refused(tmp_path, toml, args, message):
+def test_parts_too_big_for_the_hand_too_many_for_the_tote_or_bad_clearances_are_refused(tmp_path, toml, args, message):
     (tmp_path / "c.toml").write_text(toml)
     out = tmp_path / "run"
     r = run_cli("trials", "--task", "bin-pick", "--config", str(tmp_path / "c.toml"), *args, "--episodes", "1",

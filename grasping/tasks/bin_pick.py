@@ -78,8 +78,9 @@ class BinPickConfig:
     #: The fingers open this much wider than the part they grasp (m; ``grasp.finger_margin`` on the table).
     finger_margin: float = field(default=0.01, metadata=within(0.0, 0.1))
     #: The open hand keeps this distance (m) from the other parts' estimated surfaces and the depth image's points
-    #: (negative: it may push into the heap that far); from the walls it keeps ``grasp.clearance_min``.
-    part_clearance: float = field(default=-0.015, metadata=within(-0.05, 0.1))
+    #: (negative: it may push into the heap that far); from the walls it keeps ``grasp.clearance_min``. Tried in
+    #: order: the next, looser value only when no part has a grasp (or none reachable) at the one before.
+    part_clearance: tuple[float, ...] = (-0.008, -0.015)
     #: A grasp whose open fingers would touch a wall is tried again with the hand moved this far (m) along the
     #: gripper y axis (nearest first), the part sitting off-centre in the hand ...
     wall_shifts: tuple[float, ...] = (-0.024, -0.02, -0.016, -0.012, -0.008, -0.004, 0.004, 0.008, 0.012, 0.016, 0.02,
@@ -94,6 +95,9 @@ class BinPickConfig:
     close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))
     #: ... and this far (m) beside it; else the attempt fails ("collision").
     close_slack_side: float = field(default=0.012, metadata=within(0.0, 0.1))
+    #: A protective stop: a pick ends ("collision") when contacts turn the hand this far (deg) from pointing straight
+    #: down (a fingertip caught on the floor or a part while the arm pushes on: the hand pivots about it).
+    tilt_stop_deg: float = field(default=15.0, metadata=within(1.0, 90.0))
     #: A grasp that failed is not tried again: no grasp within this distance (m) of its pose ...
     retry_distance: float = field(default=0.01, metadata=within(0.0, 1.0))
     #: ... and this angle (deg) of its squeeze axis.
@@ -221,6 +225,9 @@ class BinPickTask:
         lo, hi = b.clutter.parts
         if not 1 <= lo <= hi:
             raise ConfigError(f"bin_pick.clutter.parts must be 1 <= min <= max, got {list(b.clutter.parts)}")
+        if not b.part_clearance or not all(-0.05 <= c <= 0.1 for c in b.part_clearance):
+            raise ConfigError(f"bin_pick.part_clearance must be one or more distances (m) in [-0.05, 0.1], got "
+                              f"{list(b.part_clearance)}")
         types = task_types(cfg)
         too_big = [t.name for t in types if float(np.min(t.extents)) > cfg.grasp.max_width]
         if too_big:
