@@ -64,9 +64,11 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             return None
         return _coerce(args[0], value, where)
     if origin in (tuple, list):
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
         args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            if origin is not tuple or args[1:] != (Ellipsis,) or isinstance(value, dict):
+                raise ConfigError(f"{where}: expected a list, got {value!r}")
+            value = [value]  # one value of a setting that takes several (a campaign.json written before it did)
         inner = args[0] if args else Any
         out = [_coerce(inner, v, where) for v in value]
         return tuple(out) if origin is tuple else out

@@ -13,6 +13,8 @@ from rich.console import Console
 
 from helpers import run_cli, success_floor
 from posegrasp.catalog import load_catalog
+from posegrasp.config import from_dict
+from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.bin_picking import (_Contacts, _clear_of, _look, _stopped_near, area_of, choose_part,
                                             empty_tote, pick_and_drop, tally)
@@ -323,3 +325,12 @@ def test_parts_too_big_for_the_hand_too_many_for_the_tote_or_bad_clearances_are_
                 "--out", str(out))
     assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not out.exists()
+
+
+def test_one_number_is_a_one_value_part_clearance_and_a_fixed_pair_still_needs_two():
+    """A campaign.json written when ``part_clearance`` was one number still loads (compare, report, resume)."""
+    b = from_dict(BinPickConfig, {"part_clearance": -0.015})
+    assert b.part_clearance == (-0.015,)
+    with pytest.raises(ConfigError, match="expected a list"):
+        from_dict(ClutterConfig, {"parts": 12})
+
