@@ -165,9 +165,9 @@ def _tried(grasp: Grasp, failed: list[np.ndarray], b: BinPickConfig) -> bool:
 def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
                 yaw_now: float, failed: list[np.ndarray] = ()) -> tuple[int, Grasp, np.ndarray]:
     """The estimate to pick (index), its grasp and its levelled ``T_world_obj`` among the estimates in the tote,
-    none of the grasps that ``failed`` before (``_tried``); ``EpisodeFailed``: "nothing graspable" when no part has
-    a clear grasp, "unreachable" when the IK reaches none. ``heap``: the depth image's points on the heap
-    (``heap_points``)."""
+    none of the grasps that ``failed`` before (``_tried``), at the first of ``part_clearance`` that gives a
+    reachable grasp; ``EpisodeFailed``: "nothing graspable" when no part has a clear grasp at any, "unreachable"
+    when the IK reaches none. ``heap``: the depth image's points on the heap (``heap_points``)."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
     area = area_of(wc, b)
     cat = catalog_by_id(wc.cfg.objects)
