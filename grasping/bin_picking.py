@@ -202,7 +202,9 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
             grasps = [g for g0 in plan_grasps(cat[ests[j].obj_id], poses[j], others, plan_cfg, yaw_now,
                                               yaw_stable=holds_firmly(cfg))
                       for g in ([g0] if clear_of_walls(g0) else
-                                _shifted(g0, own.data, others, b, clearance, shifted_clear))
+                                _shifted(g0, own.data, others, b, clearance, shifted_clear)
+                                or _tilted(g0, own.data, others, b, clearance, shifted_clear, wc.cfg, area.floor,
+                                           g_cfg.score.tilt))
                       if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
                       and _clear_of(g, own.data, hand_boxes((g.width + b.finger_margin) / 2)[:3], 0.0)
                       ][:g_cfg.grasps_per_block]
@@ -220,28 +222,59 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
     raise EpisodeFailed(Failure.UNREACHABLE if seen_any else Failure.NOTHING_GRASPABLE)
 
 
+def _pad_overlap(T: np.ndarray, width: float, own: np.ndarray) -> tuple[float, float]:
+    """With the hand at ``T`` (world gripper) open on a part ``width`` (m) across, how far (m) along the gripper y
+    axis the part's contact faces (its surface points ``own``, world, within the pads' height ``CONTACT_BAND``)
+    meet finger 1's pad and the better of finger 2's and finger 3's (0 where a face is missing)."""
+    local = (own - T[:3, 3]) @ T[:3, :3]
+    band = (local[:, 2] > CONTACT_BAND[0]) & (local[:, 2] < CONTACT_BAND[1])
+    faces = [local[band & (s * local[:, 0] > width / 2 - ON_PLANE_TOL), 1] for s in (1.0, -1.0)]
+    return tuple(max((min(f.max(), y1) - max(f.min(), y0) for y0, y1 in spans), default=0.0) if len(f) else 0.0
+                 for f, spans in zip(faces, (FINGER1_Y, FINGER23_Y)))
+
+
 def _shifted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig, clearance: float,
              clear: Callable[[Grasp], bool]) -> list[Grasp]:
     """``grasp`` with the hand moved along its y axis by each of ``wall_shifts`` (nearest first) where it is
     ``clear`` of the walls, the open hand keeps ``clearance`` (m) from the ``others`` points, and the part's
-    contact faces (its surface points ``own``, world) still meet finger 1's pad and finger 2's or finger 3's by
-    ``shift_contact`` (m) along y: the part sits off-centre in the hand, away from the wall that the fingers'
-    sides would touch."""
+    contact faces still meet the pads by ``shift_contact`` (``_pad_overlap``): the part sits off-centre in the hand, away from the wall
+    that the fingers' sides would touch."""
     out = []
-    half, o = grasp.width / 2, (grasp.width + b.finger_margin) / 2
+    o = (grasp.width + b.finger_margin) / 2
     for d in sorted(b.wall_shifts, key=abs):
         T = grasp.T_world_gripper.copy()
         T[:3, 3] += d * T[:3, 1]
         g = dataclasses.replace(grasp, T_world_gripper=T)
-        local = (own - T[:3, 3]) @ T[:3, :3]
-        band = (local[:, 2] > CONTACT_BAND[0]) & (local[:, 2] < CONTACT_BAND[1])
-        faces = [local[band & (s * local[:, 0] > half - ON_PLANE_TOL), 1] for s in (1.0, -1.0)]
-        if not all(len(f) for f in faces):
-            continue
-        meets = [[min(f.max(), y1) - max(f.min(), y0) >= b.shift_contact for y0, y1 in spans]
-                 for f, spans in zip(faces, (FINGER1_Y, FINGER23_Y))]
-        if any(meets[0]) and any(meets[1]) and clear(g) and _clear_of(g, others, hand_boxes(o), clearance):
+        if min(_pad_overlap(T, grasp.width, own)) >= b.shift_contact and clear(g) \
+                and _clear_of(g, others, hand_boxes(o), clearance):
             out.append(g)
+    return out
+
+
+def _tilted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig, clearance: float,
+            clear: Callable[[Grasp], bool], wc_cfg, floor: float, per_deg: float) -> list[Grasp]:
+    """``grasp`` with the hand turned about its pinch point by the least of ``wall_tilts_deg`` that gives any,
+    about its squeeze axis x or its y axis, either way (the hand's top leaning away from a wall, its fingertips
+    reaching under the part's side toward it), and raised until the open fingers keep ``tilt_floor_clearance``
+    above the floor (``floor``, m): those ``clear`` of the walls, ``clearance`` (m) from the ``others`` points
+    and whose pads meet the contact faces as far as the untilted grasp's (up to ``shift_contact``; ``_pad_overlap``).
+    Their score loses ``per_deg`` per degree of tilt. A tilt about y
+    tilts the squeeze from the horizontal: within the friction cone for ``wall_tilts_deg`` up to about 35 deg."""
+    o = (grasp.width + b.finger_margin) / 2
+    tips = open_finger_points(wc_cfg, round(2000 * o))
+    T0, out = grasp.T_world_gripper, []
+    need = np.minimum(_pad_overlap(T0, grasp.width, own), b.shift_contact) - ON_PLANE_TOL
+    for deg in sorted(b.wall_tilts_deg):
+        for axis in (T0[:3, 0], -T0[:3, 0], T0[:3, 1], -T0[:3, 1]):
+            T = T0.copy()
+            T[:3, :3] = axis_angle_R(axis, np.radians(deg)) @ T0[:3, :3]
+            T[2, 3] += max(0.0, floor + b.tilt_floor_clearance - float(transform_points(T, tips)[:, 2].min()))
+            g = dataclasses.replace(grasp, T_world_gripper=T, score=grasp.score - per_deg * deg)
+            if np.all(_pad_overlap(T, grasp.width, own) >= need) and clear(g) \
+                    and _clear_of(g, others, hand_boxes(o), clearance):
+                out.append(g)
+        if out:
+            return out
     return out
 
 
@@ -302,16 +335,17 @@ def visible_fraction(ep: Episode, frame: Frame, k: int) -> float | None:
 class _Contacts:
     """Control-period monitor: has the robot touched the floor or the table (``floor``) or another part than the
     target ``k`` (``parts``)? A protective stop (``EpisodeFailed``, raised in the control period, the arm stopping
-    where it is) when it touches the tote's walls ("hit the wall") or, once ``down`` (at the pre-grasp: every move
-    of a pick from there keeps the hand pointing straight down), contacts turn the hand more than ``tilt_stop_deg``
-    from straight down ("collision")."""
+    where it is) when it touches the tote's walls ("hit the wall") or, while it has an ``approach`` axis (from the
+    pre-grasp to the lift: those moves keep the hand's orientation), contacts turn the hand more than
+    ``tilt_stop_deg`` from it ("collision")."""
 
     def __init__(self, ep: Episode, walls: np.ndarray, floors: np.ndarray, k: int):
         self.ep, self.walls, self.floors = ep, walls, floors
         inst = ep.wc.geom_instance[:-1]
         self.others = np.flatnonzero((inst > 0) & (inst != k))
         self.cos_tilt = float(np.cos(np.radians(ep.cfg.bin_pick.tilt_stop_deg)))
-        self.floor = self.parts = self.down = False
+        self.floor = self.parts = False
+        self.approach: np.ndarray | None = None  # the grasp's approach axis (world), once at the pre-grasp
 
     def __call__(self) -> None:
         d = self.ep.wc.data
@@ -324,7 +358,7 @@ class _Contacts:
             self.parts |= touch[2]
             if touch[0]:
                 raise EpisodeFailed(Failure.WALL_HIT)
-        if self.down and -d.site_xmat[self.ep.wc.gripper_site][8] < self.cos_tilt:  # approach axis against down
+        if self.approach is not None and d.site_xmat[self.ep.wc.gripper_site][2::3] @ self.approach < self.cos_tilt:
             raise EpisodeFailed(Failure.COLLISION)
 
     def blocked(self) -> Failure:
@@ -358,7 +392,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
     try:
         if not ctl.move(T_pre):
             raise EpisodeFailed(Failure.TIMEOUT)
-        watch.down = True
+        watch.approach = T_grasp[:3, 2]
         if not ctl.move(T_grasp, speed=g_cfg.approach_speed):
             if not _stopped_near(ep.wc.gripper_pose(), T_grasp, b) or watch.floor:
                 raise EpisodeFailed(watch.blocked())
@@ -379,6 +413,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
         rose[k - 1] = 0.0
         double = bool(np.any(rose > b.double_rise))
         ep.log.stop("lift", ctl, add=True)
+        watch.approach = None  # the carry turns the hand about the vertical with the arm's base
         T_drop = _swung(T_lift, np.asarray(box.center) + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3]))
         ctl.move(T_drop, speed=g_cfg.carry_speed)
         if not ctl.finger_contacts(k).any():

@@ -90,13 +90,19 @@ class BinPickConfig:
     #: ... and the fingers and the camera keep this far (m) from the walls (more than ``grasp.clearance_min``:
     #: neighbours push the descending fingers sideways, and off-centre they are nearer a wall).
     shift_clearance: float = field(default=0.008, metadata=within(0.0, 0.05))
+    #: A grasp that no shift clears of the walls is tried again with the hand turned about its pinch point by the
+    #: least of these (deg) that clears it (about the squeeze axis or across it, its top leaning away from the wall;
+    #: its score losing ``grasp.score.tilt`` per degree) ...
+    wall_tilts_deg: tuple[float, ...] = (10.0, 20.0)
+    #: ... raised until the open fingers keep this far (m) above the floor.
+    tilt_floor_clearance: float = field(default=0.002, metadata=within(0.0, 0.05))
     #: A neighbour that stops the hand on its way down to the grasp (a guarded move): the fingers close where the hand
     #: stopped if its pinch point stands at most this far (m) above the grasp ...
     close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))
     #: ... and this far (m) beside it; else the attempt fails ("collision").
     close_slack_side: float = field(default=0.012, metadata=within(0.0, 0.1))
-    #: A protective stop: a pick ends ("collision") when contacts turn the hand this far (deg) from pointing straight
-    #: down (a fingertip caught on the floor or a part while the arm pushes on: the hand pivots about it).
+    #: A protective stop: a pick ends ("collision") when contacts turn the hand this far (deg) from the grasp's
+    #: approach (a fingertip caught on the floor or a part while the arm pushes on: the hand pivots about it).
     tilt_stop_deg: float = field(default=15.0, metadata=within(1.0, 90.0))
     #: A grasp that failed is not tried again: no grasp within this distance (m) of its pose ...
     retry_distance: float = field(default=0.01, metadata=within(0.0, 1.0))
@@ -228,6 +234,8 @@ class BinPickTask:
         if not b.part_clearance or not all(-0.05 <= c <= 0.1 for c in b.part_clearance):
             raise ConfigError(f"bin_pick.part_clearance must be one or more distances (m) in [-0.05, 0.1], got "
                               f"{list(b.part_clearance)}")
+        if not all(0.0 < t <= 45.0 for t in b.wall_tilts_deg):
+            raise ConfigError(f"bin_pick.wall_tilts_deg must be angles (deg) in (0, 45], got {list(b.wall_tilts_deg)}")
         types = task_types(cfg)
         too_big = [t.name for t in types if float(np.min(t.extents)) > cfg.grasp.max_width]
         if too_big:
