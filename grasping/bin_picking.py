@@ -11,8 +11,9 @@ the other estimates' surfaces and the depth image's points above the floor (less
 surface: they are the target); the open fingers must not land on the target's own estimated surface either (an
 L-block's other leg: the descending finger shoves the part away). A grasp whose open fingers would reach a wall
 is moved along the gripper's y axis (``wall_shifts``), the part off-centre in the hand, while the part's contact
-faces still meet the pads (a part lying against a wall). Its pinch stays ``grasp.min_pinch_height``
-above the floor; the approach starts above the walls. Among the parts, highest first, the best grasps of
+faces still meet the pads (a part lying against a wall); one that no shift clears is tilted 10 or 20 deg about
+its pinch point (``wall_tilts_deg``), the hand's top leaning away from the wall. Its pinch stays
+``grasp.min_pinch_height`` above the floor; the approach starts above the walls and comes straight down. Among the parts, highest first, the best grasps of
 ``plan_parts`` parts compete (score plus ``height_weight`` per metre of the part's top); the first that passes the
 IK check is taken. ``part_clearance`` holds several distances, strictest first: a looser one is tried only when no
 part has a reachable grasp at the stricter (a finger that lands on a neighbour stalls there, and the fingers
@@ -20,7 +21,7 @@ opposite push the part away: clean grasps first, a shove into the heap only when
 
 The robot judges only from what it perceives: it stops when it sees no part in the tote and the depth image shows
 nothing above the floor. The verdicts of an attempt use the simulator's truth: a robot touching the tote's walls
-(a protective stop: "hit the wall"; so is a hand that contacts turn ``tilt_stop_deg`` from straight down,
+(a protective stop: "hit the wall"; so is a hand that contacts turn ``tilt_stop_deg`` from the grasp's approach,
 "collision"), another part rising with the target ("two parts lifted"), a part leaving the
 tote elsewhere than into the out-box ("part thrown out"), the target not landing in the out-box ("misplaced").
 """
@@ -233,20 +234,26 @@ def _pad_overlap(T: np.ndarray, width: float, own: np.ndarray) -> tuple[float, f
                  for f, spans in zip(faces, (FINGER1_Y, FINGER23_Y)))
 
 
+def _fits(g: Grasp, need: float | np.ndarray, own: np.ndarray, others: np.ndarray, clearance: float,
+          clear: Callable[[Grasp], bool], margin: float) -> bool:
+    """Does a moved grasp ``g`` still hold: the part's contact faces (surface points ``own``, world) meet the pads
+    by ``need`` (m; finger 1, fingers 2 or 3: ``_pad_overlap``), it is ``clear`` of the walls and the hand, open
+    ``margin`` (m) wider than the part, keeps ``clearance`` (m) from the ``others`` points?"""
+    return bool(np.all(np.asarray(_pad_overlap(g.T_world_gripper, g.width, own)) >= need)) and clear(g) \
+        and _clear_of(g, others, hand_boxes((g.width + margin) / 2), clearance)
+
+
 def _shifted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig, clearance: float,
              clear: Callable[[Grasp], bool]) -> list[Grasp]:
-    """``grasp`` with the hand moved along its y axis by each of ``wall_shifts`` (nearest first) where it is
-    ``clear`` of the walls, the open hand keeps ``clearance`` (m) from the ``others`` points, and the part's
-    contact faces still meet the pads by ``shift_contact`` (``_pad_overlap``): the part sits off-centre in the hand, away from the wall
-    that the fingers' sides would touch."""
+    """``grasp`` with the hand moved along its y axis by each of ``wall_shifts`` (nearest first) where it still
+    ``_fits`` (the pads meeting the faces by ``shift_contact``): the part sits off-centre in the hand, away from the
+    wall that the fingers' sides would touch."""
     out = []
-    o = (grasp.width + b.finger_margin) / 2
     for d in sorted(b.wall_shifts, key=abs):
         T = grasp.T_world_gripper.copy()
         T[:3, 3] += d * T[:3, 1]
         g = dataclasses.replace(grasp, T_world_gripper=T)
-        if min(_pad_overlap(T, grasp.width, own)) >= b.shift_contact and clear(g) \
-                and _clear_of(g, others, hand_boxes(o), clearance):
+        if _fits(g, b.shift_contact, own, others, clearance, clear, b.finger_margin):
             out.append(g)
     return out
 
@@ -256,12 +263,10 @@ def _tilted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig,
     """``grasp`` with the hand turned about its pinch point by the least of ``wall_tilts_deg`` that gives any,
     about its squeeze axis x or its y axis, either way (the hand's top leaning away from a wall, its fingertips
     reaching under the part's side toward it), and raised until the open fingers keep ``tilt_floor_clearance``
-    above the floor (``floor``, m): those ``clear`` of the walls, ``clearance`` (m) from the ``others`` points
-    and whose pads meet the contact faces as far as the untilted grasp's (up to ``shift_contact``; ``_pad_overlap``).
-    Their score loses ``per_deg`` per degree of tilt. A tilt about y
-    tilts the squeeze from the horizontal: within the friction cone for ``wall_tilts_deg`` up to about 35 deg."""
-    o = (grasp.width + b.finger_margin) / 2
-    tips = open_finger_points(wc_cfg, round(2000 * o))
+    above the ``floor`` (m), where it still ``_fits`` (the pads meeting the faces as far as the untilted grasp's, up
+    to ``shift_contact``); their score loses ``per_deg`` per degree. A tilt about y tilts the squeeze from the
+    horizontal by as much: the contacts' friction bears it (``wall_tilts_deg`` up to 40 deg)."""
+    tips = open_finger_points(wc_cfg, round(1000 * (grasp.width + b.finger_margin)))
     T0, out = grasp.T_world_gripper, []
     need = np.minimum(_pad_overlap(T0, grasp.width, own), b.shift_contact) - ON_PLANE_TOL
     for deg in sorted(b.wall_tilts_deg):
@@ -270,8 +275,7 @@ def _tilted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig,
             T[:3, :3] = axis_angle_R(axis, np.radians(deg)) @ T0[:3, :3]
             T[2, 3] += max(0.0, floor + b.tilt_floor_clearance - float(transform_points(T, tips)[:, 2].min()))
             g = dataclasses.replace(grasp, T_world_gripper=T, score=grasp.score - per_deg * deg)
-            if np.all(_pad_overlap(T, grasp.width, own) >= need) and clear(g) \
-                    and _clear_of(g, others, hand_boxes(o), clearance):
+            if _fits(g, need, own, others, clearance, clear, b.finger_margin):
                 out.append(g)
         if out:
             return out

@@ -234,8 +234,8 @@ class BinPickTask:
         if not b.part_clearance or not all(-0.05 <= c <= 0.1 for c in b.part_clearance):
             raise ConfigError(f"bin_pick.part_clearance must be one or more distances (m) in [-0.05, 0.1], got "
                               f"{list(b.part_clearance)}")
-        if not all(0.0 < t <= 45.0 for t in b.wall_tilts_deg):
-            raise ConfigError(f"bin_pick.wall_tilts_deg must be angles (deg) in (0, 45], got {list(b.wall_tilts_deg)}")
+        if not all(0.0 < t <= 40.0 for t in b.wall_tilts_deg):
+            raise ConfigError(f"bin_pick.wall_tilts_deg must be angles (deg) in (0, 40], got {list(b.wall_tilts_deg)}")
         types = task_types(cfg)
         too_big = [t.name for t in types if float(np.min(t.extents)) > cfg.grasp.max_width]
         if too_big:
