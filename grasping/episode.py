@@ -164,8 +164,15 @@ def further_seed(task: EpisodeTask, j: int) -> int:
 
 def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
     """The episode's settled scene for its task (``Task.scene``, settled with the scene defaults), then the trial's
-    contact and solver settings (the tasks that hold firmly, ``config.holds_firmly``: noslip and sleeping islands)."""
+    contact and solver settings (``trial_physics``)."""
     wc = get_task(cfg.task).scene(cfg, scene_seed, n_blocks, functools.partial(clear_grasp, cfg.grasp))
+    trial_physics(wc, cfg)
+    return wc
+
+
+def trial_physics(wc: Workcell, cfg: TrialConfig) -> None:
+    """Set the trial's contact and solver settings on a settled scene ``wc``: the supports' contact time constant,
+    the friction cones, and for the tasks that hold firmly (``config.holds_firmly``) noslip and sleeping islands."""
     for name in ("table", "place_pad"):  # solmix: their contacts with the blocks take their solref
         g = wc.model.geom(name).id
         wc.model.geom_solref[g, 0], wc.model.geom_solmix[g] = cfg.support_timeconst, 1e3
@@ -176,7 +183,6 @@ def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workce
         if cfg.firm_hold.sleep:
             wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
             wc.model.opt.sleep_tolerance = cfg.firm_hold.sleep_tolerance
-    return wc
 
 
 def clear_grasp(g_cfg: GraspConfig, wc: Workcell, k: int) -> bool:

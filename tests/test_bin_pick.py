@@ -22,7 +22,7 @@ from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison
 from posegrasp.grasping.config import TrialConfig, with_set
 from posegrasp.grasping.controller import ArmController
-from posegrasp.grasping.episode import Episode, EpisodeTask, _Log, run_episode
+from posegrasp.grasping.episode import Episode, EpisodeTask, _Log, run_episode, trial_physics
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.grasps import plan_grasps, surface_points
 from posegrasp.grasping.hand import hand_boxes
@@ -47,12 +47,13 @@ def _cfg(parts: int = 3, **bin_pick) -> TrialConfig:
 
 def _episode(cfg: TrialConfig, names: list[str], poses: list[np.ndarray]) -> Episode:
     """A bin-picking episode on a hand-made scene: the parts ``names`` set at ``poses`` in the tote and settled,
-    the arm at the look."""
+    the trial's physics (``trial_physics``: as a campaign's episodes), the arm at the look."""
     wc = bin_workcell(cfg, [BlockInstance(CAT[n], (0.8, 0.3, 0.2, 1.0)) for n in names])
     for k, T in enumerate(poses, start=1):
         wc.set_block_pose(k, T)
         wc.model.body_gravcomp[wc.block_body[k - 1]] = 0.0
     assert settle_heap(wc, cfg.bin_pick.clutter)
+    trial_physics(wc, cfg)
     mount = tuple(tuple(float(v) for v in r) for r in load_hand_eye(cfg.hand_eye))
     task = EpisodeTask(0, 0, "oracle", cfg, mount)
     ctl = ArmController(wc, cfg.control, wc.look_q)
@@ -207,13 +208,15 @@ def test_a_part_22_mm_from_a_wall_is_pinched_along_it_without_touching_it():
     assert _picked(ep, grasp)
 
 
-def test_a_part_8_mm_from_a_wall_is_pinched_off_centre_in_the_hand_without_touching_it():
-    ep, ests, T_world_cam = _cube_off_the_wall(0.008)
-    no_shift = dataclasses.replace(ep.cfg, bin_pick=dataclasses.replace(ep.cfg.bin_pick, wall_shifts=()))
+def test_a_part_12_mm_from_a_wall_is_pinched_off_centre_in_the_hand_without_touching_it():
+    ep, ests, T_world_cam = _cube_off_the_wall(0.012)
+    centred = dataclasses.replace(ep.cfg, bin_pick=dataclasses.replace(ep.cfg.bin_pick, wall_shifts=(),
+                                                                          wall_tilts_deg=()))
     with pytest.raises(EpisodeFailed) as e:
-        choose_part(ep.wc, no_shift, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+        choose_part(ep.wc, centred, ests, T_world_cam, np.zeros((0, 3)), 0.0)
     assert e.value.reason == Failure.NOTHING_GRASPABLE  # centred in the hand, the fingers' sides reach the wall
     _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    assert grasp.T_world_gripper[2, 2] < -0.999  # shifted, not tilted
     assert _picked(ep, grasp)
 
 
