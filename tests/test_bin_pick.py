@@ -297,8 +297,9 @@ def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path
             for a in r["attempts"] if a["target"]]
     assert (b["grasps"]["success"], b["grasps"]["n"]) == (sum(went), len(went)) == (b["picks"], len(went))
     assert "grasps (attempts that went for a part)" in printed
-    # 335 of 437 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes: docs/benchmarks.md)
-    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= success_floor(335, 437, b["attempts"]["n"]), b
+    # 354 of 464 oracle attempts succeeded (12 parts, bin, seed 0, 40 episodes: docs/benchmarks.md)
+    floor = success_floor(354, 464, b["attempts"]["n"])
+    assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= floor, b
     recs = {i: json.loads(line) for i, line in enumerate((tmp_path / "a" / EPISODES).read_text().splitlines())}
     r = compare_runs(recs, recs)
     assert r["bin_pick"]["percent_cleared"]["wilcoxon_p"] == 1.0 and not is_worse(r, 0.05)
