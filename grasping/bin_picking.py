@@ -13,9 +13,9 @@ L-block's other leg: the descending finger shoves the part away). A grasp whose 
 is moved along the gripper's y axis (``wall_shifts``), the part off-centre in the hand, while the part's contact
 faces still meet the pads (a part lying against a wall); one that no shift clears is tilted 10 or 20 deg about
 its pinch point (``wall_tilts_deg``), the hand's top leaning away from the wall. Its pinch stays
-``grasp.min_pinch_height`` above the floor; the approach starts above the walls and comes straight down. Among the parts, highest first, the best grasps of
-``plan_parts`` parts compete (score plus ``height_weight`` per metre of the part's top); the first that passes the
-IK check is taken. ``part_clearance`` holds several distances, strictest first: a looser one is tried only when no
+``grasp.min_pinch_height`` above the floor; the approach starts above the walls and comes straight down. Among
+the parts, highest first, the best grasps of ``plan_parts`` parts compete (score plus ``height_weight`` per metre of
+the part's top); the first that passes the IK check is taken. ``part_clearance`` holds several distances, strictest first: a looser one is tried only when no
 part has a reachable grasp at the stricter (a finger that lands on a neighbour stalls there, and the fingers
 opposite push the part away: clean grasps first, a shove into the heap only when nothing else is left).
 
