@@ -15,9 +15,10 @@ faces still meet the pads (a part lying against a wall); one that no shift clear
 its pinch point (``wall_tilts_deg``), the hand's top leaning away from the wall. Its pinch stays
 ``grasp.min_pinch_height`` above the floor; the approach starts above the walls and comes straight down. Among
 the parts, highest first, the best grasps of ``plan_parts`` parts compete (score plus ``height_weight`` per metre of
-the part's top); the first that passes the IK check is taken. ``part_clearance`` holds several distances, strictest first: a looser one is tried only when no
-part has a reachable grasp at the stricter (a finger that lands on a neighbour stalls there, and the fingers
-opposite push the part away: clean grasps first, a shove into the heap only when nothing else is left).
+the part's top); the first that passes the IK check is taken. ``part_clearance`` holds several distances,
+strictest first: a looser one is tried only when no part has a reachable grasp at the stricter (a finger that lands
+on a neighbour stalls there, and the fingers opposite push the part away: clean grasps first, a shove into the heap
+only when nothing else is left).
 
 The robot judges only from what it perceives: it stops when it sees no part in the tote and the depth image shows
 nothing above the floor. The verdicts of an attempt use the simulator's truth: a robot touching the tote's walls
