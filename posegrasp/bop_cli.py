@@ -1,4 +1,5 @@
-"""``posegrasp dataset check|show``: validate any BOP dataset, or draw one of its images with its labels."""
+"""``posegrasp dataset check|show|merge``: validate any BOP dataset, draw one of its images with its labels, or merge
+several into one."""
 
 from __future__ import annotations
 
@@ -29,6 +30,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="output image (.png, or .jpg)")
     s.add_argument("--split", default=None, help="split (default: the only one present)")
     s.set_defaults(run=run_show)
+    m = dsub.add_parser("merge", help="write a new BOP root holding the scenes of several, renumbered (to train on "
+                        "them together)")
+    m.add_argument("out", help="the new dataset root (must not exist)")
+    m.add_argument("sources", nargs="+", help="dataset roots, each ROOT or ROOT:SPLIT (default: its only split); "
+                   "all with the same models and camera.json")
+    m.add_argument("--split", default="train_pbr", help="the merged split's name (default train_pbr)")
+    m.set_defaults(run=run_merge)
 
 
 def run_check(args: argparse.Namespace) -> int:
@@ -62,4 +70,12 @@ def run_show(args: argparse.Namespace) -> int:
     except OSError as e:
         raise UserError(f"cannot write {args.out}: {e.strerror or e}") from None
     print(f"scene {args.scene} image {args.im} -> {args.out}")
+    return 0
+
+
+def run_merge(args: argparse.Namespace) -> int:
+    from posegrasp.bop_merge import merge_datasets, parse_source
+
+    n = merge_datasets(args.out, [parse_source(s) for s in args.sources], args.split)
+    print(f"{n} scenes from {len(args.sources)} datasets -> {args.out}/{args.split}")
     return 0

@@ -310,3 +310,36 @@ def test_check_requires_models_eval_models_info(capsys, copy, tmp_path):
     (bop.models_eval_dir(copy) / "models_info.json").unlink()
     _refused(capsys, copy, tmp_path / "out", "models_eval/models_info.json: missing; bop_toolkit's eval_bop19_pose.py",
              ("check",))
+
+
+def test_merge_renumbers_the_scenes_of_several_datasets_into_one_valid_root(capsys, dataset, tmp_path):
+    out = tmp_path / "merged"
+    assert main(["dataset", "merge", str(out), f"{dataset}:train_pbr", f"{dataset}:test"]) == 0
+    assert bop.list_scenes(out, "train_pbr") == [0, 1, 2]
+    for new, (split, old) in enumerate((("train_pbr", 0), ("train_pbr", 1), ("test", 0))):
+        for name in ("scene_gt.json", "scene_camera.json"):
+            assert (bop.scene_dir(out, "train_pbr", new) / name).read_bytes() == \
+                (bop.scene_dir(dataset, split, old) / name).read_bytes()
+    origin = json.loads((bop.split_dir(out, "train_pbr") / "merged_from.json").read_text())
+    assert [(o["split"], o["source_scene_id"]) for o in origin] == [("train_pbr", 0), ("train_pbr", 1), ("test", 0)]
+    capsys.readouterr()
+    assert main(["dataset", "check", str(out), "--split", "train_pbr"]) == 0
+
+
+@pytest.mark.parametrize("case, words", [("camera", "differs from"), ("split", "has no split 'val'"),
+                                         ("splits", "name one as"), ("exists", "already exists")])
+def test_merge_refuses_bad_sources_and_writes_nothing(capsys, copy, tmp_path, case, words):
+    out = tmp_path / "merged"
+    sources = {"camera": [f"{copy.parent / 'other'}:test"], "split": [f"{copy}:val"], "splits": [str(copy)],
+               "exists": [f"{copy}:test"]}[case]
+    if case == "camera":
+        other = Path(shutil.copytree(copy, copy.parent / "other"))
+        cam = json.loads(bop.camera_path(other).read_text())
+        _write(bop.camera_path(other), {**cam, "fx": cam["fx"] * 2})
+    if case == "exists":
+        out.mkdir()
+    before = snapshot(tmp_path)
+    rc = main(["dataset", "merge", str(out), f"{copy}:test", *sources])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0 and len(lines) == 1 and words in lines[0], lines
+    assert snapshot(tmp_path) == before

@@ -134,6 +134,11 @@ def test_dataset_show(small_disk, tmp_path, inputs):
                                 "0", "--out", "out/show.png"]), small_disk, tmp_path / "ref")
 
 
+def test_dataset_merge(small_disk, tmp_path, inputs):
+    full_disk_then_resume(Case(["dataset", "merge", "out", f"{inputs['data']}:train", f"{inputs['data']}:train"]),
+                          small_disk, tmp_path / "ref")
+
+
 def test_calibrate(small_disk, tmp_path):
     full_disk_then_resume(Case(["calibrate", "--out", "out/hand_eye.json", "--poses", "3"]), small_disk,
                           tmp_path / "ref")
