@@ -65,6 +65,7 @@ def merge_datasets(out: str | Path, sources: list[tuple[Path, str | None]], spli
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
         try:
+            os.chmod(tmp, 0o755)  # mkdtemp makes it private; the root it becomes is a dataset like any other
             for name in ("models", "models_eval"):
                 if (first / name).is_dir():
                     _copy_tree(first / name, tmp / name)
