@@ -6,7 +6,7 @@ the world with the calibrated mount (``Episode.T_world_cam``); the tote's and th
 workcell's, known. A grasp (``grasping.grasps.plan_grasps``, top-down) must keep the open fingers' meshes
 (``controller.open_finger_points``, open ``finger_margin`` wider than the part) and the camera's box
 (``hand.camera_box``) ``grasp.clearance_min`` from the tote's inner wall faces and rims, the open hand's boxes
-(``grasping.hand.hand_boxes``) ``part_clearance`` (negative: the fingers may push into the heap that far) from
+(``grasping.hand.Hand.boxes``) ``part_clearance`` (negative: the fingers may push into the heap that far) from
 the other estimates' surfaces and the depth image's points above the floor (less those on the target's estimated
 surface: they are the target); the open fingers must not land on the target's own estimated surface either (an
 L-block's other leg: the descending finger shoves the part away). A grasp whose open fingers would reach a wall
@@ -44,8 +44,7 @@ from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import ScoringConfig, TrialConfig, holds_firmly
 from posegrasp.grasping.controller import open_finger_points
 from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
-from posegrasp.grasping.hand import (CONTACT_BAND, FINGER1_Y, FINGER23_Y, ON_PLANE_TOL, camera_box,
-                                      hand_boxes)
+from posegrasp.grasping.hand import CONTACT_BAND, ON_PLANE_TOL, Hand, camera_box, hand_of
 from posegrasp.grasping.perception import Estimate, PerceptionError
 from posegrasp.grasping.record import Attempt, BinPickRecord, FalseTarget, Failure, Target
 from posegrasp.grasping.support import rest_on_table
@@ -177,7 +176,7 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
     tops = [float(transform_points(T, cat[e.obj_id].vertices)[:, 2].max()) for e, T in zip(ests, poses)]
     clouds = [transform_points(T, surface_points(cat[e.obj_id], g_cfg.neighbour_points)) for e, T in zip(ests, poses)]
     walls = wall_points(area.tote) if area.walls else np.zeros((0, 3))
-    cam = camera_box(wc.cfg.hand_camera.mount_pos)
+    cam, hand = camera_box(wc.cfg.hand_camera.mount_pos), hand_of(wc.cfg)
     reach = g_cfg.max_width / 2 + b.finger_margin + 0.1  # the open hand and camera lie within this of the part
 
     @functools.cache
@@ -202,13 +201,13 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
                 not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
             shifted_clear = lambda g: clear_of_walls(g, b.shift_clearance)  # noqa: E731
             grasps = [g for g0 in plan_grasps(cat[ests[j].obj_id], poses[j], others, plan_cfg, yaw_now,
-                                              yaw_stable=holds_firmly(cfg))
+                                              yaw_stable=holds_firmly(cfg), hand=hand)
                       for g in ([g0] if clear_of_walls(g0) else
-                                _shifted(g0, own.data, others, b, clearance, shifted_clear)
+                                _shifted(g0, own.data, others, b, clearance, shifted_clear, hand)
                                 or _tilted(g0, own.data, others, b, clearance, shifted_clear, wc.cfg, area.floor,
-                                           g_cfg.score.tilt))
+                                           g_cfg.score.tilt, hand))
                       if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
-                      and _clear_of(g, own.data, hand_boxes((g.width + b.finger_margin) / 2)[:3], 0.0)
+                      and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
                       ][:g_cfg.grasps_per_block]
             options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor),
                          j, g) for g in grasps]
@@ -224,28 +223,28 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
     raise EpisodeFailed(Failure.UNREACHABLE if seen_any else Failure.NOTHING_GRASPABLE)
 
 
-def _pad_overlap(T: np.ndarray, width: float, own: np.ndarray) -> tuple[float, float]:
-    """With the hand at ``T`` (world gripper) open on a part ``width`` (m) across, how far (m) along the gripper y
-    axis the part's contact faces (its surface points ``own``, world, within the pads' height ``CONTACT_BAND``)
-    meet finger 1's pad and the better of finger 2's and finger 3's (0 where a face is missing)."""
+def _pad_overlap(T: np.ndarray, width: float, own: np.ndarray, hand: Hand) -> tuple[float, float]:
+    """With the ``hand`` at ``T`` (world gripper) open on a part ``width`` (m) across, how far (m) along the gripper
+    y axis the part's contact faces (its surface points ``own``, world, within the pads' height ``CONTACT_BAND``)
+    meet finger 1's pad and the best of the facing fingers' (0 where a face is missing)."""
     local = (own - T[:3, 3]) @ T[:3, :3]
     band = (local[:, 2] > CONTACT_BAND[0]) & (local[:, 2] < CONTACT_BAND[1])
     faces = [local[band & (s * local[:, 0] > width / 2 - ON_PLANE_TOL), 1] for s in (1.0, -1.0)]
     return tuple(max((min(f.max(), y1) - max(f.min(), y0) for y0, y1 in spans), default=0.0) if len(f) else 0.0
-                 for f, spans in zip(faces, (FINGER1_Y, FINGER23_Y)))
+                 for f, spans in zip(faces, (hand.finger1_y, hand.facing_y)))
 
 
 def _fits(g: Grasp, need: float | np.ndarray, own: np.ndarray, others: np.ndarray, clearance: float,
-          clear: Callable[[Grasp], bool], margin: float) -> bool:
+          clear: Callable[[Grasp], bool], margin: float, hand: Hand) -> bool:
     """Does a moved grasp ``g`` still hold: the part's contact faces (surface points ``own``, world) meet the pads
-    by ``need`` (m; finger 1, fingers 2 or 3: ``_pad_overlap``), it is ``clear`` of the walls and the hand, open
-    ``margin`` (m) wider than the part, keeps ``clearance`` (m) from the ``others`` points?"""
-    return bool(np.all(np.asarray(_pad_overlap(g.T_world_gripper, g.width, own)) >= need)) and clear(g) \
-        and _clear_of(g, others, hand_boxes((g.width + margin) / 2), clearance)
+    by ``need`` (m; finger 1, the facing fingers: ``_pad_overlap``), it is ``clear`` of the walls and the ``hand``,
+    open ``margin`` (m) wider than the part, keeps ``clearance`` (m) from the ``others`` points?"""
+    return bool(np.all(np.asarray(_pad_overlap(g.T_world_gripper, g.width, own, hand)) >= need)) and clear(g) \
+        and _clear_of(g, others, hand.boxes((g.width + margin) / 2), clearance)
 
 
 def _shifted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig, clearance: float,
-             clear: Callable[[Grasp], bool]) -> list[Grasp]:
+             clear: Callable[[Grasp], bool], hand: Hand) -> list[Grasp]:
     """``grasp`` with the hand moved along its y axis by each of ``wall_shifts`` (nearest first) where it still
     ``_fits`` (the pads meeting the faces by ``shift_contact``): the part sits off-centre in the hand, away from the
     wall that the fingers' sides would touch."""
@@ -254,13 +253,13 @@ def _shifted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig
         T = grasp.T_world_gripper.copy()
         T[:3, 3] += d * T[:3, 1]
         g = dataclasses.replace(grasp, T_world_gripper=T)
-        if _fits(g, b.shift_contact, own, others, clearance, clear, b.finger_margin):
+        if _fits(g, b.shift_contact, own, others, clearance, clear, b.finger_margin, hand):
             out.append(g)
     return out
 
 
 def _tilted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig, clearance: float,
-            clear: Callable[[Grasp], bool], wc_cfg, floor: float, per_deg: float) -> list[Grasp]:
+            clear: Callable[[Grasp], bool], wc_cfg, floor: float, per_deg: float, hand: Hand) -> list[Grasp]:
     """``grasp`` with the hand turned about its pinch point by the least of ``wall_tilts_deg`` that gives any,
     about its squeeze axis x or its y axis, either way (the hand's top leaning away from a wall, its fingertips
     reaching under the part's side toward it), and raised until the open fingers keep ``tilt_floor_clearance``
@@ -269,14 +268,14 @@ def _tilted(grasp: Grasp, own: np.ndarray, others: np.ndarray, b: BinPickConfig,
     horizontal by as much: the contacts' friction bears it (``wall_tilts_deg`` up to 40 deg)."""
     tips = open_finger_points(wc_cfg, round(1000 * (grasp.width + b.finger_margin)))
     T0, out = grasp.T_world_gripper, []
-    need = np.minimum(_pad_overlap(T0, grasp.width, own), b.shift_contact) - ON_PLANE_TOL
+    need = np.minimum(_pad_overlap(T0, grasp.width, own, hand), b.shift_contact) - ON_PLANE_TOL
     for deg in sorted(b.wall_tilts_deg):
         for axis in (T0[:3, 0], -T0[:3, 0], T0[:3, 1], -T0[:3, 1]):
             T = T0.copy()
             T[:3, :3] = axis_angle_R(axis, np.radians(deg)) @ T0[:3, :3]
             T[2, 3] += max(0.0, floor + b.tilt_floor_clearance - float(transform_points(T, tips)[:, 2].min()))
             g = dataclasses.replace(grasp, T_world_gripper=T, score=grasp.score - per_deg * deg)
-            if _fits(g, need, own, others, clearance, clear, b.finger_margin):
+            if _fits(g, need, own, others, clearance, clear, b.finger_margin, hand):
                 out.append(g)
         if out:
             return out
@@ -475,7 +474,7 @@ def _look(ep: Episode, area: Area) -> None:
     ep.ctl.check_stable()
     ep.ctl.target = wc.gripper_pose()
     ep.ctl.finger_target = None
-    ep.ctl.finger_cmd = np.zeros(3)
+    ep.ctl.finger_cmd = np.zeros_like(ep.ctl.finger_cmd)
     ep.log.stop("look", ep.ctl, add=True)
 
 

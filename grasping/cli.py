@@ -36,6 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="blocks per scene (default: 1-5 on the table, 12 in a bin or pile, at most 30 there)")
     p.add_argument("--objects", default=None,
                    help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
+    p.add_argument("--hand", type=_hand_arg, default=None,
+                   help="3-finger (default) | 2-finger: the Jaco2's KG-2 hand, two fingers facing each other, which "
+                        "reaches parts lying against a tote's walls (docs/workcell.md)")
     p.add_argument("--sweep-noise", action="store_true",
                    help="run noisy-oracle campaigns at increasing noise and plot success against pose error")
     p.add_argument("--noise", type=_noise_arg, default=None,
@@ -92,6 +95,14 @@ def with_scene(cfg, scene: str | None, blocks: int | None):
     return dataclasses.replace(cfg, min_blocks=blocks, max_blocks=blocks) if blocks else cfg
 
 
+def _hand_arg(text: str) -> str:
+    from posegrasp.sim.config import HANDS
+
+    if text not in HANDS:
+        raise UserError(f"--hand {text!r} is not a hand; choose one of: {', '.join(HANDS)}")
+    return text
+
+
 def _noise_arg(text: str) -> str:
     from posegrasp.grasping.trials import SWEEPS
 
@@ -105,6 +116,9 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
     from posegrasp.grasping.trials import SWEEPS, run_trials, sweep_noise
 
     cfg = with_set(load_trial_config(args.config), args.objects)
+    if args.hand:
+        cfg = dataclasses.replace(cfg, scene=dataclasses.replace(
+            cfg.scene, workcell=dataclasses.replace(cfg.scene.workcell, hand=args.hand)))
     if args.task:
         cfg = dataclasses.replace(cfg, task=args.task)
     cfg = with_scene(cfg, args.scene, args.blocks)

@@ -21,6 +21,7 @@ from posegrasp.grasping.tasks import REGISTRY, TASKS, get_task
 from posegrasp.grasping.tasks.bin_pick import BinPickConfig
 from posegrasp.grasping.tasks.kitting import KittingConfig
 from posegrasp.grasping.tasks.stack import StackConfig
+from posegrasp.sim.config import HANDS
 from posegrasp.sim.scene import SceneConfig
 
 #: The shipped hand-eye calibration (``posegrasp calibrate``), used by the trials.
@@ -158,7 +159,7 @@ class GraspConfig:
     #: Weights of the grasp score.
     score: GraspScoreConfig = field(default_factory=GraspScoreConfig)
     #: Firm-hold pinch: the block's centre this far (m) along the gripper y axis, between the pads of fingers 2 and 3
-    #: (otherwise ``grasps.HAND_Y``, -5 mm).
+    #: (otherwise the hand's ``hand_y``, -5 mm; the 2-finger hand always centres it, ``grasping.hand``).
     pose_hand_y: float = -0.012
 
 
@@ -270,6 +271,9 @@ def check_task(cfg: TrialConfig) -> None:
     """ConfigError unless ``cfg.task`` and ``cfg.firm_hold_tasks`` name tasks and the task accepts the campaign's
     settings (``Task.check``: the scene's block types can serve it, ...)."""
     task = get_task(cfg.task)
+    if cfg.scene.workcell.hand not in HANDS:
+        raise ConfigError(f"scene.workcell.hand {cfg.scene.workcell.hand!r} is not a hand; choose one of: "
+                          f"{', '.join(HANDS)}")
     unknown = [t for t in firm_hold_tasks(cfg) if t not in TASKS]
     if unknown:
         raise ConfigError(f"firm_hold_tasks names unknown task(s) {unknown}; choose among: {', '.join(TASKS)}")

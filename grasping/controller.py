@@ -86,7 +86,7 @@ class ArmController:
         self.nsub = max(1, round(cfg.dt / wc.model.opt.timestep))
         self.fingers = finger_geoms(wc.model)
         self.finger_dadr = np.array([wc.model.joint(n).dofadr[0] for n in wc.finger_joint_names])
-        self.finger_cmd = np.zeros(3)  # finger velocity commands (rad/s), + closes
+        self.finger_cmd = np.zeros(len(wc.finger_numbers))  # finger velocity commands (rad/s), + closes
         self.finger_target: float | None = None  # pre-shape angle (rad) held by P control, or None
         self.finger_limit: float | None = None  # speed limit (rad/s) of that P control (default finger_speed)
         m = wc.model
@@ -226,22 +226,24 @@ class ArmController:
         close up to that many periods longer, until all three touch (or they stall): finger 1 against
         finger 3 alone, 2.5 cm apart along the gripper y axis, is a couple that turns the block in the hand."""
         self.finger_target = None
-        self.finger_cmd = np.full(3, self.cfg.finger_speed)
+        self.finger_cmd = np.full(len(self.wc.finger_numbers), self.cfg.finger_speed)
+        mine = self.wc.finger_numbers - 1
         held = still = 0
         for _ in range(int(np.ceil(timeout / self.cfg.dt))):
             self._period(self.target)
             touch = self.finger_contacts(k)
             held = held + 1 if touch[0] and (touch[1] or touch[2]) else 0
             still = still + 1 if self.finger_speed() < 0.05 else 0
-            if held >= 3 and (touch.all() or held >= 3 + wait_all or still >= 5):
-                self._balance_grip(touch)
+            if held >= 3 and (touch[mine].all() or held >= 3 + wait_all or still >= 5):
+                self._balance_grip(touch[mine])
                 return True
             if still >= 5:
                 return False  # stalled without an opposing grip (closed on nothing or on something else)
         return False
 
     def _balance_grip(self, touch: np.ndarray) -> None:
-        """Hold the grip with balanced squeezing torques: finger 1 against fingers 2 and 3 together.
+        """Hold the grip with balanced squeezing torques: finger 1 against the fingers facing it (2 and 3, or 3)
+        together; ``touch``: is each of the hand's fingers touching the block.
 
         At stall a velocity actuator pushes with ``kv * ctrl`` (clipped to its force range), so finger 1 gets
         the full torque and the touching fingers among 2 and 3 share it; a finger not touching stops. Equal
@@ -250,8 +252,8 @@ class ArmController:
         m, wc = self.wc.model, self.wc
         kv = m.actuator_gainprm[wc.finger_act, 0]
         full = m.actuator_forcerange[wc.finger_act, 1]
-        n23 = max(1, int(touch[1]) + int(touch[2]))
-        torque = np.array([full[0], full[1] / n23, full[2] / n23]) * touch
+        n23 = max(1, int(touch[1:].sum()))
+        torque = full / np.r_[1.0, np.full(len(touch) - 1, n23)] * touch
         self.finger_cmd = torque / kv
 
     def unexpected_contacts(self, k: int) -> bool:
@@ -285,12 +287,13 @@ class ArmController:
 
 @functools.lru_cache(maxsize=4)
 def _opening_table(cfg: WorkcellConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Finger angle (rad) against the gap (m) between the inner faces of fingertip 1 and fingertip 2."""
+    """Finger angle (rad) against the gap (m) between the inner faces of fingertip 1 and the next (2; 3 on the
+    2-finger hand)."""
     robot = robot_workcell(cfg)
     m = robot.model
     d = mujoco.MjData(m)
     d.qpos[robot.arm_qadr] = cfg.home_qpos
-    tips = [m.geom(f"jaco_arm/jaco_hand/finger_tip_{f}") for f in (1, 2)]
+    tips = [m.geom(f"jaco_arm/jaco_hand/finger_tip_{f}") for f in robot.finger_numbers[:2]]
     verts = [m.mesh_vert[m.mesh_vertadr[g.dataid[0]]: m.mesh_vertadr[g.dataid[0]] + m.mesh_vertnum[g.dataid[0]]]
              for g in tips]
     lo, hi = m.jnt_range[m.joint(robot.finger_joint_names[0]).id]

@@ -27,6 +27,7 @@ from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import GraspConfig, ScoringConfig, TrialConfig, holds_firmly
 from posegrasp.grasping.controller import ArmController
 from posegrasp.grasping.grasps import Grasp, plan_grasps, surface_points
+from posegrasp.grasping.hand import hand_of
 from posegrasp.grasping.perception import PICK_LOOK, Estimate, PerceptionError, perceive, reads_labels
 from posegrasp.grasping.provider_registry import make_provider
 from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, FalseTarget, Failure, Target
@@ -124,8 +125,8 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
         e, T = ests[j], poses[j]
         others = [c for i, c in enumerate(clouds) if i != j]
         nb = np.concatenate(others) if others else np.zeros((0, 3))
-        for g in plan_grasps(cat[e.obj_id], T, nb, g_cfg, yaw_now, yaw_stable=holds_firmly(cfg))[
-                :g_cfg.grasps_per_block]:
+        for g in plan_grasps(cat[e.obj_id], T, nb, g_cfg, yaw_now, yaw_stable=holds_firmly(cfg),
+                             hand=hand_of(wc.cfg))[:g_cfg.grasps_per_block]:
             options.append((g.score + g_cfg.detection_weight * e.score, j, g))
     options.sort(key=lambda o: -o[0])
     for _, j, g in options[:g_cfg.ik_checks]:
@@ -192,7 +193,7 @@ def clear_grasp(g_cfg: GraspConfig, wc: Workcell, k: int) -> bool:
     others = [transform_points(T, surface_points(inst.block, g_cfg.neighbour_points))
               for j, (inst, T) in enumerate(zip(wc.blocks, poses)) if j != k - 1]
     return bool(plan_grasps(wc.blocks[k - 1].block, poses[k - 1], np.concatenate([np.zeros((0, 3))] + others), g_cfg,
-                            0.0, yaw_stable=True))
+                            0.0, yaw_stable=True, hand=hand_of(wc.cfg)))
 
 
 def capture_look(wc: Workcell) -> Frame:

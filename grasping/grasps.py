@@ -1,8 +1,8 @@
-"""Grasp candidates for the 3-finger Jaco hand: top-down pinches planned in the object frame.
+"""Grasp candidates for the Jaco hand: top-down pinches planned in the object frame.
 
 A grasp is a gripper (pinch-site) pose ``T_world_gripper``: z is the approach direction (straight down),
-x the squeeze axis (finger 1 on +x opposes fingers 2 and 3 on -x), and the block's material centre sits at
-``hand.HAND_Y`` along the gripper y axis, between finger 1 and finger 3 (the hand's geometry: ``grasping.hand``;
+x the squeeze axis (finger 1 on +x opposes fingers 2 and 3, or 3, on -x), and the block's material centre sits at
+the hand's ``hand_y`` along the gripper y axis (the hand's geometry: ``grasping.hand``;
 the score's weights: ``config.GraspScoreConfig``). Candidates are made per block type in the object frame
 (every face as the top, both in-plane axes as the squeeze axis, a few offsets along the face) where those suit
 the shape (``faces_fit``: boxes, prisms, round parts, the shipped blocks), else from
@@ -22,8 +22,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from posegrasp.grasping.config import GraspConfig
-from posegrasp.grasping.hand import (CONTACT_BAND, FACE_REACH, FINGER23_Y, FLAT_PINCH_DROP, HAND_Y, ON_PLANE_TOL,
-                                     PAD_FACE_HEIGHT, PAD_HALF_WIDTH, PAD_OVERLAP, hand_boxes)
+from posegrasp.grasping.hand import (CONTACT_BAND, FACE_REACH, FLAT_PINCH_DROP, KG3, ON_PLANE_TOL, PAD_FACE_HEIGHT,
+                                     PAD_HALF_WIDTH, PAD_OVERLAP, Hand)
 from posegrasp.catalog import PartType, sample_surface, symmetry_transforms
 from posegrasp.geometry import make_T, transform_points
 
@@ -256,14 +256,15 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray, cfg: GraspConfig,
-                yaw_now: float, yaw_stable: bool = False) -> list[Grasp]:
+                yaw_now: float, yaw_stable: bool = False, hand: Hand = KG3) -> list[Grasp]:
     """Feasible top-down grasps on a block at its estimated pose, best first.
 
     ``neighbours``: (M, 3) world points (m) on the other blocks' estimated surfaces; ``yaw_now``: the
     gripper's current yaw (rad, angle of its x axis in the world xy plane), to prefer small wrist turns.
-    The block's centre sits at ``hand.HAND_Y`` along the gripper y axis; with ``yaw_stable`` it sits as near
-    ``cfg.pose_hand_y`` as lets the contact faces reach the inner edges of both finger 2's and finger 3's pads
-    (finger 1 against finger 3 alone is a couple that turns the block in the hand), or at ``HAND_Y`` if
+    The block's centre sits at ``hand.hand_y`` along the gripper y axis; with ``yaw_stable`` (and a ``hand`` with
+    fingers 2 and 3) it sits as near ``cfg.pose_hand_y`` as lets the contact faces reach the inner edges of both
+    finger 2's and finger 3's pads (finger 1 against finger 3 alone is a couple that turns the block in the hand), or
+    at ``hand.hand_y`` if
     the faces are too narrow for that; if some of the block's grasps are yaw-stable, the others score
     ``cfg.score.unstable`` less (an L-block pinched on its 25 mm end faces turned 10 deg in the hand, every time).
     The open hand of the clearance check is ``cfg.finger_margin`` wider than the grasp.
@@ -291,7 +292,7 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
             if key in seen:
                 continue
             seen.add(key)
-            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, yaw_stable, reach)
+            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, yaw_stable, reach, hand)
             if g is not None and not abs(g.width - span) > _SPAN_TOL:  # a mesh candidate pinches its own pair
                 grasps.append(g)
     if any(g.stable for g in grasps):
@@ -301,7 +302,7 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
 
 def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray, centre: np.ndarray,
               neighbours: np.ndarray, cfg: GraspConfig, yaw_now: float, yaw_stable: bool = False,
-              reach: float | None = None) -> Grasp | None:
+              reach: float | None = None, hand: Hand = KG3) -> Grasp | None:
     """A straight-down grasp with squeeze axis ``x`` through ``entry_xy``, checked on the estimated geometry;
     the span is measured on the surface points within ``reach`` (m; default half the widest opening) of the
     entry along ``x``."""
@@ -330,11 +331,11 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     if best is None:
         return None
     _, support, z_pinch, lo, hi = best
-    hand_y, stable = HAND_Y, True
-    if yaw_stable:  # the contact face's span along y at the pinch height, shifted by hand_y, must cover both
+    hand_y, stable = hand.hand_y, True
+    if yaw_stable and hand.paired:  # the contact face's y span at the pinch height, shifted by hand_y, covers both
         on_face = np.abs(px - lo) < ON_PLANE_TOL
         face = on_face & (np.abs(h - z_pinch) < PAD_FACE_HEIGHT)  # inner pad edges of fingers 2, 3
-        inner2, inner3 = FINGER23_Y[0][1] - PAD_OVERLAP, FINGER23_Y[1][0] + PAD_OVERLAP
+        inner2, inner3 = hand.facing_y[0][1] - PAD_OVERLAP, hand.facing_y[1][0] + PAD_OVERLAP
         narrowest = _face_span(on_face, py, h, z_pinch)
         stable = narrowest is not None and inner3 - narrowest[1] <= inner2 - narrowest[0]
         if face.any() and inner3 - py[face].max() <= inner2 - py[face].min():
@@ -347,7 +348,7 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray,
     clearance = _CLEAR
     if len(neighbours):
         local = (neighbours - T[:3, 3]) @ R  # gripper frame
-        boxes = hand_boxes(width / 2 + cfg.finger_margin / 2)
+        boxes = hand.boxes(width / 2 + cfg.finger_margin / 2)
         clearance = min(clearance, min(float(_box_distance(local, np.array(lo), np.array(hi)).min())
                                        for lo, hi in boxes))
         if clearance < cfg.clearance_min:

@@ -1,14 +1,18 @@
 """The Jaco hand as the grasp planner models it: where a block sits in the hand, the finger pads, and the open
-hand's boxes for the clearance check, from the jaco_hand meshes.
+hand's boxes for the clearance check, from the jaco_hand meshes; the 3-finger hand (``KG3``) and the 2-finger
+one (``KG2``, ``WorkcellConfig.hand``).
 
 Lengths in metres, in the gripper frame of the pinch site (``grasping.grasps``): origin at the pinch point,
-z the approach direction (down into the block), x the squeeze axis (finger 1 on +x, fingers 2 and 3 on -x).
+z the approach direction (down into the block), x the squeeze axis (finger 1 on +x, the fingers facing it on -x:
+2 and 3, or 3 alone).
 """
 
 from __future__ import annotations
 
-#: Where the grasped block's centre sits along the gripper y axis (m): between finger 1 and finger 3.
-HAND_Y = -0.005
+from dataclasses import dataclass
+
+Box = tuple[tuple[float, float, float], tuple[float, float, float]]
+
 #: Half width (m) of a finger pad along the gripper y axis: the pads squeeze the block's surface within it.
 PAD_HALF_WIDTH = 0.012
 #: Heights (m, along z: negative above) relative to the pinch point that the closing fingertips touch.
@@ -24,9 +28,6 @@ TIP_BELOW = 0.012
 FLAT_PINCH_DROP = 0.004
 #: Thickness (m) of a finger, outward along x from its pad (at half the opening).
 FINGER_THICKNESS = 0.03
-#: Extent (m) along the gripper y axis of finger 1, and of fingers 2 and 3 (one span each).
-FINGER1_Y = ((-0.032, 0.002),)
-FINGER23_Y = ((-0.062, -0.022), (-0.002, 0.032))
 #: The palm: an axis-aligned box (m, (min corner, max corner)) starting 7 cm above the pinch point.
 PALM = ((-0.06, -0.065, -1.0), (0.06, 0.035, -0.07))
 #: A yaw-stable pinch's contact face reaches this far (m) past the inner pad edges of fingers 2 and 3 ...
@@ -37,12 +38,37 @@ PAD_FACE_HEIGHT = 0.004
 FACE_REACH = 0.003
 
 
-def hand_boxes(o: float) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
-    """The open hand as axis-aligned boxes (min corner, max corner; m, gripper frame): the three fingers, their
-    pads ``o`` m either side of the pinch point along x (half the opening), each from ``TIP_BELOW`` past the
-    pinch point up out of reach, and the palm."""
-    return ([((o, y0, -1.0), (o + FINGER_THICKNESS, y1, TIP_BELOW)) for y0, y1 in FINGER1_Y]
-            + [((-o - FINGER_THICKNESS, y0, -1.0), (-o, y1, TIP_BELOW)) for y0, y1 in FINGER23_Y] + [PALM])
+@dataclass(frozen=True)
+class Hand:
+    """A hand's layout along the gripper y axis (m): ``hand_y``, where the grasped block's centre sits;
+    ``finger1_y`` and ``facing_y``, the extents of finger 1 and of each finger facing it (boxes round the open
+    fingers' meshes)."""
+
+    hand_y: float
+    finger1_y: tuple[tuple[float, float], ...]
+    facing_y: tuple[tuple[float, float], ...]
+
+    @property
+    def paired(self) -> bool:
+        """Do two fingers face finger 1 (finger 1 against one of them alone turns the block in the hand)?"""
+        return len(self.facing_y) == 2
+
+    def boxes(self, o: float) -> list[Box]:
+        """The open hand as axis-aligned boxes (min corner, max corner; m, gripper frame): finger 1, the fingers
+        facing it, their pads ``o`` m either side of the pinch point along x (half the opening), each from
+        ``TIP_BELOW`` past the pinch point up out of reach, and the palm."""
+        return ([((o, y0, -1.0), (o + FINGER_THICKNESS, y1, TIP_BELOW)) for y0, y1 in self.finger1_y]
+                + [((-o - FINGER_THICKNESS, y0, -1.0), (-o, y1, TIP_BELOW)) for y0, y1 in self.facing_y] + [PALM])
+
+
+#: The 3-finger hand: the block sits between finger 1 and finger 3.
+KG3 = Hand(hand_y=-0.005, finger1_y=((-0.032, 0.002),), facing_y=((-0.062, -0.022), (-0.002, 0.032)))
+#: The 2-finger hand: finger 1 and finger 3 facing it, both centred on the pinch point (their meshes reach 11.5 mm
+#: either side).
+KG2 = Hand(hand_y=0.0, finger1_y=((-0.012, 0.012),), facing_y=((-0.012, 0.012),))
+def hand_of(cfg) -> Hand:
+    """The planner's model of the hand of a workcell (``WorkcellConfig.hand``)."""
+    return KG2 if cfg.hand == "2-finger" else KG3
 
 
 #: Half width (m) of the hand camera's housing along the gripper x axis and y axis (``camera_box``).

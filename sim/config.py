@@ -92,7 +92,14 @@ class WorkcellConfig:
     timestep: float = 0.002
     #: Object set folder the scenes draw from (`--objects`); "" is the shipped blocks.
     objects: str = ""
+    #: The Jaco2's hand (``--hand``): ``3-finger`` (KG-3: finger 1 facing fingers 2 and 3, 74 mm across the squeeze
+    #: axis) or ``2-finger`` (KG-2: two of the same fingers facing each other, 23 mm across; it reaches parts lying
+    #: against a tote's wall).
+    hand: str = "3-finger"
 
+
+#: The hands ``WorkcellConfig.hand`` may name.
+HANDS = ("3-finger", "2-finger")
 
 DEFAULT_TOML = ASSETS / "workcell.toml"
 

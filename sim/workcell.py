@@ -20,7 +20,7 @@ from posegrasp.catalog import PartType
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
 from posegrasp.sim.camera import T_CV_MJ, rpy_deg_to_R
-from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.config import HANDS, WorkcellConfig
 from posegrasp.sim.ik import ArmIK
 
 ARM_JOINTS = tuple(f"joint_{i}" for i in range(1, 7))
@@ -178,11 +178,45 @@ def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjc
     hand_body.add("geom", name="camera_housing", type="box", size=(0.02, 0.011, 0.012),
                   pos=T_hand_cam[:3, 3] - 0.014 * T_hand_cam[:3, 2], quat=R_to_quat(T_hand_cam[:3, :3]),
                   rgba=(0.12, 0.12, 0.14, 1), mass=0.05, contype=2, conaffinity=0, group=1)
+    if cfg.hand not in HANDS:
+        raise ConfigError(f"workcell hand {cfg.hand!r} is not a hand; choose one of: {', '.join(HANDS)}")
+    if cfg.hand == "2-finger":
+        _two_fingers(hand.mjcf_model, T_hand_gripper)
     arm.attach(hand)
     root.attach(arm.mjcf_model)
     for k, inst in enumerate(blocks, start=1):
         _add_block(root, k, inst, cfg.timestep)
     return root
+
+
+def finger_joints(hand: str) -> tuple[str, ...]:
+    """The finger joints of ``hand`` (``HANDS``)."""
+    return FINGER_JOINTS if hand == "3-finger" else ("finger_1", "finger_3")
+
+
+def _two_fingers(hand: mjcf.RootElement, T_hand_gripper: np.ndarray) -> None:
+    """Make dm-control's 3-finger hand the 2-finger one: finger 2 (its body, actuator and contact exclusion) goes;
+    finger 1 turns about its knuckle until its hinge axis is the gripper's -y (unsplayed: the 3-finger hand's fingers
+    lean 6-11 deg toward each other) and moves onto the gripper's xz plane, and finger 3 becomes its copy turned half
+    a turn about the gripper z axis through the pinch point: two 23 mm wide fingers facing each other across the
+    squeeze axis x, centred on the pinch point."""
+    f2 = hand.find("body", "b_finger_2")
+    for ex in hand.contact.exclude:
+        if ex.body2 is f2:
+            ex.remove()
+    hand.find("actuator", "finger_2").remove()
+    f2.remove()
+    f1, f3 = hand.find("body", "b_finger_1"), hand.find("body", "b_finger_3")
+    G = invert(T_hand_gripper) @ _element_T(f1)  # finger 1 in the gripper frame; its hinge axis is its z
+    a, down = G[:3, 2], np.array([0.0, -1.0, 0.0])
+    v, c = np.cross(a, down), float(a @ down)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    G[:3, :3] = (np.eye(3) + K + K @ K / (1.0 + c)) @ G[:3, :3]  # hinge along -y: the finger unsplayed
+    G[1, 3] = 0.0
+    T1 = T_hand_gripper @ G
+    half_turn = T_hand_gripper @ make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3)) @ invert(T_hand_gripper)
+    for body, T in ((f1, T1), (f3, half_turn @ T1)):
+        body.pos, body.quat = T[:3, 3], R_to_quat(T[:3, :3])
 
 
 def compile_mjcf(root: mjcf.RootElement) -> mujoco.MjModel:
@@ -210,7 +244,9 @@ class Workcell:
         self.on_step: Callable[[Workcell], None] | None = None
         m = self.model
         self.arm_joint_names = [f"jaco_arm/{j}" for j in ARM_JOINTS]
-        self.finger_joint_names = [f"jaco_arm/jaco_hand/{j}" for j in FINGER_JOINTS]
+        self.finger_joint_names = [f"jaco_arm/jaco_hand/{j}" for j in finger_joints(cfg.hand)]
+        #: The number (1-3) of each finger joint's finger.
+        self.finger_numbers = np.array([int(n[-1]) for n in self.finger_joint_names])
         self.arm_qadr = np.array([m.joint(n).qposadr[0] for n in self.arm_joint_names])
         self.arm_dadr = np.array([m.joint(n).dofadr[0] for n in self.arm_joint_names])
         self.finger_qadr = np.array([m.joint(n).qposadr[0] for n in self.finger_joint_names])

@@ -25,7 +25,7 @@ from posegrasp.grasping.controller import ArmController
 from posegrasp.grasping.episode import Episode, EpisodeTask, _Log, run_episode, trial_physics
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.grasps import plan_grasps, surface_points
-from posegrasp.grasping.hand import hand_boxes
+from posegrasp.grasping.hand import KG3
 from posegrasp.grasping.perception import Estimate
 from posegrasp.grasping.record import Attempt, BinPickRecord, EpisodeRecord, Failure
 from posegrasp.grasping.runfolder import EPISODES, SUMMARY
@@ -40,9 +40,11 @@ CAT = load_catalog()
 Z = np.array([0.0, 0.0, 1.0])
 
 
-def _cfg(parts: int = 3, **bin_pick) -> TrialConfig:
+def _cfg(parts: int = 3, hand: str = "3-finger", **bin_pick) -> TrialConfig:
     b = BinPickConfig(clutter=ClutterConfig(parts=(parts, parts)), **bin_pick)
-    return with_set(dataclasses.replace(TrialConfig(), task="bin-pick", bin_pick=b))
+    cfg = dataclasses.replace(TrialConfig(), task="bin-pick", bin_pick=b)
+    scene = dataclasses.replace(cfg.scene, workcell=dataclasses.replace(cfg.scene.workcell, hand=hand))
+    return with_set(dataclasses.replace(cfg, scene=scene))
 
 
 def _episode(cfg: TrialConfig, names: list[str], poses: list[np.ndarray]) -> Episode:
@@ -166,7 +168,7 @@ def test_the_open_fingers_keep_off_the_targets_own_surface():
     ep = _episode(cfg, ["l_block"], [make_T(R, (c[0], c[1], z))])
     block, T = ep.wc.blocks[0].block, ep.wc.block_poses()[0]
     own = transform_points(T, surface_points(block))
-    fingers = lambda g: hand_boxes((g.width + cfg.bin_pick.finger_margin) / 2)[:3]  # noqa: E731
+    fingers = lambda g: KG3.boxes((g.width + cfg.bin_pick.finger_margin) / 2)[:-1]  # noqa: E731
     assert not all(_clear_of(g, own, fingers(g), 0.0) for g in _plan(ep, 1, list).grasp)  # some land on the L's leg
     T_world_cam = ep.T_world_cam()
     est = Estimate(block.obj_id, np.linalg.inv(T_world_cam) @ T, 1.0)
@@ -174,10 +176,10 @@ def test_the_open_fingers_keep_off_the_targets_own_surface():
     assert _clear_of(grasp, own, fingers(grasp), 0.0)
 
 
-def _alone(name: str, xy) -> tuple[Episode, list[Estimate], np.ndarray]:
-    """Part ``name`` lying alone at ``xy`` (m, world) in the tote: the episode, the oracle's estimate and
-    ``T_world_cam``."""
-    ep = _episode(_cfg(1), [name], [_flat(name, xy)])
+def _alone(name: str, xy, hand: str = "3-finger") -> tuple[Episode, list[Estimate], np.ndarray]:
+    """Part ``name`` lying alone at ``xy`` (m, world) in the tote, picked by ``hand``: the episode, the oracle's
+    estimate and ``T_world_cam``."""
+    ep = _episode(_cfg(1, hand), [name], [_flat(name, xy)])
     T_world_cam = ep.T_world_cam()
     return ep, [Estimate(CAT[name].obj_id, np.linalg.inv(T_world_cam) @ ep.wc.block_poses()[0], 1.0)], T_world_cam
 
@@ -187,10 +189,10 @@ def _inner_bounds() -> tuple[np.ndarray, np.ndarray]:
     return area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
 
 
-def _cube_off_the_wall(gap: float) -> tuple[Episode, list[Estimate], np.ndarray]:
+def _cube_off_the_wall(gap: float, hand: str = "3-finger") -> tuple[Episode, list[Estimate], np.ndarray]:
     """A cube lying ``gap`` (m) from the tote's +y wall (``_alone``)."""
     lo, hi = _inner_bounds()
-    return _alone("cube", (0.5 * (lo[0] + hi[0]), hi[1] - 0.02 - gap))
+    return _alone("cube", (0.5 * (lo[0] + hi[0]), hi[1] - 0.02 - gap), hand)
 
 
 def _picked(ep: Episode, grasp) -> bool:
@@ -231,6 +233,18 @@ def test_a_part_in_a_corner_is_grasped_with_the_hand_tilted_away_from_the_walls(
     _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
     assert np.degrees(np.arccos(-grasp.T_world_gripper[2, 2])) > 5.0
     assert _picked(ep, grasp)
+
+
+def test_a_part_against_a_wall_is_out_of_the_3_finger_hands_reach_and_picked_by_the_2_finger_hand():
+    ep, ests, T_world_cam = _cube_off_the_wall(0.002)
+    with pytest.raises(EpisodeFailed) as e:
+        choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    assert e.value.reason == Failure.NOTHING_GRASPABLE  # fingers 2 and 3 reach 20-25 mm to the side: into the wall
+    ep, ests, T_world_cam = _cube_off_the_wall(0.002, "2-finger")
+    _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    assert abs(grasp.T_world_gripper[0, 0]) > 0.99 and grasp.T_world_gripper[2, 2] < -0.999  # along the wall, upright
+    assert _picked(ep, grasp)
+    assert not ep.ctl.unexpected_contacts(1)
 
 
 def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
@@ -331,6 +345,7 @@ def test_compare_pairs_bin_pick_episodes_by_percent_cleared():
     (["--task", "bin-pick", "--scene", "table"], "--scene bin or --scene pile"),
     (["--scene", "pile"], "use it with --task bin-pick"),
     (["--task", "bin-pick", "--blocks", "31"], "max_parts 30"),
+    (["--task", "bin-pick", "--hand", "4-finger"], "is not a hand; choose one of: 3-finger, 2-finger"),
 ])
 def test_bad_bin_pick_input_is_one_line_and_writes_nothing(tmp_path, args, message):
     out = tmp_path / "run"
@@ -345,6 +360,7 @@ def test_bad_bin_pick_input_is_one_line_and_writes_nothing(tmp_path, args, messa
     ("[bin_pick]\npart_clearance = []\n", [], "bin_pick.part_clearance must be one or more distances"),
     ("[bin_pick]\npart_clearance = [0.0, 0.5]\n", [], "bin_pick.part_clearance must be one or more distances"),
     ("[bin_pick]\nwall_tilts_deg = [60.0]\n", [], "bin_pick.wall_tilts_deg must be angles"),
+    ("[scene.workcell]\nhand = \"kg3\"\n", [], "scene.workcell.hand 'kg3' is not a hand"),
 ])
 def test_parts_too_big_for_the_hand_too_many_for_the_tote_or_bad_clearances_are_refused(tmp_path, toml, args, message):
     (tmp_path / "c.toml").write_text(toml)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from posegrasp.grasping.config import ControlConfig, GraspConfig
-from posegrasp.grasping.controller import ArmController, finger_angle_for_opening
+from posegrasp.grasping.controller import ArmController, finger_angle_for_opening, open_finger_points
+from posegrasp.grasping.hand import KG2
 from posegrasp.grasping.grasps import object_candidates, plan_grasps, squeeze_axes, surface_points
 from posegrasp.grasping.support import RestConfig, rest_on_table
 from posegrasp.grasping.perception import NoisyOracleProvider, OracleProvider, observation, visible_enough
@@ -63,8 +64,9 @@ def test_table_collision_avoidance_stops_the_fingers(arm):
     assert 0.0 < gap < 0.01, gap  # held just above the table, not in it
 
 
-def test_fingers_preshape_to_an_opening(arm):
-    wc = Workcell(WorkcellConfig())
+@pytest.mark.parametrize("hand", ["3-finger", "2-finger"])
+def test_fingers_preshape_to_an_opening(arm, hand):
+    wc = Workcell(WorkcellConfig(hand=hand))
     wc.reset(wc.look_q)
     ctl = ArmController(wc, ControlConfig(), wc.look_q)
     for opening in (0.08, 0.05):
@@ -73,6 +75,17 @@ def test_fingers_preshape_to_an_opening(arm):
         q = finger_angle_for_opening(wc.cfg, opening)
         assert np.allclose(wc.data.qpos[wc.finger_qadr], q, atol=0.03)
     assert finger_angle_for_opening(wc.cfg, 0.08) < finger_angle_for_opening(wc.cfg, 0.05)
+
+
+def test_the_2_finger_hands_fingers_face_each_other_centred_on_the_pinch_point():
+    cfg = WorkcellConfig(hand="2-finger")
+    assert Workcell(cfg).finger_numbers.tolist() == [1, 3]
+    for mm in (30, 60, 90):
+        pts = open_finger_points(cfg, mm)
+        x, y = pts[:, 0], pts[:, 1]
+        assert abs(x[x > 0].min() + x[x < 0].max()) < 5e-4  # mirror images across the pinch point
+        for side in (x > 0, x < 0):  # each finger 23 mm wide, centred on the gripper's xz plane
+            assert abs(y[side].min() + y[side].max()) < 5e-4 and 0.011 < y[side].max() <= KG2.finger1_y[0][1]
 
 
 def test_candidates_are_closed_under_symmetry():
