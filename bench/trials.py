@@ -5,8 +5,9 @@ the whole command (summary and report included), that of its episodes alone, the
 simulated time per episode, the mean wall time per phase and the CPU time per episode (the rate the workers
 would reach on otherwise idle cores), then a JSON line.
 Run: ``MUJOCO_GL=egl .venv/bin/python bench/trials.py [EPISODES] [WORKERS] [TASK] [--task TASK] [--scene SCENE]
-[--blocks N] [--seed S] [--perception SPEC]`` (defaults 60, 2, pick-place, the task's scene, seed 1000, oracle; TASK is
-a ``--task``: pick-place, kitting, stack or bin-pick, whose SCENE is bin or pile). For bin picking it also prints
+[--blocks N] [--seed S] [--perception SPEC] [--hand HAND]`` (defaults 60, 2, pick-place, the task's scene, seed 1000,
+oracle, the 3-finger hand; TASK is a ``--task``: pick-place, kitting, stack or bin-pick, whose SCENE is bin or pile;
+HAND is 3-finger or 2-finger). For bin picking it also prints
 the successful picks per wall-clock minute and per simulated hour, percent cleared and attempt success.
 """
 
@@ -33,8 +34,10 @@ from posegrasp.grasping.trials import run_trials
 
 
 def main(episodes: int = 60, workers: int = 2, task: str = "pick-place", scene: str | None = None,
-         blocks: int | None = None, seed: int = 1000, perception: str = "oracle") -> dict:
+         blocks: int | None = None, seed: int = 1000, perception: str = "oracle", hand: str = "3-finger") -> dict:
     cfg = with_scene(dataclasses.replace(TrialConfig(), task=task), scene, blocks)
+    cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, workcell=dataclasses.replace(
+        cfg.scene.workcell, hand=hand)))
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         s = run_trials(Path(tmp), episodes, seed=seed, perception=perception, workers=workers, cfg=cfg,
@@ -46,7 +49,7 @@ def main(episodes: int = 60, workers: int = 2, task: str = "pick-place", scene: 
             for k, v in rec["wall_s"].items():
                 phases[k] = phases.get(k, 0.0) + v / episodes
             cpu += sum(rec["cpu_s"].values()) / episodes
-    out = {"task": task, "episodes": episodes, "workers": workers, "seed": seed, "perception": perception,
+    out = {"task": task, "hand": hand, "episodes": episodes, "workers": workers, "seed": seed, "perception": perception,
            "wall_s": round(wall, 2), "episodes_per_min": round(60 * episodes / wall, 1),
            "episode_loop_per_min": round(s["wall"]["episodes_per_min"], 1), "success": s["success"],
            "mean_sim_time_s": round(s["mean_sim_time_s"], 2),
@@ -92,5 +95,6 @@ if __name__ == "__main__":
     p.add_argument("--blocks", type=int, default=None)
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--perception", default="oracle")
+    p.add_argument("--hand", default="3-finger")
     a = p.parse_args()
-    main(a.episodes, a.workers, a.task or a.task_pos or "pick-place", a.scene, a.blocks, a.seed, a.perception)
+    main(a.episodes, a.workers, a.task or a.task_pos or "pick-place", a.scene, a.blocks, a.seed, a.perception, a.hand)
