@@ -223,8 +223,9 @@ class ArmController:
         """Close the fingers on block ``k``: True once finger 1 and finger 2 or 3 have touched it for 3
         control periods in a row (a finger not touching it then stops, so it does not hook under the block);
         False when the fingers stall or time out without such a grip. With ``wait_all`` > 0 the fingers
-        close up to that many periods longer, until all three touch (or they stall): finger 1 against
-        finger 3 alone, 2.5 cm apart along the gripper y axis, is a couple that turns the block in the hand."""
+        close up to that many periods longer, until all the hand's fingers touch (or they stall): on the 3-finger
+        hand, finger 1 against finger 3 alone, 2.5 cm apart along the gripper y axis, is a couple that turns the
+        block in the hand."""
         self.finger_target = None
         self.finger_cmd = np.full(len(self.wc.finger_numbers), self.cfg.finger_speed)
         mine = self.wc.finger_numbers - 1

@@ -66,6 +66,8 @@ KG3 = Hand(hand_y=-0.005, finger1_y=((-0.032, 0.002),), facing_y=((-0.062, -0.02
 #: The 2-finger hand: finger 1 and finger 3 facing it, both centred on the pinch point (their meshes reach 11.5 mm
 #: either side).
 KG2 = Hand(hand_y=0.0, finger1_y=((-0.012, 0.012),), facing_y=((-0.012, 0.012),))
+
+
 def hand_of(cfg) -> Hand:
     """The planner's model of the hand of a workcell (``WorkcellConfig.hand``)."""
     return KG2 if cfg.hand == "2-finger" else KG3

@@ -196,8 +196,8 @@ def finger_joints(hand: str) -> tuple[str, ...]:
 
 def _two_fingers(hand: mjcf.RootElement, T_hand_gripper: np.ndarray) -> None:
     """Make dm-control's 3-finger hand the 2-finger one: finger 2 (its body, actuator and contact exclusion) goes;
-    finger 1 turns about its knuckle until its hinge axis is the gripper's -y (unsplayed: the 3-finger hand's fingers
-    lean 6-11 deg toward each other) and moves onto the gripper's xz plane, and finger 3 becomes its copy turned half
+    finger 1 turns about its knuckle until its hinge axis is the gripper's -y (unsplayed: the 3-finger hand's hinges
+    lean 11-12 deg off the y axis) and moves onto the gripper's xz plane, and finger 3 becomes its copy turned half
     a turn about the gripper z axis through the pinch point: two 23 mm wide fingers facing each other across the
     squeeze axis x, centred on the pinch point."""
     f2 = hand.find("body", "b_finger_2")
@@ -208,10 +208,9 @@ def _two_fingers(hand: mjcf.RootElement, T_hand_gripper: np.ndarray) -> None:
     f2.remove()
     f1, f3 = hand.find("body", "b_finger_1"), hand.find("body", "b_finger_3")
     G = invert(T_hand_gripper) @ _element_T(f1)  # finger 1 in the gripper frame; its hinge axis is its z
-    a, down = G[:3, 2], np.array([0.0, -1.0, 0.0])
-    v, c = np.cross(a, down), float(a @ down)
-    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    G[:3, :3] = (np.eye(3) + K + K @ K / (1.0 + c)) @ G[:3, :3]  # hinge along -y: the finger unsplayed
+    v, c = np.cross(G[:3, 2], (0.0, -1.0, 0.0)), -float(G[1, 2])  # the least turn taking the hinge onto -y:
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])  # I + [v]x + [v]x^2 / (1 + c)
+    G[:3, :3] = (np.eye(3) + K + K @ K / (1.0 + c)) @ G[:3, :3]
     G[1, 3] = 0.0
     T1 = T_hand_gripper @ G
     half_turn = T_hand_gripper @ make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3)) @ invert(T_hand_gripper)
