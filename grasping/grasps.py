@@ -51,13 +51,16 @@ class Grasp:
     stable: bool = True
 
 
-def squeeze_axes(block: PartType) -> list[int]:
-    """Object axes (0, 1, 2) the fingers may squeeze along.
+def squeeze_axes(block: PartType, all_axes: bool = False) -> list[int]:
+    """Object axes (0, 1, 2) the fingers may squeeze along: all three with ``all_axes``, else not these two.
 
-    Excluded: the axis of a continuous symmetry (a lying cylinder squeezed on its end discs slips out in
-    simulation) and an axis whose two faces are one flat face and one broken one (< 50 % flat, e.g. the
-    studs of a brick: the fingertips catch single studs).
+    The axis of a continuous symmetry (a lying cylinder squeezed on its end discs slips out of the 3-finger hand
+    in simulation) and an axis whose two faces are one flat face and one broken one (< 50 % flat, e.g. the
+    studs of a brick: the 3-finger hand's fingertips catch single studs). The 2-finger hand's pads, centred and
+    facing each other, hold both (``Hand.all_axes``).
     """
+    if all_axes:
+        return [0, 1, 2]
     V, tri = block.vertices, block.vertices[block.faces]
     lo, hi = V.min(0), V.max(0)
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -187,14 +190,14 @@ def faces_fit(block: PartType) -> bool:
 
 
 @functools.lru_cache(maxsize=32)
-def object_candidates(block: PartType, n_continuous: int = 36) -> np.ndarray:
-    """(N, 4, 4) grasp frames ``T_obj_grasp`` (object frame, m): z = approach direction, x = squeeze axis
-    (``candidate_spans`` gives the span each was made for)."""
-    return candidate_spans(block, n_continuous)[0]
+def object_candidates(block: PartType, n_continuous: int = 36, all_axes: bool = False) -> np.ndarray:
+    """(N, 4, 4) grasp frames ``T_obj_grasp`` (object frame, m): z = approach direction, x = squeeze axis, one of
+    ``squeeze_axes(block, all_axes)`` (``candidate_spans`` gives the span each was made for)."""
+    return candidate_spans(block, n_continuous, all_axes)[0]
 
 
 @functools.lru_cache(maxsize=32)
-def candidate_spans(block: PartType, n_continuous: int = 36) -> tuple[np.ndarray, np.ndarray]:
+def candidate_spans(block: PartType, n_continuous: int = 36, all_axes: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``object_candidates``' (N, 4, 4) frames and (N,) the span (m) of the antipodal pair each was made for
     (NaN for a face-based one).
 
@@ -209,7 +212,7 @@ def candidate_spans(block: PartType, n_continuous: int = 36) -> tuple[np.ndarray
     centre, ext = (lo + hi) / 2, hi - lo
     frames = []
     eye = np.eye(3)
-    allowed = squeeze_axes(block)
+    allowed = squeeze_axes(block, all_axes)
     for a in range(3):
         for sign in (1.0, -1.0):
             z = -sign * eye[a]  # approach from the +a (sign=1) or -a face, into the block
@@ -269,7 +272,7 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
     ``cfg.score.unstable`` less (an L-block pinched on its 25 mm end faces turned 10 deg in the hand, every time).
     The open hand of the clearance check is ``cfg.finger_margin`` wider than the grasp.
     """
-    frames, spans = candidate_spans(block)
+    frames, spans = candidate_spans(block, all_axes=hand.all_axes)
     C = np.einsum("ij,njk->nik", T_world_obj, frames)
     cos_tilt = -C[:, 2, 2]  # z axis against straight down
     keep = cos_tilt > np.cos(np.deg2rad(cfg.max_tilt_deg))

@@ -42,11 +42,13 @@ FACE_REACH = 0.003
 class Hand:
     """A hand's layout along the gripper y axis (m): ``hand_y``, where the grasped block's centre sits;
     ``finger1_y`` and ``facing_y``, the extents of finger 1 and of each finger facing it (boxes round the open
-    fingers' meshes)."""
+    fingers' meshes); ``all_axes``: it may squeeze a block along any of its axes, across a brick's studs and a
+    lying cylinder's end discs too (``grasps.squeeze_axes``)."""
 
     hand_y: float
     finger1_y: tuple[tuple[float, float], ...]
     facing_y: tuple[tuple[float, float], ...]
+    all_axes: bool = False
 
     @property
     def paired(self) -> bool:
@@ -64,8 +66,8 @@ class Hand:
 #: The 3-finger hand: the block sits between finger 1 and finger 3.
 KG3 = Hand(hand_y=-0.005, finger1_y=((-0.032, 0.002),), facing_y=((-0.062, -0.022), (-0.002, 0.032)))
 #: The 2-finger hand: finger 1 and finger 3 facing it, both centred on the pinch point (their meshes reach 11.5 mm
-#: either side).
-KG2 = Hand(hand_y=0.0, finger1_y=((-0.012, 0.012),), facing_y=((-0.012, 0.012),))
+#: either side); its pads also hold a brick across its studs and a lying cylinder by its end discs.
+KG2 = Hand(hand_y=0.0, finger1_y=((-0.012, 0.012),), facing_y=((-0.012, 0.012),), all_axes=True)
 
 
 def hand_of(cfg) -> Hand:

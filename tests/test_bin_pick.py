@@ -247,6 +247,28 @@ def test_a_part_against_a_wall_is_out_of_the_3_finger_hands_reach_and_picked_by_
     assert not ep.ctl.unexpected_contacts(1)
 
 
+def test_a_brick_on_its_side_along_a_wall_is_pinched_across_its_studs_by_the_2_finger_hand():
+    """A 2x2 brick on its side 12 mm from the +y wall, its studs facing along the wall: the 3-finger hand may squeeze
+    it only across the wall, with no room for a finger there; the 2-finger hand pinches it across its studs."""
+    b, (lo, hi) = CAT["brick_2x2"], _inner_bounds()
+    R = axis_angle_R(np.array([0.0, 1.0, 0.0]), np.pi / 2)  # studs (object z) along world x
+    v = b.vertices @ R.T
+    xy = (0.5 * (lo[0] + hi[0]) - v[:, 0].mean(), hi[1] - 0.012 - v[:, 1].max())
+    for hand in ("3-finger", "2-finger"):
+        ep = _episode(_cfg(1, hand), ["brick_2x2"], [make_T(R, (*xy, 0.011 - v[:, 2].min()))])
+        T_world_cam = ep.T_world_cam()
+        ests = [Estimate(b.obj_id, np.linalg.inv(T_world_cam) @ ep.wc.block_poses()[0], 1.0)]
+        if hand == "3-finger":
+            with pytest.raises(EpisodeFailed) as e:
+                choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+            assert e.value.reason == Failure.NOTHING_GRASPABLE
+            continue
+        _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+        assert abs(grasp.T_world_gripper[0, 0]) > 0.99  # the squeeze along the wall, across the studs
+        assert _picked(ep, grasp)
+        assert not ep.ctl.unexpected_contacts(1)
+
+
 def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
     cfg = _cfg()
     wc0 = bin_workcell(cfg, [])

@@ -8,7 +8,7 @@ import pytest
 
 from posegrasp.grasping.config import ControlConfig, GraspConfig
 from posegrasp.grasping.controller import ArmController, finger_angle_for_opening, open_finger_points
-from posegrasp.grasping.hand import KG2
+from posegrasp.grasping.hand import KG2, KG3
 from posegrasp.grasping.grasps import object_candidates, plan_grasps, squeeze_axes, surface_points
 from posegrasp.grasping.support import RestConfig, rest_on_table
 from posegrasp.grasping.perception import NoisyOracleProvider, OracleProvider, observation, visible_enough
@@ -103,6 +103,21 @@ def test_squeeze_axes_skip_studs_and_round_ends():
     assert squeeze_axes(cat["brick_2x4"]) == [0, 1]  # not across the studs (z)
     assert squeeze_axes(cat["cylinder"]) == [0, 1]  # not along the axis of the round ends
     assert squeeze_axes(cat["cube"]) == [0, 1, 2]
+    assert squeeze_axes(cat["brick_2x4"], all_axes=True) == squeeze_axes(cat["cylinder"], all_axes=True) == [0, 1, 2]
+
+
+@pytest.mark.parametrize("name", ["brick_2x4", "cylinder"])
+def test_only_the_2_finger_hand_squeezes_across_studs_and_round_ends(name):
+    """A brick lying on its side (studs facing along world x) and a lying cylinder (its axis along world x): the
+    3-finger hand never squeezes along that axis, the 2-finger hand does."""
+    block = load_catalog()[name]
+    T = make_T(axis_angle_R(np.array([0.0, 1.0, 0.0]), np.pi / 2), (0.45, 0.0, 0.04))
+    along = {}
+    for hand in (KG3, KG2):
+        grasps = plan_grasps(block, T, np.zeros((0, 3)), GraspConfig(), 0.0, hand=hand)
+        assert grasps
+        along[hand] = [g for g in grasps if abs(g.T_world_gripper[0, 0]) > 0.99]
+    assert not along[KG3] and along[KG2]
 
 
 def test_grasps_avoid_a_neighbour():
