@@ -176,10 +176,11 @@ def test_the_open_fingers_keep_off_the_targets_own_surface():
     assert _clear_of(grasp, own, fingers(grasp), 0.0)
 
 
-def _alone(name: str, xy, hand: str = "3-finger") -> tuple[Episode, list[Estimate], np.ndarray]:
-    """Part ``name`` lying alone at ``xy`` (m, world) in the tote, picked by ``hand``: the episode, the oracle's
-    estimate and ``T_world_cam``."""
-    ep = _episode(_cfg(1, hand), [name], [_flat(name, xy)])
+def _alone(name: str, xy, hand: str = "3-finger", T: np.ndarray | None = None
+           ) -> tuple[Episode, list[Estimate], np.ndarray]:
+    """Part ``name`` lying alone at ``xy`` (m, world) in the tote (or at pose ``T``), picked by ``hand``: the
+    episode, the oracle's estimate and ``T_world_cam``."""
+    ep = _episode(_cfg(1, hand), [name], [_flat(name, xy) if T is None else T])
     T_world_cam = ep.T_world_cam()
     return ep, [Estimate(CAT[name].obj_id, np.linalg.inv(T_world_cam) @ ep.wc.block_poses()[0], 1.0)], T_world_cam
 
@@ -250,23 +251,19 @@ def test_a_part_against_a_wall_is_out_of_the_3_finger_hands_reach_and_picked_by_
 def test_a_brick_on_its_side_along_a_wall_is_pinched_across_its_studs_by_the_2_finger_hand():
     """A 2x2 brick on its side 12 mm from the +y wall, its studs facing along the wall: the 3-finger hand may squeeze
     it only across the wall, with no room for a finger there; the 2-finger hand pinches it across its studs."""
-    b, (lo, hi) = CAT["brick_2x2"], _inner_bounds()
+    lo, hi = _inner_bounds()
     R = axis_angle_R(np.array([0.0, 1.0, 0.0]), np.pi / 2)  # studs (object z) along world x
-    v = b.vertices @ R.T
-    xy = (0.5 * (lo[0] + hi[0]) - v[:, 0].mean(), hi[1] - 0.012 - v[:, 1].max())
-    for hand in ("3-finger", "2-finger"):
-        ep = _episode(_cfg(1, hand), ["brick_2x2"], [make_T(R, (*xy, 0.011 - v[:, 2].min()))])
-        T_world_cam = ep.T_world_cam()
-        ests = [Estimate(b.obj_id, np.linalg.inv(T_world_cam) @ ep.wc.block_poses()[0], 1.0)]
-        if hand == "3-finger":
-            with pytest.raises(EpisodeFailed) as e:
-                choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
-            assert e.value.reason == Failure.NOTHING_GRASPABLE
-            continue
-        _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
-        assert abs(grasp.T_world_gripper[0, 0]) > 0.99  # the squeeze along the wall, across the studs
-        assert _picked(ep, grasp)
-        assert not ep.ctl.unexpected_contacts(1)
+    v = CAT["brick_2x2"].vertices @ R.T
+    T = make_T(R, (0.5 * (lo[0] + hi[0]) - v[:, 0].mean(), hi[1] - 0.012 - v[:, 1].max(), 0.011 - v[:, 2].min()))
+    ep, ests, T_world_cam = _alone("brick_2x2", None, "3-finger", T)
+    with pytest.raises(EpisodeFailed) as e:
+        choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    assert e.value.reason == Failure.NOTHING_GRASPABLE
+    ep, ests, T_world_cam = _alone("brick_2x2", None, "2-finger", T)
+    _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    assert abs(grasp.T_world_gripper[0, 0]) > 0.99  # the squeeze along the wall, across the studs
+    assert _picked(ep, grasp)
+    assert not ep.ctl.unexpected_contacts(1)
 
 
 def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
