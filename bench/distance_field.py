@@ -20,7 +20,8 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from posegrasp import ASSETS, bop, bop_models
+from posegrasp import ASSETS, bop
+from posegrasp.bop import models as bop_models
 from posegrasp.perception.refine.distance_field import DistanceField
 
 

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from posegrasp import bop
-from posegrasp import bop_models
-from posegrasp import bop_images
+from posegrasp.bop import models as bop_models
+from posegrasp.bop import images as bop_images
 from posegrasp import io as pio
 from posegrasp.catalog import set_root
 from posegrasp.errors import DatasetError

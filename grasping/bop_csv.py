@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp import bop
-from posegrasp import bop_results
-from posegrasp.bop_check import rotation_problem
+from posegrasp.bop import results as bop_results
+from posegrasp.bop.check import rotation_problem
 from posegrasp.catalog import catalog_by_id
 from posegrasp.errors import DatasetError, ProviderError
 from posegrasp.grasping.perception import MAX_TRANSLATION_M, ROT_TOL, Estimate, Observation

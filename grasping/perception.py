@@ -24,7 +24,7 @@ from typing import Callable, Collection, Protocol, TypeVar
 
 import numpy as np
 
-from posegrasp import bop_images
+from posegrasp.bop import images as bop_images
 from posegrasp.errors import PerceptionError, ProviderError
 from posegrasp.geometry import axis_angle_R
 from posegrasp.sim.camera import Frame

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from posegrasp.bop import load_models_info
-from posegrasp.bop_models import load_model
+from posegrasp.bop.models import load_model
 from posegrasp.errors import DatasetError, UserError
 from posegrasp.geometry import quat_to_R
 from posegrasp.io import dumps_json

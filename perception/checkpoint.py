@@ -154,7 +154,7 @@ def read_config(ckpt: Path) -> dict[str, Any]:
 
 def _read_json(p: Path, missing: str) -> Any:
     """The JSON of a checkpoint file ``p`` (UTF-8, no NaN or Infinity); a WeightsError (``missing`` if absent)."""
-    from posegrasp.bop_schema import read_json
+    from posegrasp.bop.schema import read_json
     from posegrasp.errors import DatasetError
 
     if not p.exists():

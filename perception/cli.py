@@ -101,7 +101,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def run_eval(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp eval``."""
-    from posegrasp.bop_check import require_valid
+    from posegrasp.bop.check import require_valid
     from posegrasp.perception.evaluate import EvalConfig, evaluate
 
     cfg = load_toml(EvalConfig, args.config, section="eval", sections=SECTIONS)

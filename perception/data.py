@@ -17,7 +17,7 @@ import torch
 from torch.utils.data import Dataset
 
 from posegrasp import bop
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.errors import DatasetError
 from posegrasp.perception.crop_cache import fingerprint, read_crop_cache, write_crop_cache
 from posegrasp.perception.inputs import (normalize_cls_input, normalize_rgb, prepare_cls_input, prepare_pose_input,

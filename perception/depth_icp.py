@@ -32,7 +32,7 @@ import torch
 from scipy import ndimage
 
 from posegrasp import bop
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.errors import ConfigError
 from posegrasp.perception.crop import backproject
 from posegrasp.perception.plane import fit_support_plane, plane_distance

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from posegrasp import bop
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.errors import ConfigError, DatasetError, WeightsError
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.crop import backproject, mask_bbox, padded_box

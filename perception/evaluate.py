@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 
 from posegrasp import bop
-from posegrasp import bop_results
-from posegrasp import bop_models
+from posegrasp.bop import results as bop_results
+from posegrasp.bop import models as bop_models
 from posegrasp import io as pio
 from posegrasp.config import within
 from posegrasp.errors import ConfigError

@@ -358,8 +358,8 @@ def train_split(root: Path, split: str) -> str:
 
 def check_splits(data: Path, cfg: Any, progress: bool) -> None:
     """Refuse (DatasetError) a training or validation split that ``dataset check`` would flag, before anything
-    is written or trained (``bop_check.require_valid``)."""
-    from posegrasp.bop_check import require_valid
+    is written or trained (``bop.check.require_valid``)."""
+    from posegrasp.bop.check import require_valid
 
     for split in dict.fromkeys((train_split(data, cfg.train_split), cfg.val_split)):
         if split == cfg.val_split and not split_exists(data, split):

@@ -23,7 +23,7 @@ EXIT_NO_SPACE = 74
 COMMAND_MODULES = (
     "posegrasp.sim.cli",
     "posegrasp.datagen.cli",
-    "posegrasp.bop_cli",
+    "posegrasp.bop.cli",
     "posegrasp.perception.cli",
     "posegrasp.grasping.cli",
     "posegrasp.grasping.compare",

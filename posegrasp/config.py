@@ -1,4 +1,6 @@
-"""Typed dataclass configuration loaded from TOML; unknown keys and wrong types are user errors."""
+"""Typed settings: frozen dataclasses (``@settings``) whose fields declare their ranges (``within``), checked when
+an instance is built, in code or from TOML (``from_dict``, ``load_toml``: unknown keys and wrong types are user
+errors too); ``override`` applies CLI flags."""
 
 from __future__ import annotations
 
@@ -35,6 +37,22 @@ def from_dict(cls: type[C], data: dict[str, Any], where: str = "config") -> C:
         return cls(**kwargs)
     except ConfigError as e:  # a check across fields (``__post_init__``): name the file
         raise ConfigError(f"{where}: {e}") from None
+
+
+def settings(cls: type[C]) -> type[C]:
+    """Class decorator for a settings class: a frozen dataclass whose fields' ``within`` ranges are checked when an
+    instance is built (a ``ConfigError`` naming the class, field and value), then its own ``__post_init__`` (checks
+    across fields). Every settings class of the package is one."""
+    own = cls.__dict__.get("__post_init__", getattr(cls, "__post_init__", None))
+
+    def __post_init__(self: Any) -> None:
+        for f in dataclasses.fields(self):
+            check_range(f, getattr(self, f.name), f"{type(self).__name__}.{f.name}")
+        if own is not None:
+            own(self)
+
+    cls.__post_init__ = __post_init__  # type: ignore[attr-defined]
+    return dataclasses.dataclass(frozen=True)(cls)
 
 
 def within(lo: float, hi: float) -> dict[str, Any]:

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 
 from posegrasp import bop
-from posegrasp import bop_results
-from posegrasp import bop_images
+from posegrasp.bop import results as bop_results
+from posegrasp.bop import images as bop_images
 from posegrasp import io as pio
 from posegrasp.bop import MM
 

@@ -27,7 +27,7 @@ def _preload() -> None:
     cli.build_parser()
     for name in ("torch", "mujoco", "trimesh", "PIL.Image", "posegrasp.perception.train_seg",
                  "posegrasp.perception.train_pose", "posegrasp.perception.train_cls", "posegrasp.perception.evaluate",
-                 "posegrasp.grasping.trials", "posegrasp.bop_check", "posegrasp.bop_show", "posegrasp.objects.show"):
+                 "posegrasp.grasping.trials", "posegrasp.bop.check", "posegrasp.bop.show", "posegrasp.objects.show"):
         try:
             importlib.import_module(name)
         except ImportError:

@@ -12,8 +12,8 @@ import pytest
 from rich.console import Console
 
 from posegrasp import bop
-from posegrasp import bop_results
-from posegrasp.bop_check import check_dataset
+from posegrasp.bop import results as bop_results
+from posegrasp.bop.check import check_dataset
 from posegrasp.errors import UserError
 from posegrasp.grasping.bop_csv import BopCsvProvider, from_spec
 from posegrasp.grasping.captures import export_captures

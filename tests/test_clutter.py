@@ -13,8 +13,8 @@ import pytest
 from test_bad_input import refused, snapshot
 
 from posegrasp import bop
-from posegrasp import bop_models
-from posegrasp.bop_check import check_dataset
+from posegrasp.bop import models as bop_models
+from posegrasp.bop.check import check_dataset
 from posegrasp.cli import main
 from posegrasp.catalog import load_catalog
 from posegrasp.errors import SceneUnsettled

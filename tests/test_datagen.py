@@ -20,11 +20,11 @@ from matplotlib.path import Path as PolyPath
 from scipy.spatial import ConvexHull
 
 from helpers import cli, run_cli
-from posegrasp.bop_check import check_dataset
+from posegrasp.bop.check import check_dataset
 from posegrasp.datagen.config import load_datagen_config
 from posegrasp.datagen.generate import STATS_FILE, generate_dataset, is_complete
 from posegrasp import bop
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.geometry import invert, transform_points
 from posegrasp.io import read_image
 from posegrasp.perception.depth_render import DepthRenderer

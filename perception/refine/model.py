@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.perception.refine.config import RefineConfig
 from posegrasp.perception.refine.distance_field import DistanceField
 from posegrasp.perception.refine.grids import NearestGrid

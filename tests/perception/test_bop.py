@@ -7,9 +7,9 @@ import pytest
 from bop_helpers import read_results_csv
 
 from posegrasp import bop
-from posegrasp import bop_results
-from posegrasp import bop_models
-from posegrasp import bop_images
+from posegrasp.bop import results as bop_results
+from posegrasp.bop import models as bop_models
+from posegrasp.bop import images as bop_images
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T
 

@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from posegrasp import bop
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.geometry import axis_angle_R, make_T
 from posegrasp.perception import bop19 as B
 from posegrasp.perception.depth_render import DepthRenderer

@@ -14,7 +14,7 @@ from posegrasp.perception.refine import (FitConfig, NearestGrid, ObjectModel, Re
                                         refine_poses)
 from posegrasp.perception.metrics import rotation_error_sym_deg
 from posegrasp import bop
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.geometry import axis_angle_R, make_T
 
 

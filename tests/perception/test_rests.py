@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from posegrasp import bop
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.perception.refine.rests import Rests, up_classes
 from posegrasp.perception.refine.starts import cube_rotations
 

@@ -17,7 +17,7 @@ from typing import Any, Callable
 import numpy as np
 
 from posegrasp import bop
-from posegrasp import bop_models
+from posegrasp.bop import models as bop_models
 from posegrasp.errors import DatasetError
 from posegrasp.geometry import invert
 
@@ -63,7 +63,7 @@ def find_splits(root: Path) -> list[str]:
 
 class _Checker:
     """Accumulates problems over one dataset, read through ``posegrasp.bop`` (every file checked by
-    ``bop_schema`` and ``bop_images``); ``max_problems`` stops the search early. ``model_depth``: compare the depth
+    ``bop.schema`` and ``bop.images``); ``max_problems`` stops the search early. ``model_depth``: compare the depth
     with the models at their poses (the slow part); ``scoring``: check ``models_eval/`` and the BOP19 targets;
     ``complete``: require them and ``models_eval/models_info.json`` (as other BOP tools do; ``eval`` falls back to
     ``models/`` and the ground truth without them)."""

@@ -12,8 +12,8 @@ Layout under a dataset root::
 Files are in millimetres (models, translations, depth png x depth_scale); everything this module
 returns is in metres: the conversion happens here, at the boundary. Poses are 4x4 ``T_cam_obj``
 (model frame -> OpenCV camera frame: x right, y down, z forward). Writers are atomic. The images'
-codecs are in ``posegrasp.bop_images``, the models' meshes in ``posegrasp.bop_models``, the results files in
-``posegrasp.bop_results``.
+codecs are in ``posegrasp.bop.images``, the models' meshes in ``posegrasp.bop.models``, the results files in
+``posegrasp.bop.results``.
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from posegrasp import bop_images, bop_schema
+from posegrasp.bop import images as bop_images, schema as bop_schema
 from posegrasp import io as pio
-from posegrasp.bop_images import MM, depth_from_png
+from posegrasp.bop.images import MM, depth_from_png
 from posegrasp.errors import DatasetError, DatasetFileError
 
 TEST_TARGETS_FILE = "test_targets_bop19.json"
@@ -217,7 +217,7 @@ def pose_from_bop(R: list[float] | np.ndarray, t_mm: list[float] | np.ndarray) -
     return T
 
 
-# ---------------------------------------------------------------------------- readers (checked: ``bop_schema``)
+# ---------------------------------------------------------------------------- readers (checked: ``bop.schema``)
 
 def _file(root_or_file: str | Path, default: Path) -> Path:
     p = Path(root_or_file)
@@ -270,7 +270,7 @@ def list_scenes(root: str | Path, split: str) -> list[int]:
 
 def iter_scene_images(root: str | Path, split: str, scene_ids: Iterable[int] | None = None) -> Iterator[ImageRecord]:
     """Every image of a split, scene by scene, with its camera and ground truth (m), each file checked
-    (``bop_schema``) and against the others: ``scene_gt.json`` and ``scene_gt_info.json`` annotate images of
+    (``bop.schema``) and against the others: ``scene_gt.json`` and ``scene_gt_info.json`` annotate images of
     ``scene_camera.json``, the same number of objects each. The images' size is camera.json's.
 
     ``scene_gt.json`` and ``scene_gt_info.json`` are optional (test images without annotations).

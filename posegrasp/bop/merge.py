@@ -32,7 +32,7 @@ def parse_source(text: str) -> tuple[Path, str | None]:
 
 def source_split(root: Path, split: str | None) -> str:
     """The split of ``root`` to merge: ``split``, or its only one; ``DatasetError`` naming what is missing."""
-    from posegrasp.bop_check import find_splits
+    from posegrasp.bop.check import find_splits
 
     if not root.is_dir():
         raise DatasetError(f"dataset folder {root} does not exist")

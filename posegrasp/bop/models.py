@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp.bop import MM, model_path
-from posegrasp.bop_schema import MAX_MM
+from posegrasp.bop.schema import MAX_MM
 from posegrasp.errors import DatasetFileError
 
 

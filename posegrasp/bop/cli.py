@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    from posegrasp.bop_check import check_dataset, print_report
+    from posegrasp.bop.check import check_dataset, print_report
 
     report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images, progress=True)
     print_report(report, args.dir)
@@ -51,8 +51,8 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def run_show(args: argparse.Namespace) -> int:
-    from posegrasp.bop_check import find_splits
-    from posegrasp.bop_show import show_image
+    from posegrasp.bop.check import find_splits
+    from posegrasp.bop.show import show_image
     from posegrasp.io import write_image
 
     root = Path(args.dir)
@@ -74,7 +74,7 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def run_merge(args: argparse.Namespace) -> int:
-    from posegrasp.bop_merge import merge_datasets, parse_source
+    from posegrasp.bop.merge import merge_datasets, parse_source
 
     n = merge_datasets(args.out, [parse_source(s) for s in args.sources], args.split)
     print(f"{n} scenes from {len(args.sources)} datasets -> {args.out}/{args.split}")
