@@ -1,10 +1,10 @@
-"""How far the depth refinement's distances lie from the true distance to each block's surface.
+"""How far the depth fit's distances lie from the true distance to each block's surface.
 
     python bench/distance_field.py [--points 4000] [--spread 0.0015]
 
 Points near each catalogue block's surface (surface samples moved by a Gaussian of ``--spread`` m per axis) get their
 exact distance from the mesh (``trimesh.proximity.signed_distance``) and two estimates: the ``DistanceField`` the
-fine scores use (``perception.refine.distance_field``) and the distance to the nearest of the 1500 model points the
+fine scores use (``perception.depth_fit.distance_field``) and the distance to the nearest of the 1500 model points the
 fits use (a k-d search, what the scores took before the field). Prints mean, 95th percentile and worst error (mm) per block,
 and the field's build time.
 """
@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from posegrasp import ASSETS, bop
 from posegrasp.bop import models as bop_models
-from posegrasp.perception.refine.distance_field import DistanceField
+from posegrasp.perception.depth_fit.distance_field import DistanceField
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,7 +25,7 @@ from posegrasp import ASSETS
 from posegrasp.objects import examples
 from posegrasp.objects.config import ImportConfig
 from posegrasp.objects.decompose import convex_pieces
-from posegrasp.objects.importer import Workcell, import_object, sources
+from posegrasp.objects.importer import import_object, sources
 
 
 def _made_meshes(d: Path) -> list[Path]:
@@ -42,7 +42,7 @@ def _made_meshes(d: Path) -> list[Path]:
 
 
 def main() -> None:
-    cfg, cell = ImportConfig(), Workcell.default()
+    cfg = ImportConfig()
     load0 = os.getloadavg()[0]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -50,7 +50,7 @@ def main() -> None:
         srcs = sources([ASSETS / "blocks" / "models"], ["mm"]) + sources(made, ["m"])
         for i, src in enumerate(srcs, start=1):
             w0, c0 = time.perf_counter(), time.process_time()
-            obj = import_object(src, i, cfg, cell)
+            obj = import_object(src, i, cfg)
             w1, c1 = time.perf_counter(), time.process_time()
             convex_pieces(trimesh.Trimesh(obj.vertices, obj.faces), cfg.max_pieces, cfg.coacd_threshold, cfg.seed)
             w2, c2 = time.perf_counter(), time.process_time()

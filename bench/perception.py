@@ -10,9 +10,9 @@ Without --weights the nets are built at their default (CPU) configurations with 
 real loading path is exercised. Stages: seg = resize, segmentation net, upsampling to 640x480,
 softmax and argmax; cls = the instance classifier on the 5 objects' segments (when the run has one);
 pose = crops, point sampling and the pose net on the 5 objects as one batch;
-refine = the refiner's iterations on the 5 objects; plane = the supporting plane's RANSAC fit and mask cleanup;
-icp = the depth refinement of the 5 estimates
-(``perception.refine``, with the block catalogue's meshes); split = the test of the 5 masks against their fitted
+refiner = the refiner's iterations on the 5 objects; plane = the supporting plane's RANSAC fit and mask cleanup;
+depth_fit = the depth fit of the 5 estimates
+(``perception.depth_fit``, with the block catalogue's meshes); split = the test of the 5 masks against their fitted
 models and the fits of any parts split off (``perception.split``). Prints a table and a JSON line.
 """
 
@@ -55,7 +55,7 @@ def make_default_run(root: Path) -> Path:
     ref_cfg = RefinerConfig(obj_ids=OBJ_IDS, symmetric=[False] * len(OBJ_IDS), emb_dim=pose_cfg.emb_dim)
     checkpoint.save(root / "seg", "seg", build_seg_net(seg_cfg), seg_cfg, None, {"step": 0})
     checkpoint.save(root / "pose", "pose", build_pose_net(pose_cfg), pose_cfg, None, {"step": 0})
-    checkpoint.save(root / "refine", "refine", build_refiner(ref_cfg), ref_cfg, None, {"step": 0})
+    checkpoint.save(root / "refiner", "refiner", build_refiner(ref_cfg), ref_cfg, None, {"step": 0})
     cls_cfg = ClassifierConfig(obj_ids=OBJ_IDS)
     checkpoint.save(root / "cls", "cls", build_classifier(cls_cfg), cls_cfg, None, {"step": 0})
     return root
@@ -71,7 +71,7 @@ def sim_frame(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[t
     wc = make_scene(seed, 5).workcell
     wc.drive_arm(wc.look_q)
     c = wc.cfg.hand_camera
-    cam = CameraRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
+    cam = CameraRenderer(wc, HAND_CAMERA, c)
     f = cam.capture()
     cam.close()
     masks = [(int(o), f.mask == k + 1) for k, o in enumerate(f.obj_ids)]
@@ -80,13 +80,13 @@ def sim_frame(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[t
 
 
 def bench(est: Estimator, repeats: int, warmup: int) -> dict[str, dict[str, float]]:
-    """Stage timings of ``est`` (built with the catalogue's meshes, for the depth refinement) on ``sim_frame()``."""
+    """Stage timings of ``est`` (built with the catalogue's meshes, for the depth fit) on ``sim_frame()``."""
     rgb, depth, K, masks = sim_frame()
     masks = [(o, m) for o, m in masks if o in est.obj_ids]
     labels = np.zeros(rgb.shape[:2], dtype=np.int64)  # the 5 blocks' true class map as the seg net's
     for o, m in masks:
         labels[m] = o
-    times: dict[str, list[float]] = {"seg": [], "plane": [], "cls": [], "pose": [], "refine": [], "icp": [],
+    times: dict[str, list[float]] = {"seg": [], "plane": [], "cls": [], "pose": [], "refiner": [], "depth_fit": [],
                                      "split": [], "guided": [], "total": []}
     for i in range(warmup + repeats):
         t0 = time.perf_counter()
@@ -109,7 +109,7 @@ def bench(est: Estimator, repeats: int, warmup: int) -> dict[str, dict[str, floa
             times["seg"].append(t05 - t0)
             times["plane"].append(t1 - t05)
             times["cls"].append(t15 - t1)
-            for k in ("pose", "refine", "icp"):
+            for k in ("pose", "refiner", "depth_fit"):
                 times[k].append(stages[k])
             times["split"].append(t195 - t19)
             times["guided"].append(t2 - t195)
@@ -129,12 +129,12 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         weights = args.weights or make_default_run(Path(tmp))
-        est = Estimator(weights, EstimatorConfig(models=ASSETS / "blocks"))  # the catalogue's meshes, for the ICP
+        est = Estimator(weights, EstimatorConfig(models=ASSETS / "blocks"))  # the catalogue's meshes: the depth fit
         cfg = {"seg_input_size": list(est.seg_cfg.input_size), "seg_width": est.seg_cfg.width,
                "num_points": est.pose_points, "crop_size": est.pose_crop,
                "backbone_width": est.pose_cfg.backbone_width,
                "attention": [est.pose_cfg.use_pam, est.pose_cfg.use_cam, est.pose_cfg.use_gfem],
-               "refine_iterations": est.refiner_cfg.iterations if est.refiner_cfg else 0}
+               "refiner_iterations": est.refiner_cfg.iterations if est.refiner_cfg else 0}
         with one_blas_thread():  # as in the Estimator's own methods, for the plane's fit called here
             res = bench(est, args.repeats, args.warmup)
     out = {"frame": "640x480", "objects": 5, "threads": args.threads, "torch": torch.__version__,

@@ -7,6 +7,7 @@ Run: ``MUJOCO_GL=egl .venv/bin/python bench/render.py``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -33,9 +34,8 @@ def main() -> None:
     scene = make_scene(0, 5)
     wc = scene.workcell
     wc.drive_arm(wc.look_q)
-    fovy = wc.cfg.hand_camera.fovy_deg
     for w, h in ((320, 240), (640, 480)):
-        r = CameraRenderer(wc, HAND_CAMERA, w, h, fovy)
+        r = CameraRenderer(wc, HAND_CAMERA, dataclasses.replace(wc.cfg.hand_camera, width=w, height=h))
         for kind in ("rgb", "depth", "mask"):
             results[f"{kind}_{w}x{h}_fps"] = rate(getattr(r, kind))
         r.close()

@@ -30,7 +30,7 @@ from rich.console import Console
 from posegrasp.grasping.cli import with_scene
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.runfolder import TIMINGS, read_records
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 
 
 def main(episodes: int = 60, workers: int = 2, task: str = "pick-place", scene: str | None = None,
@@ -41,7 +41,7 @@ def main(episodes: int = 60, workers: int = 2, task: str = "pick-place", scene: 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         s = run_trials(Path(tmp), episodes, seed=seed, perception=perception, workers=workers, cfg=cfg,
-                       console=Console(stderr=True, quiet=True))
+                       display=Display(Console(stderr=True, quiet=True)))
         wall = time.perf_counter() - t0
         phases: dict[str, float] = {}
         cpu = 0.0

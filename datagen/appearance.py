@@ -1,6 +1,6 @@
-"""Domain randomisation of looks: block colours and materials, table and floor textures, extra lights.
+"""Domain randomisation of appearance: block colours and materials, table and floor textures, extra lights.
 
-``sample_look`` draws everything from one rng; ``Look.add_to(root)`` adds it to a workcell's MJCF before
+``sample_appearance`` draws everything from one rng; ``Appearance.add_to(root)`` adds it to a workcell's MJCF before
 compiling (composed with ``dm_control.mjcf``); ``light_tint`` recolours the compiled model's lights.
 """
 
@@ -32,7 +32,7 @@ class Texture:
 
 
 @dataclass(frozen=True)
-class Look:
+class Appearance:
     """Sampled appearance of one scene: per block RGBA and (specular, shininess); table and floor textures;
     the number of extra lights; distractor objects."""
 
@@ -101,7 +101,7 @@ def _add_texture_material(root: mjcf.RootElement, name: str, tex: Texture):
                           texrepeat=(tex.repeat_per_m, tex.repeat_per_m), specular=0.1, shininess=0.1)
 
 
-def sample_look(cfg: DatagenConfig, n_blocks: int, rng: np.random.Generator) -> Look:
+def sample_appearance(cfg: DatagenConfig, n_blocks: int, rng: np.random.Generator) -> Appearance:
     """Draw a scene's appearance: block colours (palette entry + jitter) and materials, textures, lights,
     distractors."""
     c = cfg.colours
@@ -111,7 +111,7 @@ def sample_look(cfg: DatagenConfig, n_blocks: int, rng: np.random.Generator) -> 
     table, floor = sample_texture(cfg.textures, rng), sample_texture(cfg.textures, rng)
     extra = int(rng.integers(cfg.lights.extra[0], cfg.lights.extra[1] + 1))
     distractors = tuple(sample_distractors(cfg.distractors, cfg.workcell.pick_area, rng))
-    return Look(rgba, mats, table, floor, extra, distractors)
+    return Appearance(rgba, mats, table, floor, extra, distractors)
 
 
 def light_tint(model, cfg: LightConfig, rng: np.random.Generator) -> None:

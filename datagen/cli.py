@@ -9,6 +9,12 @@ import re
 from posegrasp.arguments import nonneg_int, out_dir, positive_int, workers_arg
 from posegrasp.errors import UserError
 
+#: The settings its commands read, for the settings page (``posegrasp.settings_doc``).
+SETTINGS = (
+    dict(title="Dataset generation", target="posegrasp.datagen.config:DatagenConfig", table="",
+         command="`posegrasp datagen --config FILE`", note="The defaults, commented: `datagen/datagen.toml`."),
+)
+
 
 def parse_blocks(text: str) -> tuple[int, int]:
     """``"5"`` -> (5, 5); ``"3-8"`` -> (3, 8); a one-line error for anything else."""

@@ -8,17 +8,23 @@ default; a TOML file of the same layout (tables ``[views]``, ``[colours]``, ``[t
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
 
-from posegrasp.config import load_toml
+from posegrasp.config import load_toml, settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.sim.clutter import CLUTTER_KINDS, ClutterConfig
-from posegrasp.sim.config import WorkcellConfig, with_objects
+from posegrasp.sim.config import WorkcellConfig, check_pairs, with_objects
 from posegrasp.sim.scene import PALETTE, check_block_types
 
 
-@dataclass(frozen=True)
+SCENES = ("table", *CLUTTER_KINDS)  #: ``DatagenConfig.scene``'s kinds (``--scene``)
+TEXTURE_KINDS = ("checker", "gradient", "flat", "noise")
+RGB_FORMATS = ("auto", "jpg", "png")
+MSAA = (0, 2, 4, 8)  #: multisamples per colour pixel ``DatagenConfig.msaa`` may take
+
+
+@settings
 class ViewConfig:
     """Hand-camera viewpoints on a spherical cap over the clutter, reached by the arm.
 
@@ -26,9 +32,9 @@ class ViewConfig:
     """
 
     #: Range of the camera's distance (m) from the look-at point.
-    distance: tuple[float, float] = (0.25, 0.75)
+    distance: tuple[float, float] = field(default=(0.25, 0.75), metadata=within(0.05, 5.0))
     #: Range of the camera's elevation (deg) above the table plane.
-    elevation_deg: tuple[float, float] = (30.0, 88.0)
+    elevation_deg: tuple[float, float] = field(default=(30.0, 88.0), metadata=within(0.0, 89.5))
     #: Range of the azimuth (deg) about the vertical through the look-at point; 0: the arm base's side.
     azimuth_deg: tuple[float, float] = (-180.0, 180.0)
     #: Largest roll (deg) of the camera about its optical axis.
@@ -42,9 +48,9 @@ class ViewConfig:
     #: Camera positions farther (m) from the shoulder joint are rejected without IK.
     max_reach: float = 0.66
     #: IK iterations per attempt.
-    ik_iters: int = 60
+    ik_iters: int = field(default=60, metadata=within(1, 10_000))
     #: IK attempts (random starts) per view.
-    attempts_per_view: int = 4
+    attempts_per_view: int = field(default=4, metadata=within(1, 1000))
     #: Gain (1/s) of the joint drive to a view.
     drive_gain: float = 10.0
     #: The arm has reached a view when every joint is within this (rad).
@@ -52,8 +58,11 @@ class ViewConfig:
     #: Simulated time (s) allowed to reach a view.
     drive_timeout: float = 6.0
 
+    def __post_init__(self) -> None:
+        check_pairs(self, "distance", "elevation_deg", "azimuth_deg")
 
-@dataclass(frozen=True)
+
+@settings
 class ColourConfig:
     """Block colours: a palette entry with hue, saturation and value jitter, and material ranges."""
 
@@ -70,13 +79,17 @@ class ColourConfig:
     #: Range of the material's shininess.
     shininess: tuple[float, float] = (0.05, 0.7)
 
+    def __post_init__(self) -> None:
+        if not self.palette:
+            raise ConfigError("ColourConfig.palette = [] must hold at least one RGB colour")
 
-@dataclass(frozen=True)
+
+@settings
 class TextureConfig:
     """Procedural table and floor textures in random colours."""
 
     #: Texture kinds drawn from: MuJoCo's `checker`, `gradient`, `flat`, or a generated `noise` image.
-    kinds: tuple[str, ...] = ("checker", "gradient", "flat", "noise")
+    kinds: tuple[str, ...] = TEXTURE_KINDS
     #: Range of the fraction of texels given random marks.
     speckle: tuple[float, float] = (0.0, 0.05)
     #: Range of the texture repeats per metre.
@@ -84,32 +97,43 @@ class TextureConfig:
     #: Side (px) of a generated texture.
     size_px: int = 64
 
+    def __post_init__(self) -> None:
+        if not self.kinds or not set(self.kinds) <= set(TEXTURE_KINDS):
+            raise ConfigError(f"TextureConfig.kinds = {list(self.kinds)} must be a non-empty subset of "
+                              f"{list(TEXTURE_KINDS)}")
 
-@dataclass(frozen=True)
+
+@settings
 class LightConfig:
     """Lights added to the workcell's two, then all placed, aimed and dimmed at random."""
 
     #: Range of the number of lights added (at most 6).
-    extra: tuple[int, int] = (0, 3)
+    extra: tuple[int, int] = field(default=(0, 3), metadata=within(0, 6))
     #: Range of each light's diffuse intensity.
     intensity: tuple[float, float] = (0.3, 0.8)
     #: Largest per-channel colour tint of a light.
     tint: float = 0.15
 
+    def __post_init__(self) -> None:
+        check_pairs(self, "extra")
 
-@dataclass(frozen=True)
+
+@settings
 class DistractorConfig:
     """Unlabelled primitives (box, cylinder, sphere, capsule) on the table around the pick area."""
 
     #: Range of the number of distractors per scene.
-    count: tuple[int, int] = (0, 4)
+    count: tuple[int, int] = field(default=(0, 4), metadata=within(0, 100))
     #: Range of a distractor's half-extent (m).
-    size: tuple[float, float] = (0.01, 0.045)
+    size: tuple[float, float] = field(default=(0.01, 0.045), metadata=within(0.002, 0.5))
     #: Range of the distance (m) from the pick area's edge.
-    band: tuple[float, float] = (0.05, 0.15)
+    band: tuple[float, float] = field(default=(0.05, 0.15), metadata=within(0.0, 1.0))
+
+    def __post_init__(self) -> None:
+        check_pairs(self, "count", "size", "band")
 
 
-@dataclass(frozen=True)
+@settings
 class DepthNoiseConfig:
     """Structured-light depth sensor model.
 
@@ -144,7 +168,7 @@ class DepthNoiseConfig:
     keep_clean: bool = False
 
 
-@dataclass(frozen=True)
+@settings
 class RgbNoiseConfig:
     """Camera effects on the colour image: exposure, gamma, blur and sensor noise."""
 
@@ -162,24 +186,24 @@ class RgbNoiseConfig:
     noise_std: tuple[float, float] = (0.0, 4.0)
 
 
-@dataclass(frozen=True)
+@settings
 class DatagenConfig:
     """Everything that decides the content of a generated dataset (besides seed, scene and view counts)."""
 
     #: Range of the number of blocks per scene, drawn uniformly.
-    blocks: tuple[int, int] = (3, 8)
+    blocks: tuple[int, int] = field(default=(3, 8), metadata=within(1, 10_000))
     #: Object types (names in the object set) drawn from; empty: all.
     block_types: tuple[str, ...] = ()
     #: Least distance (m) between drop points in the plane; smaller gives piles and more occlusion.
-    min_spacing: float = 0.03
+    min_spacing: float = field(default=0.03, metadata=within(0.01, 0.2))
     #: Blocks must rest within this distance (m) of the pick area, else they are dropped again.
     area_margin: float = 0.04
     #: Depth PNG unit (mm): value x depth_scale = mm, as in BOP.
-    depth_scale: float = 0.1
+    depth_scale: float = field(default=0.1, metadata=within(0.01, 10.0))
     #: Colour image format: `jpg`, `png`, or `auto` (jpg for `train_pbr`, png otherwise).
     rgb_format: str = "auto"
     #: JPEG quality, 1-100.
-    jpg_quality: int = 95
+    jpg_quality: int = field(default=95, metadata=within(1, 100))
     #: Multisamples per colour pixel (0, 2, 4 or 8; 0 is faster, with jagged edges).
     msaa: int = 4
     #: Viewpoints of the hand camera.
@@ -207,60 +231,19 @@ class DatagenConfig:
     clutter_views: ViewConfig = field(default_factory=lambda: ViewConfig(distance=(0.3, 0.6),
                                                                           elevation_deg=(45.0, 88.0)))
 
-
-SCENES = ("table", *CLUTTER_KINDS)
-TEXTURE_KINDS = ("checker", "gradient", "flat", "noise")
-RGB_FORMATS = ("auto", "jpg", "png")
-
-
-def _check_range(name: str, r: tuple, lo: float | None = None) -> None:
-    if len(r) != 2 or r[0] > r[1]:
-        raise ConfigError(f"{name} must be a [min, max] pair with min <= max, got {list(r)}")
-    if lo is not None and r[0] < lo:
-        raise ConfigError(f"{name} must be >= {lo}, got {list(r)}")
+    def __post_init__(self) -> None:
+        check_pairs(self, "blocks")
+        for key, allowed in (("scene", SCENES), ("rgb_format", RGB_FORMATS), ("msaa", MSAA)):
+            if getattr(self, key) not in allowed:
+                raise ConfigError(f"DatagenConfig.{key} = {getattr(self, key)!r} must be one of "
+                                  f"{', '.join(map(str, allowed))}")
 
 
 def validate(cfg: DatagenConfig) -> DatagenConfig:
-    """Check value types and ranges, raising a one-line ConfigError naming the bad setting; returns ``cfg`` (its
-    object set's folder made absolute and checked: ``sim.config.with_objects``)."""
+    """``cfg`` with its object set's folder made absolute and checked (``sim.config.with_objects``) and its
+    ``block_types`` found in that set, else a one-line ConfigError; the settings check their own values when built."""
     cfg = dataclasses.replace(cfg, workcell=with_objects(cfg.workcell))
-    _check_range("blocks", cfg.blocks, 1)
     check_block_types(cfg.block_types, cfg.workcell.objects)
-    if not 0.01 <= cfg.min_spacing <= 0.2:
-        raise ConfigError(f"min_spacing {cfg.min_spacing} m is out of range: use 0.01-0.2")
-    if cfg.scene not in SCENES:
-        raise ConfigError(f"scene (--scene) {cfg.scene!r} must be one of {', '.join(SCENES)}")
-    _check_range("clutter.parts", cfg.clutter.parts, 1)
-    if min(cfg.clutter.tote.inner_size) <= 0.0:
-        raise ConfigError(f"clutter.tote.inner_size must be positive, got {list(cfg.clutter.tote.inner_size)}")
-    for name, v in (("views", cfg.views), ("clutter_views", cfg.clutter_views)):
-        _check_range(f"{name}.distance", v.distance, 0.05)
-        _check_range(f"{name}.elevation_deg", v.elevation_deg, 0.0)
-        _check_range(f"{name}.azimuth_deg", v.azimuth_deg)
-        if v.elevation_deg[1] > 89.5:
-            raise ConfigError(f"{name}.elevation_deg must stay below 89.5 degrees, got {list(v.elevation_deg)}")
-        if v.ik_iters < 1 or v.attempts_per_view < 1:
-            raise ConfigError(f"{name}.ik_iters and {name}.attempts_per_view must be >= 1")
-    _check_range("lights.extra", cfg.lights.extra, 0)
-    if cfg.lights.extra[1] > 6:
-        raise ConfigError(f"lights.extra allows at most 6 extra lights (OpenGL renders 8), got {cfg.lights.extra[1]}")
-    _check_range("distractors.count", cfg.distractors.count, 0)
-    _check_range("distractors.size", cfg.distractors.size, 0.002)
-    _check_range("distractors.band", cfg.distractors.band, 0.0)
-    bad = sorted(set(cfg.textures.kinds) - set(TEXTURE_KINDS))
-    if bad or not cfg.textures.kinds:
-        raise ConfigError(f"textures.kinds {list(cfg.textures.kinds)} must be a non-empty subset of "
-                          f"{list(TEXTURE_KINDS)}")
-    if not cfg.colours.palette:
-        raise ConfigError("colours.palette must hold at least one RGB colour")
-    if cfg.rgb_format not in RGB_FORMATS:
-        raise ConfigError(f"rgb_format {cfg.rgb_format!r} must be one of {', '.join(RGB_FORMATS)}")
-    if not 0.01 <= cfg.depth_scale <= 10.0:
-        raise ConfigError(f"depth_scale {cfg.depth_scale} is out of range: use 0.01-10 (png value x depth_scale = mm)")
-    if cfg.msaa not in (0, 2, 4, 8):
-        raise ConfigError(f"msaa must be 0, 2, 4 or 8 samples per pixel, got {cfg.msaa}")
-    if not 1 <= cfg.jpg_quality <= 100:
-        raise ConfigError(f"jpg_quality must be 1-100, got {cfg.jpg_quality}")
     return cfg
 
 

@@ -72,8 +72,7 @@ def generate_scene(job: SceneJob) -> SceneWriter:
         raise SceneUnsettled(f"scene {job.scene_id}: {e}; {hint}") from None
     wc = gs.workcell
     c = cfg.workcell.hand_camera
-    renderer = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far,
-                             cfg.workcell.render.shadows, cfg.workcell.render.reflections, cfg.msaa)
+    renderer = LabelRenderer(wc, HAND_CAMERA, c, cfg.workcell.render, cfg.msaa)
     writer = SceneWriter(cfg.depth_scale, rgb_extension(cfg, job.split), cfg.jpg_quality)
     stats, noise_rng = ViewStats(), np.random.default_rng(s_noise)
     try:
@@ -91,7 +90,7 @@ def generate_scene(job: SceneJob) -> SceneWriter:
         **({} if cfg.scene == "table" else {"scene": cfg.scene}),
         "images": stats.reached,
         "blocks": [{"obj_id": b.block.obj_id, "name": b.block.name, "rgba": list(b.rgba)} for b in wc.blocks],
-        "distractors": len(gs.look.distractors),
+        "distractors": len(gs.appearance.distractors),
         "lights": int(wc.model.nlight),
         "drops": gs.drops,
         "views": stats.as_dict(),

@@ -16,6 +16,7 @@ import numpy as np
 from posegrasp.geometry import invert, transform_points
 from posegrasp import gl
 from posegrasp.sim.camera import Frame, intrinsics
+from posegrasp.sim.config import CameraConfig, RenderConfig
 from posegrasp.sim.workcell import Workcell
 
 _SEG_FLAGS = (mujoco.mjtRndFlag.mjRND_SEGMENT, mujoco.mjtRndFlag.mjRND_IDCOLOR)
@@ -28,20 +29,23 @@ class LabelRenderer:
     axis, 0 outside [near, far]; masks are per block k = 1..K (scene order).
     """
 
-    def __init__(self, workcell: Workcell, camera: str, width: int, height: int, fovy_deg: float,
-                 near: float, far: float, shadows: bool = False, reflections: bool = False, msaa: int = 4):
+    def __init__(self, workcell: Workcell, camera: str, c: CameraConfig, render: RenderConfig = RenderConfig(),
+                 msaa: int = 4):
+        """The renderer of ``camera`` with its settings ``c`` (size, field of view, depth range), ``render`` and
+        ``msaa`` multisamples per colour pixel."""
         m = workcell.model
+        width, height = c.width, c.height
         gl.check_offscreen_size(m, width, height)
         self.wc, self.camera = workcell, camera
-        self.width, self.height, self.near, self.far = width, height, near, far
-        self.K = intrinsics(width, height, fovy_deg)
+        self.width, self.height, self.near, self.far = width, height, c.near, c.far
+        self.K = intrinsics(width, height, c.fovy_deg)
         gl.make_current()
         # two GL resource sets: multisampled (anti-aliased) for colour, single-sampled for labels and depth
         self.con_rgb, self.con = self._context(m, msaa), self._context(m, 0)
         self.con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self.scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom))
-        self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows
-        self.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = reflections
+        self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = render.shadows
+        self.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = render.reflections
         self.cam = mujoco.MjvCamera()
         self.cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
         self.cam.fixedcamid = workcell.camera_ids[camera]

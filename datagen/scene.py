@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from posegrasp.datagen.appearance import Look, light_tint, sample_look
+from posegrasp.datagen.appearance import Appearance, light_tint, sample_appearance
 from posegrasp.datagen.config import DatagenConfig
 from posegrasp.catalog import PartType, load_catalog
 from posegrasp.errors import ConfigError
@@ -24,10 +24,10 @@ from posegrasp.sim.workcell import BlockInstance, Workcell
 
 @dataclass
 class GenScene:
-    """A settled generation scene: the workcell (arm at home) and the look it was built with."""
+    """A settled generation scene: the workcell (arm at home) and the appearance it was built with."""
 
     workcell: Workcell
-    look: Look
+    appearance: Appearance
     drops: int  #: drops of all blocks (table) or waves of parts (pile, bin) it took
 
 
@@ -65,7 +65,7 @@ def stack_drops(poses: list[np.ndarray], types: list[PartType]) -> list[np.ndarr
 
 
 def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 20) -> GenScene:
-    """Draw block count, types and look from ``rng``, build the workcell and settle the dropped blocks."""
+    """Draw block count, types and appearance from ``rng``, build the workcell and settle the dropped blocks."""
     scfg = scene_config(cfg)
     counts = cfg.blocks if cfg.scene == "table" else cfg.clutter.parts
     n = int(rng.integers(counts[0], counts[1] + 1))
@@ -73,12 +73,12 @@ def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 2
     if cfg.scene == "table":
         types = fitting(types, scfg)
         n = len(types)
-    look = sample_look(cfg, n, rng)
-    parts = [BlockInstance(b, c) for b, c in zip(types, look.block_rgba)]
+    appearance = sample_appearance(cfg, n, rng)
+    parts = [BlockInstance(b, c) for b, c in zip(types, appearance.block_rgba)]
     if cfg.scene == "table":
-        wc = Workcell(cfg.workcell, parts, extras=look.add_to)
+        wc = Workcell(cfg.workcell, parts, extras=appearance.add_to)
     else:
-        wc = clutter_workcell(cfg.workcell, cfg.scene, parts, cfg.clutter, extras=look.add_to)
+        wc = clutter_workcell(cfg.workcell, cfg.scene, parts, cfg.clutter, extras=appearance.add_to)
     wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
     randomise_lights(wc, scfg, rng)
     light_tint(wc.model, cfg.lights, rng)
@@ -86,4 +86,4 @@ def build_scene(cfg: DatagenConfig, rng: np.random.Generator, max_drops: int = 2
         drops = drop_and_settle(wc, scfg, types, rng, max_drops, margin=cfg.area_margin, arrange=stack_drops)
     else:
         drops = build_clutter_scene(wc, cfg.scene, cfg.clutter, rng).waves
-    return GenScene(wc, look, drops)
+    return GenScene(wc, appearance, drops)

@@ -28,7 +28,6 @@ from posegrasp.bop.check import rotation_problem
 from posegrasp.catalog import catalog_by_id
 from posegrasp.errors import DatasetError, ProviderError
 from posegrasp.grasping.perception import MAX_TRANSLATION_M, ROT_TOL, Estimate, Observation
-from posegrasp.grasping.tasks import get_task
 
 #: A row whose translation is less than this far in front of the camera (mm) is refused: no camera sees an object
 #: there, and it is what metres written in the mm column look like.
@@ -65,12 +64,11 @@ def from_spec(args: str | None, objects: str = "") -> BopCsvProvider:
     return provider
 
 
-def check_rows(provider: object, episodes: int, task: str) -> None:
+def check_rows(provider: object, episodes: int, task: str, ims: tuple[int, ...]) -> None:
     """A DatasetError when a ``BopCsvProvider``'s file has rows for frames no episode of a campaign of ``episodes``
-    episodes of ``task`` captures (any other provider: nothing to check)."""
+    episodes of the task named ``task`` captures (its looks ``ims``; any other provider: nothing to check)."""
     if not isinstance(provider, BopCsvProvider):
         return
-    ims = get_task(task).looks
     named = " or ".join(map(str, ims)) if len(ims) <= 3 else f"{ims[0]}-{ims[-1]}"
     for n, r in enumerate(provider.rows(), start=2):
         if r.scene_id >= episodes or r.im_id not in ims:

@@ -21,6 +21,7 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
+from posegrasp.config import settings
 from posegrasp.errors import ConfigError, DatasetError, UserError
 from posegrasp.geometry import axis_angle_R, invert, look_at_R, make_T, rotation_angle
 from posegrasp.io import write_json
@@ -29,7 +30,7 @@ from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell, build_mjcf, compile_mjcf
 
 
-@dataclass(frozen=True)
+@settings
 class BoardConfig:
     """A ChArUco board lying on the table: squares (columns, rows), sizes (m), centre (x, y) (m), texture px/m."""
 
@@ -41,7 +42,7 @@ class BoardConfig:
     px_per_m: float = 6000.0
 
 
-@dataclass(frozen=True)
+@settings
 class CalibrationConfig:
     """Viewpoints: ``n_poses`` camera poses at ``height`` (m) above the board, up to ``offset`` (m) off its
     centre and tilted up to ``tilt_deg`` toward it, with random roll; seeded."""
@@ -148,7 +149,7 @@ def calibrate(wcfg: WorkcellConfig, cfg: CalibrationConfig, seed: int = 0) -> Ca
     """Run the calibration in simulation; raises UserError when too few views see the board."""
     wc = BoardWorkcell(wcfg, cfg.board)
     c = wcfg.hand_camera
-    cam = CameraRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far, False, False)
+    cam = CameraRenderer(wc, HAND_CAMERA, c)
     board = make_board(cfg.board)
     grippers, targets = [], []
     q = wc.look_q

@@ -34,7 +34,7 @@ from posegrasp.datagen.render import LabelRenderer
 from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root
 from posegrasp.executor import make_executor
 from posegrasp.grasping.config import TrialConfig
-from posegrasp.grasping.episode import EpisodeTask, run_episode
+from posegrasp.grasping.episode import EpisodeJob, run_episode
 from posegrasp.grasping.perception import DEPTH_SCALE
 from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, Failure
 from posegrasp.grasping.tasks import get_task
@@ -57,7 +57,7 @@ class _Recorder:
 
     def __call__(self, wc: Workcell, frame: Frame, im_id: int) -> None:
         c = wc.cfg.hand_camera
-        labels = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far, msaa=0)
+        labels = LabelRenderer(wc, HAND_CAMERA, c, msaa=0)
         try:
             amodal, boxes, beyond = labels.amodal(frame.T_cam_obj)
         finally:
@@ -66,21 +66,21 @@ class _Recorder:
         self.scene.add(im_id, labelled, frame.rgb, frame.depth, clean_depth=False)
 
 
-def run_capturing(task: EpisodeTask) -> tuple[EpisodeRecord, EpisodeTimings, SceneWriter]:
-    """Worker: run episode ``task`` (or only its captures, ``task.captures_only``) and encode its captures; an
+def run_capturing(job: EpisodeJob) -> tuple[EpisodeRecord, EpisodeTimings, SceneWriter]:
+    """Worker: run episode ``job`` (or only its captures, ``job.captures_only``) and encode its captures; an
     episode that stopped before a later look (stack: no base seen) gets them from a captures-only run."""
-    record, timings, scene = _run(task)
-    if not task.captures_only and not set(get_task(task.cfg.task).fixed_looks) <= set(scene.cams) \
+    record, timings, scene = _run(job)
+    if not job.captures_only and not set(job.task.fixed_looks) <= set(scene.cams) \
             and record.failure not in _PHYSICAL:
-        scene = _run(dataclasses.replace(task, captures_only=True))[2]
-    scene.finish({"episode": task.index, "seed": task.seed, "scene_seed": record.scene_seed, "task": task.cfg.task,
+        scene = _run(dataclasses.replace(job, captures_only=True))[2]
+    scene.finish({"episode": job.index, "seed": job.seed, "scene_seed": record.scene_seed, "task": job.cfg.task,
                   "captures": sorted(scene.cams)})
     return record, timings, scene
 
 
-def _run(task: EpisodeTask) -> tuple[EpisodeRecord, EpisodeTimings, SceneWriter]:
+def _run(job: EpisodeJob) -> tuple[EpisodeRecord, EpisodeTimings, SceneWriter]:
     recorder = _Recorder()
-    record, timings = run_episode(task, recorder)
+    record, timings = run_episode(job, recorder)
     return record, timings, recorder.scene
 
 
@@ -132,7 +132,8 @@ def export_captures(root: Path, episodes: int, seed: int, workers: int | str | N
     with open_export(root, seed, cfg) as export:
         executor = make_executor(workers)
         # captures only: the provider named is never asked
-        todo = [EpisodeTask(seed, i, "oracle", cfg, mount, captures_only=True) for i in range(episodes)
+        task = get_task(cfg.task)
+        todo = [EpisodeJob(task, seed, i, "oracle", cfg, mount, captures_only=True) for i in range(episodes)
                 if not export.has(i)]
         images = 0
         with executor, progress_bar(TextColumn("[bold]captures[/] {task.description}"), BarColumn(),

@@ -12,6 +12,14 @@ from posegrasp.errors import UserError
 #: Sanity bound of ``--episodes``: beyond it a typo, not a campaign.
 MAX_EPISODES = 10_000_000
 
+#: The settings its commands read, for the settings page (``posegrasp.settings_doc``).
+SETTINGS = (
+    dict(title="Grasp trials", target="posegrasp.grasping.config:TrialConfig", table="",
+         command="`posegrasp trials --config FILE`"),
+    dict(title="Training-free estimator", target="posegrasp.perception.depth_icp:DepthIcpConfig", table="depth_icp",
+         command="`posegrasp trials --perception depth-icp:FILE`, table `[depth_icp]`"),
+)
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("trials", help="grasp-and-place trials with a perception provider; resumable")
@@ -79,20 +87,10 @@ def _scene_arg(text: str) -> str:
 
 
 def with_scene(cfg, scene: str | None, blocks: int | None):
-    """``cfg`` (a ``TrialConfig``) with ``--scene`` and ``--blocks``: bin and pile only for bin picking (which takes
-    its scene from ``bin_pick.scene`` when ``scene`` is None), table only for the others."""
-    from posegrasp.grasping.record import BIN_PICK
+    """``cfg`` (a ``TrialConfig``) with ``--scene`` and ``--blocks``, as its task takes them (``Task.with_scene``)."""
+    from posegrasp.grasping.tasks import get_task
 
-    if cfg.task == BIN_PICK:
-        if scene == "table":
-            raise UserError("--task bin-pick empties a tote or a heap: use --scene bin or --scene pile, not table")
-        b = cfg.bin_pick
-        clutter = dataclasses.replace(b.clutter, parts=(blocks, blocks)) if blocks else b.clutter
-        return dataclasses.replace(cfg, bin_pick=dataclasses.replace(b, scene=scene or b.scene, clutter=clutter))
-    if scene not in (None, "table"):
-        raise UserError(f"--scene {scene} is a bin-picking scene: use it with --task bin-pick (the {cfg.task} task "
-                        "runs on the table)")
-    return dataclasses.replace(cfg, min_blocks=blocks, max_blocks=blocks) if blocks else cfg
+    return get_task(cfg.task).with_scene(cfg, scene, blocks)
 
 
 def _hand_arg(text: str) -> str:
@@ -112,8 +110,9 @@ def _noise_arg(text: str) -> str:
 
 
 def run_trials_cmd(args: argparse.Namespace) -> int:
-    from posegrasp.grasping.config import load_trial_config, with_set
-    from posegrasp.grasping.trials import SWEEPS, run_trials, sweep_noise
+    from posegrasp.grasping.config import load_trial_config
+    from posegrasp.grasping.tasks import with_set
+    from posegrasp.grasping.trials import SWEEPS, Display, run_trials, sweep_noise
 
     cfg = with_set(load_trial_config(args.config), args.objects)
     if args.hand:
@@ -142,8 +141,8 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
                     progress=not args.no_progress)
         print(f"noise sweep -> {out / 'sweep.png'}")
     else:
-        run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg, progress=not args.no_progress,
-                   export=export)
+        run_trials(out, args.episodes, args.seed, args.perception, args.workers, cfg,
+                   Display(progress=not args.no_progress), export=export)
     return 0
 
 

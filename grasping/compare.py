@@ -4,10 +4,10 @@ Two trial runs on the same episode seeds are paired episode by episode, whatever
 (oracle, model, a plug-in, a replayed BOP results file). Reported: each run's success rate with
 its Wilson 95 % interval, the difference, McNemar's exact test on the discordant pairs (b = A succeeded and B
 failed, c = A failed and B succeeded; two-sided p = min(1, 2 P[X <= min(b, c)]) with X ~ Binomial(b + c, 1/2)),
-per-block differences and the episodes that flipped. Bin-picking runs add percent cleared paired by episode
-(Wilcoxon signed-rank test) and attempt success (Wilson intervals, Newcombe's interval of the difference)
-(``compare_bin_pick``). ``--fail-if-worse`` makes the exit status 1 when B is worse than A with p < alpha (McNemar;
-Wilcoxon on percent cleared for bin picking), for CI.
+per-block differences and the episodes that flipped. A task adds its own comparison and says what judges it
+(``Task.compare``, ``Task.judged_by``): bin picking adds percent cleared paired by episode (Wilcoxon signed-rank test)
+and attempt success (Wilson intervals, Newcombe's interval of the difference). ``--fail-if-worse`` makes the exit
+status 1 when B is worse than A with p < alpha by that judgement, for CI.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ from rich.table import Table
 
 from posegrasp.arguments import number, out_file
 from posegrasp.errors import DatasetError, UserError
-from posegrasp.grasping.record import BIN_PICK
 from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, read_campaign, read_episodes
-from posegrasp.grasping.stats import newcombe, rate_row
+from posegrasp.grasping.stats import rate_row
+from posegrasp.grasping.tasks import get_task
 from posegrasp.io import write_json
 
 
@@ -86,12 +86,10 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
     only_b = [i for i, x, y in zip(common, sa, sb) if y and not x]
     blocks: dict[str, list[tuple[bool, bool]]] = defaultdict(list)
     for i, x, y in zip(common, sa, sb):
-        t = a[i].get("target") or {}
-        blocks[t.get("type", "(no block there)")].append((x, y))
+        blocks[target_label(a[i].get("target"))].append((x, y))
     n = len(common)
-    extra = {"bin_pick": compare_bin_pick(a, b, common)} if ta == BIN_PICK else {}
     return {
-        **extra,
+        **get_task(ta).compare(a, b, common),
         "task": ta,
         "episodes": n,
         "a": {"perception": a[common[0]].get("perception"), **rate_row(sum(sa), n)},  # any providers pair up
@@ -106,51 +104,19 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
     }
 
 
-def compare_bin_pick(a: dict[int, dict], b: dict[int, dict], common: list[int]) -> dict:
-    """Two bin-picking runs on their common episodes: percent cleared paired episode by episode (mean difference
-    B - A in points, Wilcoxon signed-rank test, two-sided; p = 1 when no episode differs), attempt success and grasp
-    success (the attempts that went for a part; each run's Wilson 95 % interval, the difference B - A with
-    Newcombe's 95 % interval; attempts differ in number and are not paired)."""
-    from scipy.stats import wilcoxon
-
-    ca = [100.0 * a[i]["cleared"] for i in common]
-    cb = [100.0 * b[i]["cleared"] for i in common]
-    diffs = [y - x for x, y in zip(ca, cb)]
-    p = float(wilcoxon(cb, ca).pvalue) if any(diffs) else 1.0
-    mean = sum(diffs) / len(diffs)
-    return {
-        "percent_cleared": {"a_mean": sum(ca) / len(ca), "b_mean": sum(cb) / len(cb), "difference": mean,
-                            "b_better": sum(d > 0 for d in diffs), "a_better": sum(d < 0 for d in diffs),
-                            "wilcoxon_p": p},
-        "attempts": _unpaired([[t for i in common for t in run[i].get("attempts", [])] for run in (a, b)]),
-        "grasps": _unpaired([[t for i in common for t in run[i].get("attempts", []) if t.get("target")]
-                             for run in (a, b)]),
-        "better": "B" if mean > 0 else "A" if mean < 0 else "neither",
-    }
-
-
-def _unpaired(attempts: list[list[dict]]) -> dict:
-    """Two runs' attempts (JSON records): each run's success (``rate_row``) and the difference B - A with
-    Newcombe's 95 % interval."""
-    ra, rb = (rate_row(sum(t["outcome"] == "success" for t in run), len(run)) for run in attempts)
-    return {"a": ra, "b": rb, "difference": (rb["rate"] if rb["n"] else 0.0) - (ra["rate"] if ra["n"] else 0.0),
-            "difference_ci95": list(newcombe(ra["success"], ra["n"], rb["success"], rb["n"]))}
+def target_label(target: dict | None) -> str:
+    """The per-block label of an episode's ``target`` (JSON): its type, a false detection's "(no block there)",
+    or "(no target)" when the robot chose none (nothing seen, or no reachable grasp)."""
+    if target is None:
+        return "(no target)"
+    return target.get("type", "(no block there)")
 
 
 def is_worse(result: dict, alpha: float) -> bool:
-    """B is significantly worse than A: lower success and McNemar p < ``alpha``; for bin picking, a lower percent
-    cleared and Wilcoxon p < ``alpha``."""
-    if "bin_pick" in result:
-        c = result["bin_pick"]["percent_cleared"]
-        return c["difference"] < 0 and c["wilcoxon_p"] < alpha
-    return result["difference"] < 0 and result["mcnemar"]["p_value"] < alpha
-
-
-def _worse_p(result: dict) -> float:
-    """The p-value ``is_worse`` judges by."""
-    if "bin_pick" in result:
-        return result["bin_pick"]["percent_cleared"]["wilcoxon_p"]
-    return result["mcnemar"]["p_value"]
+    """B is significantly worse than A by what the task judges (``Task.judged_by``: the success rate and McNemar's
+    p for the table tasks, percent cleared and Wilcoxon's p for bin picking): a negative difference, p < ``alpha``."""
+    difference, p = get_task(result["task"]).judged_by(result)
+    return difference < 0 and p < alpha
 
 
 def print_comparison(result: dict, names: tuple[str, str], console: Console) -> None:
@@ -165,33 +131,11 @@ def print_comparison(result: dict, names: tuple[str, str], console: Console) -> 
     m = result["mcnemar"]
     console.print(f"difference B - A: {100 * result['difference']:+.1f} points; McNemar exact: "
                   f"A-only {m['a_only']}, B-only {m['b_only']}, p = {m['p_value']:.4g}")
-    if "bin_pick" in result:  # an episode succeeds when it empties the tote; it has no one target block
-        print_bin_pick_comparison(result["bin_pick"], console)
-    else:
-        pb = Table(title="per block (target type)")
-        for col in ("block", "n", "A", "B", "B - A"):
-            pb.add_column(col)
-        for k, v in result["per_block"].items():
-            pb.add_row(k, str(v["n"]), str(v["a"]), str(v["b"]), f"{100 * v['difference']:+.0f}")
-        console.print(pb)
+    get_task(result["task"]).print_comparison(result, console)
     for key, label in (("a_success_b_failure", "A succeeded, B failed"), ("a_failure_b_success", "A failed, B succeeded")):
         eps = result["flipped"][key]
         if eps:
             console.print(f"{label}: " + ", ".join(str(e["episode"]) for e in eps))
-
-
-def print_bin_pick_comparison(r: dict, console: Console) -> None:
-    c = r["percent_cleared"]
-    console.print(f"percent cleared: A {c['a_mean']:.1f} %, B {c['b_mean']:.1f} %, B - A {c['difference']:+.1f} points "
-                  f"(B better in {c['b_better']} episodes, A in {c['a_better']}); Wilcoxon signed-rank p = "
-                  f"{c['wilcoxon_p']:.4g}")
-    for key, label in (("attempts", "attempt success"), ("grasps", "grasp success (attempts that went for a part)")):
-        t = r[key]
-        lo, hi = t["difference_ci95"]
-        console.print(f"{label}: A {t['a']['success']}/{t['a']['n']}, B {t['b']['success']}/{t['b']['n']}, "
-                      f"B - A {100 * t['difference']:+.1f} points (Newcombe 95 % {100 * lo:+.1f} to {100 * hi:+.1f})")
-    sure = "significant at p < 0.05" if c["wilcoxon_p"] < 0.05 else "not significant (p >= 0.05)"
-    console.print(f"better at clearing the tote: {r['better']} ({sure})")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -213,6 +157,6 @@ def run_compare(args: argparse.Namespace) -> int:
     if args.out:
         write_json(args.out, result)
     if args.fail_if_worse and is_worse(result, args.alpha):
-        print(f"B is worse than A (p = {_worse_p(result):.4g} < {args.alpha})")
+        print(f"B is worse than A (p = {get_task(result['task']).judged_by(result)[1]:.4g} < {args.alpha})")
         return 1
     return 0

@@ -8,27 +8,25 @@ the name says ``_deg``. Any field can be set from a TOML file of the same layout
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
 
 from posegrasp import ASSETS
-from posegrasp.config import load_toml, within
-from posegrasp.errors import ConfigError
+from posegrasp.config import load_toml, settings, within
 from posegrasp.grasping.hand import TIP_BELOW
 from posegrasp.grasping.support import RestConfig
-from posegrasp.grasping.tasks import REGISTRY, TASKS, get_task
-from posegrasp.grasping.tasks.bin_pick import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.grasping.tasks.kitting import KittingConfig
 from posegrasp.grasping.tasks.stack import StackConfig
-from posegrasp.sim.config import HANDS
 from posegrasp.sim.scene import SceneConfig
 
+#: The tasks that hold the block firmly unless the campaign (``firm_hold_tasks``) or its object set says otherwise.
+FIRM_HOLD_TASKS = ("kitting", "stack", "bin-pick")
 #: The shipped hand-eye calibration (``posegrasp calibrate``), used by the trials.
 HAND_EYE_JSON = ASSETS / "calibration" / "hand_eye.json"
 
 
-@dataclass(frozen=True)
+@settings
 class ControlConfig:
     """Closed-loop differential IK (mink) driving the arm's velocity actuators."""
 
@@ -70,7 +68,7 @@ class ControlConfig:
     look_gain: float = field(default=10.0, metadata=within(0.001, 10000.0))
 
 
-@dataclass(frozen=True)
+@settings
 class GraspScoreConfig:
     """Weights of the grasp score that ranks a block's feasible grasps (higher is better)::
 
@@ -101,7 +99,7 @@ class GraspScoreConfig:
     pinch_height: float = 5.0
 
 
-@dataclass(frozen=True)
+@settings
 class GraspConfig:
     """Grasp candidates, their filters and scores; the place and scoring rules."""
 
@@ -163,7 +161,7 @@ class GraspConfig:
     pose_hand_y: float = -0.012
 
 
-@dataclass(frozen=True)
+@settings
 class ScoringConfig:
     """Success criteria and the failure taxonomy thresholds."""
 
@@ -189,7 +187,7 @@ class ScoringConfig:
     min_visible_px: int = field(default=150, metadata=within(0, 10000000))
 
 
-@dataclass(frozen=True)
+@settings
 class FirmHoldConfig:
     """How the tasks that hold the block firmly (``TrialConfig.firm_hold_tasks``) do it: the yaw-stable pinch
     (``GraspConfig.pose_hand_y``) with all three fingers, MuJoCo's noslip solver, which removes the slip the soft
@@ -208,7 +206,7 @@ class FirmHoldConfig:
     sleep_tolerance: float = field(default=1e-3, metadata=within(0.0, 1.0))
 
 
-@dataclass(frozen=True)
+@settings
 class TrialConfig:
     """One trial campaign: scenes of ``min_blocks``-``max_blocks`` blocks, control, grasps, scoring."""
 
@@ -252,14 +250,14 @@ class TrialConfig:
 
 
 def firm_hold_tasks(cfg: TrialConfig) -> tuple[str, ...]:
-    """The tasks that hold the block firmly: ``cfg.firm_hold_tasks``, else the object set's, else those that ask for
-    it (``Task.firm_hold``)."""
-    if cfg.firm_hold_tasks is not None:
-        return cfg.firm_hold_tasks
+    """The tasks that hold the block firmly: ``cfg.firm_hold_tasks``, else the object set's, else
+    ``config.FIRM_HOLD_TASKS``."""
     from posegrasp.catalog import set_firm_hold_tasks
 
+    if cfg.firm_hold_tasks is not None:
+        return cfg.firm_hold_tasks
     tasks = set_firm_hold_tasks(cfg.scene.workcell.objects)
-    return tuple(name for name, task in REGISTRY.items() if task.firm_hold) if tasks is None else tasks
+    return FIRM_HOLD_TASKS if tasks is None else tasks
 
 
 def holds_firmly(cfg: TrialConfig) -> bool:
@@ -267,30 +265,6 @@ def holds_firmly(cfg: TrialConfig) -> bool:
     return cfg.task in firm_hold_tasks(cfg)
 
 
-def check_task(cfg: TrialConfig) -> None:
-    """ConfigError unless ``cfg.task`` and ``cfg.firm_hold_tasks`` name tasks and the task accepts the campaign's
-    settings (``Task.check``: the scene's block types can serve it, ...)."""
-    task = get_task(cfg.task)
-    if cfg.scene.workcell.hand not in HANDS:
-        raise ConfigError(f"scene.workcell.hand {cfg.scene.workcell.hand!r} is not a hand; choose one of: "
-                          f"{', '.join(HANDS)}")
-    unknown = [t for t in firm_hold_tasks(cfg) if t not in TASKS]
-    if unknown:
-        raise ConfigError(f"firm_hold_tasks names unknown task(s) {unknown}; choose among: {', '.join(TASKS)}")
-    task.check(cfg)
-
-
 def load_trial_config(path: str | Path | None = None) -> TrialConfig:
     """Trial settings from a TOML file, or the defaults."""
     return load_toml(TrialConfig, path)
-
-
-def with_set(cfg: TrialConfig, objects: str | Path | None = None) -> TrialConfig:
-    """``cfg`` on the object set ``objects`` (None: the one ``cfg`` names; ``""``: the shipped blocks), its folder
-    made absolute and checked (``sim.config.with_objects``), and its firm-hold tasks settled (``firm_hold_tasks``,
-    so the campaign records them)."""
-    from posegrasp.sim.config import with_objects
-
-    cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, workcell=with_objects(cfg.scene.workcell,
-                                                                                               objects)))
-    return dataclasses.replace(cfg, firm_hold_tasks=firm_hold_tasks(cfg))

@@ -34,8 +34,7 @@ from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, FalseTarget
 from posegrasp.grasping.support import rest_on_table
 from posegrasp.grasping.targets import (Plan, _look_q, blame, drive_to_look, gripper_yaw as _yaw,
                                         look_down_q, match_block as _match, pose_errors, reachable)
-from posegrasp.grasping.tasks import get_task
-from posegrasp.grasping.tasks.base import EpisodeFailed, Goal, Pickable, SteadyConfig
+from posegrasp.grasping.tasks.base import EpisodeFailed, Goal, Pickable, SteadyConfig, Task
 from posegrasp.sim.camera import CameraRenderer, Frame
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell
 
@@ -43,9 +42,12 @@ _EPS = 1e-9  # slack for sums of control periods and capped distances compared w
 
 
 @dataclass(frozen=True)
-class EpisodeTask:
-    """What one worker needs to run episode ``index`` (picklable)."""
+class EpisodeJob:
+    """What one worker needs to run episode ``index`` of a campaign of ``task`` (picklable): the task (the one
+    ``cfg.task`` names, ``grasping.tasks.get_task``), the campaign's seed, provider and settings, the calibrated
+    mount."""
 
+    task: Task
     seed: int
     index: int
     perception: str
@@ -135,38 +137,38 @@ def _choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: n
     return None
 
 
-def episode_draws(task: EpisodeTask) -> tuple[int, int, int, np.ndarray]:
-    """Episode ``task.index``'s random draws: block count, scene seed, perception seed, place offset (m)."""
-    cfg = task.cfg
-    rng = np.random.default_rng(np.random.SeedSequence([task.seed, task.index]))
-    lo, hi = get_task(cfg.task).blocks(cfg)
+def episode_draws(job: EpisodeJob) -> tuple[int, int, int, np.ndarray]:
+    """Episode ``job.index``'s random draws: block count, scene seed, perception seed, place offset (m)."""
+    cfg = job.cfg
+    rng = np.random.default_rng(np.random.SeedSequence([job.seed, job.index]))
+    lo, hi = job.task.blocks(cfg)
     n_blocks = int(rng.integers(lo, hi + 1))
     scene_seed, percept_seed = (int(v) for v in rng.integers(0, 2**31 - 1, size=2))
     place_offset = rng.uniform(-cfg.grasp.place_jitter, cfg.grasp.place_jitter, size=2)
     return n_blocks, scene_seed, percept_seed, place_offset
 
 
-def check_draws(task: EpisodeTask, rec: EpisodeRecord, run_dir: Path) -> tuple[int, int, int, np.ndarray]:
-    """``episode_draws(task)``, after checking that the record ``rec`` of the run in ``run_dir`` was drawn so
+def check_draws(job: EpisodeJob, rec: EpisodeRecord, run_dir: Path) -> tuple[int, int, int, np.ndarray]:
+    """``episode_draws(job)``, after checking that the record ``rec`` of the run in ``run_dir`` was drawn so
     (campaign seed, block count, scene seed): a DatasetError if not (an edited record, or other code)."""
-    draws = episode_draws(task)
-    if (rec.seed, rec.n_blocks, rec.scene_seed) != (task.seed, draws[0], draws[1]):
-        raise DatasetError(f"episode {rec.episode} of {run_dir} does not re-simulate (seed {task.seed}, "
+    draws = episode_draws(job)
+    if (rec.seed, rec.n_blocks, rec.scene_seed) != (job.seed, draws[0], draws[1]):
+        raise DatasetError(f"episode {rec.episode} of {run_dir} does not re-simulate (seed {job.seed}, "
                            f"{draws[0]} blocks, scene seed {draws[1]} != recorded {rec.seed}, {rec.n_blocks}, "
                            f"{rec.scene_seed}): the record was edited or the code changed since the run; rerun the "
                            "trials into a new --out")
     return draws
 
 
-def further_seed(task: EpisodeTask, j: int) -> int:
-    """Episode ``task.index``'s seed for its ``j``-th further draw (j >= 1): from ``SeedSequence([S, i, j])``."""
-    return int(np.random.default_rng(np.random.SeedSequence([task.seed, task.index, j])).integers(2**31 - 1))
+def further_seed(job: EpisodeJob, j: int) -> int:
+    """Episode ``job.index``'s seed for its ``j``-th further draw (j >= 1): from ``SeedSequence([S, i, j])``."""
+    return int(np.random.default_rng(np.random.SeedSequence([job.seed, job.index, j])).integers(2**31 - 1))
 
 
-def episode_workcell(cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
-    """The episode's settled scene for its task (``Task.scene``, settled with the scene defaults), then the trial's
-    contact and solver settings (``trial_physics``)."""
-    wc = get_task(cfg.task).scene(cfg, scene_seed, n_blocks, functools.partial(clear_grasp, cfg.grasp))
+def episode_workcell(task: Task, cfg: TrialConfig, scene_seed: int, n_blocks: int) -> Workcell:
+    """The episode's settled scene for its ``task`` (``Task.scene``, settled with the scene defaults), then the
+    trial's contact and solver settings (``trial_physics``)."""
+    wc = task.scene(cfg, scene_seed, n_blocks, functools.partial(clear_grasp, cfg.grasp))
     trial_physics(wc, cfg)
     return wc
 
@@ -198,34 +200,33 @@ def clear_grasp(g_cfg: GraspConfig, wc: Workcell, k: int) -> bool:
 
 def capture_look(wc: Workcell) -> Frame:
     """The hand camera's frame (RGB-D, mask, ground truth) at the arm's current pose."""
-    cam = CameraRenderer.from_config(wc, HAND_CAMERA, wc.cfg.hand_camera, wc.cfg.render)
+    cam = CameraRenderer(wc, HAND_CAMERA, wc.cfg.hand_camera, wc.cfg.render)
     frame = cam.capture()
     cam.close()
     return frame
 
 
-def run_episode(task: EpisodeTask, on_capture: Callable[[Workcell, Frame, int], None] | None = None,
+def run_episode(job: EpisodeJob, on_capture: Callable[[Workcell, Frame, int], None] | None = None,
                 on_step: Callable[[Workcell], None] | None = None) -> tuple[EpisodeRecord, EpisodeTimings]:
     """Run one episode; returns its record (deterministic) and the wall-clock and CPU timings of its phases
     (which vary run to run). ``on_capture(workcell, frame, im_id)`` sees every frame the hand camera captures for
     perception, as it is taken (``grasping.captures``); ``on_step(workcell)`` runs after every physics step once
-    the scene has settled (the report's films; it must not change the physics state). With ``task.captures_only`` the episode stops after its
-    last capture and its record judges nothing."""
-    cfg = task.cfg
-    trial = get_task(cfg.task)
-    n_blocks, scene_seed, percept_seed, place_offset = episode_draws(task)
-    rec = trial.new_record(task.index, task.seed, scene_seed, n_blocks, task.perception)
+    the scene has settled (the report's films; it must not change the physics state). With ``job.captures_only``
+    the episode stops after its last capture and its record judges nothing."""
+    cfg = job.cfg
+    n_blocks, scene_seed, percept_seed, place_offset = episode_draws(job)
+    rec = job.task.new_record(job.index, job.seed, scene_seed, n_blocks, job.perception)
     log = _Log()
     log.start(None)
     try:
-        wc = episode_workcell(cfg, scene_seed, n_blocks)
+        wc = episode_workcell(job.task, cfg, scene_seed, n_blocks)
         rec.blocks = [inst.block.name for inst in wc.blocks]
         wc.on_step = on_step
         log.stop("scene", None)
         ctl = ArmController(wc, cfg.control, _look_q(wc))
-        ep = Episode(task, wc, ctl, rec, log, percept_seed, place_offset, on_capture)
+        ep = Episode(job, wc, ctl, rec, log, percept_seed, place_offset, on_capture)
         try:
-            trial.run(ep)
+            job.task.run(ep)
         finally:
             if ep.camera is not None:
                 ep.camera.close()
@@ -238,7 +239,7 @@ def run_episode(task: EpisodeTask, on_capture: Callable[[Workcell, Frame, int], 
     _judge(rec, cfg.scoring)
     rec.sim_time = round(sum(log.sim.values()), 3)
     rec.phases = log.sim
-    return rec, EpisodeTimings(task.index, log.wall, log.cpu)
+    return rec, EpisodeTimings(job.index, log.wall, log.cpu)
 
 
 def _judge(rec: EpisodeRecord, s_cfg: ScoringConfig) -> None:
@@ -251,11 +252,11 @@ def _judge(rec: EpisodeRecord, s_cfg: ScoringConfig) -> None:
 
 @dataclass
 class Episode:
-    """A running episode, as its task's ``run`` sees it (``grasping.tasks.base``): the work item, the settled
+    """A running episode, as its task's ``run`` sees it (``grasping.tasks.base``): the worker's job, the settled
     workcell, the arm controller, the record and the phase log, the episode's draws, and its phases, each of which
     moves the simulated arm, fills in the record and raises ``EpisodeFailed`` when the episode cannot go on."""
 
-    task: EpisodeTask
+    job: EpisodeJob
     wc: Workcell
     ctl: ArmController
     rec: EpisodeRecord
@@ -267,12 +268,12 @@ class Episode:
 
     @property
     def cfg(self) -> TrialConfig:
-        return self.task.cfg
+        return self.job.cfg
 
     @property
     def captures_only(self) -> bool:
         """Does the episode only drive to its looks and capture them (``--captures-only``)?"""
-        return self.task.captures_only
+        return self.job.captures_only
 
     @property
     def place_xy(self) -> np.ndarray:
@@ -281,12 +282,12 @@ class Episode:
 
     def seed_for(self, j: int) -> int:
         """A seed of the episode's own for its ``j``-th further draw (j >= 1): ``further_seed``."""
-        return further_seed(self.task, j)
+        return further_seed(self.job, j)
 
     def T_world_cam(self) -> np.ndarray:
         """The hand camera's pose in the world as the robot believes it: forward kinematics and the calibrated
         mount."""
-        return self.wc.gripper_pose() @ np.asarray(self.task.T_gripper_cam)
+        return self.wc.gripper_pose() @ np.asarray(self.job.T_gripper_cam)
 
     def look_down(self, xy, height: float, setting: str) -> bool:
         """Drive the arm so the hand camera looks straight down from ``height`` (m, the value of ``setting``)
@@ -298,7 +299,7 @@ class Episode:
         """The hand camera's frame at the arm's current pose, capture ``im_id`` of the episode (shown to
         ``on_capture``); with its RGB-D when the capture hook or the provider needs it, or ``images``."""
         if self.camera is None:
-            self.camera = CameraRenderer.from_config(self.wc, HAND_CAMERA, self.wc.cfg.hand_camera, self.wc.cfg.render)
+            self.camera = CameraRenderer(self.wc, HAND_CAMERA, self.wc.cfg.hand_camera, self.wc.cfg.render)
         frame = self.camera.capture(images=images or _needs_images(self))
         if self.on_capture is not None:
             self.on_capture(self.wc, frame, im_id)
@@ -308,10 +309,10 @@ class Episode:
         """The provider's checked estimates of capture ``im_id`` of the episode (``perception.perceive``: a
         ``PerceptionError`` if it fails, hangs or returns what the planner cannot use)."""
         try:
-            provider = make_provider(self.task.perception, self.wc.cfg.objects, self.cfg.perception_timeout_s)
+            provider = make_provider(self.job.perception, self.wc.cfg.objects, self.cfg.perception_timeout_s)
         except UserError as e:  # built in the main process before the campaign, but not in this worker
-            raise PerceptionError(f"cannot build perception {self.task.perception!r} in this worker: {e}") from None
-        return perceive(provider, frame, seed, self.task.index, im_id, known_ids=catalog_by_id(self.wc.cfg.objects),
+            raise PerceptionError(f"cannot build perception {self.job.perception!r} in this worker: {e}") from None
+        return perceive(provider, frame, seed, self.job.index, im_id, known_ids=catalog_by_id(self.wc.cfg.objects),
                         timeout_s=self.cfg.perception_timeout_s)
 
     def look_and_perceive(self) -> list[Estimate]:
@@ -437,13 +438,6 @@ class Episode:
         ctl.move(T_retreat)
         self.log.stop("place", ctl)
 
-    def empty_tote(self) -> None:
-        """Bin picking's episode: attempt after attempt until the tote is believed empty
-        (``grasping.bin_picking.empty_tote``)."""
-        from posegrasp.grasping.bin_picking import empty_tote
-
-        empty_tote(self)
-
     def wait_for_rest(self, k: int) -> bool:
         """Hold until block ``k`` has been at rest for rest_periods control periods (True) or rest_timeout passed."""
         ctl, wc, s_cfg, dt = self.ctl, self.wc, self.cfg.scoring, self.cfg.control.dt
@@ -469,7 +463,7 @@ def _needs_images(ep: Episode) -> bool:
     if ep.on_capture is not None:
         return True
     try:
-        return not reads_labels(make_provider(ep.task.perception, ep.wc.cfg.objects, ep.cfg.perception_timeout_s))
+        return not reads_labels(make_provider(ep.job.perception, ep.wc.cfg.objects, ep.cfg.perception_timeout_s))
     except UserError:  # Episode.perceive reports it
         return True
 

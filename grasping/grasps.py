@@ -295,7 +295,7 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
             if key in seen:
                 continue
             seen.add(key)
-            g = _evaluate(x, Tc[:2, 3], float(tl), pts, centre, neighbours, cfg, yaw_now, yaw_stable, reach, hand)
+            g = _evaluate(x, Tc[:2, 3], float(tl), _Where(pts, centre, neighbours, cfg, yaw_now, yaw_stable, reach, hand))
             if g is not None and not abs(g.width - span) > _SPAN_TOL:  # a mesh candidate pinches its own pair
                 grasps.append(g)
     if any(g.stable for g in grasps):
@@ -303,12 +303,27 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
     return sorted(grasps, key=lambda g: -g.score)
 
 
-def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, pts: np.ndarray, centre: np.ndarray,
-              neighbours: np.ndarray, cfg: GraspConfig, yaw_now: float, yaw_stable: bool = False,
-              reach: float | None = None, hand: Hand = KG3) -> Grasp | None:
-    """A straight-down grasp with squeeze axis ``x`` through ``entry_xy``, checked on the estimated geometry;
-    the span is measured on the surface points within ``reach`` (m; default half the widest opening) of the
-    entry along ``x``."""
+@dataclass(frozen=True)
+class _Where:
+    """What a grasp is checked against: the part's estimated surface points ``pts`` and centre, the neighbours'
+    points (world, m), the planner's settings, the wrist's yaw now (rad), whether the hold must be yaw-stable, the
+    reach (m) along the squeeze axis within which the span is measured (None: half the widest opening), the hand."""
+
+    pts: np.ndarray
+    centre: np.ndarray
+    neighbours: np.ndarray
+    cfg: GraspConfig
+    yaw_now: float
+    yaw_stable: bool = False
+    reach: float | None = None
+    hand: Hand = KG3
+
+
+def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, where: _Where) -> Grasp | None:
+    """A straight-down grasp with squeeze axis ``x`` through ``entry_xy``, checked on the estimated geometry
+    (``where``); the span is measured on the surface points within ``where.reach`` of the entry along ``x``."""
+    pts, centre, neighbours, cfg = where.pts, where.centre, where.neighbours, where.cfg
+    yaw_now, yaw_stable, reach, hand = where.yaw_now, where.yaw_stable, where.reach, where.hand
     z = np.array([0.0, 0.0, -1.0])
     y = np.cross(z, x)
     R = np.stack([x, y, z], 1)

@@ -1,7 +1,7 @@
 """The learned two-stage network as a perception provider: ``--perception model[:RUN_OR_WEIGHTS]``.
 
 The hand camera's RGB-D frame goes through segmentation, instance classification, pose estimation and
-depth refinement against the catalogue's block models, then merged segments split by the fitted models
+depth fit against the catalogue's block models, then merged segments split by the fitted models
 (``perception.estimator.Estimator``); only the resulting ``T_cam_obj`` estimates reach the planner.
 Without an argument the shipped model in ``assets/perception/model`` is used.
 """
@@ -21,7 +21,7 @@ from posegrasp.errors import WeightsError
 if TYPE_CHECKING:  # torch is imported only when a model is asked for
     from posegrasp.perception.estimator import EstimateResult, Estimator
 
-#: The shipped weights (seg/, pose/ and optionally refine/ checkpoints: safetensors + JSON).
+#: The shipped weights (seg/, pose/ and optionally refiner/ checkpoints: safetensors + JSON).
 SHIPPED_MODEL = ASSETS / "perception" / "model"
 
 

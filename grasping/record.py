@@ -57,6 +57,10 @@ NOT_POSE_ERRORS = frozenset({Failure.NO_DETECTION, Failure.SIMULATION_ERROR, Fai
                              Failure.PARTS_LEFT, Failure.FAILED_IN_A_ROW, Failure.ATTEMPT_LIMIT})
 #: Record fields of the kitting and stack tasks, left out of a pick-and-place record.
 TASK_FIELDS = ("task", "estimate_error", "final_error", "base")
+#: Record types by task name: an ``EpisodeRecord`` subclass declared with ``task=NAME`` registers itself here, and
+#: ``EpisodeRecord.from_json`` reads a record of that task as one (the tasks' modules, ``grasping.tasks``, define
+#: them; a campaign, ``compare`` and ``report`` load the tasks before they read records).
+RECORD_TYPES: dict[str, type[EpisodeRecord]] = {}
 
 
 @dataclass(frozen=True)
@@ -125,15 +129,21 @@ class EpisodeRecord:
     detected: int = 0  # estimates the provider returned
     sim_time: float = 0.0
     phases: dict[str, float] = field(default_factory=dict)  # simulated seconds per phase
-    task: str | None = None  # "kitting" or "stack" (None: pick-and-place)
+    task: str | None = None  # the task's name (None: a pick-and-place record written before records named it)
     estimate_error: UprightDeviation | None = None  # the target's estimate against ground truth, modulo symmetries
     final_error: UprightDeviation | None = None  # the placed block against the task's target, modulo symmetries
     base: BaseRecord | None = None  # stack: the base block
     perception_error: str | None = None  # "perception error": what the provider did wrong (one line)
 
+    def __init_subclass__(cls, task: str | None = None, **kwargs) -> None:
+        """Register ``cls`` as the record type of the task named ``task`` (``RECORD_TYPES``)."""
+        super().__init_subclass__(**kwargs)
+        if task is not None:
+            RECORD_TYPES[task] = cls
+
     def to_json(self) -> dict:
-        """The ``episodes.jsonl`` record (the task fields only in a kitting or stack record, ``perception_error``
-        only when set)."""
+        """The ``episodes.jsonl`` record (``perception_error`` only when set; none of ``TASK_FIELDS`` in a
+        pick-and-place record of before records named their task)."""
         d = dataclasses.asdict(self)
         if self.task is None:
             for k in TASK_FIELDS:
@@ -156,10 +166,10 @@ class EpisodeRecord:
         if missing:
             raise UserError(f"{where}: missing field(s) {missing}")
         check_outcome(data, where)
-        if cls is EpisodeRecord and data.get("task") == BIN_PICK:
-            return BinPickRecord.from_json(data, where)
-        rec = from_dict(cls, {k: v for k, v in data.items() if k not in ("target", "attempts")}, where)
-        rec.target = _target(data.get("target"), f"{where}.target")
+        if cls is EpisodeRecord and RECORD_TYPES.get(data.get("task") or "pick-place", cls) is not cls:
+            return RECORD_TYPES[data.get("task") or "pick-place"].from_json(data, where)
+        rec = from_dict(cls, {k: v for k, v in data.items() if k != "target"}, where)
+        rec.target = read_target(data.get("target"), f"{where}.target")
         return rec
 
 
@@ -174,71 +184,11 @@ def check_outcome(data: dict, where: str) -> None:
                         f"({', '.join(f.value for f in Failure)})")
 
 
-def _target(data: object, where: str) -> Target | FalseTarget | None:
+def read_target(data: object, where: str) -> Target | FalseTarget | None:
     """A record's ``target`` read back from JSON (None stays None)."""
     if data is None:
         return None
     return from_dict(FalseTarget if isinstance(data, dict) and "obj_id" in data else Target, data, where)
-
-
-#: The bin-picking task's name (``--task``), whose episodes are ``BinPickRecord``s.
-BIN_PICK = "bin-pick"
-
-
-@dataclass
-class Attempt:
-    """One bin-picking attempt: look, perceive, choose a part, pick it and drop it into the out-box. ``attempt``
-    (0-based) is also the ``im_id`` of its capture."""
-
-    attempt: int
-    outcome: str = "failure"  # or "success": the target, alone, ended in the out-box
-    failure: Failure | None = None
-    detected: int = 0  # estimates the provider returned
-    target: Target | FalseTarget | None = None
-    pose_error: PoseDeviation | None = None  # the target's estimate against its true pose
-    visib_fract: float | None = None  # the target's visible share of its unoccluded silhouette at the capture
-    grasped: bool = False  # the target was lifted clear of the tote's walls and held
-    removed: list[int] = field(default_factory=list)  # parts (1-based) that went into the out-box
-    thrown_out: list[int] = field(default_factory=list)  # parts (1-based) that left the tote elsewhere
-    sim_time: float = 0.0  # simulated seconds the attempt took
-
-    def to_json(self) -> dict:
-        d = dataclasses.asdict(self)
-        if self.failure is not None:
-            d["failure"] = Failure(self.failure).value
-        return d
-
-
-@dataclass
-class BinPickRecord(EpisodeRecord):
-    """A bin-picking episode: a tote (or a pile) of ``n_blocks`` parts emptied attempt by attempt. ``outcome`` is
-    "success" when every part went into the out-box, else ``failure`` says how the episode ended (the last
-    attempt's reason after a simulation error); ``sim_time`` is the robot's simulated time."""
-
-    removed: int = 0  # parts in the out-box at the end
-    cleared: float = 0.0  # removed / n_blocks
-    attempts: list[Attempt] = field(default_factory=list)
-
-    def to_json(self) -> dict:
-        d = super().to_json()
-        d["attempts"] = [jsonable(a.to_json(), digits=6) for a in self.attempts]
-        return d
-
-    @classmethod
-    def from_json(cls, data: dict, where: str = "episode record") -> BinPickRecord:
-        rec = EpisodeRecord.from_json.__func__(cls, data, where)
-        attempts = data.get("attempts") or []
-        if not isinstance(attempts, list):
-            raise UserError(f"{where}.attempts: expected a list, got {type(attempts).__name__}")
-        rec.attempts = []
-        for i, a in enumerate(attempts):
-            at = f"{where}.attempts[{i}]"
-            if not isinstance(a, dict):
-                raise UserError(f"{at}: expected a JSON object, got {type(a).__name__}")
-            att = from_dict(Attempt, {k: v for k, v in a.items() if k != "target"}, at)
-            att.target = _target(a.get("target"), f"{at}.target")
-            rec.attempts.append(att)
-        return rec
 
 
 @dataclass(frozen=True)

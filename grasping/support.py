@@ -16,16 +16,16 @@ block) keep their estimate. The oracle's poses pass through unchanged (they are 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from posegrasp.config import settings
 from posegrasp.catalog import PartType
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 
 
-@dataclass(frozen=True)
+@settings
 class RestConfig:
     """When to level a pose estimate (see the module docstring)."""
 

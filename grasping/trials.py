@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import io
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
-from rich.table import Table
 
 from posegrasp.errors import ConfigError, DatasetError, UserError
 from posegrasp.executor import make_executor
@@ -24,15 +24,14 @@ from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.bop_csv import check_rows
 from posegrasp.grasping.captures import open_export, run_capturing
 from posegrasp.catalog import set_record
-from posegrasp.grasping.config import TrialConfig, check_task, with_set
-from posegrasp.grasping.episode import EpisodeTask, check_draws, run_episode
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.episode import EpisodeJob, check_draws, run_episode
 from posegrasp.grasping.provider_registry import canonical_spec, make_provider
-from posegrasp.grasping.record import Failure
 from posegrasp.grasping.report import write_report
 from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, SUMMARY, TIMINGS, Campaign, append_record,
                                           check_campaign, read_episodes, read_records, write_records)
 from posegrasp.grasping.stats import rate_row, summarise
-from posegrasp.grasping.tasks import get_task
+from posegrasp.grasping.tasks import check_task, get_task, with_set
 from posegrasp.io import write_bytes, write_json
 from posegrasp.lock import folder_lock
 from posegrasp.progress import progress as progress_bar
@@ -56,17 +55,25 @@ def campaign_settings(episodes: int, cfg: TrialConfig) -> tuple[TrialConfig, tup
     return cfg, tuple(tuple(float(v) for v in row) for row in load_hand_eye(cfg.hand_eye))
 
 
+@dataclass(frozen=True)
+class Display:
+    """Where a campaign shows itself: its ``console`` (None: stderr's) and whether a progress bar runs there."""
+
+    console: Console | None = None
+    progress: bool = True
+
+
 def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: int | str | None,
-               cfg: TrialConfig, console: Console | None = None, progress: bool = True,
-               export: Path | None = None) -> dict:
+               cfg: TrialConfig, display: Display = Display(), export: Path | None = None) -> dict:
     """Run (or resume) a campaign of ``episodes`` episodes into ``out``; returns the summary; ``progress``
-    shows a progress bar on ``console`` while episodes run; ``export``: also write the frames the episodes
+    shows a progress bar on ``display.console`` while episodes run (``display.progress``); ``export``: also write the frames the episodes
     perceive there, as a BOP test split (``grasping.captures``)."""
     cfg, mount = campaign_settings(episodes, cfg)
     perception = canonical_spec(perception)  # a plug-in file's path absolute, for the workers and the record
+    task = get_task(cfg.task)
     check_rows(make_provider(perception, cfg.scene.workcell.objects, cfg.perception_timeout_s), episodes,
-               cfg.task)  # before any work starts
-    console = console or Console(stderr=True)
+               cfg.task, task.looks)  # before any work starts
+    console, progress = display.console or Console(stderr=True), display.progress
     # Ray connects in make_executor, before anything is written; the pool's workers stay for the report's frames
     out = Path(out).absolute()  # a provider changing the working directory cannot move the run's files
     with folder_lock(out, owns=(CAMPAIGN, EPISODES)), open_export(export, seed, cfg) as captures, \
@@ -77,13 +84,13 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
             (out / CAMPAIGN).unlink(missing_ok=True)
         check_campaign(out, Campaign(seed, perception, cfg, mount))
         for i, (_, rec) in read_episodes(out / EPISODES).items():  # well-formed, or one line naming its line
-            check_draws(EpisodeTask(seed, i, perception, cfg, mount), rec, out)  # and drawn by this campaign
+            check_draws(EpisodeJob(task, seed, i, perception, cfg, mount), rec, out)  # and drawn by this campaign
         write_records(out / EPISODES, [done[i] for i in sorted(done)])  # drops a torn line before appending
         timings = read_records(out / TIMINGS)
         write_records(out / TIMINGS, [timings[i] for i in sorted(timings) if i in done])
-        todo = [EpisodeTask(seed, i, perception, cfg, mount) for i in range(episodes) if i not in done]
+        todo = [EpisodeJob(task, seed, i, perception, cfg, mount) for i in range(episodes) if i not in done]
         if captures is not None:  # episodes run before without their captures: only capture them
-            todo += [EpisodeTask(seed, i, perception, cfg, mount, captures_only=True) for i in done
+            todo += [EpisodeJob(task, seed, i, perception, cfg, mount, captures_only=True) for i in done
                      if not captures.has(i)]
         t0 = time.perf_counter()
         if todo:
@@ -91,7 +98,7 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                     TextColumn("[bold]trials[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
                     TextColumn("ETA"), TimeRemainingColumn(), enabled=progress, console=console,
                     transient=True) as bar:
-                task = bar.add_task(f"{cfg.task} {perception}", total=episodes, completed=len(done))
+                bar_id = bar.add_task(f"{cfg.task} {perception}", total=episodes, completed=len(done))
                 ok = sum(r["outcome"] == "success" for r in done.values())
                 for _, result in executor.imap(run_episode if captures is None else run_capturing, todo):
                     rec, timing = result[:2]
@@ -104,18 +111,21 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
                     append_record(ft, timing.to_json())
                     done[rec.episode] = line
                     ok += rec.outcome == "success"
-                    bar.update(task, advance=1, description=f"{cfg.task} {perception}  success {ok}/{len(done)}")
+                    bar.update(bar_id, advance=1, description=f"{cfg.task} {perception}  success {ok}/{len(done)}")
         elapsed = time.perf_counter() - t0
         ran = sum(not t.captures_only for t in todo)  # (the others were only captured)
         records = [done[i] for i in sorted(done)]
         write_records(out / EPISODES, records)
-        summary = {**summarise(records), **get_task(cfg.task).metrics(records)}
+        summary = {**summarise(records), **task.metrics(records)}
         summary.update(task=cfg.task, seed=seed, perception=perception, workers=workers,
                        objects=set_record(cfg.scene.workcell.objects),
                        wall={"seconds": elapsed, "episodes_run": ran,
                              "episodes_per_min": 60 * ran / elapsed if ran and elapsed > 0 else None})
         write_json(out / SUMMARY, summary)
-        print_summary(summary, console)
+        task.print_summary(summary, console)
+        if summary["wall"]["episodes_per_min"]:
+            console.print(f"{ran} episodes in {elapsed:.1f} s wall = {summary['wall']['episodes_per_min']:.0f} "
+                          "episodes/min")
         console.print(f"report -> {write_report(out, executor=executor)}")
     return summary
 
@@ -131,69 +141,6 @@ def check_kept(out: Path, done: dict[int, dict], episodes: int) -> None:
                            f"them: give --episodes {max(done) + 1} or more, or another --out")
 
 
-def print_summary(s: dict, console: Console) -> None:
-    """The success rate, per-block and per-failure tables, printed with rich; bin picking's attempt-level lines
-    and the reasons its episodes ended instead of the per-episode rate and blocks."""
-    if "bin_pick" in s:
-        console.print(f"[bold]{s['task']}, {s['perception']}, {s.get('objects', {}).get('name', 'blocks')}[/]")
-        print_bin_pick(s["bin_pick"], console)
-        _print_failures(s["failures"], "episodes ended by", console)
-    else:
-        _print_episodes(s, console)
-    if s["wall"]["episodes_per_min"]:
-        console.print(f"{s['wall']['episodes_run']} episodes in {s['wall']['seconds']:.1f} s wall = "
-                      f"{s['wall']['episodes_per_min']:.0f} episodes/min")
-
-
-def _print_episodes(s: dict, console: Console) -> None:
-    lo, hi = s["wilson95"]
-    objects = s.get("objects", {}).get("name", "blocks")
-    console.print(f"[bold]{s.get('task', 'pick-place')}, {s['perception']}, {objects}[/]: "
-                  f"{s['success']}/{s['n']} episodes succeeded = "
-                  f"{100 * s['rate']:.1f} % (Wilson 95 % interval {100 * lo:.1f}-{100 * hi:.1f} %); "
-                  f"grasped {s['grasp_success']['success']}/{s['n']}; "
-                  f"target of the wrong class {s.get('wrong_class', 0)}/{s['n']}")
-    t = Table(title="per target block")
-    for col in ("block", "success", "n", "rate", "95 % interval"):
-        t.add_column(col)
-    for b, row in s["per_block"].items():
-        t.add_row(b, str(row["success"]), str(row["n"]), f"{100 * row['rate']:.1f} %",
-                  f"{100 * row['wilson95'][0]:.1f}-{100 * row['wilson95'][1]:.1f} %")
-    console.print(t)
-    _print_failures(s["failures"], "failures", console)
-
-
-def _print_failures(counts: dict[str, int], title: str, console: Console) -> None:
-    f = Table(title=title)
-    f.add_column("reason")
-    f.add_column("count")
-    for reason in Failure:
-        if counts.get(reason):
-            f.add_row(reason, str(counts[reason]))
-    console.print(f)
-
-
-def _rate_text(r: dict) -> str:
-    """``rate_row``'s row as "k/n succeeded = p % (Wilson 95 % lo-hi %)"."""
-    if not r["n"]:
-        return "0/0 succeeded"
-    return (f"{r['success']}/{r['n']} succeeded = {100 * r['rate']:.1f} % "
-            f"(Wilson 95 % {100 * r['wilson95'][0]:.1f}-{100 * r['wilson95'][1]:.1f} %)")
-
-
-def print_bin_pick(b: dict, console: Console) -> None:
-    """Bin picking's lines of the summary: percent cleared, attempt and grasp success, picks per hour, attempt
-    failures."""
-    pc = b["percent_cleared"]
-    ci = f" (t 95 % interval {pc['ci95'][0]:.1f}-{pc['ci95'][1]:.1f} %)" if pc["ci95"] else ""
-    mean = f"{pc['mean']:.1f} %" if pc["mean"] is not None else "-"
-    pph = f"{b['picks_per_sim_hour']:.0f}" if b["picks_per_sim_hour"] else "-"
-    console.print(f"[bold]bin picking[/]: cleared {mean} of the parts per episode{ci}, "
-                  f"{b['episodes_cleared']}/{pc['n']} totes emptied; attempts {_rate_text(b['attempts'])}; grasps "
-                  f"(attempts that went for a part) {_rate_text(b['grasps'])}; {pph} picks per simulated hour")
-    _print_failures(b["attempt_failures"], "failed attempts", console)
-
-
 def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, cfg: TrialConfig,
                 levels=SWEEP_LEVELS, console: Console | None = None, progress: bool = True) -> list[dict]:
     """Noisy-oracle campaigns at increasing noise (same seeds) for ``cfg.task``; writes ``sweep.json`` and
@@ -203,7 +150,7 @@ def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, 
         rows = []
         for t, r in levels:
             spec, run_dir = f"noisy-oracle:{t:g},{r:g}", out / f"noise_{t:g}m_{r:g}deg"
-            s = run_trials(run_dir, episodes, seed, spec, workers, cfg, console, progress)
+            s = run_trials(run_dir, episodes, seed, spec, workers, cfg, Display(console, progress))
             errs = [rec["pose_error"]["err"] for rec in read_records(run_dir / EPISODES).values()
                     if rec.get("pose_error")]
             rows.append({"task": cfg.task, "trans_m": t, "rot_deg": r, **rate_row(s["success"], s["n"]),

@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from posegrasp.objects.config import FitCheckConfig
+
 
 def _spread_directions(n: int) -> np.ndarray:
     """``n`` unit vectors spread evenly over a hemisphere (Fibonacci lattice)."""
@@ -31,13 +33,12 @@ def narrowest_width(mesh: trimesh.Trimesh) -> float:
     return float((proj.max(0) - proj.min(0)).min())
 
 
-def fit_warnings(mesh: trimesh.Trimesh, diameter: float, R_table_obj: np.ndarray, hand: tuple[float, float],
-                 pick_area: tuple[float, float], camera: tuple[float, float], min_pixels: float) -> list[str]:
-    """One sentence per way the object does not suit the workcell (empty when it suits it).
-
-    ``hand``: the fingers' (min, max) span (m); ``pick_area``: its (x, y) size (m); ``camera``: focal length (px)
-    and the hand camera's distance to the pick area at the look pose (m).
-    """
+def fit_warnings(mesh: trimesh.Trimesh, diameter: float, R_table_obj: np.ndarray, fit: FitCheckConfig,
+                 min_pixels: float) -> list[str]:
+    """One sentence per way the object (m, object frame; ``R_table_obj`` standing it upright) does not suit the
+    workcell ``fit`` (empty when it suits it): no span fits the hand, it does not fit the pick area, or it spans
+    under ``min_pixels`` (px) in the hand camera at the look pose."""
+    hand = fit.hand_span
     out = []
     narrow = narrowest_width(mesh)
     if narrow > hand[1]:
@@ -48,11 +49,11 @@ def fit_warnings(mesh: trimesh.Trimesh, diameter: float, R_table_obj: np.ndarray
                    f"fingers' smallest span of {hand[0] * 1000:.1f} mm")
     foot = np.asarray(mesh.convex_hull.vertices) @ R_table_obj.T
     ex, ey = foot[:, :2].max(0) - foot[:, :2].min(0)
-    ax, ay = pick_area
+    ax, ay = 2 * fit.pick_area_half_size[0], 2 * fit.pick_area_half_size[1]
     if not ((ex <= ax and ey <= ay) or (ey <= ax and ex <= ay)):
         out.append(f"too large for the pick area: it stands {ex * 1000:.0f} x {ey * 1000:.0f} mm upright, the area "
                    f"is {ax * 1000:.0f} x {ay * 1000:.0f} mm")
-    px = diameter * camera[0] / camera[1]
+    px = diameter * fit.focal_px / fit.look_height
     if px < min_pixels:
         out.append(f"too small for the pick area's camera: {px:.1f} px across from the look pose, below "
                    f"{min_pixels:g} px")

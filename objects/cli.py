@@ -6,6 +6,12 @@ import argparse
 
 from posegrasp.arguments import number, out_dir, out_file, workers_arg
 
+#: The settings its commands read, for the settings page (``posegrasp.settings_doc``).
+SETTINGS = (
+    dict(title="Object import", target="posegrasp.objects.config:ImportConfig", table="import",
+         command="`posegrasp objects import --config FILE`, table `[import]`"),
+)
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("objects", help="object sets: import parts (STL, OBJ, PLY, GLB/GLTF, STEP, URDF, BOP models) or "
@@ -25,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     imp.add_argument("--density", type=number("--density", 1.0, 25000.0), default=None,
                      help="density in kg/m^3 (default 1050, ABS plastic)")
     imp.add_argument("--name", nargs="+", default=None, metavar="NAME", help="one name per mesh (default: file names)")
-    imp.add_argument("--config", default=None, help="import settings TOML (fields of objects.config.ImportConfig)")
+    imp.add_argument("--config", default=None,
+                     help="import settings TOML: an [import] table of objects.config.ImportConfig's fields")
     imp.add_argument("--workers", type=workers_arg, default=None,
                      help="worker processes, one part each at a time (default: one per core), or 'ray'")
     imp.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -39,16 +46,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run_import(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-    from posegrasp.config import load_toml, override
-    from posegrasp.objects.config import ImportConfig
-    from posegrasp.objects.importer import Workcell, import_objects, sources
-    from posegrasp.objects.objset import check_writable_set, write_object_set
+    from posegrasp.config import override
+    from posegrasp.objects.config import load_import_config
+    from posegrasp.objects.importer import import_objects, sources
+    from posegrasp.objset import check_writable_set, write_object_set
     from posegrasp.progress import progress
 
-    cfg = override(load_toml(ImportConfig, args.config), density=args.density)
+    cfg = override(load_import_config(args.config), density=args.density)
     check_writable_set(args.out)
     srcs = sources(args.meshes, args.unit, args.name, args.scale)
-    cell = Workcell.default()
     reports: dict[int, list[str]] = {}
 
     def report(o, seconds: float) -> None:
@@ -69,7 +75,7 @@ def run_import(args: argparse.Namespace) -> int:
     with progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   enabled=not args.no_progress, transient=True) as bar:
         task = bar.add_task("import", total=len(srcs))
-        objects = import_objects(srcs, cfg, cell, report, args.workers)
+        objects = import_objects(srcs, cfg, report, args.workers)
     write_object_set(args.out, objects, cfg.firm_hold_tasks)
     print("\n".join(ln for i in sorted(reports) for ln in reports[i]))
     print(f"wrote object set {args.out} ({len(objects)} objects)")
@@ -77,7 +83,7 @@ def run_import(args: argparse.Namespace) -> int:
 
 
 def run_show(args: argparse.Namespace) -> int:
-    from posegrasp.objects.objset import load_object_set
+    from posegrasp.objset import load_object_set
     from posegrasp.objects.show import draw_set
 
     draw_set(load_object_set(args.set), args.out)

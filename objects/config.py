@@ -1,16 +1,52 @@
-"""Typed settings of the mesh import (``posegrasp objects import --config FILE``, any field from TOML).
+"""Typed settings of the mesh import (``posegrasp objects import --config FILE``: an ``[import]`` table, any field
+from TOML; ``[import.fit]`` the workcell the parts are checked against).
 
 Lengths are relative where the name says ``_rel`` (a fraction of the object's diameter), else in metres.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import sys
+import tomllib
+from dataclasses import field
+from pathlib import Path
 
-from posegrasp.config import within
+import numpy as np
+
+from posegrasp.config import load_toml, settings, within
+from posegrasp.errors import ConfigError
+
+#: The TOML table of the import settings.
+TABLE = "import"
 
 
-@dataclass(frozen=True)
+@settings
+class FitCheckConfig:
+    """The workcell each part is checked against (a warning per misfit): the shipped workcell's and grasp settings'
+    values (``tests/test_objects.py`` holds them equal); change them for another hand or camera."""
+
+    #: The fingers' smallest and largest span (m): the grasp settings' ``min_width`` and ``max_width``.
+    hand_span: tuple[float, float] = field(default=(0.012, 0.085), metadata=within(0.0, 1.0))
+    #: Half the pick area's size along x and y (m): the workcell's ``pick_area.half_size``.
+    pick_area_half_size: tuple[float, float] = field(default=(0.12, 0.15), metadata=within(0.01, 2.0))
+    #: Hand camera image height (px): the workcell's ``hand_camera.height``.
+    camera_height: int = field(default=480, metadata=within(16, 4096))
+    #: Hand camera vertical field of view (deg): the workcell's ``hand_camera.fovy_deg``.
+    camera_fovy_deg: float = field(default=55.0, metadata=within(1.0, 170.0))
+    #: Hand camera height above the pick area at the look pose (m): the workcell's ``look_height``.
+    look_height: float = field(default=0.38, metadata=within(0.01, 5.0))
+
+    def __post_init__(self) -> None:
+        if self.hand_span[0] > self.hand_span[1]:
+            raise ConfigError(f"FitCheckConfig.hand_span = {list(self.hand_span)}: give the smallest span first")
+
+    @property
+    def focal_px(self) -> float:
+        """The hand camera's focal length (px)."""
+        return float(self.camera_height / 2 / np.tan(np.deg2rad(self.camera_fovy_deg) / 2))
+
+
+@settings
 class ImportConfig:
     """How meshes become objects: physical defaults, repair limits, symmetry search and decomposition."""
 
@@ -50,3 +86,26 @@ class ImportConfig:
     firm_hold_tasks: tuple[str, ...] = ("pick-place", "kitting", "stack")
     #: Warn when the object spans fewer pixels (px) in the hand camera at the look pose.
     min_pixels: float = 16.0
+    #: The workcell the parts are checked against.
+    fit: FitCheckConfig = field(default_factory=FitCheckConfig)
+
+    def __post_init__(self) -> None:
+        if not self.min_size < self.max_size:
+            raise ConfigError(f"ImportConfig.min_size = {self.min_size:g} m is not below max_size = "
+                              f"{self.max_size:g} m")
+
+
+def load_import_config(path: str | Path | None) -> ImportConfig:
+    """The import settings of TOML file ``path`` (defaults for None): its ``[import]`` table, or, in a file without
+    one, its top-level keys (with a one-line notice on stderr naming the table)."""
+    if path is None:
+        return ImportConfig()
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        data = {TABLE: {}}  # load_toml names the problem
+    if isinstance(data.get(TABLE), dict) or not data:
+        return load_toml(ImportConfig, path, TABLE, (TABLE,))
+    cfg = load_toml(ImportConfig, path)
+    print(f"posegrasp: note: {path}: import settings at the top level are now an [{TABLE}] table", file=sys.stderr)
+    return cfg

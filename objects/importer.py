@@ -24,9 +24,9 @@ from posegrasp.objects.mass import mass_properties
 from posegrasp.objects.formats import check_file, read_part
 from posegrasp.objects.formats.part import Part
 from posegrasp.objects.mesh import UNITS, SolidMesh, centred
-from posegrasp.objects.objset import SetObject
+from posegrasp.objset import SetObject
 from posegrasp.objects.rest import upright
-from posegrasp.objects.symmetry import find_symmetries
+from posegrasp.objects.symmetry import Symmetries, find_symmetries, near_warnings
 from posegrasp.surface import TexturedSurface, baked
 
 #: Display colours, one per object in turn.
@@ -46,28 +46,6 @@ class Source:
     models_info: Path | None = None
     bop_id: int | None = None
     scale: float = 1.0
-
-
-@dataclass(frozen=True)
-class Workcell:
-    """What the fit checks need: the fingers' (min, max) span (m), the pick area's (x, y) size (m), and the hand
-    camera's focal length (px) and distance to the pick area at the look pose (m)."""
-
-    hand: tuple[float, float]
-    pick_area: tuple[float, float]
-    camera: tuple[float, float]
-
-    @classmethod
-    def default(cls) -> "Workcell":
-        """From the shipped trial and workcell settings."""
-        from posegrasp.grasping.config import GraspConfig
-        from posegrasp.sim.config import load_workcell_config
-
-        g, w = GraspConfig(), load_workcell_config()
-        f = w.hand_camera.height / 2 / np.tan(np.deg2rad(w.hand_camera.fovy_deg) / 2)
-        area = w.pick_area.half_size
-        return cls(hand=(g.min_width, g.max_width), pick_area=(2 * area[0], 2 * area[1]),
-                   camera=(float(f), w.look_height))
 
 
 def _default_name(path: Path) -> str:
@@ -122,9 +100,6 @@ def sources(paths: list[Path], units: list[str], names: list[str] | None = None,
     return out
 
 
-Symmetries = tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]]]
-
-
 def _given_symmetries(src: Source, offset: np.ndarray) -> Symmetries | None:
     """The BOP models_info symmetries of ``src``, moved into the centred frame (``x_obj = x_model + offset``)."""
     if src.models_info is None:
@@ -143,7 +118,7 @@ def _given_symmetries(src: Source, offset: np.ndarray) -> Symmetries | None:
         T[:3, :3] = U @ Vt
         disc.append(S @ T @ np.linalg.inv(S))
     cont = [(a / np.linalg.norm(a), c + offset) for a, c in info.symmetries_continuous]
-    return disc, cont
+    return Symmetries(disc, cont)
 
 
 def _looks(part: Part, solid: SolidMesh, obj_id: int) -> tuple[tuple[float, float, float, float],
@@ -162,7 +137,7 @@ def _looks(part: Part, solid: SolidMesh, obj_id: int) -> tuple[tuple[float, floa
     return white, baked(np.asarray(solid.surface.vertices), faces, np.tile(rgb, (len(faces), 1)))
 
 
-def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -> SetObject:
+def import_object(src: Source, obj_id: int, cfg: ImportConfig) -> SetObject:
     """One object of a set from ``src``, with id ``obj_id``."""
     step = src.path.suffix.lower() in (".step", ".stp")  # in its own declared unit
     scale = src.scale * (1.0 if step else UNITS[src.unit])
@@ -173,13 +148,13 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
     props = mass_properties(mesh, cfg.density)
     tol = cfg.sym_tol_rel * props.diameter
     given = _given_symmetries(src, solid.offset)
-    disc, cont = given if given is not None else find_symmetries(
+    sym = given if given is not None else find_symmetries(
         mesh, props.center_of_mass, props.inertia, tol, cfg.sym_points, cfg.max_fold, cfg.seed)
     up = upright(mesh, props.center_of_mass, tol)
     pieces = convex_pieces(mesh, cfg.max_pieces, cfg.coacd_threshold, cfg.seed, cfg.collision_faces,
                           cfg.coacd_iterations)
-    warnings = list(part.notes) + fit_warnings(mesh, props.diameter, up.R_table_obj, cell.hand, cell.pick_area,
-                                               cell.camera, cfg.min_pixels)
+    warnings = list(part.notes) + fit_warnings(mesh, props.diameter, up.R_table_obj, cfg.fit, cfg.min_pixels) \
+        + near_warnings(sym, tol, props.diameter)
     cover = union_volume(pieces) / props.volume
     if abs(cover - 1.0) > 0.10:
         warnings.append(f"its {len(pieces)} collision pieces hold {cover:.2f} times its volume (hulls over hollows); "
@@ -191,7 +166,7 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
         collision=tuple({"type": "mesh", "vertices": p} for p in pieces),
         upright_quat=tuple(R_to_quat(up.R_table_obj).tolist()), upright_down=up.down, flat_top=up.flat_top,
         flat_bottom=up.flat_bottom, diameter=props.diameter, min_xyz=props.min_xyz,
-        extents=props.extents, symmetries_discrete=tuple(disc), symmetries_continuous=tuple(cont),
+        extents=props.extents, symmetries_discrete=tuple(sym.discrete), symmetries_continuous=tuple(sym.continuous),
         collision_volume_ratio=cover,
         source={"file": src.path.name, "unit": "m" if step else src.unit, "scale": solid.scale,
                 "offset": (np.round(solid.offset, 9) + 0.0).tolist(),
@@ -200,14 +175,14 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig, cell: Workcell) -
         warnings=tuple(warnings))
 
 
-def _import_job(job: tuple[Source, int, ImportConfig, Workcell]) -> tuple[SetObject, float]:
+def _import_job(job: tuple[Source, int, ImportConfig]) -> tuple[SetObject, float]:
     """One part imported (a worker's task), and the seconds it took."""
     t0 = time.perf_counter()
     obj = import_object(*job)
     return obj, time.perf_counter() - t0
 
 
-def import_objects(srcs: list[Source], cfg: ImportConfig, cell: Workcell,
+def import_objects(srcs: list[Source], cfg: ImportConfig,
                    on_done: Callable[[SetObject, float], None] | None = None,
                    workers: int | str | None = 1) -> list[SetObject]:
     """Every source imported (ids 1, 2, ... in order), one task per part on ``workers`` processes
@@ -219,7 +194,7 @@ def import_objects(srcs: list[Source], cfg: ImportConfig, cell: Workcell,
         workers = max(1, min(len(srcs), workers or os.cpu_count() or 1))
     out: list[SetObject | None] = [None] * len(srcs)
     with make_executor(workers) as ex:
-        for i, (obj, seconds) in ex.imap(_import_job, [(s, i, cfg, cell) for i, s in enumerate(srcs, start=1)]):
+        for i, (obj, seconds) in ex.imap(_import_job, [(s, i, cfg) for i, s in enumerate(srcs, start=1)]):
             out[i] = obj
             if on_done is not None:
                 on_done(obj, seconds)

@@ -14,7 +14,7 @@ import numpy as np
 
 from posegrasp.geometry import make_T, quat_to_R
 from posegrasp.io import write_bytes
-from posegrasp.objects.objset import ObjectSet, SetObject
+from posegrasp.objset import ObjectSet, SetObject
 
 
 def _axis_and_order(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

@@ -15,6 +15,13 @@ keeps the mass distribution, so ``R I R^T = I`` and ``R`` permutes the principal
 - three equal moments (cube, regular polyhedra, sphere): turns by ``2 pi / n`` (n = 2..6) and continuous turns
   about the directions from ``c`` to the convex hull's vertices, edge midpoints and face normals.
 
+The discrete rotations that pass are made a group (closed under composition, a product within the tolerance's
+angle of an element counting as that element): unless they are one already, each in turn, those moving the surface
+least first, joins with the products it makes with the group so far when every product passes too, else it is left
+out (a near-round part's turns about axes a little off, which compose to turns that do not pass). Candidates that
+fail by at most twice the tolerance, and are no element of the group, are reported as near symmetries with their
+surface error.
+
 Output follows BOP: discrete symmetries (4x4, m, identity excluded) and continuous ones ``(axis, offset)``, the
 rotation about the line through ``offset`` along ``axis``; with a continuous symmetry the discrete list keeps one
 transform per coset of it (a cylinder: its continuous axis and one flip).
@@ -22,9 +29,13 @@ transform per coset of it (a cylinder: its continuous axis and one flip).
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, field
+
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from posegrasp.geometry import axis_angle_R, make_T
 
@@ -32,6 +43,21 @@ _EIG_TOL = 0.05  # principal moments within this fraction of the largest count a
 _CONT_ANGLES = (0.3, 1.9)  # rad: turns that only a continuous symmetry (or a very high fold) passes
 _POLY_FOLDS = (6, 5, 4, 3, 2)  # the folds of the polyhedral groups' axes, highest first
 _MAX_HULL_AXES = 26  # per kind of hull feature, in the isotropic case
+_NEAR = 2.0  # a failed candidate moving the surface at most this many tolerances is a near symmetry
+_CHUNK = 128  # points per exact point-to-surface query
+
+
+@dataclass(frozen=True)
+class Symmetries:
+    """What the search found (m, object frame): ``discrete`` 4x4 transforms (identity excluded), ``continuous``
+    ``(axis, offset)`` lines; ``near``: rejected rotations about the centre of mass that move the surface at most
+    twice the tolerance, ``(T 4x4, largest surface deviation m)``, smallest first; ``left_out``: how many rotations
+    within the tolerance were left out because with the others they make no group."""
+
+    discrete: list[np.ndarray]
+    continuous: list[tuple[np.ndarray, np.ndarray]]
+    near: list[tuple[np.ndarray, float]] = field(default_factory=list)
+    left_out: int = 0
 
 
 class Surface:
@@ -48,10 +74,24 @@ class Surface:
         if np.any(q.min(0) < self.lo - tol) or np.any(q.max(0) > self.hi + tol):
             return False
         far = q[self.tree.query(q)[0] > tol]  # the rest is within tol of a sample, so of the surface
-        for s in range(0, len(far), 128):  # exact, a chunk at a time, stopping at the first miss
-            if trimesh.proximity.closest_point(self.mesh, far[s:s + 128])[1].max() > tol:
+        for s in range(0, len(far), _CHUNK):  # exact, a chunk at a time, stopping at the first miss
+            if trimesh.proximity.closest_point(self.mesh, far[s:s + _CHUNK])[1].max() > tol:
                 return False
         return True
+
+    def deviation(self, q: np.ndarray, cap: float) -> float:
+        """The largest distance (m) of a point of ``q`` (N, 3) from the surface; infinity once it exceeds ``cap``."""
+        if not self.within(q, cap):
+            return float("inf")
+        bound = self.tree.query(q)[0]  # each at least its exact distance
+        order = np.argsort(-bound, kind="stable")
+        worst = 0.0
+        for s in range(0, len(order), _CHUNK):  # exact, farthest bounds first, until no bound can beat the worst
+            idx = order[s:s + _CHUNK]
+            if bound[idx[0]] <= worst:
+                break
+            worst = max(worst, float(trimesh.proximity.closest_point(self.mesh, q[idx])[1].max()))
+        return worst
 
 
 class _Checker:
@@ -65,14 +105,46 @@ class _Checker:
         self.pts = np.vstack([samples, verts])
         self.surface = Surface(mesh, 20 * n_points, seed)
         self.c, self.tol = c, tol
+        self.failed: list[np.ndarray] = []  # the candidates that did not pass, in the order asked
 
     def __call__(self, R: np.ndarray) -> bool:
+        """Whether candidate ``R`` passes (a failure is kept in ``failed``)."""
+        ok = self.passes(R)
+        if not ok:
+            self.failed.append(R)
+        return ok
+
+    def passes(self, R: np.ndarray) -> bool:
         q = self.pts - self.c
-        return all(self.surface.within(q[:128] @ M.T + self.c, self.tol) for M in (R, R.T)) and \
+        return all(self.surface.within(q[:_CHUNK] @ M.T + self.c, self.tol) for M in (R, R.T)) and \
             all(self.surface.within(q @ M.T + self.c, self.tol) for M in (R, R.T))
 
     def continuous(self, axis: np.ndarray) -> bool:
-        return all(self(axis_angle_R(axis, a)) for a in _CONT_ANGLES)
+        return all(self.passes(axis_angle_R(axis, a)) for a in _CONT_ANGLES)
+
+    def error(self, R: np.ndarray, cap: float) -> float:
+        """How far (m) ``R`` moves the checked points off the surface, either way; infinity when over ``cap``."""
+        q = self.pts - self.c
+        if not all(self.surface.within(q[:_CHUNK] @ M.T + self.c, cap) for M in (R, R.T)):  # most fail here
+            return float("inf")
+        return max(self.surface.deviation(q @ M.T + self.c, cap) for M in (R, R.T))
+
+    def score(self, R: np.ndarray) -> float:
+        """How far (m) ``R`` moves the first ``_CHUNK`` checked points off the surface, either way (what ranks the
+        candidates that pass: a quick lower bound of ``error``)."""
+        q = self.pts[:_CHUNK] - self.c
+        return max(float(trimesh.proximity.closest_point(self.surface.mesh, q @ M.T + self.c)[1].max())
+                   for M in (R, R.T))
+
+    def near(self) -> list[tuple[np.ndarray, float]]:
+        """The failed candidates that move the surface at most ``_NEAR`` tolerances, with that error (m), smallest
+        first."""
+        candidates: list[np.ndarray] = []
+        for R in _dedupe(self.failed):  # a turn's inverse says nothing more
+            if all(np.abs(R.T - Q).max() > 1e-6 for Q in candidates):
+                candidates.append(R)
+        errors = [(R, self.error(R, _NEAR * self.tol)) for R in candidates]
+        return sorted(((R, e) for R, e in errors if e <= _NEAR * self.tol), key=lambda x: x[1])
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -141,6 +213,54 @@ def _dedupe(rotations: list[np.ndarray]) -> list[np.ndarray]:
     return sorted(out, key=_rotation_key)
 
 
+def _index(elements: np.ndarray, R: np.ndarray, same: float) -> int | None:
+    """The index of the rotation of ``elements`` (K, 3, 3) within ``same`` rad of rotation ``R``, or None."""
+    if not len(elements):
+        return None
+    cos = (np.einsum("kij,ij->k", elements, R) - 1.0) / 2.0  # cos of the angle of E^T R
+    k = int(np.argmax(cos))
+    return k if cos[k] >= np.cos(same) else None
+
+
+def _closure(group: np.ndarray, R: np.ndarray, check: _Checker, same: float, limit: int) -> np.ndarray | None:
+    """The group (K, 3, 3) that ``group`` (identity first) and ``R`` generate, or None when one of its new
+    elements fails ``check`` or it would grow past ``limit`` elements."""
+    out, fresh = group, [R]
+    while fresh:
+        out = np.concatenate([out, fresh])
+        new: list[np.ndarray] = []
+        for P in np.concatenate([np.concatenate([A @ out, out @ A]) for A in fresh]):
+            if _index(out, P, same) is None and _index(np.asarray(new), P, same) is None:
+                if len(out) + len(new) >= limit or not check.passes(P):
+                    return None
+                new.append(P)
+        fresh = new
+    return out
+
+
+def _is_group(elements: np.ndarray, same: float) -> bool:
+    """Whether rotations ``elements`` (K, 3, 3, the identity among them) are distinct and closed under
+    composition."""
+    near = (np.einsum("aij,bij->ab", elements, elements) - 1.0) / 2.0 >= np.cos(same)  # cos of the angle of A^T B
+    return int(near.sum()) == len(elements) and all(
+        _index(elements, A @ B, same) is not None for A in elements for B in elements)
+
+
+def _group(rotations: list[np.ndarray], check: _Checker, same: float, limit: int) -> tuple[list[np.ndarray], int]:
+    """``rotations`` (in ``_rotation_key`` order) when they and the identity make a group; else the group they
+    generate, each joining in turn, those moving the surface least first, when the elements it adds pass ``check``
+    (else left out), in ``_rotation_key`` order. Returned without the identity, with how many were left out."""
+    if _is_group(np.array([np.eye(3), *rotations]), same):
+        return rotations, 0
+    group, left_out = np.eye(3)[None], 0
+    for R in sorted(rotations, key=check.score):  # the best first
+        if _index(group, R, same) is None:
+            grown = _closure(group, R, check, same, limit)
+            left_out += grown is None
+            group = group if grown is None else grown
+    return sorted(group[1:], key=_rotation_key), left_out
+
+
 def _one_per_coset(discrete: list[np.ndarray], axes: list[np.ndarray]) -> list[np.ndarray]:
     """With continuous symmetries about ``axes``, one rotation per image of the axes (identity's dropped)."""
     def image(R: np.ndarray) -> tuple:
@@ -155,9 +275,9 @@ def _one_per_coset(discrete: list[np.ndarray], axes: list[np.ndarray]) -> list[n
 
 
 def find_symmetries(mesh: trimesh.Trimesh, center_of_mass: np.ndarray, inertia: np.ndarray, tol: float,
-                    n_points: int = 1500, max_fold: int = 24, seed: int = 0
-                    ) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
-    """Discrete (4x4, m, identity excluded) and continuous ``(axis, offset m)`` symmetries of ``mesh`` (m).
+                    n_points: int = 1500, max_fold: int = 24, seed: int = 0) -> Symmetries:
+    """Discrete (4x4, m, identity excluded; a group with the identity) and continuous ``(axis, offset m)``
+    symmetries of ``mesh`` (m), and the near ones rejected.
 
     ``inertia`` (3, 3) is about ``center_of_mass``; ``tol`` (m) is the largest surface deviation a symmetry may
     cause; ``n_points`` surface samples (plus up to ``n_points / 3`` vertices) are checked per candidate.
@@ -190,7 +310,30 @@ def find_symmetries(mesh: trimesh.Trimesh, center_of_mass: np.ndarray, inertia: 
         else:
             n = next((n for n in range(max_fold, 1, -1) if check(axis_angle_R(a, 2 * np.pi / n))), 0)
             found = (_turns(a, n) if n else []) + [axis_angle_R(u, np.pi) for u in _flip_candidates(mesh, c, a, tol)]
-    discrete = [R for R in _dedupe(found) if check(R)]
+    same = tol / float(np.linalg.norm(np.asarray(mesh.vertices) - c, axis=1).max())  # rad: one element
+    discrete, left_out = _group([R for R in _dedupe(found) if check(R)], check, same, max(60, 2 * max_fold))
+    group = np.array([np.eye(3), *discrete])
+    near = [(R, e) for R, e in check.near() if _index(group, R, same) is None]
     if cont:
         discrete = _one_per_coset(discrete, cont)
-    return [make_T(R, c - R @ c) for R in discrete], [(a, c.copy()) for a in cont]  # R about c
+    return Symmetries([make_T(R, c - R @ c) for R in discrete], [(a, c.copy()) for a in cont],  # R about c
+                      [(make_T(R, c - R @ c), e) for R, e in near], left_out)
+
+
+def near_warnings(sym: Symmetries, tol: float, diameter: float, most: int = 3) -> list[str]:
+    """One sentence per near symmetry of ``sym`` rejected (the ``most`` nearest; ``tol`` and ``diameter`` in m), and
+    one for the turns left out of the group."""
+    out = []
+    for T, e in sym.near[:most]:
+        v = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+        axis = _unit(v)
+        need = math.ceil(e / diameter * 1e4) / 1e4
+        out.append(f"near symmetry rejected: a {np.degrees(np.linalg.norm(v)):.0f} deg turn about "
+                   f"({axis[0]:.3f}, {axis[1]:.3f}, {axis[2]:.3f}) through its centre of mass moves its surface "
+                   f"{e * 1000:.2f} mm, over the {tol * 1000:.2f} mm tolerance; sym_tol_rel = {need:g} in --config "
+                   "admits it")
+    if len(sym.near) > most:
+        out.append(f"{len(sym.near) - most} more near symmetries rejected")
+    if sym.left_out:
+        out.append(f"{sym.left_out} turn(s) within the tolerance left out: with the others they make no group")
+    return out

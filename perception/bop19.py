@@ -120,7 +120,7 @@ def vsd(dist_est: np.ndarray, dist_gt: np.ndarray, dist_test: np.ndarray, diamet
 
 # ------------------------------------------------------------------------------------------------- per image
 
-class Estimate(NamedTuple):
+class ScoredPose(NamedTuple):
     """A pose estimate: object id, score, ``T_cam_obj`` (4x4, m)."""
 
     obj_id: int
@@ -168,7 +168,7 @@ class Bop19:
         self.hull = {o: p[_hull_vertices(p)] for o, p in self.points.items()}  # enough for MSSD
         self.syms = {o: symmetry_transforms(infos[o]) for o in points}
 
-    def image(self, depth: np.ndarray, K: np.ndarray, truths: list[Truth], estimates: list[Estimate],
+    def image(self, depth: np.ndarray, K: np.ndarray, truths: list[Truth], estimates: list[ScoredPose],
               targets: dict[int, int]) -> list[ObjectErrors]:
         """Errors for every object of ``targets`` ({obj_id: inst_count}) in one image; ``depth`` the test image
         (m, 0 = none), ``truths`` every annotated instance (in annotation order)."""

@@ -1,15 +1,17 @@
 """Checkpoints of the perception nets: safetensors + JSON, never pickles, written all-or-nothing.
 
-A checkpoint is a directory (``RUN/seg``, ``RUN/pose``, ``RUN/refine``, ``RUN/cls``) holding
+A checkpoint is a directory (``RUN/seg``, ``RUN/pose``, ``RUN/refiner``, ``RUN/cls``) holding
 
 - ``model.safetensors``: the model's state dict,
-- ``config.json``: ``{"format", "version", "stage", "model": {...}, "train": {...}}``,
+- ``config.json``: ``{"format", "version", "stage", "model": {...}, "train": {...}}`` (``stage``: the stage's tag,
+  ``FILE_TAGS``),
 - ``state.json``: training progress (step, learning rate, loss weight, flags, timings),
 - ``optimizer.safetensors``: optimizer tensors and the torch RNG state, with the optimizer's
   hyper-parameters as JSON metadata (present only while training).
 
 Saving writes every file (atomically) into a sibling temporary directory, then swaps it in with two
-renames; a kill at any moment leaves either the old or the new checkpoint, which ``resolve`` finds.
+renames; a kill at any moment leaves either the old or the new checkpoint, which ``resolve`` finds. A run folder
+holding the refiner under its old folder name, ``RUN/refine``, is read as it is (``stage_dir``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import dataclasses
 import json
 import os
 import shutil
+import sys
 from pathlib import Path
 from typing import Any, Callable
 
@@ -40,9 +43,38 @@ VERSION = 1
 STAGES: dict[str, tuple[type, Callable[[Any], nn.Module]]] = {
     "seg": (SegNetConfig, build_seg_net),
     "pose": (PoseNetConfig, build_pose_net),
-    "refine": (RefinerConfig, build_refiner),
+    "refiner": (RefinerConfig, build_refiner),
     "cls": (ClassifierConfig, build_classifier),
 }
+#: The stage tag a checkpoint's files carry where it is not the stage's name (the format's first version: the
+#: refiner's files say "refine"; same bytes from the same training).
+FILE_TAGS = {"refiner": "refine"}
+#: A stage's checkpoint folder under its old name, still read (``stage_dir``).
+OLD_FOLDERS = {"refiner": "refine"}
+_noticed: set[Path] = set()  # the old folders this process has named in a notice
+
+
+def stage_dir(run: Path, stage: str) -> Path:
+    """The folder of the run ``run``'s ``stage`` checkpoint: ``run/<stage>``, or its old name (``OLD_FOLDERS``)
+    when only that holds one, with a notice on stderr naming the new name (once per folder and process)."""
+    new, old = Path(run) / stage, Path(run) / OLD_FOLDERS.get(stage, stage)
+    if old == new or _present(new) or not _present(old):
+        return new
+    if old not in _noticed:
+        _noticed.add(old)
+        print(f"posegrasp: note: {old} is read as the {stage} checkpoint: its folder is now named {stage}/",
+              file=sys.stderr)
+    return old
+
+
+def _present(ckpt: Path) -> bool:
+    """Whether a checkpoint folder, or the one a killed save left (``resolve``), is there."""
+    return ckpt.exists() or ckpt.with_name(f".{ckpt.name}.old").exists()
+
+
+def stage_of(tag: Any) -> Any:
+    """The stage whose checkpoints carry the tag ``tag`` (``FILE_TAGS``); ``tag`` itself otherwise."""
+    return next((s for s, t in FILE_TAGS.items() if t == tag), tag)
 
 
 def _one_line(msg: str, limit: int = 300) -> str:
@@ -74,10 +106,11 @@ def save(ckpt: Path, stage: str, model: nn.Module, model_cfg: Any, train_cfg: An
     tmp.mkdir(parents=True)
     step = str(int(state.get("step", 0)))
     sd = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    pio.write_bytes(tmp / "model.safetensors", safetensors_bytes(sd, {"format": FORMAT, "stage": stage, "step": step}))
+    tag = FILE_TAGS.get(stage, stage)
+    pio.write_bytes(tmp / "model.safetensors", safetensors_bytes(sd, {"format": FORMAT, "stage": tag, "step": step}))
     if optimizer is not None:
         pio.write_bytes(tmp / "optimizer.safetensors", _optimizer_bytes(optimizer, step))
-    pio.write_json(tmp / "config.json", {"format": FORMAT, "version": VERSION, "stage": stage,
+    pio.write_json(tmp / "config.json", {"format": FORMAT, "version": VERSION, "stage": tag,
                                          "model": dataclasses.asdict(model_cfg),
                                          "train": dataclasses.asdict(train_cfg) if train_cfg is not None else None})
     pio.write_json(tmp / "state.json", state)
@@ -138,11 +171,13 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
 
 
 def read_config(ckpt: Path) -> dict[str, Any]:
-    """``config.json`` of a checkpoint, checked for format and stage."""
+    """``config.json`` of a checkpoint, checked for format and stage (``stage``: the stage's name, not its file tag)."""
     p = resolve(Path(ckpt)) / "config.json"
     cfg = _read_json(p, f"{p} does not exist: {ckpt} is not a trained checkpoint")
-    if not isinstance(cfg, dict) or cfg.get("format") != FORMAT or cfg.get("stage") not in STAGES:
+    if not isinstance(cfg, dict) or cfg.get("format") != FORMAT or not isinstance(cfg.get("stage"), str) \
+            or stage_of(cfg["stage"]) not in STAGES:
         raise WeightsError(f"{p} is not a {FORMAT} config")
+    cfg = {**cfg, "stage": stage_of(cfg["stage"])}
     if cfg.get("version") != VERSION or isinstance(cfg.get("version"), bool):
         raise WeightsError(f"{p}: version = {json.dumps(cfg.get('version'))[:40]}; expected {VERSION}")
     for key, optional in (("model", False), ("train", True)):  # weights made by no training (perturb): train null
@@ -270,7 +305,7 @@ def perturb_run(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...] 
 def _perturb_into(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...], seed: int) -> None:
     gen = torch.Generator().manual_seed(seed)
     for stage in STAGES:
-        ckpt = resolve(src / stage)
+        ckpt = resolve(stage_dir(src, stage))
         if not exists(ckpt):
             continue
         model, model_cfg, cfg = load_model(ckpt, stage)
@@ -283,4 +318,5 @@ def _perturb_into(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...
         train_cfg = cfg["train"]
         save(dst / stage, stage, model, model_cfg, None, state)
         if train_cfg is not None:  # keep the training settings the weights came from
-            pio.write_json(dst / stage / "config.json", {**read_config(dst / stage), "train": train_cfg})
+            written = {**read_config(dst / stage), "stage": FILE_TAGS.get(stage, stage), "train": train_cfg}
+            pio.write_json(dst / stage / "config.json", written)

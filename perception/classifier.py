@@ -21,19 +21,19 @@ id): segments it wins are dropped, which removes distractors the seg net took fo
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import field
 
 import torch
 from torch import nn
 
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.seg_net import ConvBNReLU
 
 IN_CHANNELS = 6  # RGB (normalised), mask, relative depth, valid depth (+ height above the plane, optional)
 
 
-@dataclass
+@settings
 class ClassifierConfig:
     """The instance classifier: a small CNN on a crop of fixed metric size around each segment."""
 
@@ -44,29 +44,25 @@ class ClassifierConfig:
     #: Input side (px).
     crop_size: int = field(default=64, metadata=within(8, 1024))
     #: The crop's side (m) at the segment's median depth.
-    crop_side: float = 0.16
+    crop_side: float = field(default=0.16, metadata=within(0.001, 10))
     #: Depths relative to the segment's are clipped to +-this (m), scaled to [-1, 1].
-    depth_range: float = 0.05
+    depth_range: float = field(default=0.05, metadata=within(0.0001, 10))
     #: Above 0: a channel of the height (m) above the supporting plane, clipped to [0, this].
-    height_range: float = 0.0
+    height_range: float = field(default=0.0, metadata=within(0, 10))
 
     @property
     def in_channels(self) -> int:
         """Channels of the crop (``perception.inputs.prepare_cls_input``)."""
         return IN_CHANNELS + (self.height_range > 0)
 
-    def validate(self) -> None:
-        """Raise ConfigError (a ValueError) on an unusable configuration."""
+    def __post_init__(self) -> None:
         if not self.obj_ids:
-            raise ConfigError("obj_ids must name at least one object")
-        if not self.widths or min(self.widths) < 1:
-            raise ConfigError(f"widths must be positive channel counts, got {self.widths}")
+            raise ConfigError("obj_ids = []: name at least one object")
+        if not self.widths:
+            raise ConfigError("widths = []: give the channels of at least one conv stage")
         if self.crop_size < 2 ** (len(self.widths) - 1):
-            raise ConfigError(f"crop_size {self.crop_size} is too small for {len(self.widths)} pooled stages")
-        if self.crop_side <= 0 or self.depth_range <= 0:
-            raise ConfigError(f"crop_side ({self.crop_side}) and depth_range ({self.depth_range}) must be positive")
-        if self.height_range < 0:
-            raise ConfigError(f"height_range must be >= 0 m (0: no height channel), got {self.height_range}")
+            raise ConfigError(f"crop_size = {self.crop_size} is too small for {len(self.widths)} pooled stages: use at "
+                              f"least {2 ** (len(self.widths) - 1)}")
 
 
 class CropClassifier(nn.Module):
@@ -74,7 +70,6 @@ class CropClassifier(nn.Module):
 
     def __init__(self, cfg: ClassifierConfig):
         super().__init__()
-        cfg.validate()
         self.cfg = cfg
         layers: list[nn.Module] = []
         cin = cfg.in_channels

@@ -1,15 +1,17 @@
-"""``posegrasp train seg|pose|refine``, ``posegrasp eval`` and ``posegrasp perturb`` subcommands.
+"""``posegrasp train seg|pose|refiner|cls``, ``posegrasp eval`` and ``posegrasp perturb`` subcommands.
 
-A ``--config`` TOML file may hold sections ``[seg]``, ``[pose]``, ``[refine]``, ``[cls]`` and ``[eval]`` (with
-sub-tables such as ``[pose.model]`` and ``[pose.data]``) matching the config dataclasses of
-``perception.train_seg``, ``train_pose``, ``train_refine``, ``train_cls`` and ``perception.evaluate``; command-line
-flags override it.
+A ``--config`` TOML file may hold sections ``[seg]``, ``[pose]``, ``[refiner]``, ``[cls]`` and ``[eval]`` (with
+sub-tables such as ``[pose.model]`` and ``[pose.data]``) matching the settings classes of
+``perception.train_seg``, ``train_pose``, ``train_refiner``, ``train_cls`` and ``perception.evaluate``; command-line
+flags override it. The old names in ``RENAMED`` (the stage and table ``refine``, the flags ``--no-refine`` and
+``--no-icp``) are read as their new ones, with a notice on stderr naming the new one.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from typing import TYPE_CHECKING
@@ -21,19 +23,60 @@ from posegrasp.errors import UserError, WeightsError
 if TYPE_CHECKING:
     from posegrasp.perception.training import StageTraining
 
-TRAIN_STAGES = ("seg", "pose", "refine", "cls")  #: ``train``'s stages, each a table of a training TOML
+TRAIN_STAGES = ("seg", "pose", "refiner", "cls")  #: ``train``'s stages, each a table of a training TOML
 SECTIONS = (*TRAIN_STAGES, "eval")  #: the tables a training or evaluation TOML may hold
+#: Old names still read, a notice naming the new one: a stage (``train``, ``perturb --stages``, a TOML table) or a flag.
+RENAMED = {"refine": "refiner", "--no-refine": "--no-refiner", "--no-icp": "--no-depth-fit"}
+
+
+def renamed(name: str) -> str:
+    """``name``, or its new name if it is an old one (``RENAMED``), with a notice on stderr."""
+    if name in RENAMED:
+        print(f"posegrasp: note: '{name}' is now named '{RENAMED[name]}'", file=sys.stderr)
+    return RENAMED.get(name, name)
+
+
+class _RenamedFlag(argparse.Action):
+    """An old ``store_true`` flag: sets its new flag's destination, with a notice."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        setattr(namespace, renamed(option_string).lstrip("-").replace("-", "_"), True)
+
+
+#: The settings its commands read, for the settings page (``posegrasp.settings_doc``).
+SETTINGS = (
+    dict(title="Training: segmentation net", target="posegrasp.perception.train_seg:SegTrainConfig", table="seg",
+         command="`posegrasp train seg --config FILE`, table `[seg]`",
+         note="The shipped model's settings: `assets/perception/train_cpu.toml`."),
+    dict(title="Training: pose net", target="posegrasp.perception.train_pose:PoseTrainConfig", table="pose",
+         command="`posegrasp train pose --config FILE`, table `[pose]`"),
+    dict(title="Training: refiner", target="posegrasp.perception.train_refiner:RefinerTrainConfig", table="refiner",
+         command="`posegrasp train refiner --config FILE`, table `[refiner]`"),
+    dict(title="Training: instance classifier", target="posegrasp.perception.train_cls:ClsTrainConfig", table="cls",
+         command="`posegrasp train cls --config FILE`, table `[cls]`"),
+    dict(title="Evaluation", target="posegrasp.perception.evaluate:EvalConfig", table="eval",
+         command="`posegrasp eval --config FILE`, table `[eval]`",
+         note="The command's flags (`--no-depth-fit`, `--gt-masks`, ...) override the file."),
+    dict(title="Estimator", target="posegrasp.perception.estimator:EstimatorConfig", table=None,
+         command="Python: `Estimator(weights, EstimatorConfig(...))`",
+         note="Nested settings are dataclasses too: "
+              "`EstimatorConfig(depth_fit=DepthFitConfig(search=SearchConfig(pattern_rounds=0)))` "
+              "([real camera](../real_camera.md))."),
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``train``, ``eval`` and ``perturb`` subcommands."""
-    p = subparsers.add_parser("train", help="train the segmentation net, the pose net or the refiner",
+    p = subparsers.add_parser("train", help="train the segmentation net, the pose net, the refiner or the classifier",
                               description="Train one stage of the perception network on a BOP dataset.")
-    p.add_argument("stage", choices=TRAIN_STAGES,
-                   help="which network to train (cls: the instance classifier, after seg)")
+    p.add_argument("stage", choices=TRAIN_STAGES, type=renamed,
+                   help="which network to train (refiner: after pose; cls: the instance classifier, after seg)")
     p.add_argument("--data", required=True, type=in_dir("--data"), help="BOP dataset root")
     p.add_argument("--out", required=True, type=out_dir(), help="run directory (RUN/<stage> holds the checkpoint)")
-    p.add_argument("--config", type=Path, help="TOML file with [seg] / [pose] / [refine] sections")
+    p.add_argument("--config", type=Path, help="TOML file with [seg] / [pose] / [refiner] / [cls] sections")
     p.add_argument("--steps", type=positive_int("--steps"), help="total optimisation steps (overrides the config)")
     p.add_argument("--seed", type=nonneg_int("--seed"), help="random seed (overrides the config)")
     p.add_argument("--resume", action="store_true", help="continue the checkpoint in RUN/<stage>")
@@ -44,15 +87,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e = subparsers.add_parser("eval", help="evaluate a trained run on a BOP split",
                               description="mPA/mIoU, ADD, ADD-S, AUC, accuracies, curves, BOP results CSV.")
     e.add_argument("--data", required=True, type=in_dir("--data"), help="BOP dataset root")
-    e.add_argument("--weights", required=True, type=in_dir("--weights"), help="run directory with seg/, pose/ [, refine/]")
+    e.add_argument("--weights", required=True, type=in_dir("--weights"),
+                   help="run directory with seg/, pose/ [, refiner/, cls/]")
     e.add_argument("--split", help="split to evaluate (default: test)")
     e.add_argument("--out", type=out_dir(), help="report directory (default: WEIGHTS/eval_<split>)")
     e.add_argument("--config", type=Path, help="TOML file with an [eval] section")
     e.add_argument("--gt-masks", action="store_true", help="use ground-truth masks (pose stage only)")
-    e.add_argument("--no-refine", action="store_true", help="ablation: skip refinement")
+    e.add_argument("--no-refiner", action="store_true", help="ablation: no refiner (the learned pose refinement)")
     e.add_argument("--no-cls", action="store_true", help="ablation: no instance classifier (the paper's pipeline)")
-    e.add_argument("--no-icp", action="store_true", help="ablation: no depth refinement (ICP from rotation hypotheses)")
-    e.add_argument("--no-plane", action="store_true", help="ablation: no supporting-plane prior (mask cleanup, ICP)")
+    e.add_argument("--no-depth-fit", action="store_true",
+                   help="ablation: no depth fit (ICP from rotation hypotheses)")
+    e.add_argument("--no-refine", "--no-icp", action=_RenamedFlag)
+    e.add_argument("--no-plane", action="store_true",
+                   help="ablation: no supporting-plane prior (mask cleanup, depth fit)")
     e.add_argument("--no-guided", action="store_true",
                    help="ablation: class-map outlines not snapped to colour edges (guided filter)")
     e.add_argument("--no-split", action="store_true", help="ablation: merged segments not split by the fitted models")
@@ -67,7 +114,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     d = subparsers.add_parser("perturb", help="write a deliberately degraded copy of a run (seeded weight noise)",
                               description="For sensitivity studies: run trials with model:OUT and compare.")
-    d.add_argument("--weights", required=True, type=in_dir("--weights"), help="run directory with seg/, pose/ [, refine/]")
+    d.add_argument("--weights", required=True, type=in_dir("--weights"),
+                   help="run directory with seg/, pose/ [, refiner/, cls/]")
     d.add_argument("--out", required=True, type=out_dir(), help="new run directory")
     d.add_argument("--rel-sigma", required=True, type=number("--rel-sigma", 0), help="noise std as a fraction of each tensor's std")
     d.add_argument("--stages", default="pose", help="comma-separated stages to perturb (default: pose)")
@@ -79,23 +127,26 @@ def training_stages() -> dict[str, type[StageTraining]]:
     """The ``StageTraining`` of each ``posegrasp train`` stage (imported when asked for: they import torch)."""
     from posegrasp.perception.train_cls import ClsTraining
     from posegrasp.perception.train_pose import PoseTraining
-    from posegrasp.perception.train_refine import RefineTraining
+    from posegrasp.perception.train_refiner import RefinerTraining
     from posegrasp.perception.train_seg import SegTraining
 
-    return {t.name: t for t in (SegTraining, PoseTraining, RefineTraining, ClsTraining)}
+    return {t.name: t for t in (SegTraining, PoseTraining, RefinerTraining, ClsTraining)}
 
 
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp train``."""
+    from posegrasp.perception.checkpoint import stage_dir
+
     training = training_stages()[args.stage]
-    cfg = load_toml(training.config, args.config, section=args.stage, sections=SECTIONS)
+    cfg = load_toml(training.config, args.config, args.stage, SECTIONS, renamed_sections=RENAMED)
     if args.init is not None:
         if not training.fine_tunes:
             raise UserError("--init is only for 'train seg', 'train pose' and 'train cls' (fine-tuning)")
         cfg = override(cfg, init=str(args.init))
     result = training.train(args.data, args.out, cfg, steps=args.steps, seed=args.seed, resume=args.resume,
                             progress=not args.no_progress)
-    print(json.dumps({"stage": args.stage, "checkpoint": str(args.out / args.stage), **result}, default=str))
+    checkpoint = stage_dir(args.out, args.stage)  # RUN/<stage>, or a resumed run's folder of the stage's old name
+    print(json.dumps({"stage": args.stage, "checkpoint": str(checkpoint), **result}, default=str))
     return 0
 
 
@@ -104,11 +155,11 @@ def run_eval(args: argparse.Namespace) -> int:
     from posegrasp.bop.check import require_valid
     from posegrasp.perception.evaluate import EvalConfig, evaluate
 
-    cfg = load_toml(EvalConfig, args.config, section="eval", sections=SECTIONS)
+    cfg = load_toml(EvalConfig, args.config, "eval", SECTIONS, renamed_sections=RENAMED)
     cfg = override(cfg, split=args.split, max_images=args.max_images, min_mask_px=args.min_mask_px,
                    threads=args.threads,
-                   masks="gt" if args.gt_masks else None, refine_iterations=0 if args.no_refine else None,
-                   classify=False if args.no_cls else None, icp=False if args.no_icp else None,
+                   masks="gt" if args.gt_masks else None, refiner_iterations=0 if args.no_refiner else None,
+                   classify=False if args.no_cls else None, depth_fit=False if args.no_depth_fit else None,
                    plane=False if args.no_plane else None,
                    guided=False if args.no_guided else None, split_merged=False if args.no_split else None)
     out = args.out or out_dir("--weights")(str(args.weights / f"eval_{cfg.split}"))
@@ -125,7 +176,7 @@ def run_perturb(args: argparse.Namespace) -> int:
     """Handler of ``posegrasp perturb``."""
     from posegrasp.perception.checkpoint import STAGES, perturb_run
 
-    stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
+    stages = tuple(renamed(s.strip()) for s in args.stages.split(",") if s.strip())
     bad = [s for s in stages if s not in STAGES]
     if bad or not stages:
         raise UserError(f"--stages {args.stages!r}: name one or more of {', '.join(STAGES)}")

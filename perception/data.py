@@ -8,8 +8,9 @@ passes the global sample counter as the key, so a resumed run sees exactly the s
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -18,35 +19,38 @@ from torch.utils.data import Dataset
 
 from posegrasp import bop
 from posegrasp.bop import models as bop_models
+from posegrasp.config import settings, within
 from posegrasp.errors import DatasetError
+from posegrasp.perception.classifier import ClassifierConfig
 from posegrasp.perception.crop_cache import fingerprint, read_crop_cache, write_crop_cache
 from posegrasp.perception.inputs import (normalize_cls_input, normalize_rgb, prepare_cls_input, prepare_pose_input,
                                          segment_components)
 from posegrasp.perception.plane import fit_support_plane
+from posegrasp.perception.pose_net import PoseNetConfig
 
 
-@dataclass
+@settings
 class DataConfig:
     """Sample selection and augmentation."""
 
     #: Skip instances less visible than this (BOP: 0.1).
-    min_visib_fract: float = 0.1
+    min_visib_fract: float = field(default=0.1, metadata=within(0, 1))
     #: Skip instances with fewer visible pixels with valid depth.
-    min_points: int = 50
+    min_points: int = field(default=50, metadata=within(0, 100000000))
     #: Model points per pose sample, redrawn each sample (DenseFusion 500; the symmetric loss costs N x M^2).
-    num_model_points: int = 128
+    num_model_points: int = field(default=128, metadata=within(1, 10000000))
     #: Surface points sampled once per model, from which each sample draws.
-    model_pool: int = 4000
+    model_pool: int = field(default=4000, metadata=within(1, 100000000))
     #: Augment the training samples as below.
     augment: bool = True
     #: Brightness, contrast and saturation factors drawn in [1 - j, 1 + j].
-    color_jitter: float = 0.2
+    color_jitter: float = field(default=0.2, metadata=within(0, 1))
     #: Hue shift drawn in [-h, h], a fraction of a full turn.
-    hue_jitter: float = 0.03
+    hue_jitter: float = field(default=0.03, metadata=within(0, 0.5))
     #: Std (m) of Gaussian noise on each point's depth, along its ray.
-    depth_noise: float = 0.001
+    depth_noise: float = field(default=0.001, metadata=within(0, 1))
     #: Each pose sample's cloud and target shifted by U(-n, n) (m, per axis).
-    translation_noise: float = 0.01
+    translation_noise: float = field(default=0.01, metadata=within(0, 1))
 
 
 def color_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float, hue: float) -> np.ndarray:
@@ -151,73 +155,86 @@ def usable(inst: bop.GTInstance, cfg: DataConfig) -> bool:
                                  and inst.info.px_count_visib >= cfg.min_points)
 
 
-class ClsDataset(Dataset):
-    """Instance classifier samples: ``{"image": (C, S, S) float32, "label": index into obj_ids}``.
+@dataclass(frozen=True)
+class CropSource:
+    """Where a ``ClsDataset``'s crops come from besides the annotated instances, and where they are kept:
+    ``segmenter`` (RGB (H, W, 3) uint8 -> class map (H, W), e.g. a trained seg net; None: the annotated instances
+    only), ``segmenter_id`` naming it in the cache (e.g. a hash of its weights), ``cache`` (a ``.npy`` path, or None)
+    and whether a progress bar shows their computation."""
 
-    One sample per annotated visible instance (its ground-truth mask) and, when ``segmenter`` is given
+    segmenter: Callable[[np.ndarray], np.ndarray] | None = None
+    segmenter_id: str = ""
+    cache: str | Path | None = None
+    progress: bool = False
+
+
+class ClsDataset(Dataset):
+    """Instance classifier samples: ``{"image": (C, S, S) float32, "label": index into model.obj_ids}``, cropped with
+    the settings of ``model`` (``perception.inputs.prepare_cls_input``).
+
+    One sample per annotated visible instance (its ground-truth mask) and, when ``source.segmenter`` is given
     (a function RGB -> class map, e.g. a trained segmentation net), one per connected segment of the
     predicted class map labelled with the ground-truth object covering most of it: the classifier then
     learns on the fragments it will see at run time. Segments mostly on background are skipped, unless 0
     ("not a block") is in ``obj_ids``: then those with at most ``BACKGROUND_MAX_FG`` of their pixels on
     objects are its samples. ``height_range`` > 0: crops with the height channel, above each image's supporting
     plane (``perception.plane``, fitted with the default settings and seed 0, as the estimator does).
-    Crops are computed once, at construction; with ``cache`` (a ``.npy`` path) they are also written there, with a
-    ``.json`` beside it holding their labels and what they were computed from (dataset, split, crop settings, the
-    objects, a hash of the annotations and ``segmenter_id``, which must name the segmenter, e.g. a hash of its
-    weights), and a later construction with the same key reads them back as a memory map instead (a resumed training
-    run starts at once). Augmentation (seeded by index and key): a random permutation of the colour channels (block
-    colours carry no class information), brightness and contrast, a rotation by a multiple of 90 degrees and a mirror
-    flip (the blocks' shapes are mirror-symmetric).
+    Crops are computed once, at construction; with ``source.cache`` (a ``.npy`` path) they are also written there,
+    with a ``.json`` beside it holding their labels and what they were computed from (dataset, split, crop settings,
+    the objects, a hash of the annotations and ``source.segmenter_id``, which must name the segmenter), and a later
+    construction with the same key reads them back as a memory map instead (a resumed training run starts at once).
+    Augmentation (seeded by index and key): a random permutation of the colour channels (block colours carry no class
+    information), brightness and contrast, a rotation by a multiple of 90 degrees and a mirror flip (the blocks'
+    shapes are mirror-symmetric).
     """
 
     BACKGROUND_MAX_FG = 0.2
     CACHE_VERSION = 1
 
-    def __init__(self, root: str | Path, split: str, obj_ids: list[int], size: int, side: float,
-                 depth_range: float, cfg: DataConfig | None = None, augment: bool = False, seed: int = 0,
-                 segmenter=None, progress: bool = False, height_range: float = 0.0, cache: str | Path | None = None,
-                 segmenter_id: str = ""):
+    def __init__(self, root: str | Path, split: str, model: ClassifierConfig, cfg: DataConfig | None = None,
+                 augment: bool = False, seed: int = 0, source: CropSource | None = None):
         self.cfg = cfg or DataConfig()
-        self.obj_ids = list(obj_ids)
+        self.obj_ids = list(model.obj_ids)
         self.augment = augment and self.cfg.augment
         self.seed = seed
+        source = source or CropSource()
         records = load_records(root, split)
         key = {"version": self.CACHE_VERSION, "root": str(Path(root).resolve()), "split": split,
                "images": len(records), "annotations": fingerprint(records),
-               "obj_ids": self.obj_ids, "crop": [size, side, depth_range, height_range],
+               "obj_ids": self.obj_ids, "crop": [model.crop_size, model.crop_side, model.depth_range,
+                                                 model.height_range],
                "selection": [self.cfg.min_visib_fract, self.cfg.min_points, self.BACKGROUND_MAX_FG],
-               "segmenter": segmenter_id if segmenter is not None else None}
-        cached = read_crop_cache(Path(cache), key) if cache is not None else None
+               "segmenter": source.segmenter_id if source.segmenter is not None else None}
+        cached = read_crop_cache(Path(source.cache), key) if source.cache is not None else None
         if cached is None:
-            crops, labels = self._crops(records, split, segmenter, (size, side, depth_range, height_range), progress)
+            crops, labels = self._crops(records, split, model, source)
             if not crops:
                 raise DatasetError(f"no usable object instance in {Path(root) / split} for the classifier")
-            cached = write_crop_cache(Path(cache), key, crops, labels) if cache is not None else (crops, labels)
+            cached = (write_crop_cache(Path(source.cache), key, crops, labels) if source.cache is not None
+                      else (crops, labels))
         self.crops = cached[0]  # (C, S, S) float16 each: a list, or a read-only memory map of the cache
         self.labels = np.asarray(cached[1], dtype=np.int64)
 
-    def _crops(self, records: list, split: str, segmenter, crop: tuple[int, float, float, float], progress: bool
+    def _crops(self, records: list, split: str, model: ClassifierConfig, source: CropSource
                ) -> tuple[list[np.ndarray], list[int]]:
         """The crops (C, S, S) float16, in a list (stacking them would double the peak memory), and their labels."""
         from posegrasp.progress import track
 
-        size, side, depth_range, height_range = crop
         crops, labels = [], []
-        for rec in track(records, f"crops {split}", enabled=progress):
+        for rec in track(records, f"crops {split}", enabled=source.progress):
             rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
             masks = [(inst.obj_id, rec.load_mask(inst.gt_index)) for inst in rec.instances
                      if inst.obj_id in self.obj_ids and usable(inst, self.cfg)]
-            if segmenter is not None:
+            if source.segmenter is not None:
                 gt = label_map(rec, rgb.shape[:2])
-                for _, m in segment_components(segmenter(rgb), self.cfg.min_points):
+                for _, m in segment_components(source.segmenter(rgb), self.cfg.min_points):
                     g = gt[m]
                     major = int(np.bincount(g).argmax())
                     if major in self.obj_ids and (major > 0 or (g > 0).mean() <= self.BACKGROUND_MAX_FG):
                         masks.append((major, m))
-            plane = fit_support_plane(depth, K) if height_range > 0 else None
+            plane = fit_support_plane(depth, K) if model.height_range > 0 else None
             for obj_id, m in masks:
-                x = prepare_cls_input(rgb, depth, K, m, size, side, depth_range, height_range=height_range,
-                                      plane=plane)
+                x = prepare_cls_input(rgb, depth, K, m, model, plane)
                 if x is not None:
                     crops.append(x.astype(np.float16))
                     labels.append(self.obj_ids.index(obj_id))
@@ -246,7 +263,8 @@ class ClsDataset(Dataset):
 
 
 class PoseDataset(Dataset):
-    """One sample per visible annotated object instance of the chosen objects.
+    """One sample per visible annotated object instance of the pose net ``model``'s objects, with its
+    ``num_points`` depth points and ``crop_size`` colour crop.
 
     Sample keys: image (3, S, S), choose (N,) int64, points (N, 3) camera frame (m), model_points
     (M, 3) object frame (m), target (M, 3) = model points under the ground truth (m), obj (head
@@ -256,23 +274,19 @@ class PoseDataset(Dataset):
     identity's copy), and continuous (bool): the object has a continuous symmetry.
     """
 
-    def __init__(self, root: str | Path, split: str, obj_ids: list[int], num_points: int, crop_size: int,
-                 cfg: DataConfig | None = None, augment: bool = False, seed: int = 0,
-                 models: ObjectModels | None = None, max_images: int = 0):
+    def __init__(self, root: str | Path, split: str, model: PoseNetConfig, cfg: DataConfig | None = None,
+                 augment: bool = False, seed: int = 0, models: ObjectModels | None = None):
         self.root, self.split = Path(root), split
         self.cfg = cfg or DataConfig()
         self.models = models or ObjectModels(root, self.cfg.model_pool)
-        self.obj_ids = list(obj_ids)
+        self.obj_ids = list(model.obj_ids)
         missing = [o for o in self.obj_ids if o not in self.models.infos]
         if missing:
             raise DatasetError(f"object ids {missing} are not in {bop.models_info_path(root)}")
-        self.num_points, self.crop_size = num_points, crop_size
+        self.num_points, self.crop_size = model.num_points, model.crop_size
         self.augment = augment and self.cfg.augment
         self.seed = seed
-        records = load_records(root, split)
-        if max_images:
-            records = records[:max_images]
-        self.records = records
+        self.records = records = load_records(root, split)
         self.index: list[tuple[int, int]] = []
         for ri, rec in enumerate(records):
             self.index += [(ri, inst.gt_index) for inst in rec.instances

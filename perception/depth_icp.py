@@ -1,5 +1,5 @@
 """A training-free pose estimator for any object set: parts cut out of the depth image against their support, each
-fitted by the depth refinement with every model of the set that can explain it.
+fitted by the depth fit with every model of the set that can explain it.
 
 1. The support: the dominant plane of the depth image by RANSAC, then the plane the parts above it rest on (a tote's
    floor above the table; ``perception.plane.fit_support_plane``).
@@ -9,7 +9,7 @@ fitted by the depth refinement with every model of the set that can explain it.
    640x480) are dropped.
 3. Candidates: every model that, resting on one of its rests (or bounding-box faces), stands as high as the blob and
    has a footprint along the plane as wide as the blob's in both of its principal directions (within ``size_tol``).
-4. Fits: each (blob, candidate) pair is fitted by ``perception.refine.refine_poses`` from a frame centred on the blob
+4. Fits: each (blob, candidate) pair is fitted by ``perception.depth_fit.fit_poses`` from a frame centred on the blob
    with axes along its principal directions on the plane (the 24 cube rotations, resting starts, turns about the
    normal, exact ICP steps, yaw and pattern searches on the depth score), all pairs of a frame in one batch.
 5. Choice: per blob, the candidate with the lowest depth score + ``colour_weight`` |c_blob - c_model| (the blob's
@@ -33,58 +33,49 @@ from scipy import ndimage
 
 from posegrasp import bop
 from posegrasp.bop import models as bop_models
-from posegrasp.errors import ConfigError
+from posegrasp.config import settings, within
 from posegrasp.perception.crop import backproject
+from posegrasp.perception.depth_fit import DepthFitConfig, FitConfig, ObjectModel, fit_poses
 from posegrasp.perception.plane import fit_support_plane, plane_distance
-from posegrasp.perception.refine import FitConfig, ObjectModel, RefineConfig, refine_poses
 
 
-@dataclass
+@settings
 class DepthIcpConfig:
     """The training-free estimator (``--perception depth-icp``): segmentation against the support, candidate models
-    by size, depth refinement, colour."""
+    by size, depth fit, colour."""
+
+    #: Keys of settings files under their old names (``posegrasp.config``).
+    RENAMED = {"icp": "depth_fit"}
 
     #: Height (m) above the supporting plane from which a pixel belongs to a part.
-    min_height: float = 0.005
+    min_height: float = field(default=0.005, metadata=within(0, 10))
     #: Depth step (m) between neighbouring pixels that cuts two parts apart.
-    edge: float = 0.01
+    edge: float = field(default=0.01, metadata=within(0, 10))
     #: Fewest pixels (px at 640x480) of a part; smaller blobs are dropped.
-    min_px: int = 150
+    min_px: int = field(default=150, metadata=within(1, 100000000))
     #: Slack (m) with which a model resting on one of its rests must match a blob's height and footprint to be fitted.
-    size_tol: float = 0.008
+    size_tol: float = field(default=0.008, metadata=within(0, 10))
     #: Chromaticity step between neighbouring pixels that cuts two parts apart (0: depth steps only).
-    colour_edge: float = 0.1
+    colour_edge: float = field(default=0.1, metadata=within(0, 10))
     #: Least brightness r + g + b (0-765) of both pixels for a chromaticity step to count (dark pixels' is noise).
-    min_brightness: float = 90.0
+    min_brightness: float = field(default=90.0, metadata=within(0, 765))
     #: Weight (m) of the chromaticity distance between a blob and a model's colour in the object set in the choice of
     #: model; for cells whose parts have their set's colours (the trial scenes paint them from a palette: 0).
-    colour_weight: float = 0.0
+    colour_weight: float = field(default=0.0, metadata=within(0, 100))
     #: Distance (m) within which two fits of one model (to two pieces of a part cut apart) are one part: the more
     #: confident stays.
-    duplicate: float = 0.01
+    duplicate: float = field(default=0.01, metadata=within(0, 10))
     #: Confidence scale (m): confidence = exp(-(score + colour term) / score_scale).
-    score_scale: float = 0.004
-    #: Depth refinement of each blob's candidate models (``perception.refine``).
-    icp: RefineConfig = field(default_factory=lambda: RefineConfig(fit=FitConfig(max_points=200)))
-
-    def validate(self) -> None:
-        """Raise ConfigError on an unusable value."""
-        if min(self.min_height, self.edge, self.size_tol, self.colour_edge, self.min_brightness,
-               self.colour_weight) < 0:
-            raise ConfigError(f"depth_icp min_height ({self.min_height}), edge ({self.edge}), size_tol "
-                              f"({self.size_tol}), colour_edge ({self.colour_edge}), min_brightness "
-                              f"({self.min_brightness}) and colour_weight ({self.colour_weight}) must be >= 0")
-        if self.min_px < 1 or self.score_scale <= 0 or self.duplicate < 0:
-            raise ConfigError(f"depth_icp min_px ({self.min_px}) must be >= 1, score_scale ({self.score_scale}) "
-                              f"positive and duplicate ({self.duplicate}) >= 0")
-        self.icp.validate()
+    score_scale: float = field(default=0.004, metadata=within(1e-9, 100))
+    #: Depth fit of each blob's candidate models (``perception.depth_fit``).
+    depth_fit: DepthFitConfig = field(default_factory=lambda: DepthFitConfig(fit=FitConfig(max_points=200)))
 
 
 @dataclass(frozen=True)
-class Part:
-    """One model of the set as the estimator knows it: id, ``ObjectModel``, the sizes (R, 3) it shows resting on each
-    of its rests and on each face of its bounding box (height, widest and narrowest footprint along the plane; m;
-    ``footprints``) and chromaticity (3,)."""
+class Candidate:
+    """A model of the set as the estimator matches it to blobs: id, ``ObjectModel``, the sizes (R, 3) it shows resting
+    on each of its rests and on each face of its bounding box (height, widest and narrowest footprint along the plane;
+    m; ``footprints``) and chromaticity (3,)."""
 
     obj_id: int
     model: ObjectModel
@@ -132,15 +123,15 @@ class DepthIcp:
     def __init__(self, models: str | Path, rgb: dict[int, np.ndarray] | None = None,
                  cfg: DepthIcpConfig | None = None):
         self.cfg = cfg or DepthIcpConfig()
-        self.cfg.validate()
         infos = bop.load_models_info(models)
         rgb = rgb or {}
-        self.parts = []
+        self.candidates: list[Candidate] = []
         for o, info in sorted(infos.items()):
-            model = ObjectModel.of_mesh(bop_models.load_model(models, o), info.symmetry_rotations(), self.cfg.icp,
-                                        seed=o)
+            model = ObjectModel.of_mesh(bop_models.load_model(models, o), info.symmetry_rotations(),
+                                        self.cfg.depth_fit, seed=o)
             ups = np.concatenate([model.rests.ups, np.eye(3), -np.eye(3)])
-            self.parts.append(Part(o, model, footprints(model.points, ups), chromaticity(rgb.get(o, (0.5, 0.5, 0.5)))))
+            self.candidates.append(Candidate(o, model, footprints(model.points, ups),
+                                             chromaticity(rgb.get(o, (0.5, 0.5, 0.5)))))
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, seed: int = 0) -> list[DepthIcpDetection]:
         """The parts seen in an RGB-D frame: rgb (H, W, 3) uint8, depth (H, W) (m, 0: none), K (3, 3)."""
@@ -153,13 +144,13 @@ class DepthIcp:
         flat_rgb = np.asarray(rgb).reshape(-1, np.asarray(rgb).shape[-1])[:, :3].astype(np.float64)
         chroma = chromaticity(flat_rgb)
         rng = np.random.default_rng(seed)
-        blobs, rows = [], []  # rows: (blob, part, start, observed points)
+        blobs, rows = [], []  # rows: (blob, candidate, start, observed points, colour distance)
         for idx in self._blobs(depth, K, plane, chroma, flat_rgb.sum(axis=1)):
             pts = backproject(depth, K, (0, depth.shape[0], 0, depth.shape[1]), idx)
             T, fit = self._candidates(pts, plane)
             if not fit:
                 continue
-            sub = pts[np.sort(rng.choice(len(pts), min(len(pts), cfg.icp.fit.max_points), replace=False))]
+            sub = pts[np.sort(rng.choice(len(pts), min(len(pts), cfg.depth_fit.fit.max_points), replace=False))]
             c = np.median(chroma[idx], axis=0)
             rows += [(len(blobs), p, T, sub, float(np.linalg.norm(c - p.chroma))) for p in fit]
             blobs.append(idx)
@@ -168,8 +159,8 @@ class DepthIcp:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # small batched ops: threads only add overhead (and compete with other workers)
         try:
-            fits = refine_poses([r[2] for r in rows], [r[1].model for r in rows], [r[3] for r in rows], depth, K,
-                                cfg.icp, plane)
+            fits = fit_poses([r[2] for r in rows], [r[1].model for r in rows], [r[3] for r in rows], depth, K,
+                             cfg.depth_fit, plane)
         finally:
             torch.set_num_threads(threads)
         out = []
@@ -212,7 +203,7 @@ class DepthIcp:
             out.append(np.flatnonzero(labels == k))
         return out
 
-    def _candidates(self, pts: np.ndarray, plane: np.ndarray) -> tuple[np.ndarray, list[Part]]:
+    def _candidates(self, pts: np.ndarray, plane: np.ndarray) -> tuple[np.ndarray, list[Candidate]]:
         """The start of a blob's fits (centred on its points (N, 3) (camera frame, m), axes along its principal
         directions on the plane and the plane's normal) and the parts whose size can explain it."""
         n = plane[:3]
@@ -225,8 +216,9 @@ class DepthIcp:
         span = np.ptp(flat @ R[:, :2], axis=0)  # footprint along the plane, major axis first (m)
         height = float((pts @ n + plane[3]).max())  # highest point above the plane (m)
         tol = self.cfg.size_tol
-        return T, [p for p in self.parts if np.any((np.abs(p.sizes[:, 0] - height) <= tol) &
-                                                    (span[0] <= p.sizes[:, 1] + tol) & (span[1] <= p.sizes[:, 2] + tol))]
+        return T, [p for p in self.candidates if np.any((np.abs(p.sizes[:, 0] - height) <= tol) &
+                                                        (span[0] <= p.sizes[:, 1] + tol) &
+                                                        (span[1] <= p.sizes[:, 2] + tol))]
 
 
 def _distinct(dets: list[DepthIcpDetection], within: float) -> list[DepthIcpDetection]:

@@ -50,8 +50,7 @@ class ClassifierEnsemble:
         """(obj_id, probability) of each mask (H, W) bool, in order, all crops as one batch; None where the mask lacks
         the valid depth for a crop. plane: the supporting plane for the height channel (None: heights 0)."""
         cfg = self.cfg
-        crops = [prepare_cls_input(rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range,
-                                   height_range=cfg.height_range, plane=plane) for m in masks]
+        crops = [prepare_cls_input(rgb, depth, K, m, cfg, plane) for m in masks]
         ok = [i for i, x in enumerate(crops) if x is not None]
         out: list[tuple[int, float] | None] = [None] * len(masks)
         if ok:

@@ -1,6 +1,6 @@
-"""The two-stage estimator: segmentation, then per-object pose and iterative refinement.
+"""The two-stage estimator: segmentation, then per-object pose, the refiner and the depth fit.
 
-    est = Estimator("runs/blocks")           # RUN dir with seg/, pose/ and optionally cls/, refine/
+    est = Estimator("runs/blocks")           # RUN dir with seg/, pose/ and optionally cls/, refiner/
     res = est(rgb, depth, K)                 # uint8 (H, W, 3), float32 metres (H, W), (3, 3)
     for det in res.detections:
         det.obj_id, det.T_cam_obj, det.score, det.mask
@@ -10,7 +10,7 @@ Several blocks of one type are told apart as the connected components of their c
 run has an instance classifier (``cls/``, ``perception.classifier``; with further ensemble members ``cls_<name>/``,
 ``perception.ensemble``), every connected segment of the class map is re-labelled by it before the
 instances are formed. With block models (``EstimatorConfig.models``) every
-estimate is refined against the depth image (``perception.refine``) and the parts of a mask its fitted model leaves
+estimate is fitted to the depth image (``perception.depth_fit``) and the parts of a mask its fitted model leaves
 unexplained become detections of their own (``perception.split``: touching blocks segmented as one).
 Last, the outlines of the class map and of the detections' masks are snapped to the colour image's edges
 (``perception.guided``); the poses stay those fitted to the masks before.
@@ -32,47 +32,48 @@ import torch
 
 from posegrasp import bop
 from posegrasp.bop import models as bop_models
+from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError, DatasetError, WeightsError
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.crop import backproject, mask_bbox, padded_box
 from posegrasp.perception.ensemble import ClassifierEnsemble
-from posegrasp.perception.guided import GuidedConfig, refine_labels
+from posegrasp.perception.depth_fit import DepthFitConfig, ObjectModel, fit_poses
+from posegrasp.perception.guided import GuidedConfig, snap_labels
 from posegrasp.perception.inputs import prepare_pose_input, segment_components
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
-from posegrasp.perception.refine import ObjectModel, RefineConfig, refine_poses
 from posegrasp.perception.refiner import refine
 from posegrasp.perception.runtime import for_inference, with_one_blas_thread
 from posegrasp.perception.segmenter import Segmenter
 from posegrasp.perception.split import SplitConfig, unexplained_parts
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 
-#: The pose net's points per object and crop side (px) when its estimates are refined against the depth image.
-REFINED_POSE_INPUT = (250, 48)
+#: The pose net's points per object and crop side (px) when its estimates are fitted to the depth image.
+DEPTH_FIT_POSE_INPUT = (250, 48)
 
 #: The stages ``EstimateResult.timings`` reports, in this order.
-STAGES = ("seg", "cls", "guided", "pose", "refine", "icp", "split")
+STAGES = ("seg", "cls", "guided", "pose", "refiner", "depth_fit", "split")
 
 
-@dataclass(frozen=True)
+@settings
 class EstimatorConfig:
     """How an ``Estimator`` runs a trained run's nets: segmentation, pose, refiner, instance classifier, then
-    (with ``models``) the depth refinement, the mask splits and the guided outlines."""
+    (with ``models``) the depth fit, the mask splits and the guided outlines."""
 
     #: Refiner iterations: unset, the refiner's configured count (0 when the run has none); 0 turns it off.
-    refine_iterations: int | None = None
+    refiner_iterations: int | None = field(default=None, metadata=within(0, 100))
     #: Objects with fewer valid-depth pixels in their mask are skipped.
-    min_valid_points: int = 50
+    min_valid_points: int = field(default=50, metadata=within(0, 10000000))
     #: Torch CPU threads; unset leaves the process's setting alone.
-    threads: int | None = None
+    threads: int | None = field(default=None, metadata=within(1, 256))
     #: Seed of the depth points sampled per object (each call is deterministic).
-    seed: int = 0
+    seed: int = field(default=0, metadata=within(0, 9223372036854775807))
     #: Re-label segments with the run's instance classifier: unset, when the run has one; false never; true required.
     classify: bool | None = None
-    #: A BOP dataset root whose ``models/`` hold the meshes; with it every estimate is refined against the depth image
-    #: (settings ``icp``).
+    #: A BOP dataset root whose ``models/`` hold the meshes; with it every estimate is fitted to the depth image
+    #: (settings ``depth_fit``).
     models: str | Path | None = None
-    #: The depth refinement's settings, by stage.
-    icp: RefineConfig = field(default_factory=RefineConfig)
+    #: The depth fit's settings, by stage.
+    depth_fit: DepthFitConfig = field(default_factory=DepthFitConfig)
     #: Fit the frame's dominant plane: segmented pixels on it become background and fits sunk into it lose.
     support_plane: bool = True
     #: With ``models``: a mask's part its fitted model leaves unexplained becomes a detection of its own.
@@ -80,9 +81,14 @@ class EstimatorConfig:
     #: Once the poses are fitted, the masks' outlines are snapped to the colour image's edges.
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     #: Depth points per object for the pose net; unset: 250 with ``models``, else as in the net's training.
-    pose_points: int | None = None
-    #: Side (px) of the pose net's colour crop; unset: 48 with ``models``, else as in the net's training.
-    pose_crop: int | None = None
+    pose_points: int | None = field(default=None, metadata=within(1, 100000))
+    #: Side (px) of the pose net's colour crop, a multiple of 8; unset: 48 with ``models``, else as in the net's
+    #: training.
+    pose_crop: int | None = field(default=None, metadata=within(8, 1024))
+
+    def __post_init__(self) -> None:
+        if self.pose_crop is not None and self.pose_crop % 8:
+            raise ConfigError(f"pose_crop = {self.pose_crop}: use a multiple of 8 px")
 
 
 @dataclass
@@ -107,9 +113,9 @@ class EstimateResult:
 
 
 class Estimator:
-    """Segmentation + pose + refinement from a run directory (``seg/``, ``pose/``, optionally ``refine/``, ``cls/``),
-    configured by ``EstimatorConfig``. ``est(rgb, depth, K)`` -> ``EstimateResult``; the estimator keeps no state
-    between calls."""
+    """Segmentation + pose + refiner + depth fit from a run directory (``seg/``, ``pose/``, optionally ``refiner/``,
+    ``cls/``), configured by ``EstimatorConfig``. ``est(rgb, depth, K)`` -> ``EstimateResult``; the estimator keeps no
+    state between calls."""
 
     def __init__(self, weights: str | Path, cfg: EstimatorConfig | None = None):
         cfg = cfg or EstimatorConfig()
@@ -123,35 +129,31 @@ class Estimator:
         self.pose, self.pose_cfg, _ = ckpt_mod.load_model(weights / "pose", "pose")
         for_inference(self.pose)
         self.refiner, self.refiner_cfg = None, None
-        if (weights / "refine").exists():
-            self.refiner, self.refiner_cfg, _ = ckpt_mod.load_model(weights / "refine", "refine")
+        refiner_dir = ckpt_mod.stage_dir(weights, "refiner")
+        if refiner_dir.exists():
+            self.refiner, self.refiner_cfg, _ = ckpt_mod.load_model(refiner_dir, "refiner")
             if list(self.refiner_cfg.obj_ids) != list(self.pose_cfg.obj_ids) or \
                     self.refiner_cfg.emb_dim != self.pose_cfg.emb_dim:
-                raise WeightsError(f"refiner in {weights / 'refine'} was trained for another pose net")
+                raise WeightsError(f"refiner in {refiner_dir} was trained for another pose net")
         self.classifier: ClassifierEnsemble | None = None
         if cfg.classify is not False and (weights / "cls").exists():
             self.classifier = ClassifierEnsemble.load(weights)
         elif cfg.classify:
             raise WeightsError(f"{weights} has no cls/ checkpoint: train one with 'posegrasp train cls'")
         default_iters = self.refiner_cfg.iterations if self.refiner_cfg is not None else 0
-        self.refine_iterations = default_iters if cfg.refine_iterations is None else cfg.refine_iterations
-        if self.refine_iterations > 0 and self.refiner is None:
-            raise WeightsError(f"{weights} has no refine/ checkpoint: cannot refine")
+        self.refiner_iterations = default_iters if cfg.refiner_iterations is None else cfg.refiner_iterations
+        if self.refiner_iterations > 0 and self.refiner is None:
+            raise WeightsError(f"{weights} has no refiner/ checkpoint: set refiner_iterations = 0")
         self.min_valid_points = cfg.min_valid_points
-        points, crop = (REFINED_POSE_INPUT if cfg.models is not None else
+        points, crop = (DEPTH_FIT_POSE_INPUT if cfg.models is not None else
                         (self.pose_cfg.num_points, self.pose_cfg.crop_size))
         self.pose_points = points if cfg.pose_points is None else cfg.pose_points
         self.pose_crop = crop if cfg.pose_crop is None else cfg.pose_crop
-        if self.pose_points < 1 or self.pose_crop < 8 or self.pose_crop % 8:
-            raise ConfigError(f"pose_points must be >= 1 and pose_crop a multiple of 8 px, got {self.pose_points} and "
-                            f"{self.pose_crop}")
         self.seed = cfg.seed
-        self.icp = cfg.icp
-        self.icp.validate()
+        self.depth_fit_cfg = cfg.depth_fit
         self.support_plane, self.plane_cfg = cfg.support_plane, PlaneConfig()
         self.split_cfg = cfg.split
         self.guided_cfg = cfg.guided
-        self.guided_cfg.validate()
         self.objects: dict[int, ObjectModel] = {}  # by obj_id; empty without ``models``
         if cfg.models is not None:
             self._load_models(cfg.models)
@@ -164,8 +166,9 @@ class Estimator:
         if missing:
             raise DatasetError(f"models in {models} lack objects {missing} of the pose net")
         surface = self.split_cfg.model_points if self.split_cfg.rounds > 0 else 0
-        self.objects = {o: ObjectModel.of_mesh(bop_models.load_model(models, o), infos[o].symmetry_rotations(), self.icp,
-                                               seed=o, surface_points=surface) for o in self.obj_ids}
+        self.objects = {o: ObjectModel.of_mesh(bop_models.load_model(models, o), infos[o].symmetry_rotations(),
+                                               self.depth_fit_cfg, seed=o, surface_points=surface)
+                        for o in self.obj_ids}
 
     @property
     def obj_ids(self) -> list[int]:
@@ -182,9 +185,9 @@ class Estimator:
                  ) -> tuple[list[Detection], dict[str, float]]:
         """Poses of objects given their masks (obj_id, bool (H, W)); skips objects the pose net does
         not know and masks with fewer than ``min_valid_points`` valid depth pixels. Each detection
-        carries the very mask array it was given. plane: the supporting plane for the depth refinement
+        carries the very mask array it was given. plane: the supporting plane for the depth fit
         (fitted here when None and ``support_plane`` is on). Returns the detections and the seconds spent on
-        stages ``pose``, ``refine`` and ``icp``."""
+        stages ``pose``, ``refiner`` and ``depth_fit``."""
         _, dets, stages = self._estimate(rgb, depth, K, masks, mask_scores, plane)
         return dets, stages
 
@@ -210,7 +213,7 @@ class Estimator:
             items.append(prep)
             kept.append(k)
         if not items:
-            return [], [], {"pose": time.perf_counter() - t0, "refine": 0.0, "icp": 0.0}
+            return [], [], {"pose": time.perf_counter() - t0, "refiner": 0.0, "depth_fit": 0.0}
         img = torch.from_numpy(np.stack([i[0] for i in items]))  # (B, 3, S, S)
         choose = torch.from_numpy(np.stack([i[1] for i in items]))  # (B, N)
         points = torch.from_numpy(np.stack([i[2] for i in items]))  # (B, N, 3)
@@ -218,30 +221,31 @@ class Estimator:
         q, t, conf, best, emb = self.pose.predict(img, points, choose, obj)
         T = make_transform(quat_to_rotmat(q), points[torch.arange(len(kept)), best] + t)  # (B, 4, 4)
         t1 = t2 = time.perf_counter()
-        if self.refine_iterations > 0 and self.refiner is not None:
-            T = refine(self.refiner, T, points, emb, obj, self.refine_iterations)
+        if self.refiner_iterations > 0 and self.refiner is not None:
+            T = refine(self.refiner, T, points, emb, obj, self.refiner_iterations)
             t2 = time.perf_counter()
         poses = [T[j].double().numpy() for j in range(len(kept))]
         if self.objects:
-            poses = self._depth_refine(poses, [masks[k] for k in kept], depth, K, rng, plane)
+            poses = self._depth_fit(poses, [masks[k] for k in kept], depth, K, rng, plane)
         out = [Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, mask=masks[k][1],
                          score=float((1.0 if mask_scores is None else mask_scores[k]) * float(conf[j])))
                for j, (k, T_j) in enumerate(zip(kept, poses))]
-        return kept, out, {"pose": t1 - t0, "refine": t2 - t1, "icp": time.perf_counter() - t2}
+        return kept, out, {"pose": t1 - t0, "refiner": t2 - t1, "depth_fit": time.perf_counter() - t2}
 
-    def _depth_refine(self, poses: list[np.ndarray], masks: list[tuple[int, np.ndarray]], depth: np.ndarray,
-                      K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None) -> list[np.ndarray]:
-        """``perception.refine.refine_poses`` of the estimates (4x4 each) on (up to ``icp.fit.max_points`` of) their
-        masks' valid depth points (obj_id, (H, W) bool each)."""
+    def _depth_fit(self, poses: list[np.ndarray], masks: list[tuple[int, np.ndarray]], depth: np.ndarray,
+                   K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None) -> list[np.ndarray]:
+        """``perception.depth_fit.fit_poses`` of the estimates (4x4 each) on (up to ``depth_fit.fit.max_points`` of)
+        their masks' valid depth points (obj_id, (H, W) bool each)."""
+        max_points = self.depth_fit_cfg.fit.max_points
         observed = []
         for _, m in masks:  # (each mask has valid depth: ``estimate`` keeps no other)
             r0, r1, c0, c1 = box = mask_bbox(m)
             idx = np.flatnonzero(m[r0:r1, c0:c1] & (depth[r0:r1, c0:c1] > 0))  # raster order, as in the image
-            if idx.size > self.icp.fit.max_points:
-                idx = idx[np.sort(rng.choice(idx.size, self.icp.fit.max_points, replace=False))]
+            if idx.size > max_points:
+                idx = idx[np.sort(rng.choice(idx.size, max_points, replace=False))]
             observed.append(backproject(depth, K, box, idx))
         models = [self.objects[o] for o, _ in masks]
-        return [T for T, _ in refine_poses(poses, models, observed, depth, K, self.icp, plane)]
+        return [T for T, _ in fit_poses(poses, models, observed, depth, K, self.depth_fit_cfg, plane)]
 
     @with_one_blas_thread
     @torch.no_grad()
@@ -307,12 +311,12 @@ class Estimator:
     def snap_outlines(self, rgb: np.ndarray, labels: np.ndarray, dets: list[Detection]
                       ) -> tuple[list[Detection], np.ndarray]:
         """``perception.guided``: the class map ``labels`` (H, W) with its outlines snapped to the colour edges, and
-        each detection's mask likewise: the pixels of its type in the refined map within the filter's radius of
+        each detection's mask likewise: the pixels of its type in the snapped map within the filter's radius of
         its mask; a pixel that several such masks reach stays with those that held it. The poses are the ones
         fitted to the masks before (outlines shifted a few pixels onto a neighbour hurt the fits more than they
         help). Returns the detections with their new masks and the new class map."""
         r = self.guided_cfg.radius
-        labels = refine_labels(labels, rgb, self.guided_cfg)
+        labels = snap_labels(labels, rgb, self.guided_cfg)
         boxes = [padded_box(d.mask, r) for d in dets]  # each grown mask lies in its mask's box widened by r
         grown = [(labels[b] == d.obj_id) & _dilate(d.mask[b], r) for d, b in zip(dets, boxes)]
         claims = np.zeros(labels.shape, dtype=np.uint8)

@@ -9,7 +9,8 @@ targets of ``test_targets_bop19.json``, or of the ground truth when the dataset 
 by visible-fraction bin, ``bop19.ar_by_visib`` in ``metrics.json``)
 and a BOP results CSV ``<method>_<dataset>-<split>.csv``.
 
-Ablations: ``refine_iterations = 0`` evaluates without refinement; a pose net trained with
+Ablations: ``refiner_iterations = 0`` evaluates without the refiner, ``depth_fit = false`` without the depth fit; a
+pose net trained with
 ``use_pam = use_cam = use_gfem = false`` is the DenseFusion-like variant (its flags are reported);
 ``masks = "gt"`` isolates the pose stage by using ground-truth visible masks; ``classify = false``
 evaluates without the instance classifier (the paper's pipeline).
@@ -31,7 +32,7 @@ from posegrasp import bop
 from posegrasp.bop import results as bop_results
 from posegrasp.bop import models as bop_models
 from posegrasp import io as pio
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.lock import folder_lock
 from posegrasp.perception import bop19 as B
@@ -48,28 +49,35 @@ ADD_THRESHOLDS = np.linspace(0.0, 0.02, 41)  # metres
 RE_SYM_GOAL = 15.0  # degrees: the rotation error (up to symmetry) the "re_sym_<15deg" accuracy counts below
 
 
-@dataclass
+#: ``EvalConfig.masks``' values.
+MASKS = ("pred", "gt")
+
+
+@settings
 class EvalConfig:
     """How ``posegrasp eval`` runs the estimator on a BOP split and scores it."""
+
+    #: Keys of settings files under their old names (``posegrasp.config``).
+    RENAMED = {"icp": "depth_fit", "refine_iterations": "refiner_iterations"}
 
     #: BOP split to evaluate (`--split`).
     split: str = "test"
     #: `pred` (full pipeline) or `gt` (ground-truth visible masks: the pose stage alone; `--gt-masks`).
     masks: str = "pred"
-    #: Refiner iterations: -1 as trained, 0 none (`--no-refine`).
-    refine_iterations: int = -1
+    #: Refiner iterations: -1 as trained, 0 none (`--no-refiner`).
+    refiner_iterations: int = field(default=-1, metadata=within(-1, 100))
     #: Re-label segments with the run's instance classifier when it has one (`--no-cls`).
     classify: bool = True
-    #: Refine every estimate against the depth image with the dataset's models (`--no-icp`).
-    icp: bool = True
+    #: Fit every estimate to the depth image with the dataset's models (`--no-depth-fit`).
+    depth_fit: bool = True
     #: Use the frame's supporting plane (`--no-plane`).
     plane: bool = True
     #: Snap the class map's outlines to the colour edges (`--no-guided`).
     guided: bool = True
-    #: Split off the parts of a mask its fitted model leaves unexplained; needs `icp` (`--no-split`).
+    #: Split off the parts of a mask its fitted model leaves unexplained; needs `depth_fit` (`--no-split`).
     split_merged: bool = True
     #: Ground-truth instances less visible are not evaluated (BOP: 0.1).
-    min_visib_fract: float = 0.1
+    min_visib_fract: float = field(default=0.1, metadata=within(0, 1))
     #: Objects with fewer valid-depth pixels in their mask are skipped.
     min_valid_points: int = field(default=50, metadata=within(0, 10000000))
     #: Drop detections with fewer mask pixels (at 640x480); the trials' model provider uses 150.
@@ -83,7 +91,20 @@ class EvalConfig:
     #: Torch CPU threads (`--threads`).
     threads: int = field(default=2, metadata=within(1, 256))
     #: Seed of the estimator's point sampling.
-    seed: int = 0
+    seed: int = field(default=0, metadata=within(0, 9223372036854775807))
+
+    def __post_init__(self) -> None:
+        if self.masks not in MASKS:
+            raise ConfigError(f"masks = {self.masks!r}: use 'pred' or 'gt'")
+
+    def estimator(self, models: Path) -> EstimatorConfig:
+        """The estimator's settings for these, with the dataset root ``models`` for the depth fit."""
+        return EstimatorConfig(
+            refiner_iterations=None if self.refiner_iterations < 0 else self.refiner_iterations,
+            min_valid_points=self.min_valid_points, threads=self.threads, seed=self.seed,
+            classify=None if self.classify else False, models=models if self.depth_fit else None,
+            support_plane=self.plane, split=SplitConfig() if self.split_merged else SplitConfig(rounds=0),
+            guided=GuidedConfig() if self.guided else GuidedConfig(radius=0))
 
 
 def _summary(rows: list[dict[str, Any]], diameter: float | None) -> dict[str, float]:
@@ -171,32 +192,27 @@ def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalCo
         return _evaluate(Path(data), weights, Path(out), cfg, progress)
 
 
-def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None, progress: bool) -> dict[str, Any]:
+@dataclass
+class _Tally:
+    """What an evaluation gathers image by image: one row per ground-truth instance (``_match``), the BOP results,
+    the BOP 2019 errors, the segmentation's confusion matrix (C, C) and the seconds per stage and image."""
+
+    conf: np.ndarray
+    times: dict[str, list[float]]
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    results: list[bop_results.PoseResult] = field(default_factory=list)
+    groups: list[B.ObjectErrors] = field(default_factory=list)
+
+
+def _tally(est: Estimator, data: Path, records: list[bop.ImageRecord], infos: dict[int, bop.ObjectInfo],
+           obj_ids: list[int], cfg: EvalConfig, progress: bool) -> _Tally:
+    """Run ``est`` on every image of ``records`` and score its detections of the objects ``obj_ids``."""
     from posegrasp.progress import track
 
-    cfg = cfg or EvalConfig()
-    if cfg.masks not in ("pred", "gt"):
-        raise ConfigError(f"eval masks must be 'pred' or 'gt', got {cfg.masks!r}")
-    data, out = Path(data), Path(out)
-    est = Estimator(weights, EstimatorConfig(
-        refine_iterations=None if cfg.refine_iterations < 0 else cfg.refine_iterations,
-        min_valid_points=cfg.min_valid_points, threads=cfg.threads, seed=cfg.seed,
-        classify=None if cfg.classify else False, models=data if cfg.icp else None, support_plane=cfg.plane,
-        split=SplitConfig(rounds=SplitConfig.rounds if cfg.split_merged else 0),
-        guided=GuidedConfig() if cfg.guided else GuidedConfig(radius=0)))
-    infos = bop.load_models_info(data)
-    obj_ids = [o for o in est.obj_ids if o in infos]
     pts = {o: bop_models.sample_model_points(bop_models.load_model(data, o), cfg.model_points, seed=o) for o in obj_ids}
-    records = load_records(data, cfg.split)
-    if cfg.max_images:
-        records = records[:cfg.max_images]
     bop19, targets = _bop19_setup(data, cfg.split, records, infos)
-    groups: list[B.ObjectErrors] = []
     nc = est.seg_cfg.num_classes
-    conf = np.zeros((nc, nc), dtype=np.int64)
-    rows: list[dict[str, Any]] = []
-    results: list[bop_results.PoseResult] = []
-    times: dict[str, list[float]] = {k: [] for k in (*STAGES, "total")}
+    tally = _Tally(np.zeros((nc, nc), dtype=np.int64), {k: [] for k in (*STAGES, "total")})
     for rec in track(records, f"eval {cfg.split}", enabled=progress):
         rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
         gts = [g for g in rec.instances if g.obj_id in obj_ids
@@ -211,15 +227,30 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
             timings = {**dict.fromkeys(STAGES, 0.0), **stages}
         total = time.perf_counter() - t0
         if cfg.masks == "pred":
-            conf += M.confusion_matrix(res.labels, label_map(rec, rgb.shape[:2]), nc)
+            tally.conf += M.confusion_matrix(res.labels, label_map(rec, rgb.shape[:2]), nc)
         for k, v in timings.items():
-            times[k].append(v)
-        times["total"].append(total)
-        rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
-        results.extend(bop_results.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total) for d in dets)
-        groups.extend(bop19.image(
+            tally.times[k].append(v)
+        tally.times["total"].append(total)
+        tally.rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
+        tally.results.extend(bop_results.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total)
+                             for d in dets)
+        tally.groups.extend(bop19.image(
             depth, K, [B.Truth(g.obj_id, g.T_cam_obj, g.info.visib_fract if g.info else 1.0) for g in rec.instances],
-            [B.Estimate(d.obj_id, d.score, d.T_cam_obj) for d in dets], targets.get((rec.scene_id, rec.im_id), {})))
+            [B.ScoredPose(d.obj_id, d.score, d.T_cam_obj) for d in dets], targets.get((rec.scene_id, rec.im_id), {})))
+    return tally
+
+
+def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None, progress: bool) -> dict[str, Any]:
+    cfg = cfg or EvalConfig()
+    data, out = Path(data), Path(out)
+    est = Estimator(weights, cfg.estimator(data))
+    infos = bop.load_models_info(data)
+    obj_ids = [o for o in est.obj_ids if o in infos]
+    records = load_records(data, cfg.split)
+    if cfg.max_images:
+        records = records[:cfg.max_images]
+    tally = _tally(est, data, records, infos, obj_ids, cfg, progress)
+    rows, nc = tally.rows, est.seg_cfg.num_classes
 
     per_object = {o: _summary([r for r in rows if r["obj_id"] == o], infos[o].diameter) for o in obj_ids}
     overall = _summary(rows, None)
@@ -228,24 +259,24 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
         "data": str(data), "split": cfg.split, "weights": str(weights), "images": len(records),
         "config": asdict(cfg),
         "ablation": {"pam": pose_cfg.use_pam, "cam": pose_cfg.use_cam, "gfem": pose_cfg.use_gfem,
-                     "refine_iterations": est.refine_iterations, "masks": cfg.masks,
-                     "classifier": est.classifier is not None and cfg.masks == "pred", "icp": cfg.icp,
-                     "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.icp},
+                     "refiner_iterations": est.refiner_iterations, "masks": cfg.masks,
+                     "classifier": est.classifier is not None and cfg.masks == "pred", "depth_fit": cfg.depth_fit,
+                     "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.depth_fit},
         "segmentation": None,
         "overall": overall,
         "mean_over_objects": {k: _nanmean([per_object[o][k] for o in obj_ids if per_object[o]["n"]])
                               for k in overall if k != "n"},
         "per_object": {str(o): per_object[o] for o in obj_ids},
-        "time_per_image_s": {k: float(np.mean(v)) if v else 0.0 for k, v in times.items()},
+        "time_per_image_s": {k: float(np.mean(v)) if v else 0.0 for k, v in tally.times.items()},
     }
     if cfg.masks == "pred":
-        s = M.segmentation_scores(conf)
+        s = M.segmentation_scores(tally.conf)
         report["segmentation"] = {"mPA": s["mPA"], "mIoU": s["mIoU"],
                                   "per_class": {str(c): {"PA": _f(s["pa"][c]), "IoU": _f(s["iou"][c])}
                                                 for c in range(nc)}}
     cols = ["obj_id", "n", "detected", "ADD_AUC", "ADD-S_AUC", "ADD(-S)_AUC", "ADD-S_<2cm", "ADD(-S)_acc_0.1d",
             "mean_ADD", "mean_ADD-S", "median_re_sym_deg", "median_te"]
-    scores = B.scores(groups, infos, bop.load_camera(data).width)
+    scores = B.scores(tally.groups, infos, bop.load_camera(data).width)
     report["bop19"] = {**{k: scores[k] for k in ("ar", "ar_vsd", "ar_mssd", "ar_mspd", "targets")},
                        "ar_by_visib": scores["by_visib"]}
     check_score_ranges(report, scores)
@@ -256,7 +287,7 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
                                            "detected", "score", "add", "adds", "add_or_adds", "re", "re_sym", "te"]),
         "curves.png": _curves_png(rows, obj_ids),
         "scores_bop19.json": (pio.dumps_json(pio.jsonable(scores, nan_to_null=True)) + "\n").encode(),
-        f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv": bop_results.results_csv(results),
+        f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv": bop_results.results_csv(tally.results),
         "metrics.json": (pio.dumps_json(pio.jsonable(report, nan_to_null=True)) + "\n").encode()})
     return report
 

@@ -1,4 +1,4 @@
-"""Edge-aware refinement of a class map by the colour image: the fast guided filter (an addition to the paper).
+"""Edge-aware snapping of a class map's outlines to the colour image: the fast guided filter (an addition to the paper).
 
 The segmentation net runs at a quarter of the image's pixels, so its upsampled outlines miss the blocks' edges by
 a few pixels, which costs small blocks much of their IoU. Each class's indicator image p_c (1 on the class's
@@ -16,34 +16,26 @@ inside the box around the labelled pixels.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import field
 
 import cv2
 import numpy as np
 
-from posegrasp.errors import ConfigError
+from posegrasp.config import settings, within
 from posegrasp.perception.crop import padded_box
 
 
-@dataclass
+@settings
 class GuidedConfig:
     """Snapping the class map's outlines to the colour image's edges (fast guided filter)."""
 
     #: Window radius (px) at full resolution; 0 turns snapping off.
-    radius: int = 16
+    radius: int = field(default=16, metadata=within(0, 1000))
     #: Regularisation of the guide's covariance (colour in [0, 1]); larger smooths across weaker edges.
-    eps: float = 1e-4
+    eps: float = field(default=1e-4, metadata=within(1e-12, 1000))
     #: Factor the coefficients are computed at.
-    subsample: int = 4
+    subsample: int = field(default=4, metadata=within(1, 64))
 
-    def validate(self) -> None:
-        """Raise ConfigError (a ValueError) on an unusable configuration."""
-        if self.radius < 0:
-            raise ConfigError(f"guided radius must be >= 0 px, got {self.radius}")
-        if self.eps <= 0:
-            raise ConfigError(f"guided eps must be positive, got {self.eps}")
-        if self.subsample < 1:
-            raise ConfigError(f"guided subsample must be >= 1, got {self.subsample}")
 
 
 def _box(x: np.ndarray, r: int) -> np.ndarray:
@@ -145,12 +137,11 @@ def argmax_planes(planes: Iterable[np.ndarray]) -> np.ndarray:
     return idx
 
 
-def refine_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None = None) -> np.ndarray:
+def snap_labels(labels: np.ndarray, rgb: np.ndarray, cfg: GuidedConfig | None = None) -> np.ndarray:
     """Class map (H, W) int (0 = background) with its outlines snapped to the colour edges of ``rgb``
     (H, W, 3) uint8 by the guided filter of every class's indicator image. Only the box around the labelled
     pixels, widened by twice the radius, can change."""
     cfg = cfg or GuidedConfig()
-    cfg.validate()
     box = padded_box(labels, 2 * cfg.radius)
     if cfg.radius == 0 or box is None:
         return labels

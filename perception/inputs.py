@@ -4,11 +4,16 @@ class map. Images are RGB uint8 (H, W, 3), depth float32 metres (H, W), K the (3
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
 from scipy import ndimage
 
 from posegrasp.perception.crop import backproject, crop_box, padded_box, remap_choose, sample_choose
+
+if TYPE_CHECKING:
+    from posegrasp.perception.classifier import ClassifierConfig
 
 RGB_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 RGB_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
@@ -50,10 +55,10 @@ def prepare_pose_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: 
     return normalize_rgb(crop), choose_s, pts.astype(np.float32)
 
 
-def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray, size: int,
-                      side: float, depth_range: float, min_valid: int = 10, height_range: float = 0.0,
-                      plane: np.ndarray | None = None) -> np.ndarray | None:
-    """Fixed-metric-size crop of one segment for the instance classifier (``perception.classifier``).
+def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray, cfg: ClassifierConfig,
+                      plane: np.ndarray | None = None, min_valid: int = 10) -> np.ndarray | None:
+    """Fixed-metric-size crop of one segment for the instance classifier (``perception.classifier``), with the crop
+    settings of ``cfg``: ``crop_size`` (size), ``crop_side`` (side), ``depth_range`` and ``height_range``.
 
     The square of ``side`` metres at the segment's median depth z, centred on the mask's centroid, is
     resampled to size x size px (scale s = size z / (side f_x)). Channels (6, S, S) float32: RGB in [0, 1],
@@ -64,6 +69,7 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     RGB is not normalised here (``normalize_cls_input`` does it after augmentation). None when the
     mask has fewer than ``min_valid`` pixels with valid depth.
     """
+    size, side, depth_range, height_range = cfg.crop_size, cfg.crop_side, cfg.depth_range, cfg.height_range
     box = padded_box(mask, 0)  # the mask's box: its statistics need no more
     if box is None:
         return None

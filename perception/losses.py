@@ -59,6 +59,28 @@ def min_symmetry_targets(pred: torch.Tensor, sym_targets: torch.Tensor, max_elem
     return out
 
 
+@dataclass(frozen=True)
+class PoseTargets:
+    """What the pose loss compares the net's proposals with: the depth points (B, N, 3) (camera frame, m), the model
+    points (B, M, 3) (object frame, m), the target (B, M, 3) (the model points under the ground truth, camera frame)
+    and whether each object is symmetric (B,) bool (its loss ADD-S); with ``sym_targets`` (B, S, M, 3) (see
+    ``min_symmetry_targets``) and ``continuous`` (B,) bool, the least ADD over the discrete symmetries instead, and
+    ADD-S only for samples with a continuous symmetry."""
+
+    points: torch.Tensor
+    model_points: torch.Tensor
+    target: torch.Tensor
+    symmetric: torch.Tensor
+    sym_targets: torch.Tensor | None = None
+    continuous: torch.Tensor | None = None
+
+    @classmethod
+    def of(cls, batch: dict[str, torch.Tensor], min_sym: bool = False) -> PoseTargets:
+        """The targets of a ``perception.data.PoseDataset`` batch; ``min_sym``: with its symmetry targets."""
+        sym = (batch["sym_targets"], batch["continuous"]) if min_sym else (None, None)
+        return cls(batch["points"], batch["model_points"], batch["target"], batch["symmetric"], *sym)
+
+
 @dataclass
 class PoseLossOutput:
     """Loss of the pose net and the best proposal per sample (detached).
@@ -76,18 +98,17 @@ class PoseLossOutput:
     new_target: torch.Tensor
 
 
-def pose_loss(pred_q: torch.Tensor, pred_t: torch.Tensor, pred_c: torch.Tensor, points: torch.Tensor,
-              model_points: torch.Tensor, target: torch.Tensor, symmetric: torch.Tensor,
-              w: float = 0.015, sym_targets: torch.Tensor | None = None,
-              continuous: torch.Tensor | None = None) -> PoseLossOutput:
+def pose_loss(pred_q: torch.Tensor, pred_t: torch.Tensor, pred_c: torch.Tensor, truth: PoseTargets,
+              w: float = 0.015) -> PoseLossOutput:
     """DenseFusion loss mean_i(dis_i * c_i - w log c_i) over points i and the batch.
 
     pred_q (B, N, 4) quaternions (w, x, y, z), pred_t (B, N, 3) translation offsets (the proposal
-    of point i has t = points_i + pred_t_i), pred_c (B, N) confidences in (0, 1), points (B, N, 3).
-    dis_i is ADD / ADD-S by ``symmetric``, or, with ``sym_targets`` (B, S, M, 3) (see
-    ``min_symmetry_targets``), the minimum ADD over the discrete symmetries, and ADD-S only for
-    samples with a continuous symmetry (``continuous`` (B,) bool).
+    of point i has t = points_i + pred_t_i), pred_c (B, N) confidences in (0, 1). dis_i is ADD / ADD-S against
+    ``truth`` by ``truth.symmetric``, or, with ``truth.sym_targets``, the minimum ADD over the discrete symmetries,
+    and ADD-S only for samples with a continuous symmetry (``PoseTargets``).
     """
+    points, model_points, target, symmetric = truth.points, truth.model_points, truth.target, truth.symmetric
+    sym_targets, continuous = truth.sym_targets, truth.continuous
     B, N, _ = pred_q.shape
     R = quat_to_rotmat(pred_q)  # (B, N, 3, 3)
     t = points + pred_t  # (B, N, 3)
@@ -115,7 +136,7 @@ def pose_loss(pred_q: torch.Tensor, pred_t: torch.Tensor, pred_c: torch.Tensor, 
 
 
 @dataclass
-class RefineLossOutput:
+class RefinerLossOutput:
     """Refiner loss; dis (B,) per sample (m); new_points / new_target in the refined frame."""
 
     loss: torch.Tensor
@@ -125,8 +146,8 @@ class RefineLossOutput:
     new_target: torch.Tensor
 
 
-def refine_loss(pred_q: torch.Tensor, pred_t: torch.Tensor, points: torch.Tensor, model_points: torch.Tensor,
-                target: torch.Tensor, symmetric: torch.Tensor) -> RefineLossOutput:
+def refiner_loss(pred_q: torch.Tensor, pred_t: torch.Tensor, points: torch.Tensor, model_points: torch.Tensor,
+                 target: torch.Tensor, symmetric: torch.Tensor) -> RefinerLossOutput:
     """Mean ADD / ADD-S of the refined pose dT (pred_q (B, 4), pred_t (B, 3)), both expressed in the
     frame of the current estimate, where ``points`` (B, N, 3) and ``target`` (B, M, 3) live."""
     R = quat_to_rotmat(pred_q)  # (B, 3, 3)
@@ -136,4 +157,4 @@ def refine_loss(pred_q: torch.Tensor, pred_t: torch.Tensor, points: torch.Tensor
         new_points = torch.bmm(points - pred_t[:, None], R)
         new_target = torch.bmm(target - pred_t[:, None], R)
         dT = make_transform(R, pred_t)
-    return RefineLossOutput(dis.mean(), dis.detach(), dT, new_points, new_target)
+    return RefinerLossOutput(dis.mean(), dis.detach(), dT, new_points, new_target)

@@ -5,7 +5,7 @@
 
 n is oriented towards the camera (d > 0: the camera centre lies in front of the plane). Points are
 camera-frame metres. Used by the estimator to drop segmented pixels lying on the plane and to rule out
-depth-refinement hypotheses that sink the object into it.
+depth-fit starts that sink the object into it.
 
 Given the objects' pixels, the plane is the one they rest on: when the pixels in a band around them lie above the
 dominant plane (a tote's floor above the table it stands on, the table filling most of the view), the plane parallel
@@ -14,35 +14,36 @@ to it at the band's most common height, refitted to the drawn points within ``in
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import field
 
 import cv2
 import numpy as np
 
+from posegrasp.config import settings, within
 from posegrasp.perception.crop import backproject
 
 
-@dataclass
+@settings
 class PlaneConfig:
     """Finding the supporting plane by RANSAC, and the plane the objects rest on."""
 
     #: RANSAC samples.
-    iterations: int = 100
+    iterations: int = field(default=100, metadata=within(1, 1000000))
     #: Depth pixels drawn for it.
-    points: int = 2000
+    points: int = field(default=2000, metadata=within(3, 100000000))
     #: Distance (m) within which a point is an inlier of a plane.
-    inlier_tol: float = 0.004
+    inlier_tol: float = field(default=0.004, metadata=within(0, 1))
     #: Share of the image the plane's inliers must cover (a table does; one face of a block seldom), else there is none.
-    min_share: float = 0.2
+    min_share: float = field(default=0.2, metadata=within(0, 1))
     #: Segmented pixels closer (m) than this to the plane become background (0 keeps them).
-    mask_tol: float = 0.002
+    mask_tol: float = field(default=0.002, metadata=within(0, 1))
     #: Median height (m) above the dominant plane of the pixels around the objects beyond which they rest on a plane
     #: above it (a tote's floor; 0: always the dominant plane).
-    rest_lift: float = 0.003
+    rest_lift: float = field(default=0.003, metadata=within(0, 1))
     #: Width (px at 640 px image width) of the band around the objects' pixels that finds the plane they rest on.
-    rest_band: int = 10
+    rest_band: int = field(default=10, metadata=within(0, 10000))
     #: Share of the drawn points the plane the objects rest on must hold, else the dominant plane stays.
-    rest_min_share: float = 0.03
+    rest_min_share: float = field(default=0.03, metadata=within(0, 1))
 
 
 def plane_distance(plane: np.ndarray, depth: np.ndarray, K: np.ndarray, pixels: np.ndarray) -> np.ndarray:

@@ -11,18 +11,18 @@ t = points_i + t_i, m) and a confidence in (0, 1).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import field
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.attention import CAM, GFEM, PAM
 
 
-@dataclass
+@settings
 class PoseNetConfig:
     """Pose net hyper-parameters (DenseFusion's values in the descriptions)."""
 
@@ -64,14 +64,14 @@ class PoseNetConfig:
         """Per-point fused width: 2 * p1 + 2 * p2 + g2 (1408 in DenseFusion)."""
         return 2 * self.point_widths[0] + 2 * self.point_widths[1] + self.global_widths[1]
 
-    def validate(self) -> None:
-        """Raise ConfigError (a ValueError) on an unusable configuration."""
+    def __post_init__(self) -> None:
         if len(self.obj_ids) == 0 or len(set(self.obj_ids)) != len(self.obj_ids):
-            raise ConfigError("obj_ids must be a non-empty list of distinct BOP object ids")
+            raise ConfigError(f"obj_ids = {list(self.obj_ids)}: name at least one BOP object id, each once")
         if len(self.symmetric) != len(self.obj_ids):
-            raise ConfigError("symmetric needs one flag per object id")
-        if self.num_points < 1 or self.crop_size < 8 or self.crop_size % 8:
-            raise ConfigError("num_points must be >= 1 and crop_size a multiple of 8 (>= 8)")
+            raise ConfigError(f"symmetric = {list(self.symmetric)}: give one flag per object id of obj_ids = "
+                              f"{list(self.obj_ids)}")
+        if self.crop_size % 8:
+            raise ConfigError(f"crop_size = {self.crop_size}: use a multiple of 8 px")
 
     def index_of(self, obj_id: int) -> int:
         """Head index of a BOP object id."""
@@ -253,7 +253,6 @@ class PoseNet(nn.Module):
 
     def __init__(self, cfg: PoseNetConfig):
         super().__init__()
-        cfg.validate()
         self.cfg = cfg
         self.cnn = ColorCNN(cfg.backbone_width, cfg.emb_dim)
         self.feat = DenseFusionFeat(cfg.emb_dim, cfg.point_widths, cfg.global_widths)

@@ -7,17 +7,17 @@ dT (quaternion (w, x, y, z) and translation, m) per object; the estimate becomes
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import field
 
 import torch
 from torch import nn
 
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.perception.pose_net import PointFusion
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 
 
-@dataclass
+@settings
 class RefinerConfig:
     """Refiner hyper-parameters (DenseFusion's values in the descriptions); objects and widths follow the pose net."""
 

@@ -18,14 +18,13 @@ background, class k the object with BOP obj_id k). Every channel count is scaled
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import field
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from posegrasp.config import within
-from posegrasp.errors import ConfigError
+from posegrasp.config import settings, within
 
 #: VGG16's 13 convs, then this model's 3 extra bottleneck convs; "M" = 2x2 max-pool.
 VGG16_PLAN: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M",
@@ -33,7 +32,7 @@ VGG16_PLAN: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, 
 EXTRA_CONVS: tuple[int, ...] = (512, 512, 512)
 
 
-@dataclass
+@settings
 class SegNetConfig:
     """Segmentation net hyper-parameters; every channel count is scaled by ``width``."""
 
@@ -56,15 +55,6 @@ class SegNetConfig:
         """Channel count ``c`` at this width (at least 4)."""
         return max(4, int(round(c * self.width)))
 
-    def validate(self) -> None:
-        """Raise ConfigError (a ValueError) on an unusable configuration."""
-        h, w = self.input_size
-        if h < 32 or w < 32:
-            raise ConfigError(f"input_size {self.input_size} must be at least 32 x 32 px")
-        if self.num_classes < 2:
-            raise ConfigError("num_classes must count background plus at least one object")
-        if self.width <= 0:
-            raise ConfigError("width must be positive")
 
 
 class ConvBNReLU(nn.Sequential):
@@ -150,7 +140,6 @@ class SegNet(nn.Module):
 
     def __init__(self, cfg: SegNetConfig):
         super().__init__()
-        cfg.validate()
         self.cfg = cfg
         self.encoder = VGGEncoder(cfg)
         sc = self.encoder.stage_channels

@@ -1,7 +1,7 @@
 """Merged segments split by the fitted model: the part of a mask its object's model does not explain.
 
 The segmentation net is semantic, so two touching blocks often come out as one segment (and one
-detection between them). Once a pose is fitted to a segment (pose net + depth refinement), each observed
+detection between them). Once a pose is fitted to a segment (pose net + depth fit), each observed
 point of the mask is tested against the model at that pose:
 
     explained(p) = min_j || R^T (p - t) - m_j || < tol        (p: the pixel's camera-frame point, m_j: model points)
@@ -16,33 +16,34 @@ Rounds repeat this on the new detections. Points are camera-frame metres; K is t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import field
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from posegrasp.config import settings, within
 from posegrasp.perception.crop import backproject, padded_box
 
 
-@dataclass
+@settings
 class SplitConfig:
     """Splitting a mask into the blocks it holds, and dropping duplicate detections."""
 
     #: An observed point this close (m) to the fitted model's surface is explained by it.
-    tol: float = 0.004
+    tol: float = field(default=0.004, metadata=within(0, 1))
     #: An unexplained part must cover at least this many pixels to be split off ...
-    min_pixels: int = 150
+    min_pixels: int = field(default=150, metadata=within(0, 100000000))
     #: ... and this share of the mask.
-    min_share: float = 0.1
+    min_share: float = field(default=0.1, metadata=within(0, 1))
     #: A part fitted this close (m) to the rest's model is the same block; the split is undone.
-    same_block: float = 0.005
+    same_block: float = field(default=0.005, metadata=within(0, 1))
     #: Split passes; 0 turns splitting and duplicate dropping off.
-    rounds: int = 2
+    rounds: int = field(default=2, metadata=within(0, 100))
     #: Surface points per model for the distance test.
-    model_points: int = 20000
+    model_points: int = field(default=20000, metadata=within(1, 100000000))
     #: Two detections of one type closer than this share of the block's smallest side are one; 0: never.
-    duplicate: float = 0.5
+    duplicate: float = field(default=0.5, metadata=within(0, 100))
 
 
 class ModelSurface:

@@ -6,24 +6,24 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import torch
 
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.errors import WeightsError
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.classifier import ClassifierConfig, build_classifier
-from posegrasp.perception.data import ClsDataset, DataConfig, collate
+from posegrasp.perception.data import ClsDataset, CropSource, DataConfig, collate
 from posegrasp.perception.segmenter import Segmenter
 from posegrasp.perception.training import (StageConfig, StageTraining, batch_keys, build_model, dataset_objects,
                                            init_checkpoint, set_lr, split_exists, train_split)
 
 
-@dataclass
+@settings
 class ClsTrainConfig(StageConfig):
     """Instance classifier training (``perception.classifier``)."""
 
@@ -40,7 +40,7 @@ class ClsTrainConfig(StageConfig):
     #: Peak learning rate.
     lr: float = field(default=2e-3, metadata=within(0, 10))
     #: AdamW weight decay.
-    weight_decay: float = 1e-4
+    weight_decay: float = field(default=1e-4, metadata=within(0, 10))
     #: Share of the steps over which the learning rate rises linearly; then a cosine to 0.
     warmup: float = field(default=0.1, metadata=within(0, 1))
     #: Also learn on the run's `seg/` net's segments of the training images, labelled by the ground truth.
@@ -95,10 +95,8 @@ class ClsTraining(StageTraining):
                 return seg(rgb)[0]
 
         def dataset(split: str, augment: bool) -> ClsDataset:  # crops cached in the run: a resume starts at once
-            return ClsDataset(data, split, m.obj_ids, m.crop_size, m.crop_side, m.depth_range, cfg.data,
-                              augment=augment, seed=cfg.seed, segmenter=segmenter, progress=progress,
-                              height_range=m.height_range, cache=run.out / "cache" / f"cls_crops_{split}.npy",
-                              segmenter_id=seg_id)
+            source = CropSource(segmenter, seg_id, run.out / "cache" / f"cls_crops_{split}.npy", progress)
+            return ClsDataset(data, split, m, cfg.data, augment, cfg.seed, source)
 
         self.ds = dataset(train_split(data, cfg.train_split), True)
         self.val = dataset(cfg.val_split, False) if split_exists(data, cfg.val_split) else None

@@ -1,29 +1,34 @@
 """Training of the pose net (``perception.pose_net``) on a BOP dataset: ``train_pose`` writes ``RUN/pose/``; also the
-pose samples, forward pass and evaluation the refiner's training shares (``perception.train_refine``).
+pose samples, forward pass and evaluation the refiner's training shares (``perception.train_refiner``).
 
 Defaults follow the paper (Liang et al. 2021): Adam lr 1e-4, batch 8, lr x0.3 and confidence weight w x0.3 once the
-evaluation mean distance drops under 0.016 m, refinement ready under 0.013 m.
+evaluation mean distance drops under 0.016 m, ready for the refiner's training under 0.013 m.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.data import DataConfig, ObjectModels, PoseDataset, collate
-from posegrasp.perception.losses import pose_loss, refine_loss
+from posegrasp.perception.losses import PoseTargets, pose_loss, refiner_loss
 from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
 from posegrasp.perception.training import (StageConfig, StageTraining, batch_keys, build_model, dataset_objects,
                                            set_lr, split_exists, train_split)
 
 
-@dataclass
+#: ``PoseTrainConfig.sym_loss``'s values.
+SYM_LOSSES = ("adds", "min_sym")
+
+
+@settings
 class PoseTrainConfig(StageConfig):
     """Pose net training; ``model.obj_ids`` and ``model.symmetric`` are set from the dataset.
 
@@ -38,21 +43,25 @@ class PoseTrainConfig(StageConfig):
     #: Objects trained; empty: every object of `models_info.json`.
     obj_ids: list[int] = field(default_factory=list)
     #: Weight of the confidence regulariser in the loss (DenseFusion's w).
-    w: float = 0.015
+    w: float = field(default=0.015, metadata=within(0, 10))
     #: Once the validation mean distance (m) falls below this, lr and w decay (once).
-    decay_margin: float = 0.016
+    decay_margin: float = field(default=0.016, metadata=within(0, 10))
     #: Factor of that learning-rate decay.
-    lr_decay: float = 0.3
+    lr_decay: float = field(default=0.3, metadata=within(0, 1))
     #: Factor of that w decay.
-    w_decay: float = 0.3
+    w_decay: float = field(default=0.3, metadata=within(0, 1))
     #: Below this validation mean distance (m) the checkpoint is marked ready for refiner training.
-    refine_margin: float = 0.013
+    refine_margin: float = field(default=0.013, metadata=within(0, 10))
     #: Validation samples per evaluation.
-    eval_samples: int = 200
+    eval_samples: int = field(default=200, metadata=within(1, 100000000))
     #: `adds` (ADD-S for symmetric objects, as the paper) or `min_sym` (least ADD over discrete symmetries).
     sym_loss: str = "adds"
     #: A pose checkpoint (or a run holding `pose/`) to fine-tune; empty: from scratch.
     init: str = ""
+
+    def __post_init__(self) -> None:
+        if self.sym_loss not in SYM_LOSSES:
+            raise ConfigError(f"sym_loss = {self.sym_loss!r}: use 'adds' or 'min_sym'")
 
 
 class PoseTraining(StageTraining):
@@ -72,12 +81,9 @@ class PoseTraining(StageTraining):
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
         self.state = {"step": 0, "lr": cfg.lr, "w": cfg.w, "decayed": False, "refine_ready": False,
                       "best_val_dis": None}
-        if cfg.sym_loss not in ("adds", "min_sym"):
-            raise ConfigError(f"pose sym_loss {cfg.sym_loss!r} is not 'adds' or 'min_sym'")
 
     def prepare(self, progress: bool) -> None:
-        m = self.model_cfg
-        self.ds, self.val, self.val_idx = pose_datasets(self.data, self.cfg, m.obj_ids, m.num_points, m.crop_size)
+        self.ds, self.val, self.val_idx = pose_datasets(self.data, self.cfg, self.model_cfg)
 
     def step(self, step: int) -> dict[str, float]:
         cfg, state = self.cfg, self.state
@@ -114,18 +120,17 @@ def train_pose(data: str | Path, out: str | Path, cfg: PoseTrainConfig | None = 
     return PoseTraining.train(data, out, cfg, steps, seed, resume, progress)
 
 
-def pose_datasets(data: Path, cfg: Any, obj_ids: list[int], num_points: int, crop_size: int
-                  ) -> tuple[PoseDataset, PoseDataset, list[int]]:
-    """The augmented training samples, the evaluation samples (``val_split``, else the training instances without
-    augmentation) and the indices of the ``cfg.eval_samples`` evaluated, spread over them."""
+def pose_datasets(data: Path, cfg: Any, model: PoseNetConfig) -> tuple[PoseDataset, PoseDataset, list[int]]:
+    """The augmented training samples of the pose net ``model``'s objects, the evaluation samples (``val_split``,
+    else the training instances without augmentation) and the indices of the ``cfg.eval_samples`` evaluated, spread
+    over them (``cfg``: a ``PoseTrainConfig`` or ``RefinerTrainConfig``)."""
     models = ObjectModels(data, cfg.data.model_pool)
     split = train_split(data, cfg.train_split)
-    train = PoseDataset(data, split, obj_ids, num_points, crop_size, cfg.data, augment=True,
-                        seed=cfg.seed, models=models)
+    train = PoseDataset(data, split, model, cfg.data, augment=True, seed=cfg.seed, models=models)
     if split_exists(data, cfg.val_split):
-        val = PoseDataset(data, cfg.val_split, obj_ids, num_points, crop_size, cfg.data, models=models)
+        val = PoseDataset(data, cfg.val_split, model, cfg.data, models=models)
     else:  # no validation split: a fixed subset of the training instances, without augmentation
-        val = PoseDataset(data, split, obj_ids, num_points, crop_size, cfg.data, models=models)
+        val = PoseDataset(data, split, model, cfg.data, models=models)
     n = min(cfg.eval_samples, len(val))
     idx = sorted({int(i) for i in np.linspace(0, len(val) - 1, n)})
     return train, val, idx
@@ -140,15 +145,14 @@ def pose_forward(model: torch.nn.Module, b: dict[str, torch.Tensor], w: float, s
     """The pose net on batch ``b`` and its loss (confidence weight ``w``, ``sym_loss`` as in ``PoseTrainConfig``);
     (the loss's output, the per-point embeddings)."""
     q, t, c, emb = model(b["image"], b["points"], b["choose"], b["obj"])
-    sym = {"sym_targets": b["sym_targets"], "continuous": b["continuous"]} if sym_loss == "min_sym" else {}
-    return pose_loss(q, t, c, b["points"], b["model_points"], b["target"], b["symmetric"], w, **sym), emb
+    return pose_loss(q, t, c, PoseTargets.of(b, min_sym=sym_loss == "min_sym"), w), emb
 
 
 @torch.no_grad()
 def evaluate_pose(model: torch.nn.Module, ds: PoseDataset, indices: list[int], batch_size: int = 8,
                   refiner: torch.nn.Module | None = None, iterations: int = 0) -> float:
     """Mean distance (m, ADD or ADD-S per object) of the most confident proposal, optionally after
-    ``iterations`` refinement steps, over dataset samples ``indices`` (no augmentation)."""
+    ``iterations`` steps of the refiner, over dataset samples ``indices`` (no augmentation)."""
     model.eval()
     if refiner is not None:
         refiner.eval()
@@ -158,20 +162,20 @@ def evaluate_pose(model: torch.nn.Module, ds: PoseDataset, indices: list[int], b
         out, emb = pose_forward(model, b, 0.015)
         d = out.dis
         if refiner is not None and iterations > 0:
-            d = refine_iterations(refiner, b, out, emb, iterations, train=False)[-1]
+            d = refiner_steps(refiner, b, out, emb, iterations, train=False)[-1]
         dis.append(d)
     return float(torch.cat(dis).mean())
 
 
-def refine_iterations(refiner: torch.nn.Module, b: dict[str, torch.Tensor], out, emb: torch.Tensor,
-                      iterations: int, train: bool) -> list[torch.Tensor]:
-    """DenseFusion's refinement training / evaluation: per iteration, refine in the current frame,
+def refiner_steps(refiner: torch.nn.Module, b: dict[str, torch.Tensor], out, emb: torch.Tensor,
+                  iterations: int, train: bool) -> list[torch.Tensor]:
+    """DenseFusion's refiner training / evaluation: per iteration, refine in the current frame,
     (backpropagate), and move points and target into the refined frame. Returns dis per iteration."""
     points, target = out.new_points, out.new_target
     dis = []
     for _ in range(iterations):
         dq, dt = refiner(points, emb, b["obj"])
-        r = refine_loss(dq, dt, points, b["model_points"], target, b["symmetric"])
+        r = refiner_loss(dq, dt, points, b["model_points"], target, b["symmetric"])
         if train:
             r.loss.backward()
         dis.append(r.dis)

@@ -7,7 +7,7 @@ Defaults follow the paper (Liang et al. 2021): SGD, momentum 0.9, batch 4, lr x0
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from posegrasp import bop
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.data import DataConfig, SegDataset, collate
 from posegrasp.perception.metrics import confusion_matrix, segmentation_scores
@@ -24,7 +24,11 @@ from posegrasp.perception.training import (StageConfig, StageTraining, batch_str
                                            split_exists, train_split, training_device)
 
 
-@dataclass
+#: ``SegTrainConfig.optimizer``'s values.
+OPTIMIZERS = ("sgd", "adam")
+
+
+@settings
 class SegTrainConfig(StageConfig):
     """Segmentation training; ``model.num_classes`` is set from the dataset (max obj_id + 1)."""
 
@@ -37,17 +41,17 @@ class SegTrainConfig(StageConfig):
     #: Initial learning rate.
     lr: float = field(default=1e-2, metadata=within(0, 10))
     #: SGD momentum.
-    momentum: float = 0.9
+    momentum: float = field(default=0.9, metadata=within(0, 1))
     #: L2 weight decay.
-    weight_decay: float = 1e-4
+    weight_decay: float = field(default=1e-4, metadata=within(0, 10))
     #: Factor the learning rate is multiplied by every `lr_decay_every` steps.
-    lr_decay: float = 0.8
+    lr_decay: float = field(default=0.8, metadata=within(0, 1))
     #: Steps between learning-rate decays.
     lr_decay_every: int = field(default=5000, metadata=within(1, 100000000))
     #: `sgd` or `adam`.
     optimizer: str = "sgd"
     #: Cross-entropy weight of the background class (objects 1).
-    background_weight: float = 1.0
+    background_weight: float = field(default=1.0, metadata=within(0, 1000))
     #: Steps between evaluations on the validation split.
     eval_every: int = field(default=2000, metadata=within(0, 100000000))
     #: Validation images per evaluation.
@@ -61,7 +65,9 @@ class SegTrainConfig(StageConfig):
 
     def __post_init__(self) -> None:
         """Batch normalisation needs two values per channel at the net's coarsest scale (1/32 of the input):
-        ``batch_size * (height // 32) * (width // 32) >= 2``."""
+        ``batch_size * (height // 32) * (width // 32) >= 2``; the optimizer is one of ``OPTIMIZERS``."""
+        if self.optimizer not in OPTIMIZERS:
+            raise ConfigError(f"optimizer = {self.optimizer!r}: use 'sgd' or 'adam'")
         h, w = self.model.input_size
         if self.model.batch_norm and self.batch_size * (h // 32) * (w // 32) < 2:
             raise ConfigError(f"batch_size = {self.batch_size} with model.input_size = {list(self.model.input_size)} "
@@ -82,8 +88,6 @@ class SegTraining(StageTraining):
         self.cfg = cfg = dataclasses.replace(cfg, model=self.model_cfg)
         self.device = training_device(cfg.device)
         self.model = build_model("seg", build_seg_net, self.model_cfg).to(self.device)
-        if cfg.optimizer not in ("sgd", "adam"):
-            raise ConfigError(f"seg optimizer {cfg.optimizer!r} is not 'sgd' or 'adam'")
         params = self.model.parameters()
         self.opt = (torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
                     if cfg.optimizer == "sgd" else torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay))

@@ -1,6 +1,6 @@
 """The skeleton every network's training shares (``StageTraining``): the run folder and resume, the seeded set-up,
 the loop with its metrics log, progress bar and checkpoints. Each stage fills it in its own module:
-``perception.train_seg``, ``perception.train_pose``, ``perception.train_refine`` and ``perception.train_cls``.
+``perception.train_seg``, ``perception.train_pose``, ``perception.train_refiner`` and ``perception.train_cls``.
 
 A stage writes the ``RUN/<stage>/`` checkpoint (see ``perception.checkpoint``) and ``RUN/<stage>_metrics.csv``. Runs
 are seeded and resumable: batch composition and augmentation are functions of (seed, step), and the checkpoint holds
@@ -28,13 +28,13 @@ import torch
 
 from posegrasp import bop
 from posegrasp import io as pio
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError, UserError, WeightsError
 from posegrasp.lock import folder_lock
 from posegrasp.perception import checkpoint as ckpt_mod
 
 
-@dataclass
+@settings
 class StageConfig:
     """What every stage's training has: splits, steps, intervals, seed and CPU threads."""
 
@@ -146,19 +146,20 @@ class MetricsLog:
 
 @dataclass
 class RunFolder:
-    """Where a stage writes (``out/<stage>/``, ``out/<stage>_metrics.csv``), and whether it resumes."""
+    """Where a stage writes (``out/<stage>/``, ``out/<stage>_metrics.csv``; a run holding the stage under its old
+    folder name goes on there: ``checkpoint.stage_dir``), and whether it resumes."""
 
     out: Path
     stage: str
     resume: bool
+    ckpt: Path = field(init=False)
 
-    @property
-    def ckpt(self) -> Path:
-        return self.out / self.stage
+    def __post_init__(self) -> None:
+        self.ckpt = ckpt_mod.stage_dir(self.out, self.stage)
 
     @property
     def metrics(self) -> Path:
-        return self.out / f"{self.stage}_metrics.csv"
+        return self.out / f"{self.ckpt.name}_metrics.csv"
 
     def prepare(self) -> dict[str, Any] | None:
         """The checkpoint's config+state when resuming, None for a fresh run; UserError on misuse."""
@@ -239,8 +240,7 @@ class StageTraining(ABC):
                 init_from(t.model, t.model_cfg, Path(t.cfg.init), cls.name)
             t.prepare(progress)
             log = MetricsLog(run.metrics, cls.columns, t.state["step"] if prior else None)
-            last = loop(run, t.cfg.steps, int(t.state["step"]), t.step, t.after_step, t.save, t.cfg, log, progress,
-                        t.state)
+            last = loop(t, log, progress)
             return {**last, "step": t.state["step"], **t.summary()}
 
 
@@ -260,40 +260,39 @@ def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
         g["lr"] = lr
 
 
-def loop(run: RunFolder, total: int, start: int, step_fn: Callable[[int], dict[str, float]],
-         after_step: Callable[[int, dict[str, float]], dict[str, Any]],
-         save: Callable[[int], None], cfg: Any, log: MetricsLog, progress: bool, state: dict[str, Any]
-         ) -> dict[str, float]:
-    """Run steps start..total-1, log every ``cfg.log_every`` (and after evaluations: keys of
-    ``after_step``'s dict starting with ``val_``), checkpoint every ``cfg.checkpoint_every`` and at the end.
+def loop(t: StageTraining, log: MetricsLog, progress: bool) -> dict[str, float]:
+    """Run the training ``t``'s steps from its state's step to ``cfg.steps`` - 1 (``t.step``, then ``t.after_step``),
+    log every ``cfg.log_every`` (and after evaluations: keys of ``after_step``'s dict starting with ``val_``),
+    checkpoint (``t.save``) every ``cfg.checkpoint_every`` and at the end.
 
     Ctrl-C lets the current step finish, checkpoints it and raises ``KeyboardInterrupt`` (a second Ctrl-C stops at
     once, keeping the last checkpoint). A checkpoint holds the values not yet logged (``state["pending"]``), so a
     resumed run logs the rows, and ends with the files, of an uninterrupted one."""
+    run, cfg, state, total = t.run, t.cfg, t.state, t.cfg.steps
     acc: dict[str, list[float]] = state.pop("pending", {})
     last: dict[str, float] = {}
     t0 = time.perf_counter() - float(state.get("elapsed_s", 0.0))
-    step = start
+    step = start = int(state["step"])
 
     def checkpoint(step: int) -> None:
         state["elapsed_s"] = round(time.perf_counter() - t0, 3)
         if acc:
             state["pending"] = acc
         try:
-            save(step)
+            t.save(step)
         finally:
             state.pop("pending", None)
 
     with _progress(progress) as bar, stop_at_step_end() as stop:
         task = bar.add_task(run.stage, total=total, completed=start, loss="-", extra="")
         while step < total:
-            values = step_fn(step)
+            values = t.step(step)
             if not all(math.isfinite(v) for v in values.values()):
                 raise UserError(f"{run.stage} training diverged at step {step}: {values}")
             step += 1
             for k, v in values.items():
                 acc.setdefault(k, []).append(v)
-            extra = after_step(step, values)
+            extra = t.after_step(step, values)
             evaluated = any(k.startswith("val_") for k in extra)
             if step % cfg.log_every == 0 or step == total or evaluated:
                 last = {k: float(np.mean(v)) for k, v in acc.items()}
@@ -335,8 +334,8 @@ def stop_at_step_end() -> Iterator[_StopRequest]:
 
 
 def build_model(stage: str, build: Callable[[Any], torch.nn.Module], model_cfg: Any) -> torch.nn.Module:
-    """``build(model_cfg)``, with an unusable ``[stage.model]`` setting (its ``validate()``) as a one-line
-    ConfigError."""
+    """``build(model_cfg)``, with a model the settings cannot build as a one-line ConfigError naming
+    ``[stage.model]``."""
     try:
         return build(model_cfg)
     except ValueError as e:

@@ -1,6 +1,6 @@
 """The object catalogue: any object set's meshes, masses, collision pieces, upright faces and symmetries.
 
-An object set (``posegrasp.objects.objset``, format in ``docs/objects.md``) is a folder of BOP models plus one
+An object set (``posegrasp.objset``, format in ``docs/objects.md``) is a folder of BOP models plus one
 simulator file per object; the shipped default is the eight building blocks in ``assets/blocks`` (written by
 ``assets/blocks/make_blocks.py``). Every command that builds scenes names its set with ``--objects SET``
 (``WorkcellConfig.objects``: ``""`` is the shipped set) and reads it through ``load_catalog``.
@@ -22,6 +22,8 @@ import numpy as np
 
 from posegrasp import ASSETS
 from posegrasp.geometry import axis_angle_R, make_T
+from posegrasp.objset import MANIFEST, ObjectSet, SetObject, load_object_set
+from posegrasp.surface import TexturedSurface
 
 #: The shipped object set, used when ``objects`` is empty.
 DEFAULT_SET = ASSETS / "blocks"
@@ -55,7 +57,7 @@ class PartType:
             (``R_table_obj @ upright_down = -z``).
         flat_top, flat_bottom: standing upright, is its top one flat face another object can stand on, and
             does its bottom rest flat on such a face (which pairs can stack)?
-        surface: ``posegrasp.surface.TexturedSurface`` (m, object frame) the object is drawn with, where its set
+        surface: The textured surface (m, object frame) the object is drawn with, where its set
             gives a texture or several colours; None: drawn as ``vertices``/``faces`` in one colour.
     """
 
@@ -75,7 +77,7 @@ class PartType:
     upright_quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     flat_top: bool = False
     flat_bottom: bool = False
-    surface: Any = None
+    surface: TexturedSurface | None = None
 
 
 #: The former name of ``PartType``, kept so plug-ins written against it still import.
@@ -93,8 +95,8 @@ def set_root(objects: str | Path | None = "") -> Path:
     return DEFAULT_SET if objects in ("", None) else Path(objects).expanduser().resolve()
 
 
-def _block(o: Any) -> PartType:
-    """A ``PartType`` from an ``objset.SetObject`` (the file's rounded rotations made orthonormal again)."""
+def _block(o: SetObject) -> PartType:
+    """A ``PartType`` from a ``SetObject`` (the file's rounded rotations made orthonormal again)."""
     disc = []
     for T in o.symmetries_discrete:
         T = np.array(T, np.float64)
@@ -112,9 +114,7 @@ def _block(o: Any) -> PartType:
 
 
 @functools.lru_cache(maxsize=8)
-def _set(root: Path) -> Any:
-    from posegrasp.objects.objset import load_object_set
-
+def _set(root: Path) -> ObjectSet:
     return load_object_set(root)
 
 
@@ -134,7 +134,7 @@ def load_catalog(objects: str | Path | None = "") -> dict[str, PartType]:
 
     Raises:
         DatasetError: one line naming the folder or file, when it is no object set or a file of it is missing or
-            inconsistent (``objects.objset.load_object_set`` checks every file).
+            inconsistent (``posegrasp.objset.load_object_set`` checks every file).
     """
     return {b.name: b for b in _load(set_root(objects))}
 
@@ -146,8 +146,6 @@ def catalog_by_id(objects: str | Path | None = "") -> dict[int, PartType]:
 
 @functools.lru_cache(maxsize=8)
 def _digest(root: Path) -> str:
-    from posegrasp.objects.objset import MANIFEST
-
     files = [MANIFEST, "models/models_info.json", *sorted(p.relative_to(root).as_posix() for d in ("objects", "models")
                                                           for p in (root / d).glob("obj_*"))]
     h = hashlib.sha256()

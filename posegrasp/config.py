@@ -1,11 +1,13 @@
 """Typed settings: frozen dataclasses (``@settings``) whose fields declare their ranges (``within``), checked when
 an instance is built, in code or from TOML (``from_dict``, ``load_toml``: unknown keys and wrong types are user
-errors too); ``override`` applies CLI flags."""
+errors too); ``override`` applies CLI flags. A class's ``RENAMED`` ({old key: new key}) keeps files that use a
+renamed key readable, with a notice on stderr naming the new key."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import tomllib
 import typing
 from pathlib import Path
@@ -20,6 +22,7 @@ def from_dict(cls: type[C], data: dict[str, Any], where: str = "config") -> C:
     """Build dataclass ``cls`` from a (nested) dict, checking key names and value types."""
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
+    data = renamed(data, getattr(cls, "RENAMED", {}), where)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
@@ -37,6 +40,16 @@ def from_dict(cls: type[C], data: dict[str, Any], where: str = "config") -> C:
         return cls(**kwargs)
     except ConfigError as e:  # a check across fields (``__post_init__``): name the file
         raise ConfigError(f"{where}: {e}") from None
+
+
+def renamed(data: dict[str, Any], names: dict[str, str], where: str) -> dict[str, Any]:
+    """``data`` with its keys named in ``names`` (old -> new) under their new names, each noticed on stderr; a
+    ConfigError when a key is given under both names."""
+    for old in (k for k in names if k in data):
+        if names[old] in data:
+            raise ConfigError(f"{where}: '{old}' and '{names[old]}' are one setting; keep '{names[old]}'")
+        print(f"posegrasp: note: {where}: '{old}' is now named '{names[old]}'", file=sys.stderr)
+    return {names.get(k, k): v for k, v in data.items()}
 
 
 def settings(cls: type[C]) -> type[C]:
@@ -100,9 +113,10 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
 
 
 def load_toml(cls: type[C], path: str | Path | None, section: str | None = None,
-              sections: tuple[str, ...] = ()) -> C:
+              sections: tuple[str, ...] = (), renamed_sections: dict[str, str] | None = None) -> C:
     """Load ``cls`` from a TOML file (optionally one ``[section]`` of it); defaults when ``path`` is None. A file
-    of several ``sections`` (the tables it may hold: a typo such as ``[sge]`` is refused, not ignored)."""
+    of several ``sections`` (the tables it may hold: a typo such as ``[sge]`` is refused, not ignored), some of
+    them perhaps under an old name (``renamed_sections``: old -> new)."""
     if path is None:
         return cls()
     path = Path(path)
@@ -118,6 +132,7 @@ def load_toml(cls: type[C], path: str | Path | None, section: str | None = None,
         raise ConfigError(f"config file {path} is not UTF-8 text; save it as a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+    data = renamed(data, renamed_sections or {}, str(path))
     unknown = sorted(set(data) - set(sections)) if sections else []
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {unknown}; valid sections are {sorted(sections)}")

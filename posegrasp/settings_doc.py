@@ -2,12 +2,14 @@
 
     python -m posegrasp.settings_doc > docs/reference/settings.md
 
-Each documented settings class (``ROOTS``: what a ``--config`` TOML file or the Python API takes) is walked by
-introspection, nested dataclasses recursed into their own TOML tables. A field's description is the ``#:`` comment
-block directly above it in its class's source (read with ``ast``; an inherited field takes its base class's), its
-unit the first parenthesised unit of that description (``(m)``, ``(deg)``, ...) or its name's suffix (``_deg``,
-``_s``). ``undescribed`` lists the fields that have no ``#:`` line yet; ``unreachable_configs`` the ``*Config``
-dataclasses of the package that no root reaches.
+Each part declares the settings its commands read in its command module: ``SETTINGS``, a tuple of dicts of
+``SettingsRoot``'s fields. The page loads the command modules by name, as the command line does
+(``posegrasp.cli.COMMAND_MODULES``), and lists the parts in ``--help``'s order. Each documented settings class
+(what a ``--config`` TOML file or the Python API takes) is walked by introspection, nested dataclasses recursed into
+their own TOML tables. A field's description is the ``#:`` comment block directly above it in its class's source
+(read with ``ast``; an inherited field takes its base class's), its unit the first parenthesised unit of that
+description (``(m)``, ``(deg)``, ...) or its name's suffix (``_deg``, ``_s``). ``undescribed`` lists the fields that
+have no ``#:`` line yet; ``unreachable_configs`` the ``*Config`` dataclasses of the package that no root reaches.
 """
 
 from __future__ import annotations
@@ -30,10 +32,10 @@ from posegrasp import ASSETS
 
 
 @dataclass(frozen=True)
-class Root:
+class SettingsRoot:
     """One settings class as a user meets it: ``title`` heading, ``target`` ``module:Class``, the TOML ``table`` its
     fields sit in (``""``: the file's top level; None: a Python-only class, no TOML), the ``command`` that reads it
-    and a ``note``."""
+    and a ``note``. A part's command module lists its own as ``SETTINGS``, a tuple of dicts of these fields."""
 
     title: str
     target: str
@@ -46,41 +48,19 @@ class Root:
         return getattr(importlib.import_module(module), name)
 
 
-ROOTS: tuple[Root, ...] = (
-    Root("Workcell", "posegrasp.sim.config:WorkcellConfig", "", "`posegrasp scene --config FILE`",
-         "The shipped values are `assets/workcell.toml`. Datagen settings hold these as `[workcell]`, trial settings "
-         "as `[scene.workcell]`."),
-    Root("Dataset generation", "posegrasp.datagen.config:DatagenConfig", "", "`posegrasp datagen --config FILE`",
-         "The defaults, commented: `datagen/datagen.toml`."),
-    Root("Training: segmentation net", "posegrasp.perception.train_seg:SegTrainConfig", "seg",
-         "`posegrasp train seg --config FILE`, table `[seg]`",
-         "The shipped model's settings: `assets/perception/train_cpu.toml`."),
-    Root("Training: pose net", "posegrasp.perception.train_pose:PoseTrainConfig", "pose",
-         "`posegrasp train pose --config FILE`, table `[pose]`"),
-    Root("Training: refiner", "posegrasp.perception.train_refine:RefineTrainConfig", "refine",
-         "`posegrasp train refine --config FILE`, table `[refine]`"),
-    Root("Training: instance classifier", "posegrasp.perception.train_cls:ClsTrainConfig", "cls",
-         "`posegrasp train cls --config FILE`, table `[cls]`"),
-    Root("Evaluation", "posegrasp.perception.evaluate:EvalConfig", "eval",
-         "`posegrasp eval --config FILE`, table `[eval]`",
-         "The command's flags (`--no-icp`, `--gt-masks`, ...) override the file."),
-    Root("Estimator", "posegrasp.perception.estimator:EstimatorConfig", None,
-         "Python: `Estimator(weights, EstimatorConfig(...))`",
-         "Nested settings are dataclasses too: `EstimatorConfig(icp=RefineConfig(search=SearchConfig(pattern_rounds=0)))` "
-         "([real camera](../real_camera.md))."),
-    Root("Grasp trials", "posegrasp.grasping.config:TrialConfig", "", "`posegrasp trials --config FILE`"),
-    Root("Training-free estimator", "posegrasp.perception.depth_icp:DepthIcpConfig", "depth_icp",
-         "`posegrasp trials --perception depth-icp:FILE`, table `[depth_icp]`"),
-    Root("Object import", "posegrasp.objects.config:ImportConfig", "", "`posegrasp objects import --config FILE`"),
-)
+def command_modules() -> tuple[str, ...]:
+    """The command modules of the parts, in ``--help``'s order (loaded by name, as the command line loads them)."""
+    from posegrasp.cli import COMMAND_MODULES
 
-#: The packages searched for ``*Config`` dataclasses that no root reaches.
-PACKAGES = ("posegrasp", "posegrasp.sim", "posegrasp.datagen", "posegrasp.perception", "posegrasp.grasping",
-            "posegrasp.objects")
+    return COMMAND_MODULES
 
-#: ``*Config`` dataclasses that are no user setting (built in code, never read from a file or passed in).
-NOT_SETTINGS = {"posegrasp.perception.plane.PlaneConfig", "posegrasp.grasping.calibration.CalibrationConfig",
-                "posegrasp.grasping.calibration.BoardConfig"}
+
+@lru_cache(maxsize=None)
+def roots() -> tuple[SettingsRoot, ...]:
+    """Every part's documented settings classes: its command module's ``SETTINGS``, in ``--help``'s order."""
+    return tuple(SettingsRoot(**entry) for name in command_modules()
+                 for entry in getattr(importlib.import_module(name), "SETTINGS", ()))
+
 
 #: Units recognised in a description's parentheses, e.g. ``#: Distance (m) beyond which ...``.
 UNITS = {"m", "mm", "cm", "s", "ms", "deg", "rad", "px", "kg", "kg/m^3", "m/s", "rad/s", "m/s, rad/s", "1/s",
@@ -226,7 +206,7 @@ class _Writer:
         self.out += [f"{'#' * level} {text}", ""]
         return slug if n == 0 else f"{slug}-{n}"
 
-    def table(self, cls: type, instance: Any, path: list[str], root: Root, lead: str = "") -> None:
+    def table(self, cls: type, instance: Any, path: list[str], root: SettingsRoot, lead: str = "") -> None:
         if root.table is None:
             title = f"`{'.'.join([root.cls().__name__, *path])}`" + (f" (`{cls.__name__}`)" if path else "")
         else:
@@ -294,10 +274,10 @@ def render() -> str:
         "nested tables are TOML tables (`[seg.model]`). Unknown keys, wrong types and out-of-range values are refused "
         "before anything runs. Units: SI (m, s, rad) unless the default names one.",
         "",
-        " · ".join(f"[{root.title}](#{github_slug(root.title)})" for root in ROOTS),
+        " · ".join(f"[{root.title}](#{github_slug(root.title)})" for root in roots()),
         "",
     ]
-    for root in ROOTS:
+    for root in roots():
         w.heading(2, root.title)
         w.out += [f"{root.command}. {root.note}".strip(), ""]
         w.table(root.cls(), root.cls()(), [], root)
@@ -325,17 +305,19 @@ def walk(cls: type) -> list[tuple[type, str]]:
 
 def undescribed() -> list[str]:
     """``Class.field`` of every documented field without a ``#:`` description (named by its declaring class)."""
-    missing = {f"{defining_class(k, n).__name__}.{n}" for root in ROOTS for k, n in walk(root.cls())
+    missing = {f"{defining_class(k, n).__name__}.{n}" for root in roots() for k, n in walk(root.cls())
                if not description(k, n)}
     return sorted(missing)
 
 
-def unreachable_configs() -> list[str]:
-    """``*Config`` dataclasses of ``PACKAGES`` that no root reaches and ``NOT_SETTINGS`` does not excuse."""
-    reached = {f"{k.__module__}.{k.__qualname__}" for root in ROOTS for k, _ in walk(root.cls())}
-    reached |= {f"{b.__module__}.{b.__qualname__}" for root in ROOTS for k, _ in walk(root.cls()) for b in k.__mro__}
+def unreachable_configs(excused: set[str] | frozenset[str] = frozenset()) -> list[str]:
+    """``*Config`` dataclasses of the core and of the parts' packages (their top-level modules) that no root reaches,
+    but those named in ``excused`` (``module.Class``: built in code, never read from a file or passed in)."""
+    walked = [k for root in roots() for k, _ in walk(root.cls())]
+    reached = {f"{b.__module__}.{b.__qualname__}" for k in walked for b in k.__mro__}
+    packages = dict.fromkeys(["posegrasp", *(".".join(name.split(".")[:2]) for name in command_modules())])
     found = set()
-    for package in PACKAGES:
+    for package in packages:
         pkg = importlib.import_module(package)
         for info in pkgutil.iter_modules(pkg.__path__, package + "."):
             if info.ispkg or info.name == __name__:
@@ -345,7 +327,7 @@ def unreachable_configs() -> list[str]:
                 if inspect.isclass(obj) and dataclasses.is_dataclass(obj) and obj.__module__ == module.__name__ \
                         and obj.__name__.endswith("Config"):
                     found.add(f"{obj.__module__}.{obj.__qualname__}")
-    return sorted(found - reached - NOT_SETTINGS)
+    return sorted(found - reached - set(excused))
 
 
 def main() -> int:

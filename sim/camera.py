@@ -55,22 +55,17 @@ class CameraRenderer:
     """Offscreen renderer for one camera of a workcell, in the process's GL context (``posegrasp.gl``); reuse it for
     many frames, ``close()`` frees the model's GL resources."""
 
-    def __init__(self, workcell, camera: str, width: int, height: int, fovy_deg: float,
-                 near: float = 0.15, far: float = 2.0, shadows: bool = False, reflections: bool = False):
+    def __init__(self, workcell, camera: str, c: CameraConfig, render: RenderConfig = RenderConfig()):
+        """The renderer of ``camera`` with its settings ``c`` (size, field of view, depth range) and ``render``."""
         self.wc = workcell
         self.camera = camera
         self.cam_id = workcell.camera_ids[camera]
-        self.near, self.far = near, far
-        self.K = intrinsics(width, height, fovy_deg)
-        self.renderer = gl.Renderer(workcell.model, height=height, width=width)
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = shadows
-        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = reflections
+        self.near, self.far = c.near, c.far
+        self.K = intrinsics(c.width, c.height, c.fovy_deg)
+        self.renderer = gl.Renderer(workcell.model, height=c.height, width=c.width)
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = render.shadows
+        self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = render.reflections
         self.option = mujoco.MjvOption()  # groups 0-2 visible: collision primitives (group 3) are hidden
-
-    @classmethod
-    def from_config(cls, workcell, camera: str, c: CameraConfig, render: RenderConfig) -> "CameraRenderer":
-        """The renderer of ``camera`` with its settings ``c`` (size, field of view, depth range) and ``render``."""
-        return cls(workcell, camera, c.width, c.height, c.fovy_deg, c.near, c.far, render.shadows, render.reflections)
 
     def close(self) -> None:
         self.renderer.close()

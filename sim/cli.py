@@ -14,6 +14,14 @@ from posegrasp.errors import SimulationError, UserError
 from posegrasp.lock import folder_lock
 from posegrasp.sim.config import CameraConfig
 
+#: The settings its commands read, for the settings page (``posegrasp.settings_doc``).
+SETTINGS = (
+    dict(title="Workcell", target="posegrasp.sim.config:WorkcellConfig", table="",
+         command="`posegrasp scene --config FILE`",
+         note="The shipped values are `assets/workcell.toml`. Datagen settings hold these as `[workcell]`, trial "
+              "settings as `[scene.workcell]`."),
+)
+
 
 def parse_resolution(text: str) -> tuple[int, int]:
     """``"640x480"`` -> (640, 480), within ``CameraConfig``'s bounds; a one-line error for anything else."""
@@ -67,9 +75,9 @@ def _write_scene(args: argparse.Namespace, scene, wcfg, out: Path) -> None:
     if not wc.drive_arm(wc.look_q):
         raise SimulationError("the arm did not reach the look pose")
     c = wcfg.hand_camera
-    hand = CameraRenderer.from_config(wc, HAND_CAMERA, c, wcfg.render)
+    hand = CameraRenderer(wc, HAND_CAMERA, c, wcfg.render)
     frame = hand.capture()
-    over = CameraRenderer.from_config(wc, OVERVIEW_CAMERA, wcfg.overview_camera, wcfg.render)
+    over = CameraRenderer(wc, OVERVIEW_CAMERA, wcfg.overview_camera, wcfg.render)
     write_image(out / "rgb.png", frame.rgb)
     write_image(out / "depth.png", np.round(frame.depth * 1000.0).astype(np.uint16))
     write_image(out / "mask.png", frame.mask.astype(np.uint8))

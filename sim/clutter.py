@@ -17,10 +17,10 @@ import numpy as np
 from dm_control import mjcf
 
 from posegrasp.catalog import PartType
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.errors import SceneUnsettled, UserError
 from posegrasp.geometry import make_T, transform_points
-from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.config import WorkcellConfig, check_pairs
 from posegrasp.sim.scene import SETTLE_PERIOD, random_rotation, run_held
 from posegrasp.sim.tote import Tote, ToteConfig, check_reach, tote_geoms
 from posegrasp.sim.workcell import PARKING_GAP, PARKING_Y, BlockInstance, Workcell
@@ -28,12 +28,12 @@ from posegrasp.sim.workcell import PARKING_GAP, PARKING_Y, BlockInstance, Workce
 CLUTTER_KINDS = ("pile", "bin")
 
 
-@dataclass(frozen=True)
+@settings
 class ClutterConfig:
     """Pile and bin scenes: how many parts, the tote, how the parts are dropped and when they count as settled."""
 
     #: Parts per scene, drawn uniformly in [min, max].
-    parts: tuple[int, int] = (12, 12)
+    parts: tuple[int, int] = field(default=(12, 12), metadata=within(1, 10_000))
     #: Most parts a scene may hold.
     max_parts: int = field(default=30, metadata=within(1, 200))
     #: Largest share of the tote's inner volume the parts' bounding boxes may fill (the largest type counted for every
@@ -58,6 +58,9 @@ class ClutterConfig:
     #: Drops of the whole scene, from the same generator, before it counts as unsettled: a wave that never settles
     #: (a cylinder on its side rolls on: the contacts have no rolling resistance) starts the scene again.
     draws: int = field(default=5, metadata=within(1, 100))
+
+    def __post_init__(self) -> None:
+        check_pairs(self, "parts")
 
 
 @dataclass(frozen=True)

@@ -7,14 +7,24 @@ these defaults; any field can be overridden from a TOML file of the same layout.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
 
 from posegrasp import ASSETS
-from posegrasp.config import load_toml, within
+from posegrasp.config import load_toml, settings, within
+from posegrasp.errors import ConfigError
 
 
-@dataclass(frozen=True)
+def check_pairs(cfg: object, *names: str) -> None:
+    """Refuse, with a ConfigError naming the key and its value, a field of the settings ``cfg`` among ``names`` that
+    is no [min, max] range with min <= max."""
+    for name in names:
+        r = getattr(cfg, name)
+        if len(r) != 2 or r[0] > r[1]:
+            raise ConfigError(f"{type(cfg).__name__}.{name} = {list(r)} must be a [min, max] pair with min <= max")
+
+
+@settings
 class CameraConfig:
     """A pinhole RGB-D camera. ``mount_*`` give ``T_gripper_cam`` (OpenCV camera frame in the gripper frame).
 
@@ -38,7 +48,7 @@ class CameraConfig:
     mount_rpy_deg: tuple[float, float, float] = (12.0, 0.0, 0.0)
 
 
-@dataclass(frozen=True)
+@settings
 class RenderConfig:
     """Renderer settings; shadows and reflections cost ~6x frame rate on the CPU, so they are off."""
 
@@ -48,7 +58,7 @@ class RenderConfig:
     reflections: bool = False
 
 
-@dataclass(frozen=True)
+@settings
 class AreaConfig:
     """An axis-aligned rectangle on the table top: centre (x, y) and half sizes (m), world frame."""
 
@@ -58,7 +68,7 @@ class AreaConfig:
     half_size: tuple[float, float] = (0.12, 0.15)
 
 
-@dataclass(frozen=True)
+@settings
 class WorkcellConfig:
     """Everything that defines the workcell; the world frame is the arm base on the table top, z up.
 

@@ -5,13 +5,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import field
 from typing import Callable
 
 import mujoco
 import numpy as np
 
 from posegrasp.catalog import PartType, load_catalog, set_root
+from posegrasp.config import settings
 from posegrasp.errors import ConfigError, SceneUnsettled, UserError
 from posegrasp.geometry import make_T, quat_to_R
 from posegrasp.sim.config import WorkcellConfig
@@ -25,7 +26,7 @@ PALETTE: tuple[tuple[float, float, float], ...] = (
 )
 
 
-@dataclass(frozen=True)
+@settings
 class SceneConfig:
     """How scenes are randomised. ``block_types`` empty means every catalogue type."""
 

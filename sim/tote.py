@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
-from posegrasp.config import within
+from posegrasp.config import settings, within
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T
 from posegrasp.sim.config import WorkcellConfig
@@ -29,12 +29,12 @@ WALLS = ("wall_x0", "wall_x1", "wall_y0", "wall_y1")
 SUNK = 0.02  #: depth (m) of the floor's collision box below the table top
 
 
-@dataclass(frozen=True)
+@settings
 class ToteConfig:
     """An open box centred on the pick area; its inner floor is where bin scenes' parts come to rest."""
 
     #: Inner floor size (m) along world x and world y, between the walls' inner faces.
-    inner_size: tuple[float, float] = (0.24, 0.28)
+    inner_size: tuple[float, float] = field(default=(0.24, 0.28), metadata=within(0.01, 2.0))
     #: Height (m) of the walls' top above the inner floor.
     wall_height: float = field(default=0.06, metadata=within(0.005, 0.5))
     #: Thickness (m) of the walls and of the floor.

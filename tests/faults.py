@@ -63,13 +63,13 @@ head_widths = [64, 32, 16]
 num_model_points = 200
 model_pool = 1000
 
-[refine]
+[refiner]
 batch_size = 2
 lr = 1e-3
 log_every = 1
 checkpoint_every = 2
 eval_every = 0
-[refine.data]
+[refiner.data]
 num_model_points = 200
 model_pool = 1000
 

@@ -61,8 +61,8 @@ EVAL_TOML = """\
 [eval]
 min_visib_fract = 0.1
 min_valid_points = 50
-refine_iterations = -1
-icp = true
+refiner_iterations = -1
+depth_fit = true
 """
 TRIAL_TOML = """\
 min_blocks = 1
@@ -790,7 +790,7 @@ class Fuzzer:
 #: Parts of a file a command does not read: (kind, the mutated path's first key) -> the commands that do.
 PARTS_READ_BY = {("weights_config", "train"): ("train-resume",),  # the training record
                  ("objset_json", "units"): (), ("objset_json", "frame"): (),  # prose for the reader
-                 **{("train_toml", s): (f"train-{s}",) for s in ("seg", "pose", "cls", "refine")}}
+                 **{("train_toml", s): (f"train-{s}",) for s in ("seg", "pose", "cls", "refiner")}}
 
 
 def _unread_part(case: Case, cmd: Command, m: Mutation) -> bool:

@@ -404,7 +404,7 @@ def test_train_and_perturb_bad_options(capsys, dataset, tmp_path, argv, words):
 
 @pytest.mark.parametrize("text, words", [
     ("[seg]\nlr = 'fast'\n", "lr: expected a finite number"),
-    ("[sge]\nlr = 0.1\n", "unknown section(s) ['sge']; valid sections are ['cls', 'eval', 'pose', 'refine', 'seg']"),
+    ("[sge]\nlr = 0.1\n", "unknown section(s) ['sge']; valid sections are ['cls', 'eval', 'pose', 'refiner', 'seg']"),
 ])
 def test_train_config_of_the_wrong_type_or_a_misspelt_table(capsys, dataset, tmp_path, text, words):
     cfg = _toml(tmp_path, text)

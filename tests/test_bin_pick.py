@@ -16,22 +16,25 @@ from posegrasp.catalog import load_catalog
 from posegrasp.config import from_dict
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
-from posegrasp.grasping.bin_picking import (_Contacts, _clear_of, _look, _stopped_near, area_of, choose_part,
-                                            empty_tote, pick_and_drop, tally)
+from posegrasp.grasping.tasks.bin_pick.attempt import _Contacts, _look, _stopped_near, empty_tote, pick_and_drop, tally
+from posegrasp.grasping.tasks.bin_pick.planner import _clear_of, choose_part
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison
-from posegrasp.grasping.config import TrialConfig, with_set
+from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.controller import ArmController
-from posegrasp.grasping.episode import Episode, EpisodeTask, _Log, run_episode, trial_physics
+from posegrasp.grasping.episode import Episode, EpisodeJob, _Log, run_episode, trial_physics
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.grasps import plan_grasps, surface_points
 from posegrasp.grasping.hand import KG3
 from posegrasp.grasping.perception import Estimate
-from posegrasp.grasping.record import Attempt, BinPickRecord, EpisodeRecord, Failure
+from posegrasp.grasping.record import EpisodeRecord, Failure
 from posegrasp.grasping.runfolder import EPISODES, SUMMARY
 from posegrasp.grasping.tasks.base import EpisodeFailed
-from posegrasp.grasping.tasks.bin_pick import BinPickConfig, bin_workcell, outbox_of
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.tasks import get_task, with_set
+from posegrasp.grasping.tasks.bin_pick import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
+from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
+from posegrasp.grasping.trials import Display, run_trials
 from posegrasp.sim.clutter import ClutterConfig, settle_heap
 from posegrasp.sim.tote import WALLS
 from posegrasp.sim.workcell import BlockInstance
@@ -57,7 +60,7 @@ def _episode(cfg: TrialConfig, names: list[str], poses: list[np.ndarray]) -> Epi
     assert settle_heap(wc, cfg.bin_pick.clutter)
     trial_physics(wc, cfg)
     mount = tuple(tuple(float(v) for v in r) for r in load_hand_eye(cfg.hand_eye))
-    task = EpisodeTask(0, 0, "oracle", cfg, mount)
+    task = EpisodeJob(get_task("bin-pick"), 0, 0, "oracle", cfg, mount)
     ctl = ArmController(wc, cfg.control, wc.look_q)
     ep = Episode(task, wc, ctl, BinPickRecord(0, 0, 0, len(names), "oracle", task="bin-pick"), _Log(), 0, np.zeros(2))
     _look(ep, area_of(wc, cfg.bin_pick))
@@ -279,7 +282,7 @@ def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
 
 def _oracle_episode(cfg: TrialConfig, index: int = 0, perception: str = "oracle") -> BinPickRecord:
     mount = tuple(tuple(float(v) for v in r) for r in load_hand_eye(cfg.hand_eye))
-    rec, _ = run_episode(EpisodeTask(0, index, perception, cfg, mount))
+    rec, _ = run_episode(EpisodeJob(get_task("bin-pick"), 0, index, perception, cfg, mount))
     return rec
 
 
@@ -318,11 +321,11 @@ def test_an_episode_ends_when_no_part_it_sees_has_a_grasp():
 def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path):
     cfg = _cfg(4)
     console = Console(file=io.StringIO(), width=200)
-    s = run_trials(tmp_path / "a", 2, 0, "oracle", 2, cfg, console=console, progress=False)
+    s = run_trials(tmp_path / "a", 2, 0, "oracle", 2, cfg, display=Display(console, False))
     printed = " ".join(console.file.getvalue().split())  # the summary's lines wrap where the numbers put them
     assert "bin picking: cleared" in printed and "episodes ended by" in printed
     assert "per target block" not in printed  # the table tasks' lines say nothing of a tote
-    run_trials(tmp_path / "b", 2, 0, "oracle", 1, cfg, progress=False)
+    run_trials(tmp_path / "b", 2, 0, "oracle", 1, cfg, display=Display(progress=False))
     assert (tmp_path / "a" / EPISODES).read_bytes() == (tmp_path / "b" / EPISODES).read_bytes()
     b = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]
     assert b == s["bin_pick"] and b["parts_present"] == 8
@@ -377,7 +380,7 @@ def test_bad_bin_pick_input_is_one_line_and_writes_nothing(tmp_path, args, messa
     ("[grasp]\nmax_width = 0.02\n", [], "wider than the hand opens"),
     ("[bin_pick.clutter]\nmax_parts = 100\n", ["--blocks", "40"], "do not fit the tote"),
     ("[bin_pick]\npart_clearance = []\n", [], "bin_pick.part_clearance must be one or more distances"),
-    ("[bin_pick]\npart_clearance = [0.0, 0.5]\n", [], "bin_pick.part_clearance must be one or more distances"),
+    ("[bin_pick]\npart_clearance = [0.0, 0.5]\n", [], "bin_pick.part_clearance = (0.0, 0.5) is out of range"),
     ("[bin_pick]\nwall_tilts_deg = [60.0]\n", [], "bin_pick.wall_tilts_deg must be angles"),
     ("[scene.workcell]\nhand = \"kg3\"\n", [], "scene.workcell.hand 'kg3' is not a hand"),
 ])

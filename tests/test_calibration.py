@@ -32,7 +32,7 @@ def test_board_is_detected_where_it_lies():
     wc = BoardWorkcell(cfg, board)
     assert wc.drive_arm(wc.look_q)
     c = cfg.hand_camera
-    cam = CameraRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
+    cam = CameraRenderer(wc, HAND_CAMERA, c)
     T_cam_board = detect_board(cam.rgb(), cam.K, make_board(board), min_corners=20)
     cam.close()
     assert T_cam_board is not None

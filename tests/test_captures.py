@@ -22,10 +22,11 @@ from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.model_provider import SHIPPED_MODEL
 from posegrasp.grasping.perception import Observation
 from posegrasp.grasping.runfolder import EPISODES, read_records
-from posegrasp.grasping.trials import campaign_settings, run_trials
+from posegrasp.grasping.trials import Display, campaign_settings, run_trials
 from posegrasp.lock import folder_lock
 
-QUIET = dict(console=Console(file=io.StringIO()), progress=False)
+QUIET = dict(display=Display(Console(file=io.StringIO()), False))
+QUIET_EXPORT = dict(console=Console(file=io.StringIO()), progress=False)
 
 
 def files(root: Path) -> dict[str, bytes]:
@@ -35,7 +36,7 @@ def files(root: Path) -> dict[str, bytes]:
 
 def captures_only(root: Path, episodes: int, cfg: TrialConfig, seed: int = 0) -> dict:
     cfg, mount = campaign_settings(episodes, cfg)
-    return export_captures(root, episodes, seed, 1, cfg, mount, **QUIET)
+    return export_captures(root, episodes, seed, 1, cfg, mount, **QUIET_EXPORT)
 
 
 def records(run: Path) -> dict[int, dict]:

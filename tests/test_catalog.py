@@ -36,7 +36,7 @@ def test_all_blocks_load_in_id_order(catalog):
 
 
 def test_the_blocks_are_the_default_object_set(catalog):
-    from posegrasp.objects.objset import load_object_set
+    from posegrasp.objset import load_object_set
 
     assert [o.name for o in load_object_set(BLOCKS).objects] == NAMES
     assert load_catalog(BLOCKS)["cube"] is catalog["cube"] and load_catalog(str(BLOCKS))["arch"] is catalog["arch"]

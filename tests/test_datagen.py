@@ -20,7 +20,7 @@ from matplotlib.path import Path as PolyPath
 from scipy.spatial import ConvexHull
 
 from helpers import cli, run_cli
-from posegrasp.bop.check import check_dataset
+from posegrasp.bop.check import CheckOptions, check_dataset
 from posegrasp.datagen.config import load_datagen_config
 from posegrasp.datagen.generate import STATS_FILE, generate_dataset, is_complete
 from posegrasp import bop
@@ -77,7 +77,7 @@ def test_dataset_layout_and_check_passes(dataset):
     cam = bop.load_camera(dataset)
     assert (cam.width, cam.height) == (320, 240) and cam.depth_scale == 0.1
     assert bop.list_scenes(dataset, "train_pbr") == [0, 1]
-    report = check_dataset(dataset, depth_tol_mm=3.0)
+    report = check_dataset(dataset, opts=CheckOptions(depth_tol_mm=3.0))
     assert report.ok, report.problems[:5]
     assert report.images == SCENES * VIEWS and sum(report.instances.values()) >= SCENES * VIEWS * 3
     assert np.median(report.depth_errors_mm) < 2.0  # the noisy depth, still on the models
@@ -310,7 +310,7 @@ def test_check_flags_models_in_metres(dataset, tmp_path):
     info = json.loads((out / "models" / "models_info.json").read_text())
     info["3"]["diameter"] /= 1000.0
     (out / "models" / "models_info.json").write_text(json.dumps(info))
-    report = check_dataset(out, max_images=1)
+    report = check_dataset(out, opts=CheckOptions(max_images=1))
     assert any("models/models_info.json: obj 3 'diameter'" in p and "metres" in p for p in report.problems)
 
 
@@ -377,7 +377,7 @@ def test_distractors_occlude_but_are_never_labelled():
     else:
         pytest.fail("no distractor could be looked at")
     c = dataclasses.replace(cfg.workcell.hand_camera, width=320, height=240)
-    r = LabelRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
+    r = LabelRenderer(wc, HAND_CAMERA, c)
     with_d = r.capture()
     wc.model.geom_group[ids] = 5  # hidden from the renderer
     without = r.capture()

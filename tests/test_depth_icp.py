@@ -18,7 +18,7 @@ from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.depth_icp_provider import DepthIcpProvider
 from posegrasp.grasping.perception import OracleProvider, observation
 from posegrasp.grasping.provider_registry import make_provider
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 from posegrasp.sim.camera import CameraRenderer
 from posegrasp.sim.scene import make_scene
 from posegrasp.sim.workcell import HAND_CAMERA
@@ -35,7 +35,7 @@ def _look_frame(seed: int, n_blocks: int):
     assert wc.drive_arm(wc.look_q)
     mujoco.mj_forward(wc.model, wc.data)
     c = wc.cfg.hand_camera
-    cam = CameraRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
+    cam = CameraRenderer(wc, HAND_CAMERA, c)
     try:
         return cam.capture()
     finally:
@@ -62,7 +62,7 @@ def test_depth_icp_finds_the_visible_blocks_within_mm_and_degrees():
 
 def test_depth_icp_settings_come_from_their_table(tmp_path):
     toml = tmp_path / "icp.toml"
-    toml.write_text("[depth_icp]\nsize_tol = 0.01\n[depth_icp.icp.fit]\nmax_points = 150\n")
+    toml.write_text("[depth_icp]\nsize_tol = 0.01\n[depth_icp.depth_fit.fit]\nmax_points = 150\n")
     est = make_provider(f"depth-icp:{toml}")
     assert est.name == f"depth-icp:{toml}"
     bad = tmp_path / "bad.toml"
@@ -77,5 +77,5 @@ def test_depth_icp_settings_come_from_their_table(tmp_path):
 def test_depth_icp_trials_reach_the_floor(tmp_path):
     m = 8
     cfg = TrialConfig(min_blocks=1, max_blocks=5)
-    summary = run_trials(tmp_path / "run", m, 0, "depth-icp", 1, cfg, Console(file=io.StringIO()), False)
+    summary = run_trials(tmp_path / "run", m, 0, "depth-icp", 1, cfg, Display(Console(file=io.StringIO()), False))
     assert summary["success"] >= success_floor(*PICK_PLACE_DEPTH_ICP, m), summary

@@ -11,7 +11,8 @@ import pytest
 from posegrasp.errors import (ConfigError, DatasetError, PerceptionError, PosegraspError, ProviderError,
                               SceneUnsettled, SimulationError, UserError, WeightsError)
 from posegrasp.grasping.config import TrialConfig
-from posegrasp.grasping.episode import EpisodeTask, run_episode
+from posegrasp.grasping.episode import EpisodeJob, run_episode
+from posegrasp.grasping.tasks import get_task
 from posegrasp.perception.seg_net import SegNetConfig
 from posegrasp.sim.scene import SceneConfig, make_scene
 
@@ -47,5 +48,5 @@ def test_a_scene_that_never_settles_raises_scene_unsettled():
 def test_an_episode_records_an_unsettled_scene_as_a_simulation_error(task):
     cfg = dataclasses.replace(TrialConfig(), task=task, scene=SceneConfig(settle_timeout=0.0))
     mount = tuple(tuple(row) for row in np.eye(4).tolist())
-    rec, _ = run_episode(EpisodeTask(0, 0, "oracle", cfg, mount))
+    rec, _ = run_episode(EpisodeJob(get_task(cfg.task), 0, 0, "oracle", cfg, mount))
     assert rec.failure == "simulation error"

@@ -59,7 +59,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
 def trained(inputs, tmp_path_factory) -> Path:
     """A run with all four stages trained for 2 steps."""
     run = tmp_path_factory.mktemp("run")
-    for stage in ("seg", "pose", "refine", "cls"):
+    for stage in ("seg", "pose", "refiner", "cls"):
         r = run_cli("train", stage, "--data", str(inputs["data"]), "--out", str(run), "--config", str(inputs["train"]),
                     "--steps", "2", "--no-progress")
         assert r.returncode == 0, r.stderr
@@ -155,7 +155,7 @@ def test_objects_show(small_disk, tmp_path, inputs):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("stage, needs", [("seg", ()), ("pose", ()), ("refine", ("pose",)), ("cls", ("seg",))])
+@pytest.mark.parametrize("stage, needs", [("seg", ()), ("pose", ()), ("refiner", ("pose",)), ("cls", ("seg",))])
 def test_train(small_disk, tmp_path, inputs, trained, stage, needs):
     full_disk_then_resume(Case(["train", stage, "--data", str(inputs["data"]), "--out", "out", "--config",
                                 str(inputs["train"]), "--steps", "6", "--no-progress"], rerun=["--resume"],

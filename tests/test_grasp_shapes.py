@@ -13,10 +13,11 @@ import trimesh
 from posegrasp.catalog import load_catalog
 from posegrasp.cli import main
 from posegrasp.geometry import axis_angle_R, make_T
-from posegrasp.grasping.config import GraspConfig, TrialConfig, with_set
+from posegrasp.grasping.config import GraspConfig, TrialConfig
+from posegrasp.grasping.tasks import with_set
 from posegrasp.grasping.grasps import (ANTIPODAL_CONE_DEG, antipodal_pairs, faces_fit, object_candidates,
                                        plan_grasps)
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 from posegrasp.objects.examples import t_part, u_channel
 
 COS_CONE = np.cos(np.deg2rad(ANTIPODAL_CONE_DEG))
@@ -81,6 +82,6 @@ def test_mesh_candidates_where_the_box_faces_miss(parts):
 @pytest.mark.slow
 def test_oracle_pick_place_on_imported_parts(parts, tmp_path):
     cfg = with_set(TrialConfig(min_blocks=1, max_blocks=2), parts)
-    summary = run_trials(tmp_path / "run", 2, seed=0, perception="oracle", workers=1, cfg=cfg, progress=False)
+    summary = run_trials(tmp_path / "run", 2, seed=0, perception="oracle", workers=1, cfg=cfg, display=Display(progress=False))
     targets = [json.loads(line)["target"]["type"] for line in (tmp_path / "run" / "episodes.jsonl").open()]
     assert summary["success"] >= 2, targets  # measured: 2/2 (docs/objects.md gives the 200-episode rate)

@@ -143,7 +143,7 @@ def look_frame():
     wc.set_block_pose(4, make_T(np.eye(3), (-0.4, -0.4, 0.02)))  # out of the camera's view
     mujoco.mj_forward(wc.model, wc.data)
     c = wc.cfg.hand_camera
-    cam = CameraRenderer(wc, HAND_CAMERA, c.width, c.height, c.fovy_deg, c.near, c.far)
+    cam = CameraRenderer(wc, HAND_CAMERA, c)
     frame = cam.capture()
     cam.close()
     return frame

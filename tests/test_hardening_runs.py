@@ -256,7 +256,7 @@ def test_object_set_numbers_are_checked(tmp_path):
                                          (lambda m: m["objects"][0].update(obj_id="1"), "an integer obj_id")])
 def test_object_set_manifest_is_typed(tmp_path, edit, words):
     from posegrasp.errors import DatasetError
-    from posegrasp.objects.objset import load_object_set
+    from posegrasp.objset import load_object_set
 
     root = tmp_path / "set"
     shutil.copytree(ROOT / "assets" / "blocks", root, ignore=shutil.ignore_patterns("*.py"))

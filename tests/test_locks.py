@@ -21,7 +21,7 @@ from posegrasp.datagen.generate import SETTINGS_FILE, generate_dataset, is_compl
 from posegrasp.errors import UserError
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 from posegrasp.lock import LOCK_FILE, folder_lock
 from posegrasp.perception.evaluate import evaluate
 from posegrasp.perception.train_seg import train_seg
@@ -131,7 +131,7 @@ def test_a_failed_trials_start_leaves_the_folder_usable(tmp_path):
     out = tmp_path / "run"
     out.mkdir()
     (out / CAMPAIGN).write_text(json.dumps({"seed": 99, "perception": "oracle"}))  # what a start that failed left
-    run_trials(out, 1, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), progress=False)
+    run_trials(out, 1, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), display=Display(progress=False))
     assert json.loads((out / CAMPAIGN).read_text())["seed"] == 0 and (out / EPISODES).read_text().count("\n") == 1
     with pytest.raises(UserError, match="different campaign"):
-        run_trials(out, 1, seed=1, perception="oracle", workers=1, cfg=TrialConfig(), progress=False)
+        run_trials(out, 1, seed=1, perception="oracle", workers=1, cfg=TrialConfig(), display=Display(progress=False))

@@ -15,7 +15,7 @@ from PIL import Image
 from test_bad_input import refused
 
 from posegrasp.cli import main
-from posegrasp.objects.objset import load_object_set
+from posegrasp.objset import load_object_set
 
 R_MM, H_MM = 20.0, 30.0
 CYAN, ORANGE = (30, 170, 210), (230, 120, 20)
@@ -92,7 +92,7 @@ def _step_deviation(tmp_path: Path, name: str, *extra: str) -> tuple[float, floa
     step = tmp_path / "cylinder.step"
     step.write_text(cylinder_step(R_MM, H_MM))
     cfg = tmp_path / f"{name}.toml"
-    cfg.write_text("\n".join(extra) + "\n")
+    cfg.write_text("[import]\n" + "\n".join(extra) + "\n")
     _import([step], tmp_path / name, "--config", str(cfg))
     o = load_object_set(tmp_path / name).objects[0]
     assert o.source["unit"] == "m" and o.source["file"] == "cylinder.step"

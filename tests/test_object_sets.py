@@ -15,7 +15,8 @@ from test_bad_input import refused, snapshot
 from posegrasp import bop
 from posegrasp.catalog import DEFAULT_SET, load_catalog, set_record
 from posegrasp.cli import main
-from posegrasp.grasping.config import TrialConfig, with_set
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.tasks import with_set
 from posegrasp.grasping.tasks.standing import standing_R
 
 

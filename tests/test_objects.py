@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import json
 import shutil
+import textwrap
 from pathlib import Path
 
-import networkx as nx
 import numpy as np
 import pytest
 import trimesh
@@ -17,9 +17,9 @@ from test_bad_input import refused, snapshot
 from posegrasp.catalog import load_catalog
 from posegrasp.cli import main
 from posegrasp.objects.mass import mass_properties
-from posegrasp.objects.objset import load_object_set
+from posegrasp.objset import load_object_set
 from posegrasp.objects.rest import upright
-from posegrasp.objects.symmetry import find_symmetries
+from posegrasp.objects.symmetry import find_symmetries, near_warnings
 
 TF = trimesh.transformations
 TILT = TF.rotation_matrix(0.7, [1.0, 2.0, 3.0])
@@ -145,19 +145,26 @@ def test_the_shipped_blocks_symmetries_and_upright_faces_are_found() -> None:
         up = upright(mesh, props.center_of_mass, 0.01 * props.diameter)
         assert np.allclose(up.down, block.upright_down), block.name
         assert (up.flat_top, up.flat_bottom) == (block.flat_top, block.flat_bottom), block.name
-        disc, cont = find_symmetries(mesh, props.center_of_mass, props.inertia, 0.01 * props.diameter)
+        found = find_symmetries(mesh, props.center_of_mass, props.inertia, 0.01 * props.diameter)
+        disc, cont = found.discrete, found.continuous
         assert len(cont) == len(block.symmetries_continuous), block.name
         assert len(disc) == len(block.symmetries_discrete), block.name
         for T in disc:
             assert min(np.abs(T - S).max() for S in block.symmetries_discrete) < 1e-5, block.name
 
 
-def test_the_set_format_imports_only_the_core() -> None:
-    """The catalogue (core) can read sets through objset, which therefore must not reach into any part."""
-    from test_packaging import PARTS, import_graph
+def test_the_fit_check_defaults_are_the_shipped_workcell() -> None:
+    """The workcell the import checks parts against is the shipped one: the grasp settings' finger span, the
+    workcell's pick area, hand camera and look height."""
+    from posegrasp.grasping.config import GraspConfig
+    from posegrasp.objects.config import FitCheckConfig
+    from posegrasp.sim.config import load_workcell_config
 
-    reached = nx.descendants(import_graph(), "posegrasp.objects.objset")
-    assert not [m for m in reached if m.split(".")[1] in PARTS], sorted(reached)
+    fit, g, w = FitCheckConfig(), GraspConfig(), load_workcell_config()
+    assert fit.hand_span == (g.min_width, g.max_width)
+    assert fit.pick_area_half_size == tuple(w.pick_area.half_size)
+    assert (fit.camera_height, fit.camera_fovy_deg, fit.look_height) == \
+        (w.hand_camera.height, w.hand_camera.fovy_deg, w.look_height)
 
 
 def test_same_input_gives_byte_identical_files(meshes, imported: Path, tmp_path: Path) -> None:
@@ -239,3 +246,138 @@ def test_bad_set_folders_are_refused(capsys, imported: Path, tmp_path: Path) -> 
     before = snapshot(ds)
     refused(capsys, ["objects", "import", imported / "models" / "obj_000001.ply", "--out", ds], "not an object set")
     assert snapshot(ds) == before and not png.exists()
+
+
+# --- settings files, symmetry groups and near symmetries -----------------------------------------------------------
+
+
+def _box_file(d: Path) -> Path:
+    path = d / "box.obj"
+    trimesh.creation.box([0.06, 0.04, 0.02]).export(path)
+    return path
+
+
+@pytest.mark.parametrize("text, note", [
+    ("[import]\ndensity = 2000.0\n\n[import.fit]\nhand_span = [0.012, 0.015]\n", False),  # as docs/objects.md
+    ("density = 2000.0\n\n[fit]\nhand_span = [0.012, 0.015]\n", True),  # keys at the top level: read, with a note
+])
+def test_import_settings_file(capsys, tmp_path: Path, text: str, note: bool) -> None:
+    cfg = tmp_path / "import.toml"
+    cfg.write_text(text)
+    out = tmp_path / "set"
+    assert main(["objects", "import", str(_box_file(tmp_path)), "--out", str(out), "--config", str(cfg),
+                 "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert ("[import] table" in err) == note and len(err.strip().splitlines()) == int(note), err
+    o = load_object_set(out).objects[0]
+    assert o.mass == pytest.approx(2000.0 * 0.06 * 0.04 * 0.02, rel=1e-6)
+    assert any("exceeds the fingers' opening of 15.0 mm" in w for w in o.warnings), o.warnings
+
+
+def test_the_documented_import_table_is_read(capsys, tmp_path: Path) -> None:
+    """docs/objects.md's ``[import]`` sample is read as written, without a note."""
+    from posegrasp.objects.config import load_import_config
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "objects.md").read_text(encoding="utf-8")
+    sample = doc.split("```toml\n", 1)[1].split("```", 1)[0]
+    cfg = tmp_path / "import.toml"
+    cfg.write_text(textwrap.dedent(sample))
+    read = load_import_config(cfg)
+    assert (read.density, read.sym_tol_rel, read.step_linear_tolerance) == (2700.0, 0.015, 5e-5)
+    assert read.fit.hand_span == (0.012, 0.085) and read.fit.look_height == 0.38  # the rest: the defaults
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("text, words", [
+    ("[import]\ndensity = 2000.0\nmax_fold = 6\n[import.fit]\nlook_height = -1.0\n", "look_height = -1.0"),
+    ("density = 2000.0\n[import]\nmax_fold = 6\n", "unknown section(s) ['density']"),
+    ("[imports]\nmax_fold = 6\n", "unknown key(s) ['imports']"),
+    ("[import]\nmin_size = 0.5\nmax_size = 0.1\n", "min_size = 0.5 m is not below max_size"),
+])
+def test_bad_import_settings_are_refused(capsys, tmp_path: Path, text: str, words: str) -> None:
+    cfg = tmp_path / "import.toml"
+    cfg.write_text(text)
+    out = tmp_path / "set"
+    refused(capsys, ["objects", "import", _box_file(tmp_path), "--out", out, "--config", cfg], words)
+    assert not out.exists()
+
+
+def truncated_icosahedron(radius: float) -> trimesh.Trimesh:
+    """A soccer ball's polyhedron (60 vertices, 12 pentagons, 20 hexagons): its rotations are the icosahedral group
+    of order 60."""
+    ico = trimesh.creation.icosahedron()
+    a, b = ico.vertices[ico.edges_unique].transpose(1, 0, 2)
+    m = trimesh.convex.convex_hull(np.vstack([(2 * a + b) / 3, (a + 2 * b) / 3]))
+    return m.apply_scale(radius / np.linalg.norm(m.vertices, axis=1).max())
+
+
+def _closed(rotations: list[np.ndarray], angle: float = 1e-3) -> bool:
+    """Whether ``rotations`` (3x3) and the identity are closed under composition, within ``angle`` rad."""
+    group = np.array([np.eye(3), *rotations])
+    return all(((np.einsum("kij,ij->k", group, A @ B) - 1) / 2).max() >= np.cos(angle) for A in group for B in group)
+
+
+def test_a_found_symmetry_set_is_a_group() -> None:
+    """A soccer ball's turns about its 6 five-fold, 10 three-fold and 15 two-fold axes: 59 and the identity,
+    closed under composition (the search's candidates alone miss the two-fold axes; closing the group finds them)."""
+    ball = truncated_icosahedron(0.11).apply_transform(TILT)
+    props = mass_properties(ball, 1050.0)
+    found = find_symmetries(ball, props.center_of_mass, props.inertia, 0.01 * props.diameter)
+    rotations = [T[:3, :3] for T in found.discrete]
+    assert len(rotations) == 59 and not found.continuous and found.left_out == 0
+    assert _closed(rotations)
+    angles = np.round(np.degrees([np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)) for R in rotations]))
+    assert sorted(np.unique(angles, return_counts=True)[1]) == [12, 12, 15, 20]  # 72, 144, 180, 120 deg
+
+
+def test_turns_that_make_no_group_are_left_out() -> None:
+    """Half turns about x and y that pass, whose product (the half turn about z) does not: the set keeps the first
+    and leaves the second out, so it stays a group."""
+    from posegrasp.objects.symmetry import _group
+
+    class NoZ:  # passes every rotation but the half turn about z
+        def passes(self, R: np.ndarray) -> bool:
+            return not np.allclose(R, np.diag([-1.0, -1.0, 1.0]))
+
+        def score(self, R: np.ndarray) -> float:
+            return 0.0
+
+    half_x, half_y = np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])
+    group, left_out = _group([half_x, half_y], NoZ(), 0.01, 60)
+    assert len(group) == 1 and np.allclose(group[0], half_x) and left_out == 1
+
+
+def bumped_box(height: float) -> trimesh.Trimesh:
+    """A 60 x 40 x 20 mm box with a 10 x 10 mm pad ``height`` (m) high on its top near +x: its half turns move the
+    pad about ``height`` off the surface."""
+    box = trimesh.creation.box([0.06, 0.04, 0.02])
+    pad = trimesh.creation.box([0.01, 0.01, height + 0.001], TF.translation_matrix([0.02, 0, 0.0095 + height / 2]))
+    return trimesh.boolean.union([box, pad], engine="manifold")
+
+
+def test_near_symmetries_are_reported_with_their_error(capsys, tmp_path: Path) -> None:
+    """A pad 1.1 mm high (tolerance 0.75 mm): no symmetry, and the report names the three half turns and their
+    surface error; the sym_tol_rel it names admits them."""
+    mesh = bumped_box(0.0011)
+    props = mass_properties(mesh, 1050.0)
+    tol = 0.01 * props.diameter
+    found = find_symmetries(mesh, props.center_of_mass, props.inertia, tol)
+    assert not found.discrete and len(found.near) == 3
+    assert all(tol < e <= 2 * tol and e == pytest.approx(0.0011, abs=2e-4) for _, e in found.near)
+    assert all(np.trace(T[:3, :3]) == pytest.approx(-1.0, abs=1e-3) for T, _ in found.near)  # half turns
+    lines = near_warnings(found, tol, props.diameter)
+    assert len(lines) == 3 and all(" mm, over the 0.75 mm tolerance" in ln for ln in lines), lines
+    need = max(float(ln.split("sym_tol_rel = ")[1].split()[0]) for ln in lines)
+    assert len(find_symmetries(mesh, props.center_of_mass, props.inertia, need * props.diameter).discrete) == 3
+    assert not find_symmetries(*_flat(0.0003)).near  # a pad within the tolerance: symmetric, nothing near
+    mesh.export(tmp_path / "pad.ply")
+    assert main(["objects", "import", str(tmp_path / "pad.ply"), "--out", str(tmp_path / "set"), "--no-progress"]) == 0
+    shown = [ln for ln in capsys.readouterr().out.splitlines() if "near symmetry rejected: a 180 deg turn" in ln]
+    assert len(shown) == 3 and load_object_set(tmp_path / "set").objects[0].warnings[-3:] == tuple(
+        ln.removeprefix("  warning: ") for ln in shown)
+
+
+def _flat(height: float) -> tuple:
+    mesh = bumped_box(height)
+    props = mass_properties(mesh, 1050.0)
+    return mesh, props.center_of_mass, props.inertia, 0.01 * props.diameter

@@ -19,7 +19,7 @@ import posegrasp
 ROOT = Path(__file__).resolve().parents[1]
 #: Package name -> folder, as pyproject.toml maps them.
 PACKAGES = {"posegrasp": "posegrasp", "posegrasp.sim": "sim", "posegrasp.datagen": "datagen",
-            "posegrasp.perception": "perception", "posegrasp.perception.refine": "perception/refine",
+            "posegrasp.perception": "perception", "posegrasp.perception.depth_fit": "perception/depth_fit",
             "posegrasp.grasping": "grasping", "posegrasp.objects": "objects", "posegrasp.assets": "assets"}
 PARTS = ("sim", "datagen", "perception", "grasping", "objects")
 

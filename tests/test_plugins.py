@@ -25,7 +25,7 @@ from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.perception import Estimate, PerceptionError, call_with_timeout, checked_estimates
 from posegrasp.grasping.provider_registry import make_provider
 from posegrasp.grasping.runfolder import EPISODES
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = TrialConfig(min_blocks=1, max_blocks=1)
@@ -118,9 +118,9 @@ def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, 
     calls1.mkdir()
     calls2.mkdir()
     monkeypatch.chdir(tmp_path)  # a relative file path: recorded absolute, found by the workers
-    run_trials(tmp_path / "a", 2, 0, f"py:spy_provider.py:make:{calls1}", 1, CFG, _quiet(), False)
+    run_trials(tmp_path / "a", 2, 0, f"py:spy_provider.py:make:{calls1}", 1, CFG, Display(_quiet(), False))
     monkeypatch.syspath_prepend(str(tmp_path))  # the same plug-in as an importable module, in two workers
-    run_trials(tmp_path / "b", 2, 0, f"py:spy_provider:make:{calls2}", 2, CFG, _quiet(), False)
+    run_trials(tmp_path / "b", 2, 0, f"py:spy_provider:make:{calls2}", 2, CFG, Display(_quiet(), False))
     a, b = _records(tmp_path / "a"), _records(tmp_path / "b")
     assert [r["failure"] for r in a] == ["no detection"] * 2
     assert a[0]["perception"] == f"py:{tmp_path / 'spy_provider.py'}:make:{calls1}"
@@ -137,8 +137,8 @@ def test_bad_providers_fail_their_episodes_not_the_campaign(tmp_path):
     (tmp_path / "bad.py").write_text(BAD)
     cfg = dataclasses.replace(CFG, perception_timeout_s=1.0)
     t0 = time.perf_counter()
-    summary = run_trials(tmp_path / "run", len(BAD_WORDS), 0, f"py:{tmp_path / 'bad.py'}:make", 2, cfg, _quiet(),
-                         False)
+    summary = run_trials(tmp_path / "run", len(BAD_WORDS), 0, f"py:{tmp_path / 'bad.py'}:make", 2, cfg,
+                         Display(_quiet(), False))
     recs = _records(tmp_path / "run")
     assert [r["failure"] for r in recs] == ["perception error"] * len(BAD_WORDS)
     for r, words in zip(recs, BAD_WORDS):
@@ -235,7 +235,7 @@ def test_depth_only_example_grasps_blocks(tmp_path):
     assert provider.name == "depth-only"
     with pytest.raises(UserError, match="MIN_HEIGHT_MM,MAX_POINTS"):
         make_provider(spec + ":five")
-    summary = run_trials(tmp_path / "run", 2, 0, spec, 1, dataclasses.replace(CFG, max_blocks=3), _quiet(), False)
+    summary = run_trials(tmp_path / "run", 2, 0, spec, 1, dataclasses.replace(CFG, max_blocks=3), Display(_quiet(), False))
     recs = _records(tmp_path / "run")
     assert summary["success"] == 2, recs
     assert all(r["failure"] != "perception error" for r in recs)

@@ -16,7 +16,7 @@ from posegrasp.datagen.config import load_datagen_config
 from posegrasp.datagen.generate import SceneJob, generate_dataset
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.runfolder import EPISODES
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 
 pytestmark = pytest.mark.slow  # a local Ray cluster
 
@@ -54,7 +54,8 @@ def test_datagen_on_ray_gives_the_pools_bytes(cluster, tmp_path):
 
 def test_trials_on_ray_give_the_pools_records(cluster, tmp_path: Path):
     on_ray = run_trials(tmp_path / "ray", 2, seed=2, perception="oracle", workers="ray", cfg=TrialConfig(),
-                        progress=False)
-    run_trials(tmp_path / "pool", 2, seed=2, perception="oracle", workers=2, cfg=TrialConfig(), progress=False)
+                        display=Display(progress=False))
+    run_trials(tmp_path / "pool", 2, seed=2, perception="oracle", workers=2, cfg=TrialConfig(),
+               display=Display(progress=False))
     assert on_ray["workers"] == "ray"
     assert (tmp_path / "ray" / EPISODES).read_bytes() == (tmp_path / "pool" / EPISODES).read_bytes()

@@ -14,14 +14,15 @@ from posegrasp.catalog import load_catalog
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T
 from posegrasp.grasping.compare import compare_runs
-from posegrasp.grasping.config import TrialConfig, check_task
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.tasks import check_task, get_task
 from posegrasp.grasping.record import EpisodeRecord, Failure
 from posegrasp.grasping.runfolder import EPISODES
 from posegrasp.grasping.tasks.base import PAD_TOP
 from posegrasp.grasping.tasks.kitting import KittingConfig, kitting_verdict
 from posegrasp.grasping.tasks.stack import StackConfig, can_stack, stack_verdict
 from posegrasp.grasping.tasks.standing import standing_extent
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import SceneConfig, settle
 from posegrasp.sim.workcell import BlockInstance, Workcell
@@ -124,7 +125,7 @@ def test_a_task_the_catalogue_cannot_serve_is_refused():
 @pytest.mark.slow
 def test_short_oracle_campaign_and_same_seed_same_records(tmp_path, task, measured):
     cfg = TrialConfig(task=task)
-    s = run_trials(tmp_path / "a", 8, seed=0, perception="oracle", workers=2, cfg=cfg, progress=False)
+    s = run_trials(tmp_path / "a", 8, seed=0, perception="oracle", workers=2, cfg=cfg, display=Display(progress=False))
     assert s["task"] == task and s["success"] >= success_floor(*measured, 8)  # 6 and 5
     recs = [json.loads(line) for line in (tmp_path / "a" / EPISODES).read_text().splitlines()]
     for r in recs:
@@ -136,7 +137,7 @@ def test_short_oracle_campaign_and_same_seed_same_records(tmp_path, task, measur
             assert r["estimate_error"]["re_deg"] < 1.0  # the oracle
         if task == "stack" and r.get("base", {}).get("estimate_error"):
             assert r["base"]["estimate_error"]["te"] < 2e-3
-    run_trials(tmp_path / "b", 2, seed=0, perception="oracle", workers=1, cfg=cfg, progress=False)
+    run_trials(tmp_path / "b", 2, seed=0, perception="oracle", workers=1, cfg=cfg, display=Display(progress=False))
     assert (tmp_path / "b" / EPISODES).read_text().splitlines() == \
         (tmp_path / "a" / EPISODES).read_text().splitlines()[:2]
 
@@ -178,7 +179,7 @@ def test_firm_hold_tasks_run_noslip_and_sleep_and_pick_place_does_not_by_default
     for task, firm, noslip in [("pick-place", (), 0), ("kitting", (), 2), ("stack", (), 2),
                                ("pick-place", ("pick-place",), 2), ("kitting", ("pick-place",), 0)]:
         cfg = TrialConfig(task=task, firm_hold_tasks=firm) if firm else TrialConfig(task=task)
-        m = episode_workcell(cfg, 3, 2).model
+        m = episode_workcell(get_task(task), cfg, 3, 2).model
         assert m.opt.noslip_iterations == noslip and bool(m.opt.enableflags & sleep) == (noslip > 0), (task, firm)
     with pytest.raises(UserError, match="firm_hold_tasks names unknown task"):
         check_task(TrialConfig(firm_hold_tasks=("juggling",)))

@@ -13,7 +13,7 @@ from helpers import PICK_PLACE_ORACLE, run_cli, success_floor
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.stats import wilson
 from posegrasp.grasping.runfolder import EPISODES
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def oracle_run(tmp_path_factory):
 def serial_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("serial")
     console = Console(file=io.StringIO())
-    run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), console=console, progress=False)
+    run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), display=Display(console, False))
     assert "episodes succeeded" in console.file.getvalue()  # the summary is printed ...
     assert "trials oracle" not in console.file.getvalue()  # ... but no progress line
     return out
@@ -66,7 +66,7 @@ def test_resume_after_a_kill_gives_the_same_file(serial_run, tmp_path):
     lines = full.decode().splitlines(keepends=True)
     (out / EPISODES).write_text(lines[2] + lines[0] + lines[3][:37])  # out of order, and a torn last line
     console = Console(file=io.StringIO())
-    summary = run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), console=console)
+    summary = run_trials(out, 4, seed=0, perception="oracle", workers=1, cfg=TrialConfig(), display=Display(console))
     assert summary["wall"]["episodes_run"] == 2
     assert "trials pick-place oracle  success" in console.file.getvalue()  # the progress line of a non-terminal console
     assert (out / EPISODES).read_bytes() == full

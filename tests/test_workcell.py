@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import mujoco
 import numpy as np
 import pytest
@@ -20,7 +22,7 @@ def capture_at_look(seed: int, n_blocks: int = 5, width: int = 640, height: int 
     wc = scene.workcell
     assert wc.drive_arm(wc.look_q)
     c = cfg.hand_camera
-    r = CameraRenderer(wc, HAND_CAMERA, width, height, c.fovy_deg, c.near, c.far)
+    r = CameraRenderer(wc, HAND_CAMERA, dataclasses.replace(c, width=width, height=height))
     frame = r.capture()
     r.close()
     return frame, scene
@@ -106,14 +108,14 @@ def test_shared_gl_context_renders_like_an_own_one():
         wc = make_scene(seed, 3).workcell
         assert wc.drive_arm(wc.look_q, tol=0.01)
         c, o, r = wc.cfg.hand_camera, wc.cfg.overview_camera, wc.cfg.render
-        own = CameraRenderer.from_config(wc, HAND_CAMERA, c, r)
+        own = CameraRenderer(wc, HAND_CAMERA, c, r)
         own.renderer.close()
         own.renderer = mujoco.Renderer(wc.model, c.height, c.width)
         own.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = r.shadows
         own.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = r.reflections
         want = [own.rgb(), own.depth(), own.mask()]
-        hand = CameraRenderer.from_config(wc, HAND_CAMERA, c, r)
-        over = CameraRenderer.from_config(wc, OVERVIEW_CAMERA, o, r)
+        hand = CameraRenderer(wc, HAND_CAMERA, c, r)
+        over = CameraRenderer(wc, OVERVIEW_CAMERA, o, r)
         overview = over.rgb()
         got = []
         for kind in ("rgb", "depth", "mask"):

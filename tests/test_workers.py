@@ -18,7 +18,7 @@ from posegrasp.datagen.config import load_datagen_config
 from posegrasp.datagen.generate import generate_dataset, is_complete
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.runfolder import EPISODES
-from posegrasp.grasping.trials import run_trials
+from posegrasp.grasping.trials import Display, run_trials
 
 TINY_TOML = """
 blocks = [2, 3]
@@ -120,8 +120,8 @@ def test_trials_workers_die_with_their_parent(tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
     assert_orphans_gone_and_nothing_written(kids, out)
     ref = tmp_path / "reference"
-    run_trials(ref, 2, seed=4, perception="oracle", workers=1, cfg=TrialConfig(), progress=False)
-    run_trials(out, 2, seed=4, perception="oracle", workers=1, cfg=TrialConfig(), progress=False)
+    run_trials(ref, 2, seed=4, perception="oracle", workers=1, cfg=TrialConfig(), display=Display(progress=False))
+    run_trials(out, 2, seed=4, perception="oracle", workers=1, cfg=TrialConfig(), display=Display(progress=False))
     assert (out / EPISODES).read_bytes() == (ref / EPISODES).read_bytes()
 
 

@@ -12,7 +12,7 @@ Writes, deterministically (same inputs and library versions give byte-identical 
   distance between two vertices), ``min_x/y/z`` and ``size_x/y/z`` (mm), ``symmetries_discrete``
   (row-major 4x4, translation in mm, identity excluded) and ``symmetries_continuous``
   (``{"axis": [..], "offset": [.. mm]}``).
-- ``objects/obj_00000N.json`` and ``objectset.json``: the folder is an object set (``posegrasp.objects.objset``,
+- ``objects/obj_00000N.json`` and ``objectset.json``: the folder is an object set (``posegrasp.objset``,
   ``docs/objects.md``), the default one every command uses. Per block, in SI units (m, kg): mass from ABS
   density x mesh volume, a friction hint (MuJoCo's sliding/torsional/rolling triple), a colour, ``upright``
   (the object-frame direction of the face it stands on upright, studs up and arch on its feet, the rotation
@@ -54,7 +54,7 @@ from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.distance import pdist
 
 from posegrasp.io import write_bytes, write_json
-from posegrasp.objects.objset import FORMAT, MANIFEST, VERSION
+from posegrasp.objset import FORMAT, MANIFEST, VERSION
 
 HERE = Path(__file__).resolve().parent
 DENSITY_ABS = 1050.0  # kg/m^3

@@ -43,8 +43,9 @@ def make_provider(args: str | None, objects: str) -> DepthOnlyProvider:
     if args:
         try:
             mm, n = args.split(",")
-            cfg.min_height = float(mm) / 1000
-            cfg.icp.fit = dataclasses.replace(cfg.icp.fit, max_points=int(n))
+            min_height, max_points = float(mm) / 1000, int(n)
         except ValueError:
             raise UserError(f"depth-only ARGS {args!r} are not MIN_HEIGHT_MM,MAX_POINTS, e.g. 5,200") from None
+        fit = dataclasses.replace(cfg.depth_fit.fit, max_points=max_points)
+        cfg = dataclasses.replace(cfg, min_height=min_height, depth_fit=dataclasses.replace(cfg.depth_fit, fit=fit))
     return DepthOnlyProvider(DepthIcp(objects, cfg=cfg))

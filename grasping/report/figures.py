@@ -5,16 +5,28 @@ from __future__ import annotations
 
 import base64
 import io
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from posegrasp.gl import pyrender_renderer
 from posegrasp.grasping.record import EpisodeRecord
-from posegrasp.grasping.report.resim import Look
+from posegrasp.sim.camera import Frame
 
 #: Outline colours (RGB) of the model at the true and at the estimated pose.
 TRUE_RGB, EST_RGB = (40, 230, 60), (255, 40, 200)
+
+
+@dataclass
+class Look:
+    """An episode's re-simulated look capture: the frame, the provider's estimates, labels and overview image."""
+
+    frame: Frame
+    estimates: list
+    labels: np.ndarray
+    overview: np.ndarray
+    objects: str = ""  # the object set's folder (``""``: the shipped blocks)
 
 
 def silhouette(block, T_cam_obj: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -8,41 +8,27 @@ from pathlib import Path
 
 from posegrasp.errors import UserError
 from posegrasp.executor import Executor
-from posegrasp.grasping.record import BIN_PICK, EpisodeRecord
 from posegrasp.grasping.report import sections
-from posegrasp.grasping.report.binpick import replay_bin_episodes, replayable
 from posegrasp.grasping.report.resim import resimulate_looks
 from posegrasp.grasping.report.run import TrialRun, read_run
+from posegrasp.grasping.report.sections import pick_samples
+from posegrasp.grasping.tasks import get_task
 
 REPORT = "report.html"
-#: Bin-picking episodes shown at most (each replayed whole: its film and failed captures).
-BIN_SHOWN = 2
-
-
-def pick_samples(records: list[EpisodeRecord], n: int) -> list[EpisodeRecord]:
-    """The first successes and the first failures, up to ``n`` episodes in all (failures get half), by index."""
-    fail = [r for r in records if r.outcome != "success"]
-    ok = [r for r in records if r.outcome == "success"]
-    nf = min(len(fail), n // 2)
-    chosen = fail[:nf] + ok[: n - nf]
-    chosen += fail[nf: nf + n - len(chosen)]
-    return sorted(chosen, key=lambda r: r.episode)
 
 
 def write_report(run_dir: Path, samples: int = 4, strip: int = 6, executor: Executor | None = None) -> Path:
     """Write ``run_dir/report.html`` from its ``episodes.jsonl``, ``summary.json`` and ``campaign.json``;
     ``samples`` episodes get Fig. 9-10 style frames, ``strip`` episodes an overview snapshot, re-simulated by
-    ``executor`` (a campaign's warm workers) or in this process; a bin-picking run shows up to ``BIN_SHOWN`` of
-    the ``samples`` episodes attempt by attempt, replayed whole (``report.binpick``). Returns the path."""
+    ``executor`` (a campaign's warm workers) or in this process; a task with a page of its own
+    (``Task.report_page``: bin picking) shows that instead. Returns the path."""
     from posegrasp.io import atomic_write
 
     if samples < 0 or strip < 0:
         raise UserError(f"--samples and --strip must be >= 0, got {samples} and {strip}")
     run = read_run(run_dir)
-    if run.campaign.config.task == BIN_PICK:
-        page = _bin_page(run, samples, executor)
-    else:
-        page = _table_page(run, samples, strip, executor)
+    page = get_task(run.campaign.config.task).report_page(run, samples, executor) or \
+        _table_page(run, samples, strip, executor)
     path = run.path / REPORT
     atomic_write(path, lambda p: p.write_text(page))
     return path
@@ -56,15 +42,6 @@ def _table_page(run: TrialRun, samples: int, strip: int, executor: Executor | No
     return sections.page([sections.headline(run), sections.settings(run), sections.per_block(run),
                           sections.failures(run), sections.error_plots(run),
                           sections.sample_frames(run, shown, looks), sections.episode_strip(strip_eps, looks)])
-
-
-def _bin_page(run: TrialRun, samples: int, executor: Executor | None) -> str:
-    """The page of a bin-picking run: its statistics, the attempts of up to ``BIN_SHOWN`` shown episodes (of
-    ``samples``) and, for the oracle providers, those episodes replayed (failed captures, tote, film)."""
-    shown = pick_samples(run.episodes, min(samples, BIN_SHOWN))
-    replays = replay_bin_episodes(run.path, shown, executor) if replayable(run.campaign.perception) else {}
-    return sections.page([sections.headline(run), sections.settings(run), sections.bin_summary(run),
-                          sections.bin_attempts(run, shown, replays), sections.bin_films(shown, replays)])
 
 
 def register(sub: argparse._SubParsersAction) -> None:

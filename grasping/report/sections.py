@@ -6,11 +6,9 @@ from __future__ import annotations
 import html
 from typing import Iterable, Mapping
 
-from posegrasp.grasping.record import FAILURES, Attempt, BinPickRecord, EpisodeRecord, Target
-from posegrasp.grasping.report.binpick import REPLAYED, BinReplay
-from posegrasp.grasping.report.figures import (EST_RGB, TRUE_RGB, animation_uri, data_uri, error_plot, pose_overlay,
-                                               rotation_deg, segmentation_overlay)
-from posegrasp.grasping.report.resim import Look
+from posegrasp.grasping.record import FAILURES, EpisodeRecord, Target
+from posegrasp.grasping.report.figures import (EST_RGB, TRUE_RGB, Look, data_uri, error_plot, pose_overlay, rotation_deg,
+                                               segmentation_overlay)
 from posegrasp.grasping.report.run import Rate, TrialRun
 
 _CSS = """body{font-family:sans-serif;margin:24px;color:#222;max-width:1400px}
@@ -24,15 +22,15 @@ for(var i=0;i<im.length;i++){if(im[i].complete&&im[i].naturalWidth>0)n++;}
 document.title='images decoded: '+n+'/'+im.length;});</script>"""
 
 
-def _pct(x: float) -> str:
+def pct(x: float) -> str:
     return f"{100 * x:.1f} %"
 
 
-def _interval(r: Rate) -> str:
+def interval(r: Rate) -> str:
     return f"{100 * r.wilson95[0]:.1f}-{100 * r.wilson95[1]:.1f} %"
 
 
-def _table(head: list[str], rows: list[list[str]]) -> str:
+def table(head: list[str], rows: list[list[str]]) -> str:
     th = "".join(f"<th>{html.escape(h)}</th>" for h in head)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
     return f"<table><tr>{th}</tr>{body}</table>"
@@ -57,16 +55,16 @@ def headline(run: TrialRun) -> str:
     task, s = run.campaign.config.task, run.summary
     return (f"<h1>Grasp trials, task {html.escape(task)}: {html.escape(run.campaign.perception)}</h1>"
             f"<p class=big><b>{s.overall.success}/{s.overall.n}</b> episodes succeeded = "
-            f"<b>{_pct(s.overall.rate)}</b> (Wilson 95 % interval {_interval(s.overall)}); grasp success "
-            f"{s.grasp_success.success}/{s.overall.n} = {_pct(s.grasp_success.rate)} "
-            f"({_interval(s.grasp_success)})</p>")
+            f"<b>{pct(s.overall.rate)}</b> (Wilson 95 % interval {interval(s.overall)}); grasp success "
+            f"{s.grasp_success.success}/{s.overall.n} = {pct(s.grasp_success.rate)} "
+            f"({interval(s.grasp_success)})</p>")
 
 
 def settings(run: TrialRun) -> str:
     """What the run was made with, its mean pose error and simulated time, and where it lies."""
     c, s = run.campaign, run.summary
     objects = c.set_record()
-    return _table(["setting", "value"], [
+    return table(["setting", "value"], [
         ["task", c.config.task], ["perception", c.perception], ["episodes", str(len(run.episodes))],
         ["campaign seed", str(c.seed)], ["object set", f"{objects['name']} ({objects['path']})"],
         ["mean pose error (ADD(-S))", "-" if s.mean_pose_error_m is None else f"{1000 * s.mean_pose_error_m:.2f} mm"],
@@ -76,18 +74,18 @@ def settings(run: TrialRun) -> str:
 
 def per_block(run: TrialRun) -> str:
     """Success by target block, with intervals."""
-    return "<h2>Per target block</h2>" + _table(
+    return "<h2>Per target block</h2>" + table(
         ["block", "success", "n", "rate", "95 % interval"],
-        [[b, str(r.success), str(r.n), _pct(r.rate), _interval(r)] for b, r in run.summary.per_block.items()])
+        [[b, str(r.success), str(r.n), pct(r.rate), interval(r)] for b, r in run.summary.per_block.items()])
 
 
 def failures(run: TrialRun) -> str:
     """Failure reasons in ``FAILURES`` order: count, share and the episodes."""
     s = run.summary
-    rows = [[f, str(s.failures[f]), _pct(s.failures[f] / s.overall.n),
+    rows = [[f, str(s.failures[f]), pct(s.failures[f] / s.overall.n),
              ", ".join(str(r.episode) for r in run.episodes if r.failure == f)]
             for f in FAILURES if s.failures.get(f)]
-    return "<h2>Failures</h2>" + (_table(["reason", "count", "share of episodes", "episodes"], rows) if rows
+    return "<h2>Failures</h2>" + (table(["reason", "count", "share of episodes", "episodes"], rows) if rows
                                   else "<p>none</p>")
 
 
@@ -139,94 +137,14 @@ def episode_strip(episodes: Iterable[EpisodeRecord], looks: Mapping[int, Look | 
     return "".join(out)
 
 
-def _rates(title: str, head: str, rates: Mapping[str, Rate]) -> str:
-    return f"<h3>{html.escape(title)}</h3>" + _table(
-        [head, "success", "n", "rate", "95 % interval"],
-        [[k, str(r.success), str(r.n), _pct(r.rate), _interval(r)] for k, r in rates.items()])
-
-
-def _counts(title: str, head: str, counts: Mapping[str, int]) -> str:
-    return f"<h3>{html.escape(title)}</h3>" + (_table([head, "count"], [[k, str(v)] for k, v in counts.items()])
-                                               if counts else "<p>none</p>")
-
-
-def bin_summary(run: TrialRun) -> str:
-    """Bin picking's statistics: percent cleared, attempt and grasp success, picks per simulated hour, attempt
-    failures and episode ends by reason, attempt success by part type and by the target's visible fraction."""
-    b = run.summary.bin_pick
-    cleared = "-" if b.percent_cleared is None else f"{b.percent_cleared:.1f} %"
-    if b.percent_cleared_ci95 is not None:
-        cleared += f" (t 95 % interval {b.percent_cleared_ci95[0]:.1f}-{b.percent_cleared_ci95[1]:.1f} %)"
-    per_hour = "-" if b.picks_per_sim_hour is None else f"{b.picks_per_sim_hour:.0f}"
-    a, g = b.attempts, b.grasps
-    return ("<h2>Bin picking</h2>" + _table(["measure", "value"], [
-        ["parts cleared per episode (mean)", cleared],
-        ["totes emptied", f"{b.episodes_cleared}/{run.summary.overall.n}"],
-        ["parts removed", f"{b.parts_removed}/{b.parts_present}"],
-        ["attempt success", f"{a.success}/{a.n} = {_pct(a.rate)} (Wilson 95 % interval {_interval(a)})"],
-        ["grasp success (attempts that went for a part)",
-         "-" if g is None else f"{g.success}/{g.n} = {_pct(g.rate)} (Wilson 95 % interval {_interval(g)})"],
-        ["picks per simulated hour", per_hour], ["simulated hours", f"{b.sim_hours:.3f}"]])
-        + _counts("Failed attempts", "reason", b.attempt_failures)
-        + _counts("Episode ends", "end", b.episode_ends)
-        + _rates("Attempt success by part type", "part type", b.per_type)
-        + _rates("Attempt success by the target's visible fraction", "visible fraction", b.per_visibility))
-
-
-def _attempt_row(a: Attempt) -> list[str]:
-    t = a.target
-    target = t.type if isinstance(t, Target) else "a false detection (no part)" if t else "-"
-    vis = "-" if a.visib_fract is None else f"{a.visib_fract:.2f}"
-    err = "-" if a.pose_error is None else f"{a.pose_error.metric} {1000 * a.pose_error.err:.1f} mm"
-    return [str(a.attempt), target, vis, err, a.outcome, a.failure or "-", f"{a.sim_time:.1f} s"]
-
-
-def bin_attempts(run: TrialRun, episodes: Iterable[BinPickRecord], replays: Mapping[int, BinReplay | None]) -> str:
-    """Per shown episode: its attempts, and the hand camera's capture of each failed attempt with the models at
-    the true and at the provider's estimated poses (replayed episodes only)."""
-    key = (f'<span class=key style="background:rgb{TRUE_RGB}"></span> model at the true pose &nbsp; '
-           f'<span class=key style="background:rgb{EST_RGB}"></span> model at the estimated pose')
-    out = [f"<h2>Attempts</h2><p>Each attempt of the shown episodes; below a table, the hand camera's capture of "
-           f"each failed attempt, replayed from the recorded seeds: {key}.</p>"]
-    if run.campaign.perception.split(":", 1)[0] not in REPLAYED:
-        out.append(f"<p>Episodes are replayed for the providers {', '.join(REPLAYED)} only (a model's network would "
-                   "run at every attempt again): no captures, tote images or film for this run.</p>")
-    for rec in episodes:
-        end = "tote emptied" if rec.outcome == "success" else f"ended: {rec.failure}"
-        out.append(f"<h3>Episode {rec.episode} ({html.escape(end)}): {rec.removed}/{rec.n_blocks} parts removed in "
-                   f"{len(rec.attempts)} attempts, {rec.sim_time:.1f} s simulated</h3>")
-        out.append(_table(["attempt", "target", "visible fraction", "estimate error", "outcome", "failure",
-                           "simulated time"], [_attempt_row(a) for a in rec.attempts]) if rec.attempts
-                   else "<p>no attempt</p>")
-        rp = replays.get(rec.episode)
-        for a in rec.attempts:
-            lk = rp.failed.get(a.attempt) if rp is not None else None
-            if lk is not None:
-                cap = html.escape(f"episode {rec.episode}, attempt {a.attempt}: {a.failure}")
-                out.append(f'<figure><img alt="failed attempt" width="480" src="{data_uri(pose_overlay(lk))}">'
-                           f"<figcaption>{cap}</figcaption></figure>")
-    return "".join(out)
-
-
-def bin_films(episodes: Iterable[BinPickRecord], replays: Mapping[int, BinReplay | None]) -> str:
-    """Per replayed episode: the overview camera's tote before the first and after the last attempt, and a film
-    of the episode (an animated GIF)."""
-    out = ["<h2>The tote, before and after</h2><p>The overview camera, replayed from the recorded seeds: the tote "
-           "before the first attempt, after the last (parts in the out-box are taken out of the scene), and the "
-           "episode as a film.</p>"]
-    for rec in episodes:
-        rp = replays.get(rec.episode)
-        if rp is None:
-            continue
-        speed = f"a frame every {rp.period_s:.2f} s of simulated time, shown in real time"
-        out.append(f'<div><figure><img alt="tote before" width="320" src="{data_uri(rp.before)}">'
-                   f"<figcaption>episode {rec.episode}: before</figcaption></figure>"
-                   f'<figure><img alt="tote after" width="320" src="{data_uri(rp.after)}">'
-                   f"<figcaption>episode {rec.episode}: after ({rec.removed}/{rec.n_blocks} removed)</figcaption>"
-                   f'</figure><figure><img class=film alt="episode film" width="320" '
-                   f'src="{animation_uri(rp.film, rp.period_s)}"><figcaption>episode {rec.episode}: '
-                   f"{len(rp.film)} frames, {speed}</figcaption></figure></div>")
-    return "".join(out)
+def pick_samples(records: list[EpisodeRecord], n: int) -> list[EpisodeRecord]:
+    """The first successes and the first failures, up to ``n`` episodes in all (failures get half), by index."""
+    fail = [r for r in records if r.outcome != "success"]
+    ok = [r for r in records if r.outcome == "success"]
+    nf = min(len(fail), n // 2)
+    chosen = fail[:nf] + ok[: n - nf]
+    chosen += fail[nf: nf + n - len(chosen)]
+    return sorted(chosen, key=lambda r: r.episode)
 
 
 def page(sections: Iterable[str]) -> str:

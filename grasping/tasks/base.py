@@ -1,4 +1,4 @@
-"""The trial task protocol: what the robot must do in an episode, in which scene, and how it is judged.
+"""The trial task: what the robot must do in an episode, in which scene, and how it is judged.
 
 A campaign (``posegrasp trials --task NAME``) runs one ``Task``, found by its name in ``grasping.tasks.REGISTRY``.
 The campaign checks its settings once (``Task.check``); then, for every episode, the loop
@@ -24,8 +24,11 @@ to steady the arm). ``pick_place.py``, ``kitting.py`` and ``stack.py`` are the e
 is a sequence of attempts writes its own ``run`` instead: bin picking, say, loops perceive / choose a part among
 the estimates / pick / drop into an out-box until the tote is empty, K attempts in a row failed or 2N attempts
 were made, catching ``EpisodeFailed`` per attempt; it keeps one record per attempt in a record type of its own
-(``new_record``: an ``EpisodeRecord`` subclass with an ``attempts`` list, say), builds its tote scene in ``scene``
-(with its own settings, e.g. ``bin`` or ``pile``) and adds its metrics to the campaign summary (``metrics``).
+(an ``EpisodeRecord`` subclass declared with ``task=NAME``, which ``new_record`` then makes), builds its tote scene
+in ``scene`` (with its own settings, e.g. ``bin`` or ``pile``) and declares what its campaign summary, a comparison
+of two of its runs and its report page show (``metrics``, ``print_summary``, ``compare``, ``judged_by``,
+``print_comparison``, ``report_page``): nothing outside the task compares its name. Such a task is a package
+(``bin_pick/``).
 
 Rules every task keeps:
 
@@ -33,30 +36,38 @@ Rules every task keeps:
   ``Episode.percept_seed``, ``Episode.place_offset`` and ``Episode.seed_for(j)`` for further draws), never from
   global state, so a record never depends on the worker count or on a resume.
 - Units and frames: SI units (m, rad, s; degrees only where a name says ``_deg``), poses ``T_world_obj`` 4x4.
-- Settings: a task's settings are a frozen dataclass in its module, every field with a one-line ``#:``
+- Settings: a task's settings are a ``@settings`` class in its module, every field with a one-line ``#:``
   description, held by ``TrialConfig`` under the task's name (TOML section ``[kitting]``, ``[stack]``).
 - Captures: ``looks`` lists the ``Observation.im_id`` of every capture an episode takes, so exports and replays
   of BOP results (``--export-captures``, ``--perception bop-csv:``) know the frames.
 
-To add a task: write its module here (settings dataclass, scene, ``Task``), add it to ``REGISTRY`` in
+To add a task: write its module here (settings class, scene, a ``Task`` subclass), add it to ``REGISTRY`` in
 ``grasping/tasks/__init__.py`` (the ``--task`` choices) and its settings to ``TrialConfig``.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, Protocol
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
+from rich.console import Console
 
 from posegrasp.catalog import PartType, load_catalog
+from posegrasp.config import settings
+from posegrasp.errors import PosegraspError, UserError
 from posegrasp.grasping.perception import PICK_LOOK
 from posegrasp.grasping.record import EpisodeRecord, Failure
+from posegrasp.grasping.tables import print_episodes, print_per_block
 from posegrasp.sim.workcell import Workcell
 
 if TYPE_CHECKING:
+    from posegrasp.executor import Executor
     from posegrasp.grasping.config import TrialConfig
     from posegrasp.grasping.episode import Episode
+    from posegrasp.grasping.report.run import TrialRun
     from posegrasp.grasping.targets import Plan
 
 #: Height (m) of the place pad's surface.
@@ -69,8 +80,9 @@ Pickable = Callable[[PartType, np.ndarray], bool]
 Graspable = Callable[[Workcell, int], bool]
 
 
-class EpisodeFailed(Exception):
-    """Ends an episode with the failure ``reason`` (raised by the episode's phases and the tasks' verdicts)."""
+class EpisodeFailed(PosegraspError):
+    """Ends an episode with the failure ``reason`` (raised by the episode's phases and the tasks' verdicts, caught
+    by the episode's loop: it never reaches the command line)."""
 
     def __init__(self, reason: Failure):
         super().__init__(reason.value)
@@ -87,7 +99,7 @@ class Goal:
     surface_z: float = PAD_TOP
 
 
-@dataclass(frozen=True)
+@settings
 class SteadyConfig:
     """A steadied pick and place: the arm stops swaying (5-8 mm after a fast descent) before the fingers close and
     before the block is set down, approaches slowly, and lowers the block from higher up (guarded, slowly), so a
@@ -105,82 +117,88 @@ class SteadyConfig:
     approach_speed: float = 0.1
 
 
-class Task(Protocol):
-    """A trial task (the module docstring says how the pieces fit)."""
+class Task(ABC):
+    """A trial task (the module docstring says how the pieces fit). A task names itself, its looks, its scene and
+    its episode (``scene``, ``run``), and what its campaign summary, a comparison of two of its runs and its report
+    page show; the defaults are the table tasks' (one target per episode, success or failure)."""
 
     #: The ``--task`` name.
-    name: str
+    name: str = ""
     #: The ``Observation.im_id`` of every capture an episode takes (``perception.PICK_LOOK``, ...).
-    looks: tuple[int, ...]
-    #: Does the task hold the block firmly (``config.FirmHoldConfig``) unless the campaign or its object set
-    #: says otherwise (``TrialConfig.firm_hold_tasks``)?
-    firm_hold: bool
+    looks: tuple[int, ...] = (PICK_LOOK,)
+    #: The type of its episodes' records (registered for reading: ``record.RECORD_TYPES``).
+    record_type: type[EpisodeRecord] = EpisodeRecord
 
     @property
     def fixed_looks(self) -> tuple[int, ...]:
         """The looks whose frames do not depend on what the robot did before them: those a ``--captures-only``
         run takes (all of ``looks`` but in a task whose later looks follow its picks)."""
-        ...
-
-    def blocks(self, cfg: TrialConfig) -> tuple[int, int]:
-        """Fewest and most blocks of an episode's scene (its count is drawn uniformly between them)."""
-        ...
-
-    def check(self, cfg: TrialConfig) -> None:
-        """A one-line UserError, naming the setting to change, unless the campaign's settings can serve the task
-        (kitting needs a block type with an upright face, ...)."""
-        ...
-
-    def scene(self, cfg: TrialConfig, seed: int, n_blocks: int, graspable: Graspable) -> Workcell:
-        """The episode's settled scene of ``n_blocks`` blocks to pick, drawn from ``seed`` only;
-        ``SceneUnsettled`` when no draw settles (recorded as a simulation error)."""
-        ...
-
-    def new_record(self, episode: int, seed: int, scene_seed: int, n_blocks: int, perception: str) -> EpisodeRecord:
-        """The episode's record, before anything ran."""
-        ...
-
-    def run(self, ep: Episode) -> None:
-        """The episode after its scene: its phases in order, filling in ``ep.rec``; raises ``EpisodeFailed``."""
-        ...
-
-    def metrics(self, records: list[dict]) -> dict:
-        """The task's own entries of the campaign summary, over its episodes' JSON records."""
-        ...
-
-
-class PickTask:
-    """A task that picks one block and sets it down (a ``Task``): ``run`` is the sequence look and perceive, plan,
-    pick, lift and carry to the ``goal``, place, ``judge``; subclasses fill in the hooks."""
-
-    name: str = ""
-    looks: tuple[int, ...] = (PICK_LOOK,)
-    firm_hold: bool = False
-    #: The failure when perception found blocks but ``pickable`` allows none of them.
-    unpickable: Failure = Failure.UNREACHABLE
-
-    @property
-    def fixed_looks(self) -> tuple[int, ...]:
-        """All of ``looks``."""
         return self.looks
 
     def blocks(self, cfg: TrialConfig) -> tuple[int, int]:
-        """``TrialConfig.min_blocks`` and ``max_blocks``."""
+        """Fewest and most blocks of an episode's scene (its count is drawn uniformly between them):
+        ``TrialConfig.min_blocks`` and ``max_blocks``."""
         return cfg.min_blocks, cfg.max_blocks
 
-    def check(self, cfg: TrialConfig) -> None:
-        """Every campaign's settings can serve the task."""
+    def with_scene(self, cfg: TrialConfig, scene: str | None, blocks: int | None) -> TrialConfig:
+        """``cfg`` with ``--scene`` and ``--blocks`` (None: not given): the table only, ``blocks`` per episode."""
+        if scene not in (None, "table"):
+            raise UserError(f"--scene {scene} is a bin-picking scene: use it with --task bin-pick (the {cfg.task} "
+                            "task runs on the table)")
+        return dataclasses.replace(cfg, min_blocks=blocks, max_blocks=blocks) if blocks else cfg
 
+    def check(self, cfg: TrialConfig) -> None:
+        """A one-line UserError, naming the setting to change, unless the campaign's settings can serve the task
+        (kitting needs a block type with an upright face, ...); every campaign's by default."""
+
+    @abstractmethod
     def scene(self, cfg: TrialConfig, seed: int, n_blocks: int, graspable: Graspable) -> Workcell:
-        raise NotImplementedError
+        """The episode's settled scene of ``n_blocks`` blocks to pick, drawn from ``seed`` only;
+        ``SceneUnsettled`` when no draw settles (recorded as a simulation error)."""
 
     def new_record(self, episode: int, seed: int, scene_seed: int, n_blocks: int, perception: str) -> EpisodeRecord:
-        """A record with the task fields (``record.TASK_FIELDS``)."""
-        return EpisodeRecord(episode, seed, scene_seed, n_blocks, perception, task=self.name)
+        """The episode's record, before anything ran (a ``record_type``), naming the task."""
+        return self.record_type(episode, seed, scene_seed, n_blocks, perception, task=self.name)
+
+    @abstractmethod
+    def run(self, ep: Episode) -> None:
+        """The episode after its scene: its phases in order, filling in ``ep.rec``; raises ``EpisodeFailed``."""
 
     def metrics(self, records: list[dict]) -> dict:
-        """None beyond ``grasping.stats.summarise``'s."""
+        """The task's own entries of the campaign summary, over its episodes' JSON records (none beyond
+        ``grasping.stats.summarise``'s by default)."""
         return {}
+
+    def print_summary(self, summary: dict, console: Console) -> None:
+        """The campaign summary's terminal lines: the episodes' success rate, per block and per failure."""
+        print_episodes(summary, console)
+
+    def compare(self, a: dict[int, dict], b: dict[int, dict], common: list[int]) -> dict:
+        """The task's own entries of a comparison of two runs' JSON records on their ``common`` episodes
+        (``grasping.compare``; none by default)."""
+        return {}
+
+    def judged_by(self, result: dict) -> tuple[float, float]:
+        """What ``compare --fail-if-worse`` judges: the difference B - A (negative: B is worse) and its p-value;
+        by default the episodes' success rate and McNemar's exact test."""
+        return result["difference"], result["mcnemar"]["p_value"]
+
+    def print_comparison(self, result: dict, console: Console) -> None:
+        """A comparison's terminal lines after the episodes' success rates: success per target block type."""
+        print_per_block(result, console)
+
+    def report_page(self, run: TrialRun, samples: int, executor: Executor | None) -> str | None:
+        """The task's own report page (HTML) of ``run``, showing up to ``samples`` episodes; None: the table
+        tasks' page (``report.page``)."""
+        return None
+
+
+class PickTask(Task):
+    """A task that picks one block and sets it down: ``run`` is the sequence look and perceive, plan, pick, lift
+    and carry to the ``goal``, place, ``judge``; subclasses fill in the hooks (``scene`` and ``judge`` at least)."""
+
+    #: The failure when perception found blocks but ``pickable`` allows none of them.
+    unpickable: Failure = Failure.UNREACHABLE
 
     def run(self, ep: Episode) -> None:
         context = self.prepare(ep)
@@ -210,9 +228,9 @@ class PickTask:
         """How to steady the arm around the grasp and the place (None: no steadying)."""
         return None
 
+    @abstractmethod
     def judge(self, ep: Episode, plan: Plan, context: Any) -> None:
         """After the hand has let go: the verdict, recorded; ``EpisodeFailed`` unless the task succeeded."""
-        raise NotImplementedError
 
 
 def task_types(cfg: TrialConfig) -> list[PartType]:

@@ -10,11 +10,11 @@ settings give the same scene.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from posegrasp.config import settings
 from posegrasp.catalog import PartType
 from posegrasp.errors import SceneUnsettled, UserError
 from posegrasp.geometry import axis_angle_R, make_T
@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from posegrasp.grasping.targets import Plan
 
 
-@dataclass(frozen=True)
+@settings
 class KittingConfig:
     """The kitting task: the block must end upright on the pad at the kit's yaw."""
 

@@ -4,11 +4,12 @@ at rest, the hand away from it and no finger touching it. Its scene is ``sim.sce
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from posegrasp.grasping.record import EpisodeRecord, Failure
+from posegrasp.grasping.record import TASK_FIELDS, EpisodeRecord, Failure
 from posegrasp.grasping.tasks.base import EpisodeFailed, Graspable, PickTask
 from posegrasp.sim.scene import make_scene
 from posegrasp.sim.workcell import Workcell
@@ -19,17 +20,30 @@ if TYPE_CHECKING:
     from posegrasp.grasping.targets import Plan
 
 
+#: The task's name (``--task``).
+PICK_PLACE = "pick-place"
+
+
+@dataclass
+class PickPlaceRecord(EpisodeRecord, task=PICK_PLACE):
+    """A pick-and-place episode: the ``EpisodeRecord`` without the kitting and stack tasks' fields
+    (``record.TASK_FIELDS`` but ``task``)."""
+
+    def to_json(self) -> dict:
+        d = super().to_json()
+        for k in TASK_FIELDS[1:]:
+            d.pop(k, None)
+        return d
+
+
 class PickPlace(PickTask):
     """Pick any block and set it down over the episode's place point."""
 
-    name = "pick-place"
+    name = PICK_PLACE
+    record_type = PickPlaceRecord
 
     def scene(self, cfg: TrialConfig, seed: int, n_blocks: int, graspable: Graspable) -> Workcell:
         return make_scene(seed, n_blocks, cfg.scene).workcell
-
-    def new_record(self, episode: int, seed: int, scene_seed: int, n_blocks: int, perception: str) -> EpisodeRecord:
-        """A record without the task fields (pick-and-place records keep the layout they had before the tasks)."""
-        return EpisodeRecord(episode, seed, scene_seed, n_blocks, perception)
 
     def judge(self, ep: Episode, plan: Plan, context: Any) -> None:
         """Wait for the block to come to rest, then score the place: within place_tol of the place point, at

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
+from posegrasp.config import settings
 from posegrasp.catalog import PartType, catalog_by_id
 from posegrasp.errors import SceneUnsettled, UserError
 from posegrasp.geometry import make_T, transform_points
@@ -39,7 +40,7 @@ if TYPE_CHECKING:
     from posegrasp.grasping.targets import Plan
 
 
-@dataclass(frozen=True)
+@settings
 class StackConfig:
     """The stack task: a block set centred on a base block standing on the pad."""
 

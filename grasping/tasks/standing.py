@@ -8,6 +8,7 @@ upright face down at the kit's yaw (the identity for the shipped blocks). Frames
 from __future__ import annotations
 
 import functools
+from abc import abstractmethod
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -78,23 +79,21 @@ class StandingTask(PickTask):
     """A pick task that sets the block down standing upright at a target pose: it picks only estimates believed
     upright, turns the block about the vertical while carrying it onto the nearest of its ``targets`` (the
     smallest turn over the block's symmetries), records the estimate's and the final pose's errors modulo
-    symmetries and judges the final pose (``final_error``). It holds the block firmly by default."""
+    symmetries and judges the final pose (``final_error``); it holds the block firmly (``config.FIRM_HOLD_TASKS``)."""
 
-    firm_hold = True
     unpickable = Failure.NO_UPRIGHT
 
+    @abstractmethod
     def settings(self, cfg: TrialConfig) -> StandingSettings:
         """The task's settings block of ``cfg``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def targets(self, ep: Episode, plan: Plan, context: Any) -> tuple[np.ndarray, float]:
         """(M, 4, 4) poses the planned block (of its estimated type) may end in, and the height (m) of the
         surface it is set down on."""
-        raise NotImplementedError
 
     def final_error(self, ep: Episode, plan: Plan, context: Any) -> tuple[UprightDeviation, Failure | None]:
         """The block's final pose against its target and the task's verdict on it (None: success)."""
-        raise NotImplementedError
 
     def rest(self, ep: Episode, k: int) -> bool:
         """Wait for block ``k`` to come to rest after the hand let go; did it?"""

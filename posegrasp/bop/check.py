@@ -18,6 +18,7 @@ import numpy as np
 
 from posegrasp import bop
 from posegrasp.bop import models as bop_models
+from posegrasp.config import settings
 from posegrasp.errors import DatasetError
 from posegrasp.geometry import invert
 
@@ -61,17 +62,31 @@ def find_splits(root: Path) -> list[str]:
                   and any(c.is_dir() and c.name.isdigit() for c in p.iterdir()))
 
 
+@settings
+class CheckOptions:
+    """What ``check_dataset`` checks, and how far it goes."""
+
+    #: Largest median distance (mm) of an instance's depth from its model at the ground-truth pose.
+    depth_tol_mm: float = 5.0
+    #: Images checked per scene (None: all).
+    max_images: int | None = None
+    #: The search stops after this many problems.
+    max_problems: int = 200
+    #: Compare each instance's depth with its model at the ground-truth pose (within ``depth_tol_mm``; the slow part).
+    model_depth: bool = True
+    #: Check ``models_eval/`` and the test split's BOP19 targets.
+    scoring: bool = True
+    #: Require them and ``models_eval/models_info.json`` (as other BOP tools do; ``eval`` falls back to ``models/``
+    #: and the ground truth without them).
+    complete: bool = True
+
+
 class _Checker:
     """Accumulates problems over one dataset, read through ``posegrasp.bop`` (every file checked by
-    ``bop.schema`` and ``bop.images``); ``max_problems`` stops the search early. ``model_depth``: compare the depth
-    with the models at their poses (the slow part); ``scoring``: check ``models_eval/`` and the BOP19 targets;
-    ``complete``: require them and ``models_eval/models_info.json`` (as other BOP tools do; ``eval`` falls back to
-    ``models/`` and the ground truth without them)."""
+    ``bop.schema`` and ``bop.images``), as ``opts`` say."""
 
-    def __init__(self, root: Path, depth_tol_mm: float, max_problems: int, model_depth: bool = True,
-                 scoring: bool = True, complete: bool = True):
-        self.root, self.tol, self.max_problems = root, depth_tol_mm, max_problems
-        self.model_depth, self.scoring, self.complete = model_depth, scoring, complete
+    def __init__(self, root: Path, opts: CheckOptions):
+        self.root, self.opts = root, opts
         self.report = CheckReport()
         self.meshes: dict[int, Any] = {}
         self.infos: dict[int, bop.ObjectInfo] = {}
@@ -89,7 +104,7 @@ class _Checker:
 
     @property
     def full(self) -> bool:
-        return len(self.report.problems) >= self.max_problems
+        return len(self.report.problems) >= self.opts.max_problems
 
     def rel(self, p: Path) -> str:
         return str(p.relative_to(self.root))
@@ -107,9 +122,9 @@ class _Checker:
                     self.add(f"{where}: obj {oid} symmetries_discrete[{s}] rotation {why}")
             self.infos[oid] = info
             self.model(oid, info)
-            if self.scoring:
+            if self.opts.scoring:
                 self.eval_model(oid)
-        if self.scoring and self.complete:
+        if self.opts.scoring and self.opts.complete:
             self.eval_models_info(infos)
 
     def model(self, obj_id: int, info: bop.ObjectInfo) -> None:
@@ -133,7 +148,7 @@ class _Checker:
         its vertices."""
         p = bop.models_eval_dir(self.root) / f"obj_{obj_id:06d}.ply"
         if not p.is_file():
-            if self.complete:
+            if self.opts.complete:
                 self.add(f"{self.rel(p)}: missing; BOP's metrics use models_eval/ (rerun the datagen command to add "
                          "it)")
             return
@@ -172,7 +187,7 @@ class _Checker:
         models, with inst_count = the object's instances there at least 10 % visible (BOP 2019)."""
         path = bop.targets_path(self.root)
         if not path.is_file():
-            if self.complete:
+            if self.opts.complete:
                 self.add(f"{self.rel(path)}: missing; BOP 2019 scores the test split on it (rerun the datagen "
                          "command to add it)")
             return
@@ -260,7 +275,7 @@ class _Checker:
         self.mask_info(f"{rel}/scene_gt_info.json: im {im} gt {i}", full, visib, g.info, depth_mm)
         if visib.any():
             self.report.visible[oid] += 1
-        if self.model_depth and depth_mm is not None and units_ok and oid in self.meshes:
+        if self.opts.model_depth and depth_mm is not None and units_ok and oid in self.meshes:
             self.depth_on_model(f"{rel}/depth/{im:06d}.png: gt {i} (obj {oid})", depth_mm, rec.camera.K, visib,
                                 g.T_cam_obj, self.meshes[oid])
 
@@ -323,27 +338,24 @@ class _Checker:
         _, dist, _ = trimesh.proximity.closest_point(mesh, pts @ Ti[:3, :3].T + Ti[:3, 3])
         med = float(np.median(dist)) * 1000.0
         self.report.depth_errors_mm.append(med)
-        if med > self.tol:
+        if med > self.opts.depth_tol_mm:
             self.add(f"{where}: depth at the visible mask lies {med:.1f} mm (median) from the model at its GT pose "
-                     f"(tolerance {self.tol} mm)")
+                     f"(tolerance {self.opts.depth_tol_mm} mm)")
 
 
-def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: float = 5.0, max_images: int | None = None,
-                  max_problems: int = 200, progress: bool = False, model_depth: bool = True,
-                  scoring: bool = True, complete: bool = True) -> CheckReport:
-    """Validate the BOP dataset at ``root`` (all splits, or ``split``); ``max_images`` per scene limits the work.
+def check_dataset(root: str | Path, split: str | None = None, opts: CheckOptions = CheckOptions(),
+                  progress: bool = False) -> CheckReport:
+    """Validate the BOP dataset at ``root`` (all splits, or ``split``), as ``opts`` say (what is checked, how many
+    images per scene, when the search stops).
 
-    Every file is read as ``train`` and ``eval`` read it. The search stops after ``max_problems`` problems;
-    ``progress`` shows a bar over scenes. ``model_depth``: also compare each instance's depth with its model at the
-    ground-truth pose (within ``depth_tol_mm``; the slow part); ``scoring``: also check ``models_eval/`` and the test
-    split's BOP19 targets; ``complete``: require them and ``models_eval/models_info.json`` (bop_toolkit does).
+    Every file is read as ``train`` and ``eval`` read it; ``progress`` shows a bar over scenes.
     """
     from posegrasp.progress import track
 
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"dataset folder {root} does not exist")
-    c = _Checker(root, depth_tol_mm, max_problems, model_depth, scoring, complete)
+    c = _Checker(root, opts)
     c.models()
     camera = c.read(bop.load_camera, root)
     splits = find_splits(root)
@@ -363,8 +375,8 @@ def check_dataset(root: str | Path, split: str | None = None, depth_tol_mm: floa
         if c.full:
             c.report.stopped_early = True
             break
-        c.scene(s, sid, max_images)
-    if "test" in splits and not c.full and scoring:
+        c.scene(s, sid, opts.max_images)
+    if "test" in splits and not c.full and opts.scoring:
         c.targets("test")
     return c.report
 
@@ -379,8 +391,8 @@ def require_valid(root: str | Path, split: str, max_images: int | None = None, s
     root = Path(root)
     if not bop.models_dir(root).is_dir():
         raise DatasetError(f"--data {root} is not a BOP dataset (no models/ folder)")
-    report = check_dataset(root, split, max_images=max_images, max_problems=10, progress=progress, model_depth=False,
-                           scoring=scoring, complete=False)
+    opts = CheckOptions(max_images=max_images, max_problems=10, model_depth=False, scoring=scoring, complete=False)
+    report = check_dataset(root, split, opts, progress=progress)
     if report.problems:
         n = f"{len(report.problems)}{'+' if report.stopped_early or len(report.problems) >= 10 else ''}"
         raise DatasetError(f"--data {root}: {report.problems[0]} ({n} problem(s); 'posegrasp dataset check' lists "

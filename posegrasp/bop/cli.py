@@ -40,9 +40,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    from posegrasp.bop.check import check_dataset, print_report
+    from posegrasp.bop.check import CheckOptions, check_dataset, print_report
 
-    report = check_dataset(args.dir, args.split, args.depth_tol_mm, args.max_images, progress=True)
+    opts = CheckOptions(depth_tol_mm=args.depth_tol_mm, max_images=args.max_images)
+    report = check_dataset(args.dir, args.split, opts, progress=True)
     print_report(report, args.dir)
     if not report.ok:
         print(f"posegrasp: error: {args.dir}: {len(report.problems)} problem(s), the first: {report.problems[0]}",

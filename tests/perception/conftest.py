@@ -124,7 +124,7 @@ def tiny_configs():
     from posegrasp.perception.refiner import RefinerConfig
     from posegrasp.perception.seg_net import SegNetConfig
     from posegrasp.perception.train_pose import PoseTrainConfig
-    from posegrasp.perception.train_refine import RefineTrainConfig
+    from posegrasp.perception.train_refiner import RefinerTrainConfig
     from posegrasp.perception.train_seg import SegTrainConfig
 
     data = DataConfig(num_model_points=200, model_pool=1000)
@@ -134,9 +134,9 @@ def tiny_configs():
                                                head_widths=(64, 32, 16)),
                            data=data, batch_size=4, lr=1e-3, log_every=1, checkpoint_every=10, eval_every=10,
                            eval_samples=8)
-    refine = RefineTrainConfig(model=RefinerConfig(), data=data, batch_size=4, lr=1e-3, log_every=1,
-                               checkpoint_every=10, eval_every=5, eval_samples=8)
-    return seg, pose, refine
+    refiner = RefinerTrainConfig(model=RefinerConfig(), data=data, batch_size=4, lr=1e-3, log_every=1,
+                                 checkpoint_every=10, eval_every=5, eval_samples=8)
+    return seg, pose, refiner
 
 
 def tiny_cls_config():
@@ -156,22 +156,22 @@ def tiny_cls_config_fixture():
 
 @pytest.fixture(name="tiny_configs")
 def tiny_configs_fixture():
-    """``tiny_configs()`` as a fixture: (seg, pose, refine) training configs."""
+    """``tiny_configs()`` as a fixture: (seg, pose, refiner) training configs."""
     return tiny_configs()
 
 
 @pytest.fixture(scope="session")
 def tiny_run(tiny_bop, tmp_path_factory) -> Path:
-    """A run directory with seg/, pose/, refine/ and cls/ trained for a few steps on the tiny dataset."""
+    """A run directory with seg/, pose/, refiner/ and cls/ trained for a few steps on the tiny dataset."""
     from posegrasp.perception.train_cls import train_cls
     from posegrasp.perception.train_pose import train_pose
-    from posegrasp.perception.train_refine import train_refine
+    from posegrasp.perception.train_refiner import train_refiner
     from posegrasp.perception.train_seg import train_seg
 
     out = tmp_path_factory.mktemp("tiny_run")
-    seg, pose, refine = tiny_configs()
+    seg, pose, refiner = tiny_configs()
     train_seg(tiny_bop, out, seg, steps=15, progress=False)
     train_pose(tiny_bop, out, pose, steps=20, progress=False)
-    train_refine(tiny_bop, out, refine, steps=5, progress=False)
+    train_refiner(tiny_bop, out, refiner, steps=5, progress=False)
     train_cls(tiny_bop, out, tiny_cls_config(), steps=60, progress=False)
     return out

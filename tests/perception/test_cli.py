@@ -30,10 +30,10 @@ def test_train_and_eval_commands(tiny_bop, tiny_run, tmp_path, capsys):
     saved = json.loads((tmp_path / "run" / "seg" / "config.json").read_text())
     assert saved["train"]["seed"] == 1 and saved["model"]["input_size"] == [64, 96]
     args = _parser().parse_args(["eval", "--data", str(tiny_bop), "--weights", str(tiny_run), "--config", str(cfg),
-                                 "--out", str(tmp_path / "ev"), "--gt-masks", "--no-refine", "--no-progress"])
+                                 "--out", str(tmp_path / "ev"), "--gt-masks", "--no-refiner", "--no-progress"])
     assert args.run(args) == 0
     rep = json.loads((tmp_path / "ev" / "metrics.json").read_text())
-    assert rep["images"] == 1 and rep["ablation"]["refine_iterations"] == 0
+    assert rep["images"] == 1 and rep["ablation"]["refiner_iterations"] == 0
 
 
 def test_bad_config_is_user_error(tiny_bop, tmp_path):
@@ -43,9 +43,35 @@ def test_bad_config_is_user_error(tiny_bop, tmp_path):
                                  "--config", str(cfg)])
     with pytest.raises(UserError, match="unknown key"):
         args.run(args)
-    args = _parser().parse_args(["train", "refine", "--data", str(tiny_bop), "--out", str(tmp_path / "x")])
+    args = _parser().parse_args(["train", "refiner", "--data", str(tiny_bop), "--out", str(tmp_path / "x")])
     with pytest.raises(UserError, match="train pose"):
         args.run(args)
+
+
+def test_old_names_are_read_with_a_notice(tmp_path, capsys):
+    """The stage, table, keys and flags named ``refine`` and ``icp`` before are read under their new names, each
+    with a one-line notice on stderr naming the new one."""
+    from posegrasp.perception.evaluate import EvalConfig
+    from posegrasp.perception.train_refiner import RefinerTrainConfig
+
+    args = _parser().parse_args(["eval", "--data", ".", "--weights", ".", "--no-refine", "--no-icp"])
+    assert args.no_refiner and args.no_depth_fit and "no_refine" not in vars(args) and "no_icp" not in vars(args)
+    assert _parser().parse_args(["train", "refine", "--data", ".", "--out", "x"]).stage == "refiner"
+    notes = capsys.readouterr().err.splitlines()
+    assert notes == ["posegrasp: note: '--no-refine' is now named '--no-refiner'",
+                     "posegrasp: note: '--no-icp' is now named '--no-depth-fit'",
+                     "posegrasp: note: 'refine' is now named 'refiner'"]
+    old = tmp_path / "old.toml"
+    old.write_text("[refine]\nsteps = 7\n[eval]\nrefine_iterations = 0\nicp = false\n")
+    assert load_toml(RefinerTrainConfig, old, "refiner", cli.SECTIONS, cli.RENAMED).steps == 7
+    cfg = load_toml(EvalConfig, old, "eval", cli.SECTIONS, cli.RENAMED)
+    assert cfg.refiner_iterations == 0 and not cfg.depth_fit
+    notes = capsys.readouterr().err.splitlines()
+    assert f"posegrasp: note: {old}: 'refine' is now named 'refiner'" in notes
+    assert f"posegrasp: note: {old}: 'icp' is now named 'depth_fit'" in notes
+    with pytest.raises(UserError, match="'icp' and 'depth_fit' are one setting"):
+        old.write_text("[eval]\nicp = false\ndepth_fit = true\n")
+        load_toml(EvalConfig, old, "eval", cli.SECTIONS, cli.RENAMED)
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -66,7 +92,7 @@ def test_perturb_rejects_bad_input(tiny_run, tmp_path, argv, message):
 def test_shipped_training_configs_load(path):
     sections = tomllib.loads(path.read_text())
     classes = {name: t.config for name, t in cli.training_stages().items()}
-    assert list(classes) == ["seg", "pose", "refine", "cls"]
+    assert list(classes) == ["seg", "pose", "refiner", "cls"]
     assert sections and set(sections) <= set(classes)
     for name in sections:
         cfg = load_toml(classes[name], path, section=name)

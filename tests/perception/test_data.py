@@ -7,12 +7,25 @@ import numpy as np
 import pytest
 import torch
 
-from posegrasp.perception.data import DataConfig, PoseDataset, SegDataset, collate
+from posegrasp.perception.classifier import ClassifierConfig
+from posegrasp.perception.data import ClsDataset, CropSource, DataConfig, PoseDataset, SegDataset, collate
 from posegrasp.perception.metrics import nearest_distances
+from posegrasp.perception.pose_net import PoseNetConfig
+
+
+def _pose(obj_ids: list[int], num_points: int, crop_size: int) -> PoseNetConfig:
+    """A pose net's settings for the tiny dataset's objects ``obj_ids``."""
+    return PoseNetConfig(obj_ids=obj_ids, symmetric=[o != 1 for o in obj_ids], num_points=num_points,
+                         crop_size=crop_size)
+
+
+def _cls(obj_ids: list[int], side: float = 0.16) -> ClassifierConfig:
+    """An instance classifier's settings: 32 px crops of ``side`` m."""
+    return ClassifierConfig(obj_ids=obj_ids, crop_size=32, crop_side=side, depth_range=0.05)
 
 
 def test_pose_samples_are_consistent(tiny_bop):
-    ds = PoseDataset(tiny_bop, "train", [1, 2, 3], num_points=100, crop_size=48)
+    ds = PoseDataset(tiny_bop, "train", _pose([1, 2, 3], 100, 48))
     assert len(ds) >= 20
     s = ds.get(0)
     assert s["image"].shape == (3, 48, 48) and s["choose"].shape == (100,) and int(s["choose"].max()) < 48 * 48
@@ -35,7 +48,7 @@ def test_pose_samples_are_consistent(tiny_bop):
 
 
 def test_augmentation_is_seeded(tiny_bop):
-    ds = PoseDataset(tiny_bop, "train", [1, 2, 3], 64, 32, augment=True, seed=3)
+    ds = PoseDataset(tiny_bop, "train", _pose([1, 2, 3], 64, 32), augment=True, seed=3)
     a, b, c = ds.get(2, key=11), ds.get(2, key=11), ds.get(2, key=12)
     assert torch.equal(a["points"], b["points"]) and torch.equal(a["image"], b["image"])
     assert not torch.equal(a["points"], c["points"])
@@ -47,10 +60,10 @@ def test_augmentation_is_seeded(tiny_bop):
 
 
 def test_instances_are_filtered(tiny_bop):
-    all_ = PoseDataset(tiny_bop, "train", [1, 2, 3], 64, 32)
-    strict = PoseDataset(tiny_bop, "train", [1, 2, 3], 64, 32, DataConfig(min_visib_fract=0.99, min_points=150))
+    all_ = PoseDataset(tiny_bop, "train", _pose([1, 2, 3], 64, 32))
+    strict = PoseDataset(tiny_bop, "train", _pose([1, 2, 3], 64, 32), DataConfig(min_visib_fract=0.99, min_points=150))
     assert 0 < len(strict) < len(all_)
-    only1 = PoseDataset(tiny_bop, "train", [1], 64, 32)
+    only1 = PoseDataset(tiny_bop, "train", _pose([1], 64, 32))
     assert all(only1.get(i)["obj_id"] == 1 for i in range(len(only1)))
 
 
@@ -67,16 +80,16 @@ def test_seg_samples(tiny_bop):
 
 
 def test_cls_samples_from_gt_and_from_segments(tiny_bop):
-    from posegrasp.perception.data import ClsDataset, label_map, load_records
+    from posegrasp.perception.data import label_map, load_records
 
-    kw = dict(size=32, side=0.16, depth_range=0.05)
-    gt_only = ClsDataset(tiny_bop, "train", [1, 2, 3], **kw, segmenter=lambda rgb: np.zeros(rgb.shape[:2], int))
+    gt_only = ClsDataset(tiny_bop, "train", _cls([1, 2, 3]),
+                         source=CropSource(segmenter=lambda rgb: np.zeros(rgb.shape[:2], int)))
     by_rgb = {r.load_rgb().tobytes(): r for r in load_records(tiny_bop, "train")}
 
     def perfect(rgb):  # a segmenter that returns the ground truth
         return label_map(by_rgb[rgb.tobytes()], rgb.shape[:2])
 
-    both = ClsDataset(tiny_bop, "train", [1, 2, 3], **kw, segmenter=perfect, augment=True, seed=1)
+    both = ClsDataset(tiny_bop, "train", _cls([1, 2, 3]), augment=True, seed=1, source=CropSource(perfect))
     assert len(gt_only) >= 20 and len(both) > len(gt_only)
     assert sorted(set(both.labels.tolist())) == [0, 1, 2]
     a, b, c = both.get(3, key=7), both.get(3, key=7), both.get(3, key=8)
@@ -85,33 +98,32 @@ def test_cls_samples_from_gt_and_from_segments(tiny_bop):
 
 
 def test_cls_crops_are_cached_for_the_same_segmenter_and_settings(tiny_bop, tmp_path):
-    from posegrasp.perception.data import ClsDataset
-
     calls = []
     perfect = ground_truth_segmenter(tiny_bop, calls)
 
     def unusable(rgb):
         raise AssertionError("the segmenter ran although its crops are cached")
 
-    kw = dict(size=32, side=0.16, depth_range=0.05, cache=tmp_path / "c" / "crops.npy")
-    first = ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=perfect, segmenter_id="a")
+    cache = tmp_path / "c" / "crops.npy"
+    model = _cls([0, 1, 2, 3])
+    first = ClsDataset(tiny_bop, "train", model, source=CropSource(perfect, "a", cache))
     assert len(calls) == 8 and sorted(p.name for p in (tmp_path / "c").iterdir()) == ["crops.json", "crops.npy"]
-    again = ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="a", augment=True)
+    again = ClsDataset(tiny_bop, "train", model, augment=True, source=CropSource(unusable, "a", cache))
     assert np.array_equal(np.asarray(again.crops), np.stack(first.crops)) and np.array_equal(again.labels, first.labels)
     assert torch.equal(again.get(2)["image"], first.get(2)["image"])
     with pytest.raises(AssertionError, match="cached"):  # another segmenter: computed anew
-        ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="b")
+        ClsDataset(tiny_bop, "train", model, source=CropSource(unusable, "b", cache))
     with pytest.raises(AssertionError, match="cached"):  # other crop settings: computed anew
-        ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **{**kw, "side": 0.2}, segmenter=unusable, segmenter_id="a")
-    assert len(ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="a")) == len(first)
+        ClsDataset(tiny_bop, "train", _cls([0, 1, 2, 3], side=0.2), source=CropSource(unusable, "a", cache))
+    assert len(ClsDataset(tiny_bop, "train", model, source=CropSource(unusable, "a", cache))) == len(first)
     ds = shutil.copytree(tiny_bop, tmp_path / "ds")  # a dataset generated anew in the same place: computed anew
-    ClsDataset(ds, "train", [0, 1, 2, 3], **kw, segmenter=ground_truth_segmenter(ds, calls), segmenter_id="a")
+    ClsDataset(ds, "train", model, source=CropSource(ground_truth_segmenter(ds, calls), "a", cache))
     gt_file = ds / "train" / "000000" / "scene_gt.json"
     gt = json.loads(gt_file.read_text())
     gt["0"][0]["cam_t_m2c"][0] += 1.0  # mm
     gt_file.write_text(json.dumps(gt))
     with pytest.raises(AssertionError, match="cached"):
-        ClsDataset(ds, "train", [0, 1, 2, 3], **kw, segmenter=unusable, segmenter_id="a")
+        ClsDataset(ds, "train", model, source=CropSource(unusable, "a", cache))
 
 
 def ground_truth_segmenter(root, calls):
@@ -127,7 +139,7 @@ def ground_truth_segmenter(root, calls):
 
 
 def test_cls_background_samples_are_segments_mostly_off_the_objects(tiny_bop):
-    from posegrasp.perception.data import ClsDataset, label_map, load_records
+    from posegrasp.perception.data import label_map, load_records
 
     by_rgb = {r.load_rgb().tobytes(): r for r in load_records(tiny_bop, "train")}
     placed = []
@@ -148,9 +160,8 @@ def test_cls_background_samples_are_segments_mostly_off_the_objects(tiny_bop):
                     break
         return lab
 
-    kw = dict(size=32, side=0.16, depth_range=0.05)
-    plain = ClsDataset(tiny_bop, "train", [1, 2, 3], **kw, segmenter=with_blobs)
+    plain = ClsDataset(tiny_bop, "train", _cls([1, 2, 3]), source=CropSource(with_blobs))
     n_off = placed.count(10)
-    with_bg = ClsDataset(tiny_bop, "train", [0, 1, 2, 3], **kw, segmenter=with_blobs)
+    with_bg = ClsDataset(tiny_bop, "train", _cls([0, 1, 2, 3]), source=CropSource(with_blobs))
     assert n_off >= 4 and placed.count(30) >= 4
     assert len(with_bg) == len(plain) + n_off and int((with_bg.labels == 0).sum()) == n_off

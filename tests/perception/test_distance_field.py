@@ -3,7 +3,7 @@ import pytest
 import torch
 import trimesh
 
-from posegrasp.perception.refine.distance_field import DistanceField, Fields
+from posegrasp.perception.depth_fit.distance_field import DistanceField, Fields
 
 SIZE = np.array([0.06, 0.03, 0.02])  # a 60 x 30 x 20 mm box about its centre
 

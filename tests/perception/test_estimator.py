@@ -42,14 +42,15 @@ def test_estimator_api(tiny_bop, tiny_run):
     assert np.all((conf > 0) <= (labels > 0)) and conf.max() <= 1.0
     masks = [(g.obj_id, rec.load_mask(g.gt_index)) for g in rec.instances]
     dets, timings = est.estimate(rgb, depth, K, masks)
-    assert [d.obj_id for d in dets] == [1, 2, 3] and list(timings) == ["pose", "refine", "icp"]
+    assert [d.obj_id for d in dets] == [1, 2, 3] and list(timings) == ["pose", "refiner", "depth_fit"]
     for d in dets:
         assert d.T_cam_obj.shape == (4, 4) and np.allclose(d.T_cam_obj[:3, :3] @ d.T_cam_obj[:3, :3].T, np.eye(3),
                                                            atol=1e-5)
         assert 0 <= d.score <= 1 and d.mask.shape == depth.shape
     again, _ = est.estimate(rgb, depth, K, masks)
     assert np.array_equal(again[0].T_cam_obj, dets[0].T_cam_obj)  # deterministic
-    # the pose net sees pose_points points per object and pose_crop px crops (None: as trained, smaller with ICP)
+    # the pose net sees pose_points points per object and pose_crop px crops (None: as trained, smaller with the
+    # depth fit)
     seen = []
     for n, s in ((7, 24), (None, None)):
         e = Estimator(tiny_run, EstimatorConfig(pose_points=n, pose_crop=s))
@@ -57,12 +58,12 @@ def test_estimator_api(tiny_bop, tiny_run):
         e.pose.cnn.register_forward_hook(lambda m, x, y: seen.append(y.shape[-1]))
         e.estimate(rgb, depth, K, masks)
     assert seen == [24, 7, est.pose_cfg.crop_size, est.pose_cfg.num_points]
-    refined = Estimator(tiny_run, EstimatorConfig(models=tiny_bop))
-    assert (refined.pose_points, refined.pose_crop) == (250, 48) != (est.pose_cfg.num_points, est.pose_cfg.crop_size)
-    with pytest.raises(UserError, match=f"pose_crop a multiple of 8 px, got 0 and {est.pose_cfg.crop_size}"):
-        Estimator(tiny_run, EstimatorConfig(pose_points=0))
-    with pytest.raises(UserError, match=f"got {est.pose_cfg.num_points} and 20"):
-        Estimator(tiny_run, EstimatorConfig(pose_crop=20))
+    fitted = Estimator(tiny_run, EstimatorConfig(models=tiny_bop))
+    assert (fitted.pose_points, fitted.pose_crop) == (250, 48) != (est.pose_cfg.num_points, est.pose_cfg.crop_size)
+    with pytest.raises(UserError, match=r"EstimatorConfig\.pose_points = 0 is out of range: use 1 to"):
+        EstimatorConfig(pose_points=0)
+    with pytest.raises(UserError, match="pose_crop = 20: use a multiple of 8 px"):
+        EstimatorConfig(pose_crop=20)
     # an object whose mask has too few valid depth pixels is skipped
     holes = depth.copy()
     holes[masks[0][1]] = 0.0
@@ -161,8 +162,7 @@ def test_classifier_with_the_height_channel_and_an_ensemble(tiny_bop, tiny_run, 
     assert [m.features[0][0].in_channels for m in ens.models] == [7, 6]
     plane = fit_support_plane(depth, K, est.seed, est.plane_cfg)
     x = torch.from_numpy(np.stack([normalize_cls_input(prepare_cls_input(
-        rgb, depth, K, m, cfg.crop_size, cfg.crop_side, cfg.depth_range, height_range=0.06, plane=plane))
-        for m in parts]))
+        rgb, depth, K, m, dataclasses.replace(cfg, height_range=0.06), plane)) for m in parts]))
     with torch.no_grad():
         p = (torch.softmax(ens.models[0](x), 1) + torch.softmax(ens.models[1](x[:, :6]), 1)) / 2
     got = ens(rgb, depth, K, parts, plane)

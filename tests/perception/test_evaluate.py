@@ -34,29 +34,29 @@ def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
     on_disk = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert on_disk["overall"]["n"] == rep["overall"]["n"] == 9
     assert 0 <= on_disk["segmentation"]["mIoU"] <= 100
-    assert list(rep["time_per_image_s"]) == ["seg", "cls", "guided", "pose", "refine", "icp", "split", "total"]
-    assert rep["ablation"]["refine_iterations"] == 2 and rep["ablation"]["classifier"]
-    assert rep["time_per_image_s"]["cls"] > 0 and rep["ablation"]["icp"] and rep["ablation"]["plane"]
+    assert list(rep["time_per_image_s"]) == ["seg", "cls", "guided", "pose", "refiner", "depth_fit", "split", "total"]
+    assert rep["ablation"]["refiner_iterations"] == 2 and rep["ablation"]["classifier"]
+    assert rep["time_per_image_s"]["cls"] > 0 and rep["ablation"]["depth_fit"] and rep["ablation"]["plane"]
     assert rep["ablation"]["split_merged"] and rep["ablation"]["guided"] and rep["time_per_image_s"]["guided"] > 0
 
 
 @pytest.mark.slow
 def test_evaluate_without_classifier(tiny_bop, tiny_run, tmp_path):
     rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev",
-                   EvalConfig(classify=False, icp=False, plane=False, guided=False), progress=False)
+                   EvalConfig(classify=False, depth_fit=False, plane=False, guided=False), progress=False)
     assert not rep["ablation"]["classifier"] and rep["time_per_image_s"]["cls"] == 0.0
     assert not rep["ablation"]["plane"] and not rep["ablation"]["split_merged"] and not rep["ablation"]["guided"]
     assert rep["time_per_image_s"]["guided"] == 0.0
-    assert not rep["ablation"]["icp"] and rep["time_per_image_s"]["icp"] == 0.0
+    assert not rep["ablation"]["depth_fit"] and rep["time_per_image_s"]["depth_fit"] == 0.0
     assert 0 <= rep["segmentation"]["mIoU"] <= 100
 
 
 @pytest.mark.slow
-def test_evaluate_gt_masks_without_refinement(tiny_bop, tiny_run, tmp_path):
-    rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", EvalConfig(masks="gt", refine_iterations=0), progress=False)
+def test_evaluate_gt_masks_without_the_refiner(tiny_bop, tiny_run, tmp_path):
+    rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", EvalConfig(masks="gt", refiner_iterations=0), progress=False)
     assert rep["overall"]["detected"] == 100.0 and rep["segmentation"] is None
-    assert rep["ablation"]["refine_iterations"] == 0 and rep["time_per_image_s"]["refine"] == 0.0
-    assert rep["time_per_image_s"]["icp"] > 0  # every estimate refined against the depth image
+    assert rep["ablation"]["refiner_iterations"] == 0 and rep["time_per_image_s"]["refiner"] == 0.0
+    assert rep["time_per_image_s"]["depth_fit"] > 0  # every estimate fitted to the depth image
     assert np.isfinite(rep["overall"]["mean_ADD-S"])
     res = read_results_csv(tmp_path / "ev" / "posegrasp_tiny_bop0-test.csv")
     assert len(res) == 9
@@ -69,7 +69,7 @@ def test_evaluate_scores_the_listed_bop19_targets(tiny_bop, tiny_run, tmp_path):
     data = tmp_path / "ds"
     shutil.copytree(tiny_bop, data)
     bop.write_test_targets(data, [bop.EvalTarget(1, 0, 3, 1), bop.EvalTarget(1, 2, 1, 1)])
-    rep = evaluate(data, tiny_run, tmp_path / "ev", EvalConfig(masks="gt", icp=False), progress=False)
+    rep = evaluate(data, tiny_run, tmp_path / "ev", EvalConfig(masks="gt", depth_fit=False), progress=False)
     assert rep["bop19"]["targets"] == 2
     scores = json.loads((tmp_path / "ev" / "scores_bop19.json").read_text())
     assert sorted(scores["per_object"]) == ["1", "3"] and scores["per_object"]["3"]["targets"] == 1

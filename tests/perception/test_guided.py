@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from posegrasp.perception.guided import GuidedConfig, guided_filter, refine_labels
+from posegrasp.perception.guided import GuidedConfig, guided_filter, snap_labels
 
 
 def _textured_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -41,20 +41,20 @@ def test_misplaced_outlines_snap_to_the_blocks(shift):
     """A class map that misses the blocks' edges by a few pixels (eroded, dilated, shifted) is put back on them."""
     rgb, truth = _textured_scene()
     coarse = np.roll(truth, shift, axis=(0, 1))
-    refined = refine_labels(coarse, rgb, GuidedConfig(radius=8, eps=1e-4, subsample=2))
+    refined = snap_labels(coarse, rgb, GuidedConfig(radius=8, eps=1e-4, subsample=2))
     for c in (3, 5):
         before, after = _iou(coarse == c, truth == c), _iou(refined == c, truth == c)
         assert before < 0.9 and after > 0.95, (c, before, after)
     assert set(np.unique(refined)) == {0, 3, 5}
 
 
-def test_nothing_to_refine():
+def test_nothing_to_snap():
     rgb, truth = _textured_scene()
     empty = np.zeros_like(truth)
-    assert refine_labels(empty, rgb) is empty
-    assert refine_labels(truth, rgb, GuidedConfig(radius=0)) is truth
-    with pytest.raises(ValueError, match="eps must be positive, got 0"):
-        refine_labels(truth, rgb, GuidedConfig(eps=0.0))
+    assert snap_labels(empty, rgb) is empty
+    assert snap_labels(truth, rgb, GuidedConfig(radius=0)) is truth
+    with pytest.raises(ValueError, match=r"GuidedConfig\.eps = 0\.0 is out of range"):
+        GuidedConfig(eps=0.0)
 
 
 def test_argmax_planes_is_numpys_argmax_first_on_ties():

@@ -3,8 +3,13 @@
 import cv2
 import numpy as np
 
+from posegrasp.perception.classifier import ClassifierConfig
 from posegrasp.perception.inputs import prepare_cls_input, segment_components
 from posegrasp.perception.plane import fit_support_plane
+
+#: 64 px crops of 0.16 m, relative depths within 0.05 m; with the height channel up to 0.08 m.
+CROP = ClassifierConfig(crop_size=64, crop_side=0.16, depth_range=0.05)
+HEIGHT_CROP = ClassifierConfig(crop_size=64, crop_side=0.16, depth_range=0.05, height_range=0.08)
 
 
 def test_segment_components_split_separated_blocks_of_one_type():
@@ -50,13 +55,13 @@ def test_cls_crop_has_a_fixed_metric_size():
         mask[30:30 + side_px, 40:40 + side_px] = True
         depth[mask] = z
         rgb = np.zeros((120, 160, 3), np.uint8)
-        x = prepare_cls_input(rgb, depth, K, mask, size=64, side=0.16, depth_range=0.05)
+        x = prepare_cls_input(rgb, depth, K, mask, CROP)
         assert x.shape == (6, 64, 64) and x.dtype == np.float32
         # half the crop's side: ~32 x 32 px of mask, centred, whatever the distance
         assert abs(x[3].sum() - 32 * 32) < 0.1 * 32 * 32 and x[3, 32, 32] == 1.0
         rel = x[4][x[5] > 0]
         np.testing.assert_allclose(sorted(set(np.round(rel, 4))), [0.0, 1.0])  # object 0, table +0.05 m
-    assert prepare_cls_input(rgb, np.zeros_like(depth), K, mask, 64, 0.16, 0.05) is None
+    assert prepare_cls_input(rgb, np.zeros_like(depth), K, mask, CROP) is None
 
 
 def test_cls_crop_height_channel_is_the_height_above_the_plane():
@@ -74,12 +79,12 @@ def test_cls_crop_height_channel_is_the_height_above_the_plane():
     rgb = np.zeros((240, 320, 3), np.uint8)
     found = fit_support_plane(depth, K)
     np.testing.assert_allclose(found, plane, atol=1e-4)
-    x = prepare_cls_input(rgb, depth, K, mask, 64, 0.16, 0.05, height_range=0.08, plane=found)
+    x = prepare_cls_input(rgb, depth, K, mask, HEIGHT_CROP, found)
     assert x.shape == (7, 64, 64)
     top, table = x[3] > 0, (x[3] == 0) & (x[5] > 0)
     np.testing.assert_allclose(x[6][top], 0.03 / 0.08, atol=0.01)
     np.testing.assert_allclose(x[6][table], 0.0, atol=0.01)
     assert np.ptp(x[4][top]) > 0.2  # the relative depth ramps by > 1 cm across the 3 cm-high top
-    no_plane = prepare_cls_input(rgb, depth, K, mask, 64, 0.16, 0.05, height_range=0.08)
+    no_plane = prepare_cls_input(rgb, depth, K, mask, HEIGHT_CROP)
     assert not no_plane[6].any() and np.array_equal(no_plane[:6], x[:6])
-    assert np.array_equal(prepare_cls_input(rgb, depth, K, mask, 64, 0.16, 0.05), x[:6])
+    assert np.array_equal(prepare_cls_input(rgb, depth, K, mask, CROP), x[:6])

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from posegrasp.perception import metrics
-from posegrasp.perception.losses import point_distances, pose_loss, refine_loss
+from posegrasp.perception.losses import PoseTargets, point_distances, pose_loss, refiner_loss
 from posegrasp.perception.torch_geometry import quat_to_rotmat
 from posegrasp.geometry import quat_to_R
 
@@ -48,7 +48,7 @@ def test_pose_loss_perfect_and_gradients():
     pred_q = q[:, None].expand(B, N, 4) / q.norm(dim=1)[:, None, None]
     pred_t = (t[:, None] - points).clone().requires_grad_(True)
     conf = torch.full((B, N), 0.5, dtype=torch.float64, requires_grad=True)
-    out = pose_loss(pred_q, pred_t, conf, points, model, target, torch.tensor([False, True, False]))
+    out = pose_loss(pred_q, pred_t, conf, PoseTargets(points, model, target, torch.tensor([False, True, False])))
     assert out.dis.abs().max() < 1e-12
     assert out.loss.item() == pytest.approx(-0.015 * np.log(0.5), rel=1e-9)
     out.loss.backward()
@@ -68,8 +68,8 @@ def test_symmetric_loss_ignores_symmetry():
     sym = point_distances(pred[:, None], target, torch.tensor([True]))
     asym = point_distances(pred[:, None], target, torch.tensor([False]))
     assert sym.item() < 1e-12 and asym.item() > 0.01
-    out = refine_loss(qz, torch.zeros(1, 3, dtype=torch.float64), target[:, :5], model, target,
-                      torch.tensor([True]))
+    out = refiner_loss(qz, torch.zeros(1, 3, dtype=torch.float64), target[:, :5], model, target,
+                       torch.tensor([True]))
     assert out.dis.shape == (1,)
 
 
@@ -94,6 +94,6 @@ def test_min_symmetry_loss_is_zero_at_every_symmetric_pose_and_not_at_a_near_sym
     # in pose_loss: min over symmetries where discrete, ADD-S where continuous
     q = torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], dtype=torch.float64)  # 180 deg about z
     pts = target[:, :1]
-    out = pose_loss(q, t - pts, torch.ones(1, 1, dtype=torch.float64), pts, model, target, torch.tensor([True]),
-                    sym_targets=sym_targets, continuous=torch.tensor([False]))
+    truth = PoseTargets(pts, model, target, torch.tensor([True]), sym_targets, torch.tensor([False]))
+    out = pose_loss(q, t - pts, torch.ones(1, 1, dtype=torch.float64), truth)
     assert out.dis[0] < 1e-12

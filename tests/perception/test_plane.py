@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from posegrasp.perception.refine import FitConfig, ObjectModel, RefineConfig, refine_pose
+from posegrasp.perception.depth_fit import FitConfig, ObjectModel, DepthFitConfig, fit_pose
 from posegrasp.perception.plane import clear_plane, fit_support_plane, plane_pixels
 
 K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
@@ -45,14 +45,14 @@ def test_icp_scores_a_pose_sunk_into_the_table_worse():
     plane = np.array([0.0, 0.0, -1.0, 0.5])  # normal up the optical axis, towards the camera
     model = rng.uniform(-0.02, 0.02, (2000, 3))
     depth = np.zeros((240, 320))  # no depth: the free-space term stays 0
-    cfg = RefineConfig(fit=FitConfig(iterations=0))
+    cfg = DepthFitConfig(fit=FitConfig(iterations=0))
     fixed = ObjectModel.of_points(model, cfg, np.eye(3)[None])
     for dz, share in ((0.0, 0.0), (0.01, 0.25)):  # the cube's bottom 0 or 1 cm beneath the table
         T = np.eye(4)
         T[2, 3] = 0.48 + dz
         obs = model[:300] @ T[:3, :3].T + T[:3, 3]
-        s_free = refine_pose(T, fixed, obs, depth, K, cfg)[1]
-        s_plane = refine_pose(T, fixed, obs, depth, K, cfg, plane)[1]
+        s_free = fit_pose(T, fixed, obs, depth, K, cfg)[1]
+        s_plane = fit_pose(T, fixed, obs, depth, K, cfg, plane)[1]
         below = np.mean(model[:, 2] + T[2, 3] > 0.5 + cfg.score.violation_margin)
         assert abs(below - share / 2) < 0.03  # points more than the 5 mm margin beneath: half the sunk part
         assert s_plane - s_free == pytest.approx(cfg.score.violation_weight * below, abs=1e-6)
@@ -95,13 +95,13 @@ def test_a_block_lying_on_another_does_not_float():
     is the same either way."""
     import torch
 
-    from posegrasp.perception.refine.frame import Frame
-    from posegrasp.perception.refine.score import score
+    from posegrasp.perception.depth_fit.context import FitContext
+    from posegrasp.perception.depth_fit.score import score
 
     rng = np.random.default_rng(0)
     plane = np.array([0.0, 0.0, -1.0, 0.5])
     model = rng.uniform(-0.02, 0.02, (2000, 3))
-    cfg = RefineConfig()
+    cfg = DepthFitConfig()
     cube = ObjectModel.of_points(model, cfg, np.eye(3)[None])
     poses = [np.eye(4), np.eye(4)]
     poses[0][2, 3], poses[1][2, 3] = 0.48, 0.44  # the lower cube on the table, the upper one on it
@@ -109,7 +109,7 @@ def test_a_block_lying_on_another_does_not_float():
     depth = np.zeros((240, 320))
 
     def scores(objs: list[int]) -> np.ndarray:
-        frame = Frame.of([cube] * len(objs), [obs[i] for i in objs], depth, K, plane)
+        frame = FitContext.of([cube] * len(objs), [obs[i] for i in objs], depth, K, plane)
         R = torch.eye(3).expand(len(objs), 3, 3)
         t = torch.tensor(np.array([poses[i][:3, 3] for i in objs]), dtype=torch.float32)
         return score(frame, cfg.score, R, t, torch.arange(len(objs)), fine=True).numpy()

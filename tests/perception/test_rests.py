@@ -6,8 +6,8 @@ import trimesh
 
 from posegrasp import bop
 from posegrasp.bop import models as bop_models
-from posegrasp.perception.refine.rests import Rests, up_classes
-from posegrasp.perception.refine.starts import cube_rotations
+from posegrasp.perception.depth_fit.rests import Rests, up_classes
+from posegrasp.perception.depth_fit.starts import cube_rotations
 
 
 def _symmetries(obj_id: int) -> tuple[np.ndarray, np.ndarray]:

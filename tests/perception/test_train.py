@@ -9,7 +9,7 @@ from safetensors.torch import load_file
 
 from posegrasp.perception import checkpoint
 from posegrasp.perception.data import PoseDataset, SegDataset, collate
-from posegrasp.perception.losses import pose_loss
+from posegrasp.perception.losses import PoseTargets, pose_loss
 from posegrasp.perception.pose_net import build_pose_net
 from posegrasp.perception.seg_net import build_seg_net, seg_loss
 from posegrasp.perception.train_pose import train_pose
@@ -40,7 +40,7 @@ def _fixed_pose_loss(model, ds):
     b = collate([ds.get(i) for i in range(0, len(ds), 3)])
     with torch.no_grad():
         q, t, c, _ = model(b["image"], b["points"], b["choose"], b["obj"])
-        return pose_loss(q, t, c, b["points"], b["model_points"], b["target"], b["symmetric"]).dis.mean().item()
+        return pose_loss(q, t, c, PoseTargets.of(b)).dis.mean().item()
 
 
 @pytest.mark.slow
@@ -50,11 +50,11 @@ def test_pose_training_lowers_loss(tiny_bop, tiny_run):
     assert model_cfg.obj_ids == [1, 2, 3] and model_cfg.symmetric == [False, True, True]
     torch.manual_seed(cfg["train"]["seed"])
     initial = build_pose_net(model_cfg)
-    ds = PoseDataset(tiny_bop, "train", model_cfg.obj_ids, model_cfg.num_points, model_cfg.crop_size)
+    ds = PoseDataset(tiny_bop, "train", model_cfg)
     assert _fixed_pose_loss(trained, ds) < 0.7 * _fixed_pose_loss(initial, ds)
     state = json.loads((tiny_run / "pose" / "state.json").read_text())
     assert state["step"] == 20 and state["best_val_dis"] is not None
-    assert (tiny_run / "refine" / "model.safetensors").exists()
+    assert (tiny_run / "refiner" / "model.safetensors").exists()
 
 
 def test_cls_training_lowers_loss(tiny_bop, tiny_run):
@@ -66,8 +66,7 @@ def test_cls_training_lowers_loss(tiny_bop, tiny_run):
     assert model_cfg.obj_ids == [1, 2, 3] and cfg["train"]["use_seg"]
     torch.manual_seed(cfg["train"]["seed"])
     initial = build_classifier(model_cfg).eval()
-    ds = ClsDataset(tiny_bop, "train", model_cfg.obj_ids, model_cfg.crop_size, model_cfg.crop_side,
-                    model_cfg.depth_range)
+    ds = ClsDataset(tiny_bop, "train", model_cfg)
     b = collate([ds.get(i) for i in range(len(ds))])
     with torch.no_grad():
         losses = [float(torch.nn.functional.cross_entropy(m(b["image"]), b["label"])) for m in (trained, initial)]
@@ -75,14 +74,21 @@ def test_cls_training_lowers_loss(tiny_bop, tiny_run):
     assert len((tiny_run / "cls_metrics.csv").read_text().splitlines()) == 61
 
 
-def test_unusable_model_setting_is_a_one_line_error(tiny_bop, tiny_cls_config, tmp_path):
-    from posegrasp.perception.train_cls import train_cls
-    from posegrasp.errors import UserError
+def test_unusable_model_setting_is_a_one_line_error(tiny_cls_config, tmp_path):
+    """An unusable ``[cls.model]`` setting is refused when the settings are read, in one line naming it."""
+    from posegrasp.config import load_toml
+    from posegrasp.perception.train_cls import ClsTrainConfig
 
-    bad = dataclasses.replace(tiny_cls_config, model=dataclasses.replace(tiny_cls_config.model, height_range=-0.1))
-    with pytest.raises(UserError, match=r"\[cls.model\] height_range must be >= 0 m .*got -0.1"):
-        train_cls(tiny_bop, tmp_path / "run", bad, steps=1, progress=False)
-    assert not (tmp_path / "run" / "cls").exists()
+    toml = tmp_path / "cls.toml"
+    toml.write_text("[cls.model]\nheight_range = -0.1\n")
+    with pytest.raises(UserError, match=rf"^{toml}\.model\.height_range = -0\.1 is out of range: use 0 to 10$"):
+        load_toml(ClsTrainConfig, toml, "cls")
+    toml.write_text("[cls.model]\nwidths = [8, 16, 32, 64, 128]\ncrop_size = 8\n")
+    with pytest.raises(UserError, match=rf"^{toml}\.model: crop_size = 8 is too small for 5 pooled stages: use at "
+                                        "least 16$"):
+        load_toml(ClsTrainConfig, toml, "cls")
+    with pytest.raises(UserError, match="height_range = -0.1 is out of range"):
+        dataclasses.replace(tiny_cls_config.model, height_range=-0.1)
 
 
 def test_cls_lr_schedule():

@@ -42,11 +42,11 @@ def test_mismatched_config(run_copy):
 
 
 def test_wrong_stage_and_missing(run_copy, tmp_path):
-    shutil.rmtree(run_copy / "refine")
-    shutil.copytree(run_copy / "seg", run_copy / "refine")
+    shutil.rmtree(run_copy / "refiner")
+    shutil.copytree(run_copy / "seg", run_copy / "refiner")
     with pytest.raises(UserError) as e:
         Estimator(run_copy)
-    assert "expected refine" in _one_line(e)
+    assert "expected refiner" in _one_line(e)
     with pytest.raises(UserError) as e:
         Estimator(tmp_path / "nothing")
     _one_line(e)
@@ -54,3 +54,17 @@ def test_wrong_stage_and_missing(run_copy, tmp_path):
     with pytest.raises(UserError) as e:
         checkpoint.load_model(run_copy / "pose")
     assert "corrupt" in _one_line(e)
+
+
+def test_a_run_with_the_refiner_under_its_old_folder_name_loads(run_copy, capsys):
+    """A run folder written before the refiner's folder was named ``refiner/`` holds it as ``refine/``: it loads as
+    it is, with a notice naming the new name; the checkpoint's files carry the stage tag ``refine`` either way."""
+    assert json.loads((run_copy / "refiner" / "config.json").read_text())["stage"] == "refine"
+    new = Estimator(run_copy)
+    (run_copy / "refiner").rename(run_copy / "refine")
+    capsys.readouterr()
+    old = Estimator(run_copy)
+    assert old.refiner is not None and old.refiner_iterations == new.refiner_iterations == 2
+    assert all((a == b).all() for a, b in zip(old.refiner.state_dict().values(), new.refiner.state_dict().values()))
+    assert capsys.readouterr().err == (f"posegrasp: note: {run_copy / 'refine'} is read as the refiner checkpoint: "
+                                       "its folder is now named refiner/\n")

@@ -5,8 +5,8 @@ normal lies inside F; resting on F, the plane's upward normal is u = -n_F in the
 ``trimesh.poses.compute_stable_poses`` with ``sigma=0`` (the exact centre of mass, nothing sampled). A box has the
 six axes; an L-block also stands as an inverted V on the ends of its two bars (u = -(1, 0, 1) / sqrt 2), a
 triangular prism lies on each of its three sides (u at 120 deg steps about its axis), a brick leans on a long side's
-studs (u 36 deg off its -z axis). The depth refinement lays its resting starts on the nearest of these
-(``perception.refine.starts.level``): an object axis would put those poses 30-45 deg off.
+studs (u 36 deg off its -z axis). The depth fit lays its resting starts on the nearest of these
+(``perception.depth_fit.starts.level``): an object axis would put those poses 30-45 deg off.
 
 Two rests are one for the fit when a symmetry of the model maps one up onto the other: S u_i = u_j for a discrete
 symmetry S (or the identity), or (S u_i) . c = u_j . c for a continuous symmetry axis c (a turn about c then maps

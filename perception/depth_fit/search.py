@@ -20,9 +20,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from posegrasp.perception.refine.config import SearchConfig
-from posegrasp.perception.refine.score import Scored, best_rows
-from posegrasp.perception.refine.starts import up_face
+from posegrasp.perception.depth_fit.config import SearchConfig
+from posegrasp.perception.depth_fit.score import Scored, best_rows
+from posegrasp.perception.depth_fit.starts import up_face
 from posegrasp.perception.torch_geometry import turns_about
 
 #: The pattern search's scales, in turn: (shift along the plane (m), turn about its normal (deg)).

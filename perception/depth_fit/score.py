@@ -9,8 +9,8 @@ the grid's match among the model points (within a cell diagonal of the nearest).
 project onto valid depth pixels and lie more than ``violation_margin`` in front of the seen surface (the model would
 fill space the camera sees through), plus, given the supporting plane, the share more than ``violation_margin``
 beneath it (sunk into the table). f, given the plane: the height of the lowest model point above the highest support
-not above it (the plane, or the seen surface of a neighbouring object: ``Frame.supports``) less ``float_margin``, in
-cm, clipped to [0, 1] (a block resting on nothing). The ranking scores take the first
+not above it (the plane, or the seen surface of a neighbouring object: ``FitContext.supports``) less
+``float_margin``, in cm, clipped to [0, 1] (a block resting on nothing). The ranking scores take the first
 ``rank_points`` model points for v and f, the fine ones all of them.
 """
 
@@ -21,12 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from posegrasp.perception.refine.config import ScoreConfig
-from posegrasp.perception.refine.frame import Frame
-from posegrasp.perception.refine.grids import columns
+from posegrasp.perception.depth_fit.config import ScoreConfig
+from posegrasp.perception.depth_fit.context import FitContext
+from posegrasp.perception.depth_fit.grids import columns
 
 
-def score(frame: Frame, cfg: ScoreConfig, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor,
+def score(frame: FitContext, cfg: ScoreConfig, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor,
           fine: bool = False) -> torch.Tensor:
     """Scores (H,) in m of the poses R (H, 3, 3), t (H, 3) (object to camera) of the frame's objects ``obj`` (H,)
     (module doc); ``fine``: the distances from the models' surfaces and all the model points."""

@@ -1,24 +1,25 @@
-"""Training of the refiner (``perception.refiner``) on top of the run's frozen pose net: ``train_refine`` writes
-``RUN/refine/``."""
+"""Training of the refiner (``perception.refiner``) on top of the run's frozen pose net: ``train_refiner`` writes
+``RUN/refiner/``."""
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from posegrasp.config import settings, within
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.data import DataConfig
 from posegrasp.perception.refiner import RefinerConfig, build_refiner
-from posegrasp.perception.train_pose import evaluate_pose, pose_datasets, pose_forward, refine_iterations, to_batch
+from posegrasp.perception.train_pose import evaluate_pose, pose_datasets, pose_forward, refiner_steps, to_batch
 from posegrasp.perception.training import StageConfig, StageTraining, batch_keys, build_model
 
 
-@dataclass
-class RefineTrainConfig(StageConfig):
+@settings
+class RefinerTrainConfig(StageConfig):
     """Refiner training on top of the frozen pose net in ``RUN/pose`` (its objects and embedding
     width are copied into ``model``). lr defaults to DenseFusion's decayed lr (1e-4 x 0.3)."""
 
@@ -27,20 +28,20 @@ class RefineTrainConfig(StageConfig):
     #: Samples and augmentation.
     data: DataConfig = field(default_factory=DataConfig)
     #: Training steps (batches).
-    steps: int = 10000
+    steps: int = field(default=10000, metadata=within(1, 100000000))
     #: Learning rate (DenseFusion's decayed 1e-4 x 0.3).
-    lr: float = 3e-5
-    #: Refinement iterations per sample in training.
-    iterations: int = 2
+    lr: float = field(default=3e-5, metadata=within(0, 10))
+    #: Refiner iterations per sample in training.
+    iterations: int = field(default=2, metadata=within(1, 100))
     #: Validation samples per evaluation.
-    eval_samples: int = 200
+    eval_samples: int = field(default=200, metadata=within(1, 100000000))
 
 
-class RefineTraining(StageTraining):
-    """``iterations`` refinement steps per batch from the frozen pose net's estimates, each step's loss
+class RefinerTraining(StageTraining):
+    """``iterations`` refiner steps per batch from the frozen pose net's estimates, each step's loss
     backpropagated; the evaluation's mean distance after them is logged."""
 
-    name, config, needs = "refine", RefineTrainConfig, "pose"
+    name, config, needs = "refiner", RefinerTrainConfig, "pose"
     columns = ["step", "time_s", "loss", "dis_pose", "dis", "lr", "val_dis"]
 
     def build(self) -> None:
@@ -52,14 +53,12 @@ class RefineTraining(StageTraining):
         self.model_cfg = dataclasses.replace(cfg.model, obj_ids=list(pc.obj_ids), symmetric=list(pc.symmetric),
                                              emb_dim=pc.emb_dim)
         self.cfg = cfg = dataclasses.replace(cfg, model=self.model_cfg)
-        self.model = build_model("refine", build_refiner, self.model_cfg)
+        self.model = build_model("refiner", build_refiner, self.model_cfg)
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
         self.state = {"step": 0, "lr": cfg.lr, "best_val_dis": None}
 
     def prepare(self, progress: bool) -> None:
-        pc = self.pose_cfg
-        self.ds, self.val, self.val_idx = pose_datasets(self.data, self.cfg, list(pc.obj_ids), pc.num_points,
-                                                        pc.crop_size)
+        self.ds, self.val, self.val_idx = pose_datasets(self.data, self.cfg, self.pose_cfg)
 
     def step(self, step: int) -> dict[str, float]:
         cfg = self.cfg
@@ -68,7 +67,7 @@ class RefineTraining(StageTraining):
         with torch.no_grad():
             out, emb = pose_forward(self.pose_net, b, 0.015)
         self.opt.zero_grad(set_to_none=True)
-        dis = refine_iterations(self.model, b, out, emb, cfg.iterations, train=True)
+        dis = refiner_steps(self.model, b, out, emb, cfg.iterations, train=True)
         self.opt.step()
         return {"loss": float(sum(float(d.mean()) for d in dis)), "dis_pose": float(out.dis.mean()),
                 "dis": float(dis[-1].mean())}
@@ -88,8 +87,8 @@ class RefineTraining(StageTraining):
         return {"best_val_dis": self.state["best_val_dis"]}
 
 
-def train_refine(data: str | Path, out: str | Path, cfg: RefineTrainConfig | None = None, steps: int | None = None,
-                 seed: int | None = None, resume: bool = False, progress: bool = True) -> dict[str, float]:
+def train_refiner(data: str | Path, out: str | Path, cfg: RefinerTrainConfig | None = None, steps: int | None = None,
+                  seed: int | None = None, resume: bool = False, progress: bool = True) -> dict[str, float]:
     """Train the refiner on ``data`` with the frozen pose net of ``out/pose``; checkpoints in
-    ``out/refine``."""
-    return RefineTraining.train(data, out, cfg, steps, seed, resume, progress)
+    ``out/refiner``."""
+    return RefinerTraining.train(data, out, cfg, steps, seed, resume, progress)

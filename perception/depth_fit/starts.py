@@ -1,10 +1,10 @@
-"""Start rotations of the depth refinement, and the turns and rests that level them on the supporting plane.
+"""Start rotations of the depth fit, and the turns and rests that level them on the supporting plane.
 
 The fits start from R_est Q for the rotations Q of the cube group (``cube_rotations``), less those that start the
 same fit under the object's symmetries (``distinct_rotations``). Given the supporting plane (unit normal n), each also
 starts resting on it: moved along n until its lowest model point lies on the plane (``resting``) and turned by the
 least rotation that lays its rest nearest n onto it (``level``; the rests are the faces of the model's convex hull it
-stands on, ``perception.refine.rests``), plus, for each rest class that no start is nearest to, the start nearest it
+stands on, ``perception.depth_fit.rests``), plus, for each rest class that no start is nearest to, the start nearest it
 laid on it and turned about n (``rest_starts``). Turns about n by a step over the model's period about n
 (``yaw_turns``, ``turned``) give the fits the yaw that a face seen from above does not pin down.
 Rotations map the object frame into the camera frame; n is in the camera frame.
@@ -17,7 +17,7 @@ import itertools
 import numpy as np
 import torch
 
-from posegrasp.perception.refine.rests import Rests
+from posegrasp.perception.depth_fit.rests import Rests
 from posegrasp.perception.torch_geometry import turns_about
 
 #: An object's symmetries: discrete rotations (S, 3, 3) and continuous axes (A, 3), object frame.

@@ -1,4 +1,4 @@
-"""Depth refinement (``perception.refine``): ICP from rotation hypotheses recovers a block turned onto a
+"""The depth fit (``perception.depth_fit``): ICP from rotation hypotheses recovers a block turned onto a
 near-symmetry."""
 
 import itertools
@@ -9,9 +9,9 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from posegrasp.perception.refine import (FitConfig, NearestGrid, ObjectModel, RefineConfig, ScoreConfig, SearchConfig,
-                                        StartConfig, TurnConfig, cube_rotations, distinct_rotations, refine_pose,
-                                        refine_poses)
+from posegrasp.perception.depth_fit import (FitConfig, NearestGrid, ObjectModel, DepthFitConfig, ScoreConfig, SearchConfig,
+                                        StartConfig, TurnConfig, cube_rotations, distinct_rotations, fit_pose,
+                                        fit_poses)
 from posegrasp.perception.metrics import rotation_error_sym_deg
 from posegrasp import bop
 from posegrasp.bop import models as bop_models
@@ -35,30 +35,35 @@ def test_distinct_rotations_drop_hypotheses_equal_under_symmetry():
     assert np.allclose(cyl[0], np.eye(3))  # the estimate itself stays first
 
 
-@pytest.mark.parametrize("bad, message", [
-    (dict(fit=FitConfig(polish=-1)), r"fit\.polish .-1. must be >= 0"),
-    (dict(fit=FitConfig(max_points=2)), r"fit\.max_points must be >= 3 .*got 2"),
-    (dict(score=ScoreConfig(truncation=0.0)), r"score\.truncation .0\.0. must be positive"),
-    (dict(score=ScoreConfig(float_weight=-1.0)), r"score\.float_weight .-1\.0. >= 0"),
-    (dict(turns=TurnConfig(seeds=0)), r"turns\.seeds .0. >= 1"),
-    (dict(search=SearchConfig(pattern_fits=0)), r"search\.pattern_fits .0. >= 1"),
-    (dict(score=ScoreConfig(rank_points=2000)), r"score\.rank_points .2000. within \[1, fit\.model_points\]"),
-    (dict(starts=StartConfig(hypotheses="sphere")), "'cube' or 'identity', got 'sphere'")])
-def test_refine_config_names_the_bad_value(bad, message):
-    RefineConfig().validate()
+@pytest.mark.parametrize("build, message", [
+    (lambda: FitConfig(polish=-1), r"FitConfig\.polish = -1 is out of range: use 0 to"),
+    (lambda: FitConfig(max_points=2), r"FitConfig\.max_points = 2 is out of range: use 3 to"),
+    (lambda: ScoreConfig(truncation=0.0), r"ScoreConfig\.truncation = 0\.0 is out of range"),
+    (lambda: ScoreConfig(float_weight=-1.0), r"ScoreConfig\.float_weight = -1\.0 is out of range"),
+    (lambda: TurnConfig(seeds=0), r"TurnConfig\.seeds = 0 is out of range: use 1 to"),
+    (lambda: SearchConfig(pattern_fits=0), r"SearchConfig\.pattern_fits = 0 is out of range: use 1 to"),
+    (lambda: DepthFitConfig(score=ScoreConfig(rank_points=2000)),
+     r"score\.rank_points = 2000 exceeds fit\.model_points = 1500"),
+    (lambda: StartConfig(hypotheses="sphere"), r"StartConfig\.hypotheses = 'sphere': use 'cube' or 'identity'")])
+def test_depth_fit_config_names_the_bad_value(build, message):
+    """A bad value is refused when the settings are built, in one line naming the setting and the value."""
     with pytest.raises(ValueError, match=message):
-        RefineConfig(**bad).validate()
+        build()
 
 
-def test_refine_config_loads_its_stages_from_a_table():
+def test_depth_fit_config_loads_its_stages_from_a_table():
     """The settings nest by stage, as a TOML table would give them; a flat key is refused with the valid ones named."""
     from posegrasp.config import from_dict
     from posegrasp.errors import UserError
 
-    cfg = from_dict(RefineConfig, {"fit": {"polish": 2}, "search": {"pattern_rounds": 0}})
-    assert cfg == RefineConfig(fit=FitConfig(polish=2), search=SearchConfig(pattern_rounds=0))
+    cfg = from_dict(DepthFitConfig, {"fit": {"polish": 2}, "search": {"pattern_rounds": 0}})
+    assert cfg == DepthFitConfig(fit=FitConfig(polish=2), search=SearchConfig(pattern_rounds=0))
     with pytest.raises(UserError, match=r"unknown key\(s\) \['polish'\]; valid keys are \['fit', 'score'"):
-        from_dict(RefineConfig, {"polish": 2})
+        from_dict(DepthFitConfig, {"polish": 2})
+    with pytest.raises(UserError, match=r"cfg\.fit\.polish = -1 is out of range"):
+        from_dict(DepthFitConfig, {"fit": {"polish": -1}}, where="cfg")
+    with pytest.raises(UserError, match=r"^cfg: score\.rank_points = 2000 exceeds fit\.model_points = 1000"):
+        from_dict(DepthFitConfig, {"fit": {"model_points": 1000}, "score": {"rank_points": 2000}}, where="cfg")
 
 
 def test_nearest_grid_matches_within_half_a_cell_diagonal():
@@ -76,15 +81,15 @@ def test_nearest_grid_matches_within_half_a_cell_diagonal():
     with pytest.raises(ValueError, match="cell > 0"):
         NearestGrid(model, cell=0.0)
     with pytest.raises(ValueError, match="truncation"):  # a field that stops short of the score's truncation
-        refine_poses([np.eye(4)], [ObjectModel.of_points(model, grid=grid)], [model[:50]], np.zeros((8, 8)), np.eye(3),
-                     RefineConfig(score=ScoreConfig(truncation=0.02)))
+        fit_poses([np.eye(4)], [ObjectModel.of_points(model, grid=grid)], [model[:50]], np.zeros((8, 8)), np.eye(3),
+                     DepthFitConfig(score=ScoreConfig(truncation=0.02)))
 
 
 def test_grids_posed_and_exact_lookups():
     """Two objects' grids as one lookup: camera-frame points under poses (R, t) find the cells their object-frame
     points find (but for the odd point on a cell boundary), and ``exact`` gives each point's true nearest model
     point, its row within its own model."""
-    from posegrasp.perception.refine.grids import Grids
+    from posegrasp.perception.depth_fit.grids import Grids
 
     rng = np.random.default_rng(1)
     models = [rng.uniform(-1, 1, (500, 3)) * [0.03, 0.015, 0.01], rng.uniform(-1, 1, (300, 3)) * 0.02]
@@ -124,20 +129,20 @@ def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
             return rotation_error_sym_deg(T[:3, :3], g.T_cam_obj[:3, :3], info.symmetries_discrete)
 
         for Q in (None, hyps):  # all 24 hypotheses, and the 6 that differ under the box's symmetries
-            T, _ = refine_pose(T_est, ObjectModel.of_points(model, hypotheses=Q), obs[::max(1, len(obs) // 300)],
+            T, _ = fit_pose(T_est, ObjectModel.of_points(model, hypotheses=Q), obs[::max(1, len(obs) // 300)],
                                depth, K)
             fixed += err(T) < 10.0 and np.linalg.norm(T[:3, 3] - g.T_cam_obj[:3, 3]) < 0.005
-        plain = RefineConfig(starts=StartConfig(hypotheses="identity"), turns=TurnConfig(step_deg=0.0))
-        T1, _ = refine_pose(T_est, ObjectModel.of_points(model, plain), obs[::max(1, len(obs) // 300)], depth, K, plain)
+        plain = DepthFitConfig(starts=StartConfig(hypotheses="identity"), turns=TurnConfig(step_deg=0.0))
+        T1, _ = fit_pose(T_est, ObjectModel.of_points(model, plain), obs[::max(1, len(obs) // 300)], depth, K, plain)
         stuck += err(T1) > 45.0
     # measured: 7 of 8 recovered with the 24 hypotheses, 7 of 8 with the 6; plain ICP stays turned in 8 of 8
     assert fixed >= 2 * 0.75 * len(recs) and stuck >= 0.75 * len(recs)
 
 
 @pytest.mark.slow
-def test_objects_refined_together_as_each_alone(tiny_bop):
-    """``refine_poses`` batches the objects of a frame (models and point sets of different sizes, padded): each result
-    is ``refine_pose``'s for that object alone, with and without the supporting plane."""
+def test_objects_fitted_together_as_each_alone(tiny_bop):
+    """``fit_poses`` batches the objects of a frame (models and point sets of different sizes, padded): each result
+    is ``fit_pose``'s for that object alone, with and without the supporting plane."""
     rec = next(iter(bop.iter_scene_images(tiny_bop, "train")))
     depth, K = rec.load_depth(), rec.camera.K
     infos = bop.load_models_info(tiny_bop)
@@ -151,20 +156,20 @@ def test_objects_refined_together_as_each_alone(tiny_bop):
         Q = distinct_rotations(cube_rotations(), infos[g.obj_id].symmetries_discrete, [])
         args.append((T_est, ObjectModel.of_points(model, hypotheses=Q), obs))
     assert len(args) >= 2 and len({len(a[1].points) for a in args}) == len(args) and len({len(a[2]) for a in args}) > 1
-    cfg = RefineConfig(fit=FitConfig(polish=2))
+    cfg = DepthFitConfig(fit=FitConfig(polish=2))
     for plane in (None, np.array([0.0, 0.0, -1.0, float(depth[depth > 0].max()) + 0.01])):
-        together = refine_poses(*[list(x) for x in zip(*args)], depth, K, cfg, plane)
+        together = fit_poses(*[list(x) for x in zip(*args)], depth, K, cfg, plane)
         for (T, s), (T_est, model, obs) in zip(together, args):
-            T1, s1 = refine_pose(T_est, model, obs, depth, K, cfg, plane)
+            T1, s1 = fit_pose(T_est, model, obs, depth, K, cfg, plane)
             np.testing.assert_allclose(T, T1, atol=1e-4)
             assert s == pytest.approx(s1, abs=1e-5)
-    assert refine_poses([], [], [], depth, K) == []
+    assert fit_poses([], [], [], depth, K) == []
 
 
 def test_yaw_turns_repeat_no_turn_a_symmetry_gives():
     """Turns about the plane's normal: every step of 360 deg / (the symmetries about that axis); none for a continuous
     axis along it."""
-    from posegrasp.perception.refine.starts import yaw_turns
+    from posegrasp.perception.depth_fit.starts import yaw_turns
 
     up = np.array([0.0, 0.0, 1.0])
     quarter = np.stack([axis_angle_R(up, k * np.pi / 2) for k in (1, 2, 3)])
@@ -237,17 +242,17 @@ def test_yaw_turns_find_a_cube_turned_on_the_table():
         return rotation_error_sym_deg(T[:3, :3], T_gt[:3, :3], list(Q[1:]))
 
     cube_model = ObjectModel.of_points(model, hypotheses=distinct_rotations(Q, list(Q[1:]), []), symmetries=syms)
-    T_turns, _ = refine_pose(T_est, cube_model, obs, depth, K, RefineConfig(), plane)
-    plain = RefineConfig(starts=StartConfig(level_rests=False), turns=TurnConfig(step_deg=0.0),
+    T_turns, _ = fit_pose(T_est, cube_model, obs, depth, K, DepthFitConfig(), plane)
+    plain = DepthFitConfig(starts=StartConfig(level_rests=False), turns=TurnConfig(step_deg=0.0),
                          search=SearchConfig(yaw_deg=0.0))
-    T_plain, _ = refine_pose(T_est, cube_model, obs, depth, K, plain, plane)
-    T_held, _ = refine_pose(T_est, cube_model, obs, depth, K, RefineConfig(turns=TurnConfig(step_deg=0.0)), plane)
+    T_plain, _ = fit_pose(T_est, cube_model, obs, depth, K, plain, plane)
+    T_held, _ = fit_pose(T_est, cube_model, obs, depth, K, DepthFitConfig(turns=TurnConfig(step_deg=0.0)), plane)
     assert err(T_turns) < 5.0 and np.linalg.norm(T_turns[:3, 3] - T_gt[:3, 3]) < 0.002
     assert err(T_plain) > 10.0 and err(T_held) < 5.0
 
 
 def test_up_face_names_the_object_axis_along_the_normal():
-    from posegrasp.perception.refine.starts import up_face
+    from posegrasp.perception.depth_fit.starts import up_face
 
     up = np.array([0.0, 0.0, 1.0])
     R = torch.from_numpy(np.stack([np.eye(3), axis_angle_R(np.array([1.0, 0.0, 0.0]), np.pi),
@@ -261,8 +266,8 @@ def test_up_face_names_the_object_axis_along_the_normal():
 def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
     """An L-block standing on the ends of its two bars, corner up (its rest 45 deg from every object axis), estimated
     as an upright L turned 120 deg: levelled onto the nearest object axis, no resting start can reach that pose; the
-    model's rests (``perception.refine.rests``) give one that does."""
-    from posegrasp.perception.refine.rests import Rests
+    model's rests (``perception.depth_fit.rests``) give one that does."""
+    from posegrasp.perception.depth_fit.rests import Rests
 
     mesh = bop_models.load_model("assets/blocks", 8)
     syms = bop.load_models_info("assets/blocks")[8].symmetry_rotations()
@@ -276,8 +281,8 @@ def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
     obs = obs[::max(1, len(obs) // 300)]
 
     def err(rests):
-        T, _ = refine_pose(T_est, ObjectModel.of_points(model, hypotheses=hyps, symmetries=syms, rests=rests), obs,
-                           depth, K, RefineConfig(), plane)
+        T, _ = fit_pose(T_est, ObjectModel.of_points(model, hypotheses=hyps, symmetries=syms, rests=rests), obs,
+                           depth, K, DepthFitConfig(), plane)
         return rotation_error_sym_deg(T[:3, :3], T_gt[:3, :3], list(syms[0]))
 
     assert err(rests) < 1.0  # 0.04 deg measured
@@ -288,8 +293,8 @@ def test_an_l_block_standing_as_an_inverted_v_is_found_from_its_rests():
 def test_a_pose_floating_above_the_plane_costs_the_floating_term():
     """The score's floating term: a 2 cm cube and its observed points lifted 2, 8 and 30 mm above the table plane
     score the same fit, plus float_weight x (height - margin) / 1 cm, capped at float_weight."""
-    from posegrasp.perception.refine.frame import Frame
-    from posegrasp.perception.refine.score import score
+    from posegrasp.perception.depth_fit.context import FitContext
+    from posegrasp.perception.depth_fit.score import score
 
     corners = np.array(list(itertools.product((-0.01, 0.01), repeat=3)))
     model = ObjectModel.of_points(np.concatenate([corners, np.random.default_rng(0).uniform(-0.01, 0.01, (300, 3))]))
@@ -300,14 +305,14 @@ def test_a_pose_floating_above_the_plane_costs_the_floating_term():
     costs = []
     for lift in (0.002, 0.008, 0.030):
         t = torch.tensor([[0.0, 0.0, 0.49 - lift]])  # the cube's lowest face ``lift`` above the table
-        frame = Frame.of([model], [model.points + t.numpy()], depth, K, plane)
+        frame = FitContext.of([model], [model.points + t.numpy()], depth, K, plane)
         on, off = (score(frame, cfg, R, t, obj, fine=True) for cfg in (ScoreConfig(), ScoreConfig(float_weight=0.0)))
         costs.append(float(on - off))
     np.testing.assert_allclose(costs, [0.0, 0.01 * 0.4, 0.01], atol=1e-6)
 
 
 def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
-    from posegrasp.perception.refine.starts import level, resting
+    from posegrasp.perception.depth_fit.starts import level, resting
 
     rng = np.random.default_rng(0)
     n = torch.tensor([0.0, -0.6, -0.8], dtype=torch.float64)
@@ -331,7 +336,7 @@ def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
 def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squares_pose():
     """``Kabsch.fit`` with rows held: targets made by turning R0 m about the normal n by 0.4 rad and shifting give
     back that turn and shift exactly (a free row the same), and ``turns_about`` is Rodrigues' formula."""
-    from posegrasp.perception.refine.kabsch import Kabsch
+    from posegrasp.perception.depth_fit.kabsch import Kabsch
     from posegrasp.perception.torch_geometry import turns_about
 
     rng = np.random.default_rng(0)
@@ -354,8 +359,8 @@ def test_the_pattern_search_walks_a_pose_down_its_score_along_the_plane():
     """``pattern_search`` on a score that is the distance (m) to a target pose's position plus its turn about the
     normal (rad, scaled 10 cm per rad): from 3.4 mm and 3 deg off, in 2 rounds per scale, it ends within the last
     scale's steps (0.5 mm, 0.5 deg), keeps the pose's height over the plane and appends the moved pose."""
-    from posegrasp.perception.refine.score import Scored
-    from posegrasp.perception.refine.search import pattern_search
+    from posegrasp.perception.depth_fit.score import Scored
+    from posegrasp.perception.depth_fit.search import pattern_search
 
     n = torch.tensor([0.0, -0.6, -0.8], dtype=torch.float64)
     R_goal = torch.from_numpy(axis_angle_R(np.array([0.3, 0.2, 0.9]), 0.7))

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from posegrasp.perception.refine.distance_field import DistanceField, Fields
+from posegrasp.perception.depth_fit.distance_field import DistanceField, Fields
 
 
 class NearestGrid:

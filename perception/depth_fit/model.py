@@ -7,17 +7,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from posegrasp.bop import models as bop_models
-from posegrasp.perception.refine.config import RefineConfig
-from posegrasp.perception.refine.distance_field import DistanceField
-from posegrasp.perception.refine.grids import NearestGrid
-from posegrasp.perception.refine.rests import Rests
-from posegrasp.perception.refine.starts import NO_SYMMETRY, Symmetries, distinct_rotations
+from posegrasp.perception.depth_fit.config import DepthFitConfig
+from posegrasp.perception.depth_fit.distance_field import DistanceField
+from posegrasp.perception.depth_fit.grids import NearestGrid
+from posegrasp.perception.depth_fit.rests import Rests
+from posegrasp.perception.depth_fit.starts import NO_SYMMETRY, Symmetries, distinct_rotations
 from posegrasp.perception.split import ModelSurface
 
 
 @dataclass(frozen=True, eq=False)
 class ObjectModel:
-    """One object's shape, object frame, metres: its model points (M, 3) in random order (the depth refinement's
+    """One object's shape, object frame, metres: its model points (M, 3) in random order (the depth fit's
     scores rank with the first ``ScoreConfig.rank_points``), the rotations (H, 3, 3) its fits start from, its
     ``NearestGrid`` (with the ``DistanceField`` of its surface), its symmetries (discrete rotations (S, 3, 3),
     continuous axes (A, 3)), its ``Rests`` on a plane, and the dense ``ModelSurface`` that tells which observed points
@@ -31,20 +31,20 @@ class ObjectModel:
     surface: ModelSurface | None = None
 
     @classmethod
-    def of_points(cls, points: np.ndarray, cfg: RefineConfig | None = None, hypotheses: np.ndarray | None = None,
+    def of_points(cls, points: np.ndarray, cfg: DepthFitConfig | None = None, hypotheses: np.ndarray | None = None,
                   symmetries: Symmetries | None = None, rests: Rests | None = None,
                   grid: NearestGrid | None = None) -> ObjectModel:
         """A model of surface points (M, 3) (object frame, m). Defaults: the start rotations ``cfg.rotations()``, no
         symmetry, the six object axes as rests (labelled by the symmetries), and a grid whose distance field is that
         of the points, reaching ``cfg.score.truncation``."""
-        cfg = cfg or RefineConfig()
+        cfg = cfg or DepthFitConfig()
         symmetries = NO_SYMMETRY if symmetries is None else symmetries
         return cls(points, cfg.rotations() if hypotheses is None else hypotheses,
                    grid or NearestGrid(points, field=DistanceField(points, margin=cfg.score.truncation)),
                    symmetries, Rests.axes(*symmetries) if rests is None else rests)
 
     @classmethod
-    def of_mesh(cls, mesh, symmetries: Symmetries, cfg: RefineConfig, seed: int,
+    def of_mesh(cls, mesh, symmetries: Symmetries, cfg: DepthFitConfig, seed: int,
                 surface_points: int = 0) -> ObjectModel:
         """The model of a trimesh (object frame, m) with its symmetries (``bop.ObjectInfo.symmetry_rotations``):
         ``cfg.fit.model_points`` points sampled on it (seeded), the start rotations distinct under the symmetries, its

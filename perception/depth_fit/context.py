@@ -1,4 +1,4 @@
-"""The context of one frame's depth refinement: its objects' models and observed points as batched tensors."""
+"""The context of one frame's depth fit: its objects' models and observed points as batched tensors."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from posegrasp.perception.refine.grids import Grids
-from posegrasp.perception.refine.model import ObjectModel
-from posegrasp.perception.refine.starts import Symmetries, stacked_rests
+from posegrasp.perception.depth_fit.grids import Grids
+from posegrasp.perception.depth_fit.model import ObjectModel
+from posegrasp.perception.depth_fit.starts import Symmetries, stacked_rests
 
 
 @dataclass(frozen=True)
-class Frame:
-    """What every stage of one frame's refinement reads, for O objects (a fit's row names its object o): their model
+class FitContext:
+    """What every stage of one frame's depth fit reads, for O objects (a fit's row names its object o): their model
     points (O, M, 3) (object frame, m; padded far off) valid where ``model_ok`` (O, M); their observed points
     (O, N, 3) (camera frame, m) with ``weights`` (O, N) (0: padding); the depth image (H, W) (m, 0: no depth) and
     intrinsics K (3, 3); the supporting plane (4,: n . x + d = 0, n unit, camera frame) or None; the models' ``grids``
@@ -38,7 +38,7 @@ class Frame:
 
     @classmethod
     def of(cls, models: list[ObjectModel], observed: list[np.ndarray], depth: np.ndarray, K: np.ndarray,
-           plane: np.ndarray | None) -> Frame:
+           plane: np.ndarray | None) -> FitContext:
         """The context of objects ``models`` observed as points (N_o, 3) each (camera frame, m) in ``depth`` (H, W)."""
         m, m_ok = _padded([x.points for x in models], 1e3)  # padding far off, never a nearest point
         p, p_ok = _padded(observed)

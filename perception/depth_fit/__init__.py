@@ -1,10 +1,10 @@
-"""Depth refinement: each pose estimate fitted to its observed depth points by ICP from several starts, scored
+"""The depth fit: each pose estimate fitted to its observed depth points by ICP from several starts, scored
 against the depth image.
 
 The pose net's translations are good but its rotations often sit on a near-symmetry of a block (a brick turned 90 deg
 or an arch upside down covers almost the same points), so this stage, like PoseCNN's and DenseFusion's "+ICP", fits
 each object's model to its observed points from H starts and keeps the fit with the lowest score. Its stages, in the
-order ``refine_poses`` (``driver``) runs them, all objects of a frame as one batch:
+order ``fit_poses`` (``driver``) runs them, all objects of a frame as one batch:
 
 1. Starts (``starts``, ``StartConfig``): R_est Q for the 24 rotations Q of the cube group, less those that start the
    same fit under the object's symmetries. Given the supporting plane, each also starts moved along its normal n to
@@ -21,16 +21,17 @@ order ``refine_poses`` (``driver``) runs them, all objects of a frame as one bat
 
 The score (``score``, ``ScoreConfig``) is the mean truncated distance of the observed points to the model, plus
 weighted shares of model points in seen free space and beneath the plane, plus a term for a model floating above its
-support: the plane, or the seen surface of a neighbouring object it may lie on (``Frame.supports``). The context of a frame (observed points, weights, depth, K, plane, the objects' models) is a ``Frame``; each
-object's shape an ``ObjectModel``. Points are camera-frame metres; K is the 3x3 intrinsic matrix.
+support: the plane, or the seen surface of a neighbouring object it may lie on (``FitContext.supports``). The
+context of a frame (observed points, weights, depth, K, plane, the objects' models) is a ``FitContext`` (``context``);
+each object's shape an ``ObjectModel``. Points are camera-frame metres; K is the 3x3 intrinsic matrix.
 """
 
-from posegrasp.perception.refine.config import (FitConfig, RefineConfig, ScoreConfig, SearchConfig, StartConfig,
-                                                TurnConfig)
-from posegrasp.perception.refine.driver import refine_pose, refine_poses
-from posegrasp.perception.refine.grids import NearestGrid
-from posegrasp.perception.refine.model import ObjectModel
-from posegrasp.perception.refine.starts import cube_rotations, distinct_rotations
+from posegrasp.perception.depth_fit.config import (DepthFitConfig, FitConfig, ScoreConfig, SearchConfig, StartConfig,
+                                                   TurnConfig)
+from posegrasp.perception.depth_fit.driver import fit_pose, fit_poses
+from posegrasp.perception.depth_fit.grids import NearestGrid
+from posegrasp.perception.depth_fit.model import ObjectModel
+from posegrasp.perception.depth_fit.starts import cube_rotations, distinct_rotations
 
-__all__ = ["FitConfig", "NearestGrid", "ObjectModel", "RefineConfig", "ScoreConfig", "SearchConfig", "StartConfig",
-           "TurnConfig", "cube_rotations", "distinct_rotations", "refine_pose", "refine_poses"]
+__all__ = ["DepthFitConfig", "FitConfig", "NearestGrid", "ObjectModel", "ScoreConfig", "SearchConfig", "StartConfig",
+           "TurnConfig", "cube_rotations", "distinct_rotations", "fit_pose", "fit_poses"]

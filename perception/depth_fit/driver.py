@@ -1,4 +1,4 @@
-"""``refine_poses``: the depth refinement's stages, in order, for all the objects of one frame in one batch."""
+"""``fit_poses``: the depth fit's stages, in order, for all the objects of one frame in one batch."""
 
 from __future__ import annotations
 
@@ -10,38 +10,38 @@ import numpy as np
 import torch
 
 from posegrasp.errors import ConfigError
-from posegrasp.perception.refine.config import RefineConfig, TurnConfig
-from posegrasp.perception.refine.frame import Frame
-from posegrasp.perception.refine.grids import columns
-from posegrasp.perception.refine.kabsch import Kabsch
-from posegrasp.perception.refine.model import ObjectModel
-from posegrasp.perception.refine.score import Scored, best_rows, score
-from posegrasp.perception.refine.search import ScoreOf, pattern_search, yaw_search
-from posegrasp.perception.refine.starts import rest_starts, resting, turned, up_face
+from posegrasp.perception.depth_fit.config import DepthFitConfig, TurnConfig
+from posegrasp.perception.depth_fit.context import FitContext
+from posegrasp.perception.depth_fit.grids import columns
+from posegrasp.perception.depth_fit.kabsch import Kabsch
+from posegrasp.perception.depth_fit.model import ObjectModel
+from posegrasp.perception.depth_fit.score import Scored, best_rows, score
+from posegrasp.perception.depth_fit.search import ScoreOf, pattern_search, yaw_search
+from posegrasp.perception.depth_fit.starts import rest_starts, resting, turned, up_face
 
 
-def refine_pose(T_cam_obj: np.ndarray, model: ObjectModel, observed: np.ndarray, depth: np.ndarray, K: np.ndarray,
-                cfg: RefineConfig | None = None, plane: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """``refine_poses`` of one object: its estimate T_cam_obj (4, 4), model and observed points (N, 3)."""
-    return refine_poses([T_cam_obj], [model], [observed], depth, K, cfg, plane)[0]
+def fit_pose(T_cam_obj: np.ndarray, model: ObjectModel, observed: np.ndarray, depth: np.ndarray, K: np.ndarray,
+             cfg: DepthFitConfig | None = None, plane: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """``fit_poses`` of one object: its estimate T_cam_obj (4, 4), model and observed points (N, 3)."""
+    return fit_poses([T_cam_obj], [model], [observed], depth, K, cfg, plane)[0]
 
 
-def refine_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: list[np.ndarray],
-                 depth: np.ndarray, K: np.ndarray, cfg: RefineConfig | None = None,
-                 plane: np.ndarray | None = None) -> list[tuple[np.ndarray, float]]:
-    """The best-scoring fit of each object of a frame (``perception.refine``): from its estimate T_cam_obj (4, 4),
+def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: list[np.ndarray],
+              depth: np.ndarray, K: np.ndarray, cfg: DepthFitConfig | None = None,
+              plane: np.ndarray | None = None) -> list[tuple[np.ndarray, float]]:
+    """The best-scoring fit of each object of a frame (``perception.depth_fit``): from its estimate T_cam_obj (4, 4),
     its ``ObjectModel`` and its observed points (N_o, 3) (camera frame, m), against the depth image (H, W) (m) seen
     through intrinsics K (3, 3), given the supporting plane (4,: n . x + d = 0, camera frame; ``perception.plane``)
-    or None. Returns (T_cam_obj refined, its score in m) per object. The objects' starts run as one batch (much of a
+    or None. Returns (T_cam_obj fitted, its score in m) per object. The objects' starts run as one batch (much of a
     step's cost is fixed); each result is the one the object gets alone, up to float rounding."""
     if not estimates:
         return []
-    cfg = cfg or RefineConfig()
+    cfg = cfg or DepthFitConfig()
     short = [x.grid.field.margin for x in models if x.grid.field.margin < cfg.score.truncation]
     if short:  # beyond its grid a field gives its margin: the fit term would stop short of the truncation
-        raise ConfigError(f"ICP truncation ({cfg.score.truncation} m) exceeds a model's distance field margin "
-                         f"({min(short)} m); build the fields with margin >= truncation")
-    frame = Frame.of(models, observed, depth, K, plane)
+        raise ConfigError(f"depth_fit score.truncation ({cfg.score.truncation} m) exceeds a model's distance field "
+                          f"margin ({min(short)} m); build the fields with margin >= truncation")
+    frame = FitContext.of(models, observed, depth, K, plane)
     rank = partial(score, frame, cfg.score)
     fits = _starts(frame, estimates, [x.hypotheses for x in models], cfg.starts.level_rests)
     exact = min(cfg.fit.exact_steps, cfg.fit.iterations)
@@ -76,10 +76,10 @@ class _Fits:
         return _Fits(self.R[i], self.t[i], self.obj[i], self.held[i], self.low[i])
 
 
-def _starts(frame: Frame, estimates: list[np.ndarray], hypotheses: list[np.ndarray], level_rests: bool) -> _Fits:
+def _starts(frame: FitContext, estimates: list[np.ndarray], hypotheses: list[np.ndarray], level_rests: bool) -> _Fits:
     """The fits' starts: each estimate R, t turned by each of its object's hypotheses (R Q, t), and given the plane
     each of these also moved to rest on it, and with ``level_rests`` laid on its nearest rest and held
-    (``perception.refine.starts``)."""
+    (``perception.depth_fit.starts``)."""
     T = torch.from_numpy(np.stack(estimates).astype(np.float32))  # (O, 4, 4)
     obj = torch.cat([torch.full((len(Q),), o) for o, Q in enumerate(hypotheses)])  # (H,): each hypothesis' object
     R = T[obj, :3, :3] @ torch.from_numpy(np.concatenate(hypotheses)).float()  # (H, 3, 3)
@@ -98,9 +98,9 @@ def _starts(frame: Frame, estimates: list[np.ndarray], hypotheses: list[np.ndarr
     return _Fits(R, t, obj, held, low)
 
 
-def _turns(frame: Frame, fits: _Fits, cfg: TurnConfig, rank: ScoreOf) -> _Fits:
+def _turns(frame: FitContext, fits: _Fits, cfg: TurnConfig, rank: ScoreOf) -> _Fits:
     """The best fit of each of an object's ``cfg.seeds`` best-ranked rests facing up, turned about the normal by every
-    ``cfg.step_deg`` of its period about it (``perception.refine.starts.turned``), each fitted ``cfg.iterations``
+    ``cfg.step_deg`` of its period about it (``perception.depth_fit.starts.turned``), each fitted ``cfg.iterations``
     grid steps."""
     normal = frame.normal.double().numpy()
     fits = fits.rows(best_rows(rank(fits.R, fits.t, fits.obj), fits.obj, cfg.seeds,
@@ -109,7 +109,7 @@ def _turns(frame: Frame, fits: _Fits, cfg: TurnConfig, rank: ScoreOf) -> _Fits:
     return _grid_steps(frame, _Fits(R, fits.t[source], obj, fits.held[source], fits.low[source]), cfg.iterations)
 
 
-def _grid_steps(frame: Frame, fits: _Fits, n: int) -> _Fits:
+def _grid_steps(frame: FitContext, fits: _Fits, n: int) -> _Fits:
     """``n`` ICP steps, each observed point matched to the grid's nearest model point."""
     p = frame.points[fits.obj]  # (H, N, 3)
     p_cols, kabsch = p.transpose(1, 2).contiguous(), Kabsch(p, frame.weights[fits.obj])  # (H, 3, N)
@@ -118,7 +118,7 @@ def _grid_steps(frame: Frame, fits: _Fits, n: int) -> _Fits:
     return fits
 
 
-def _exact_steps(frame: Frame, fits: _Fits, n: int) -> _Fits:
+def _exact_steps(frame: FitContext, fits: _Fits, n: int) -> _Fits:
     """``n`` ICP steps, each observed point matched to its exact nearest model point (a k-d tree of the model)."""
     p, m = frame.points[fits.obj], frame.models[fits.obj]
     kabsch = Kabsch(p, frame.weights[fits.obj])
@@ -129,7 +129,7 @@ def _exact_steps(frame: Frame, fits: _Fits, n: int) -> _Fits:
     return fits
 
 
-def _step(frame: Frame, kabsch: Kabsch, fits: _Fits, src: torch.Tensor) -> _Fits:
+def _step(frame: FitContext, kabsch: Kabsch, fits: _Fits, src: torch.Tensor) -> _Fits:
     """The fits of the model points src (H, 3, N) matched to the observed points; the held ones turned about the
     plane's normal and shifted along it, then set back resting on it."""
     if not bool(fits.held.any()):

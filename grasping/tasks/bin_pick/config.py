@@ -1,0 +1,92 @@
+"""Bin picking's settings (``[bin_pick]`` of the trial settings) and its name."""
+
+from __future__ import annotations
+
+from dataclasses import field
+
+from posegrasp.config import settings, within
+from posegrasp.errors import ConfigError
+from posegrasp.sim.clutter import ClutterConfig
+from posegrasp.sim.tote import ToteConfig
+
+#: The task's name (``--task``); its records are ``record.BinPickRecord``s.
+BIN_PICK = "bin-pick"
+
+
+@settings
+class BinPickConfig:
+    """Bin picking: the scene, when an episode ends, and how the planner chooses, approaches and drops a part."""
+
+    #: The scene: ``bin`` (a heap in the tote) or ``pile`` (the same heap on the table, no walls).
+    scene: str = "bin"
+    #: The heap: parts per episode (``parts``, at most ``max_parts``), the tote, the drop and settling.
+    clutter: ClutterConfig = field(default_factory=ClutterConfig)
+    #: The episode ends after this many failed attempts in a row ...
+    max_failures: int = field(default=3, metadata=within(1, 1000))
+    #: ... or after this many attempts per part present.
+    attempts_per_part: int = field(default=2, metadata=within(1, 100))
+    #: Time (s) allowed for the drive back to the look after an attempt (``control.look_timeout`` at the start).
+    look_timeout: float = field(default=8.0, metadata=within(0.1, 100.0))
+    #: The out-box the parts are dropped into, centred on the place area.
+    outbox: ToteConfig = field(default_factory=lambda: ToteConfig(inner_size=(0.14, 0.14), wall_height=0.05))
+    #: The hand and the carried part's bottom clear the walls' top (tote and out-box) by this much (m).
+    wall_margin: float = field(default=0.02, metadata=within(0.0, 0.5))
+    #: Pick order: a grasp's rank is its score plus this much per metre (1/m) its part's estimated top stands
+    #: above the floor (the highest, most exposed parts first).
+    height_weight: float = field(default=20.0, metadata=within(0.0, 1e4))
+    #: A grasp's score loses this much per radian (1/rad) the wrist turns to it (``grasp.score.turn`` on the
+    #: table): the wrist is the arm's slowest joint to turn there and back.
+    turn_weight: float = field(default=1.0, metadata=within(0.0, 100.0))
+    #: Parts are tried highest first; the best grasps of this many parts that have some compete.
+    plan_parts: int = field(default=3, metadata=within(1, 200))
+    #: The fingers open this much wider than the part they grasp (m; ``grasp.finger_margin`` on the table).
+    finger_margin: float = field(default=0.01, metadata=within(0.0, 0.1))
+    #: The open hand keeps this distance (m) from the other parts' estimated surfaces and the depth image's points
+    #: (negative: it may push into the heap that far); from the walls it keeps ``grasp.clearance_min``. Tried in
+    #: order: the next, looser value only when no part has a grasp (or none reachable) at the one before.
+    part_clearance: tuple[float, ...] = field(default=(-0.008, -0.015), metadata=within(-0.05, 0.1))
+    #: A grasp whose open fingers would touch a wall is tried again with the hand moved this far (m) along the
+    #: gripper y axis (nearest first), the part sitting off-centre in the hand ...
+    wall_shifts: tuple[float, ...] = (-0.024, -0.02, -0.016, -0.012, -0.008, -0.004, 0.004, 0.008, 0.012, 0.016, 0.02,
+                                      0.024)
+    #: ... while its contact faces still meet finger 1's pad and finger 2's or 3's this far (m) along y ...
+    shift_contact: float = field(default=0.016, metadata=within(0.0, 0.05))
+    #: ... and the fingers and the camera keep this far (m) from the walls (more than ``grasp.clearance_min``:
+    #: neighbours push the descending fingers sideways, and off-centre they are nearer a wall).
+    shift_clearance: float = field(default=0.008, metadata=within(0.0, 0.05))
+    #: A grasp that no shift clears of the walls is tried again with the hand turned about its pinch point by the
+    #: least of these (deg) that clears it (about the squeeze axis or across it, its top leaning away from the wall;
+    #: its score losing ``grasp.score.tilt`` per degree) ...
+    wall_tilts_deg: tuple[float, ...] = (10.0, 20.0)
+    #: ... raised until the open fingers keep this far (m) above the floor.
+    tilt_floor_clearance: float = field(default=0.002, metadata=within(0.0, 0.05))
+    #: A neighbour that stops the hand on its way down to the grasp (a guarded move): the fingers close where the hand
+    #: stopped if its pinch point stands at most this far (m) above the grasp ...
+    close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))
+    #: ... and this far (m) beside it; else the attempt fails ("collision").
+    close_slack_side: float = field(default=0.012, metadata=within(0.0, 0.1))
+    #: A protective stop: a pick ends ("collision") when contacts turn the hand this far (deg) from the grasp's
+    #: approach (a fingertip caught on the floor or a part while the arm pushes on: the hand pivots about it).
+    tilt_stop_deg: float = field(default=15.0, metadata=within(1.0, 90.0))
+    #: A grasp that failed is not tried again: no grasp within this distance (m) of its pose ...
+    retry_distance: float = field(default=0.01, metadata=within(0.0, 1.0))
+    #: ... and this angle (deg) of its squeeze axis.
+    retry_angle_deg: float = field(default=20.0, metadata=within(0.0, 180.0))
+    #: One depth pixel in this many, along each image axis, becomes an obstacle point of the grasp planner.
+    depth_stride: int = field(default=4, metadata=within(1, 64))
+    #: Depth points within this distance (m) of the target's estimated surface are the target, not obstacles.
+    own_margin: float = field(default=0.008, metadata=within(0.0, 0.1))
+    #: Depth points lower than this (m) above the floor are the floor; the robot believes the tote empty when it
+    #: sees no part and no depth point higher.
+    floor_band: float = field(default=0.006, metadata=within(0.0, 0.1))
+    #: Depth points within this distance (m) of the tote's walls are the walls.
+    wall_band: float = field(default=0.008, metadata=within(0.0, 0.1))
+    #: Another part counts as lifted with the target when it rose this far (m).
+    double_rise: float = field(default=0.03, metadata=within(0.001, 1.0))
+
+    def __post_init__(self) -> None:
+        if not self.part_clearance:
+            raise ConfigError("bin_pick.part_clearance must be one or more distances (m) in [-0.05, 0.1], got []")
+        if not all(0.0 < t <= 40.0 for t in self.wall_tilts_deg):
+            raise ConfigError(f"bin_pick.wall_tilts_deg must be angles (deg) in (0, 40], got "
+                              f"{list(self.wall_tilts_deg)}")

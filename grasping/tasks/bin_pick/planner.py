@@ -1,0 +1,259 @@
+"""Bin picking's grasp planner: the next part to pick and its grasp, from the estimates and the depth image.
+
+The planner sees the parts only through the provider's estimates and the hand camera's depth image, mapped to
+the world with the calibrated mount (``Episode.T_world_cam``); the tote's and the out-box's geometry is the
+workcell's, known. A grasp (``grasping.grasps.plan_grasps``, top-down) must keep the open fingers' meshes
+(``controller.open_finger_points``, open ``finger_margin`` wider than the part) and the camera's box
+(``hand.camera_box``) ``grasp.clearance_min`` from the tote's inner wall faces and rims, the open hand's boxes
+(``grasping.hand.Hand.boxes``) ``part_clearance`` (negative: the fingers may push into the heap that far) from
+the other estimates' surfaces and the depth image's points above the floor (less those on the target's estimated
+surface: they are the target); the open fingers must not land on the target's own estimated surface either (an
+L-block's other leg: the descending finger shoves the part away). A grasp whose open fingers would reach a wall
+is moved along the gripper's y axis (``wall_shifts``), the part off-centre in the hand, while the part's contact
+faces still meet the pads (a part lying against a wall); one that no shift clears is tilted 10 or 20 deg about
+its pinch point (``wall_tilts_deg``), the hand's top leaning away from the wall. Its pinch stays
+``grasp.min_pinch_height`` above the floor; the approach starts above the walls and comes straight down. Among
+the parts, highest first, the best grasps of ``plan_parts`` parts compete (score plus ``height_weight`` per metre of
+the part's top); the first that passes the IK check is taken. ``part_clearance`` holds several distances,
+strictest first: a looser one is tried only when no part has a reachable grasp at the stricter (a finger that lands
+on a neighbour stalls there, and the fingers opposite push the part away: clean grasps first, a shove into the heap
+only when nothing else is left).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from dataclasses import dataclass
+from typing import Callable
+
+import mujoco
+import numpy as np
+from scipy.spatial import cKDTree
+
+from posegrasp.catalog import PartType, catalog_by_id
+from posegrasp.geometry import axis_angle_R, transform_points
+from posegrasp.grasping.config import TrialConfig, holds_firmly
+from posegrasp.grasping.controller import open_finger_points
+from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
+from posegrasp.grasping.hand import CONTACT_BAND, ON_PLANE_TOL, Hand, camera_box, hand_of
+from posegrasp.grasping.perception import Estimate
+from posegrasp.grasping.record import Failure
+from posegrasp.grasping.support import rest_on_table
+from posegrasp.grasping.targets import reach_q
+from posegrasp.grasping.tasks.base import EpisodeFailed
+from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, wall_points
+from posegrasp.sim.camera import Frame
+from posegrasp.sim.tote import WALLS, Tote
+from posegrasp.sim.workcell import Workcell
+
+
+def depth_points(frame: Frame, T_world_cam: np.ndarray, stride: int) -> np.ndarray:
+    """(N, 3) world points (m) of every ``stride``-th valid depth pixel along each axis (the camera's pose as the
+    robot believes it)."""
+    d = frame.depth[::stride, ::stride]
+    v, u = np.nonzero(d > 0)
+    z = d[v, u].astype(float)
+    K = frame.K
+    x = (u * stride - K[0, 2]) * z / K[0, 0]
+    y = (v * stride - K[1, 2]) * z / K[1, 1]
+    return transform_points(T_world_cam, np.stack([x, y, z], 1))
+
+
+def heap_points(pts: np.ndarray, area: Area, b: BinPickConfig) -> np.ndarray:
+    """The depth points ``pts`` on the heap: in the area (clear of the walls by ``wall_band``), above the floor by
+    ``floor_band``, below the hand camera's look."""
+    keep = area.holds(pts, b.wall_band if area.walls else 0.0) & (pts[:, 2] > area.floor + b.floor_band)
+    return pts[keep & (pts[:, 2] < area.top + 0.2)]
+
+
+def level(block: PartType, T_world_obj: np.ndarray, cfg: TrialConfig, floor: float) -> np.ndarray:
+    """An estimate levelled onto the floor when it lies near a resting pose on it (``support.rest_on_table``);
+    one on other parts keeps its estimated pose."""
+    T = rest_on_table(block, T_world_obj, cfg.rest, surface_z=floor)
+    bottom = float(transform_points(T, block.vertices)[:, 2].min())
+    return T if abs(bottom - floor) < 1e-6 else np.array(T_world_obj, float)
+
+
+def _clear_of(grasp: Grasp, pts: np.ndarray, boxes: list, clearance: float) -> bool:
+    """Are the axis-aligned ``boxes`` (gripper frame, ``hand.hand_boxes``' layout) at ``grasp`` at least
+    ``clearance`` (m) from every point ``pts`` (world)?"""
+    if not len(pts):
+        return True
+    T = grasp.T_world_gripper
+    local = (pts - T[:3, 3]) @ T[:3, :3]
+    return all(_box_distance(local, np.asarray(lo), np.asarray(hi)).min() >= clearance for lo, hi in boxes)
+
+
+def pregrasp_height(cfg: TrialConfig, area: Area, T_grasp: np.ndarray) -> float:
+    """How far (m) above the grasp the approach starts: ``grasp.pregrasp_height``, or higher, so the fingertips
+    start ``wall_margin`` above the walls."""
+    start = area.top + cfg.grasp.fingertip_depth + cfg.bin_pick.wall_margin
+    return max(cfg.grasp.pregrasp_height, start - T_grasp[2, 3])
+
+
+def _tried(grasp: Grasp, failed: list[np.ndarray], b: BinPickConfig) -> bool:
+    """Is ``grasp`` one of the ``failed`` grasp poses (world gripper), within ``retry_distance`` and
+    ``retry_angle_deg``?"""
+    T = grasp.T_world_gripper
+    return any(np.linalg.norm(T[:3, 3] - F[:3, 3]) < b.retry_distance
+               and T[:3, 0] @ F[:3, 0] > np.cos(np.radians(b.retry_angle_deg)) for F in failed)
+
+
+def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
+                yaw_now: float, failed: list[np.ndarray] = ()) -> tuple[int, Grasp, np.ndarray]:
+    """The estimate to pick (index), its grasp and its levelled ``T_world_obj`` among the estimates in the tote,
+    none of the grasps that ``failed`` before (``_tried``), at the first of ``part_clearance`` that gives a
+    reachable grasp; ``EpisodeFailed``: "nothing graspable" when no part has a clear grasp at any, "unreachable"
+    when the IK reaches none. ``heap``: the depth image's points on the heap (``heap_points``)."""
+    b, g_cfg = cfg.bin_pick, cfg.grasp
+    area = area_of(wc, b)
+    cat = catalog_by_id(wc.cfg.objects)
+    poses = [level(cat[e.obj_id], T_world_cam @ e.T_cam_obj, cfg, area.floor) for e in ests]
+    tops = [float(transform_points(T, cat[e.obj_id].vertices)[:, 2].max()) for e, T in zip(ests, poses)]
+    clouds = [transform_points(T, surface_points(cat[e.obj_id], g_cfg.neighbour_points)) for e, T in zip(ests, poses)]
+    walls = wall_points(area.tote) if area.walls else np.zeros((0, 3))
+    cam, hand = camera_box(wc.cfg.hand_camera.mount_pos), hand_of(wc.cfg)
+    reach = g_cfg.max_width / 2 + b.finger_margin + 0.1  # the open hand and camera lie within this of the part
+
+    @functools.cache
+    def around(j: int) -> tuple[cKDTree, np.ndarray, np.ndarray]:
+        """Part ``j``'s surface points (a tree), the obstacle points and the wall points near it (world)."""
+        T, r = poses[j], reach + 0.5 * cat[ests[j].obj_id].diameter
+        near = lambda p: p[np.linalg.norm(p[:, :2] - T[:2, 3], axis=1) < r]  # noqa: E731
+        own = cKDTree(transform_points(T, surface_points(cat[ests[j].obj_id])))
+        depth = near(heap)
+        depth = depth[own.query(depth, distance_upper_bound=b.own_margin)[0] > b.own_margin] if len(depth) else depth
+        return own, np.concatenate([near(c) for i, c in enumerate(clouds) if i != j] + [depth]), near(walls)
+
+    seen_any = False
+    for clearance in b.part_clearance:
+        plan_cfg = dataclasses.replace(g_cfg, min_pinch_height=area.floor + g_cfg.min_pinch_height,
+                                       finger_margin=b.finger_margin, clearance_min=clearance,
+                                       score=dataclasses.replace(g_cfg.score, turn=b.turn_weight))
+        options, parts = [], 0
+        for j in sorted(range(len(ests)), key=lambda i: -tops[i]):
+            own, others, wall = around(j)
+            clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
+                not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
+            fit = _Fit(own.data, others, clearance, lambda g: clear_of_walls(g, b.shift_clearance), b, hand)
+            grasps = [g for g0 in plan_grasps(cat[ests[j].obj_id], poses[j], others, plan_cfg, yaw_now,
+                                              yaw_stable=holds_firmly(cfg), hand=hand)
+                      for g in ([g0] if clear_of_walls(g0) else
+                                fit.shifted(g0) or fit.tilted(g0, wc.cfg, area.floor, g_cfg.score.tilt))
+                      if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
+                      and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
+                      ][:g_cfg.grasps_per_block]
+            options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor),
+                         j, g) for g in grasps]
+            parts += bool(grasps)
+            if parts >= b.plan_parts:
+                break
+        seen_any |= bool(options)
+        options.sort(key=lambda o: -o[0])
+        for _, j, g in options[:g_cfg.ik_checks]:
+            qs = reach_q(wc, g_cfg, g.T_world_gripper, pregrasp_height(cfg, area, g.T_world_gripper))
+            if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, g_cfg.clearance_min)):
+                return j, g, poses[j]
+    raise EpisodeFailed(Failure.UNREACHABLE if seen_any else Failure.NOTHING_GRASPABLE)
+
+
+def _pad_overlap(T: np.ndarray, width: float, own: np.ndarray, hand: Hand) -> tuple[float, float]:
+    """With the ``hand`` at ``T`` (world gripper) open on a part ``width`` (m) across, how far (m) along the gripper
+    y axis the part's contact faces (its surface points ``own``, world, within the pads' height ``CONTACT_BAND``)
+    meet finger 1's pad and the best of the facing fingers' (0 where a face is missing)."""
+    local = (own - T[:3, 3]) @ T[:3, :3]
+    band = (local[:, 2] > CONTACT_BAND[0]) & (local[:, 2] < CONTACT_BAND[1])
+    faces = [local[band & (s * local[:, 0] > width / 2 - ON_PLANE_TOL), 1] for s in (1.0, -1.0)]
+    return tuple(max((min(f.max(), y1) - max(f.min(), y0) for y0, y1 in spans), default=0.0) if len(f) else 0.0
+                 for f, spans in zip(faces, (hand.finger1_y, hand.facing_y)))
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """Where a grasp moved off a wall (shifted or tilted) must still hold: the part's surface points ``own`` and
+    the obstacle points ``others`` (world, m), the clearance (m) from them, ``clear`` (the walls' check) and the
+    ``hand``, open ``b.finger_margin`` wider than the part."""
+
+    own: np.ndarray
+    others: np.ndarray
+    clearance: float
+    clear: Callable[[Grasp], bool]
+    b: BinPickConfig
+    hand: Hand
+
+    def fits(self, g: Grasp, need: float | np.ndarray) -> bool:
+        """Does the moved grasp ``g`` still hold: the part's contact faces meet the pads by ``need`` (m; finger 1,
+        the facing fingers: ``_pad_overlap``), it is ``clear`` of the walls, keeps ``clearance`` from ``others``?"""
+        return bool(np.all(np.asarray(_pad_overlap(g.T_world_gripper, g.width, self.own, self.hand)) >= need)) \
+            and self.clear(g) and _clear_of(g, self.others, self.hand.boxes((g.width + self.b.finger_margin) / 2),
+                                            self.clearance)
+
+    def shifted(self, grasp: Grasp) -> list[Grasp]:
+        """``grasp`` with the hand moved along its y axis by each of ``wall_shifts`` (nearest first) where it still
+        ``fits`` (the pads meeting the faces by ``shift_contact``): the part sits off-centre in the hand, away from
+        the wall that the fingers' sides would touch."""
+        out = []
+        for d in sorted(self.b.wall_shifts, key=abs):
+            T = grasp.T_world_gripper.copy()
+            T[:3, 3] += d * T[:3, 1]
+            g = dataclasses.replace(grasp, T_world_gripper=T)
+            if self.fits(g, self.b.shift_contact):
+                out.append(g)
+        return out
+
+    def tilted(self, grasp: Grasp, wc_cfg, floor: float, per_deg: float) -> list[Grasp]:
+        """``grasp`` with the hand turned about its pinch point by the least of ``wall_tilts_deg`` that gives any,
+        about its squeeze axis x or its y axis, either way (the hand's top leaning away from a wall, its fingertips
+        reaching under the part's side toward it), and raised until the open fingers keep ``tilt_floor_clearance``
+        above the ``floor`` (m), where it still ``fits`` (the pads meeting the faces as far as the untilted grasp's,
+        up to ``shift_contact``); their score loses ``per_deg`` per degree. A tilt about y tilts the squeeze from
+        the horizontal by as much: the contacts' friction bears it (``wall_tilts_deg`` up to 40 deg)."""
+        b = self.b
+        tips = open_finger_points(wc_cfg, round(1000 * (grasp.width + b.finger_margin)))
+        T0, out = grasp.T_world_gripper, []
+        need = np.minimum(_pad_overlap(T0, grasp.width, self.own, self.hand), b.shift_contact) - ON_PLANE_TOL
+        for deg in sorted(b.wall_tilts_deg):
+            for axis in (T0[:3, 0], -T0[:3, 0], T0[:3, 1], -T0[:3, 1]):
+                T = T0.copy()
+                T[:3, :3] = axis_angle_R(axis, np.radians(deg)) @ T0[:3, :3]
+                T[2, 3] += max(0.0, floor + b.tilt_floor_clearance - float(transform_points(T, tips)[:, 2].min()))
+                g = dataclasses.replace(grasp, T_world_gripper=T, score=grasp.score - per_deg * deg)
+                if self.fits(g, need):
+                    out.append(g)
+            if out:
+                return out
+        return out
+
+
+def _fingers_inside(grasp: Grasp, wc_cfg, margin: float, tote: Tote, clearance: float) -> bool:
+    """Do the fingers, open ``margin`` (m) wider than the ``grasp`` (``controller.open_finger_points``, their
+    meshes), stay ``clearance`` (m) inside the tote's inner walls wherever they are lower than the walls' top plus
+    ``clearance``?"""
+    pts = transform_points(grasp.T_world_gripper, open_finger_points(wc_cfg, round(1000 * (grasp.width + margin))))
+    lo, hi = tote.inner_bounds()
+    low = pts[pts[:, 2] < hi[2] + clearance, :2]
+    return bool(np.all((low >= lo[:2] + clearance) & (low <= hi[:2] - clearance)))
+
+
+@functools.lru_cache(maxsize=4)
+def _tote_robot(wc_cfg, tote: Tote) -> tuple[Workcell, np.ndarray, np.ndarray, np.ndarray]:
+    """A robot-and-tote workcell (no parts), the tote walls' geoms, the robot's geoms and those but the fingers."""
+    wc = Workcell(wc_cfg, extras=tote.add_to)
+    m = wc.model
+    walls = np.array([m.geom(f"tote/{w}").id for w in WALLS])
+    robot = np.flatnonzero([m.body(b).name.startswith("jaco_arm/") for b in m.geom_bodyid] & (m.geom_contype > 0))
+    return wc, walls, robot, np.array([g for g in robot if "finger" not in m.geom(g).name])
+
+
+def arm_clear(wc_cfg, tote: Tote, q_pre: np.ndarray, q: np.ndarray, clearance: float) -> bool:
+    """Is the robot ``clearance`` (m) from the tote's walls at the pre-grasp joint angles ``q_pre`` (fingers open
+    wide) and, but its fingers (``hand.hand_boxes`` checked them), at the grasp ``q``?"""
+    wc, walls, robot, rigid = _tote_robot(wc_cfg, tote)
+    for qq, geoms in ((q_pre, robot), (q, rigid)):
+        wc.reset(qq)
+        if min(mujoco.mj_geomDistance(wc.model, wc.data, int(a), int(w), 0.1, None) for a in geoms for w in walls) \
+                < clearance:
+            return False
+    return True
