@@ -31,6 +31,7 @@ from posegrasp.errors import ConfigError, DatasetError, SceneUnsettled
 from posegrasp.executor import make_executor
 from posegrasp.lock import folder_lock
 from posegrasp.sim.camera import intrinsics
+from posegrasp.sim.config import workcell_record
 from posegrasp.sim.workcell import HAND_CAMERA
 
 SPLITS = ("train_pbr", "test")
@@ -121,6 +122,7 @@ def recorded_config(cfg: DatagenConfig) -> dict[str, Any]:
     blocks (a dataset's ``models/`` are its set's; datasets made before sets existed stay resumable), the pile and
     bin settings only for those scenes (a table dataset's record is the one it had before they existed)."""
     d = dataclasses.asdict(cfg)
+    d["workcell"] = workcell_record(d["workcell"])
     if not cfg.workcell.objects:
         del d["workcell"]["objects"]
     if cfg.scene == "table":

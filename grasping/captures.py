@@ -33,7 +33,7 @@ from posegrasp.datagen.generate import check_settings
 from posegrasp.datagen.render import LabelRenderer
 from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root
 from posegrasp.executor import make_executor
-from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.config import TrialConfig, config_record
 from posegrasp.grasping.episode import EpisodeJob, run_episode
 from posegrasp.grasping.perception import DEPTH_SCALE
 from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, Failure
@@ -109,7 +109,7 @@ def open_export(root: Path | None, seed: int, cfg: TrialConfig) -> Iterator[Capt
         return
     c = cfg.scene.workcell.hand_camera
     with folder_lock(root, owns=(SETTINGS_FILE,)):  # its settings file first: a folder without it is not ours
-        check_settings(root / SETTINGS_FILE, {"seed": seed, "task": cfg.task, "config": dataclasses.asdict(cfg)},
+        check_settings(root / SETTINGS_FILE, {"seed": seed, "task": cfg.task, "config": config_record(cfg)},
                        binding=has_scenes(root, SPLIT))
         prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), DEPTH_SCALE),
                      cfg.scene.workcell.objects)

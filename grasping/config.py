@@ -8,6 +8,7 @@ the name says ``_deg``. Any field can be set from a TOML file of the same layout
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import field
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from posegrasp.grasping.support import RestConfig
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.grasping.tasks.kitting import KittingConfig
 from posegrasp.grasping.tasks.stack import StackConfig
+from posegrasp.sim.config import workcell_record
 from posegrasp.sim.scene import SceneConfig
 
 #: The tasks that hold the block firmly unless the campaign (``firm_hold_tasks``) or its object set says otherwise.
@@ -263,6 +265,14 @@ def firm_hold_tasks(cfg: TrialConfig) -> tuple[str, ...]:
 def holds_firmly(cfg: TrialConfig) -> bool:
     """Does the campaign's task hold the block firmly (``firm_hold_tasks``, ``FirmHoldConfig``)?"""
     return cfg.task in firm_hold_tasks(cfg)
+
+
+def config_record(cfg: TrialConfig) -> dict:
+    """``cfg`` as ``campaign.json`` and a capture export record it: ``dataclasses.asdict``, the workcell's as
+    ``sim.config.workcell_record`` keeps it (the suction tool's settings only for the suction hand)."""
+    d = dataclasses.asdict(cfg)
+    d["scene"]["workcell"] = workcell_record(d["scene"]["workcell"])
+    return d
 
 
 def load_trial_config(path: str | Path | None = None) -> TrialConfig:

@@ -44,6 +44,8 @@ class Failure(StrEnum):
     WALL_HIT = "hit the wall"  # bin: the robot touched the tote's walls (a protective stop)
     DOUBLE_PICK = "two parts lifted"  # bin: another part came out of the tote with the target
     THROWN_OUT = "part thrown out"  # bin: a part left the tote other than into the out-box
+    NO_SEAL = "no seal"  # bin, suction: the cup's rim did not seal on the part
+    SEAL_LOST = "seal lost"  # bin, suction: the vacuum let the part go in the lift or the carry
     PARTS_LEFT = "parts left"  # bin episode: the robot saw nothing more to pick, yet parts were not removed
     FAILED_IN_A_ROW = "failed in a row"  # bin episode: ended after too many failed attempts in a row
     ATTEMPT_LIMIT = "attempt limit"  # bin episode: ended after its most attempts (twice the parts)
@@ -71,9 +73,9 @@ class Target:
     type: str  # the block's catalogue name
     class_ok: bool  # did perception give the block's true class?
     diameter: float
-    grasp_width: float  # span across the fingers (m)
+    grasp_width: float  # span across the fingers (m; the suction cup: its diameter)
     clearance: float  # the hand's clearance from the neighbours (m)
-    support: float  # flatness of the contact faces (0-0.5)
+    support: float  # flatness of the contact faces (0-0.5; the suction cup: its seal margin, m)
     tilt_deg: float  # approach direction's angle from straight down
 
 

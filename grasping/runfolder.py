@@ -8,7 +8,6 @@ holds the campaign's statistics (``grasping.stats.summarise``).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -19,7 +18,7 @@ from typing import IO, Iterable
 from posegrasp.catalog import set_record
 from posegrasp.config import from_dict
 from posegrasp.errors import DatasetError, UserError
-from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.config import TrialConfig, config_record
 from posegrasp.grasping.record import EpisodeRecord
 from posegrasp.io import atomic_write, dumps_json, write_json
 
@@ -101,7 +100,7 @@ class Campaign:
 
     def to_json(self) -> dict:
         """The ``campaign.json`` content."""
-        return {"seed": self.seed, "perception": self.perception, "config": dataclasses.asdict(self.config),
+        return {"seed": self.seed, "perception": self.perception, "config": config_record(self.config),
                 "T_gripper_cam": self.T_gripper_cam, "objects": self.set_record()}
 
 
@@ -154,7 +153,7 @@ def check_campaign(out: Path, campaign: Campaign) -> None:
         return
     old = read_json_object(path)
     if isinstance(old.get("config"), dict):  # fields added to TrialConfig since it was written: their defaults
-        old["config"] = dataclasses.asdict(from_dict(TrialConfig, old["config"], where=f"{path} config"))
+        old["config"] = config_record(from_dict(TrialConfig, old["config"], where=f"{path} config"))
     new = json.loads(dumps_json(campaign.to_json()))
     old.setdefault("objects", set_record(""))  # runs made before object sets ran on the shipped blocks
     old = json.loads(dumps_json(old))

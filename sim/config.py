@@ -68,6 +68,36 @@ class AreaConfig:
     half_size: tuple[float, float] = (0.12, 0.15)
 
 
+#: Ambient (atmospheric) pressure (kPa): no vacuum pulls harder than this below it.
+AMBIENT_KPA = 101.325
+
+
+@settings
+class SuctionConfig:
+    """The vacuum tool of ``hand = "suction"`` (``sim.suction``): a bellows cup on the gripper axis, its rim centre
+    at the gripper frame's origin when the bellows is at rest. Industrial defaults: a 20 mm cup at 60 kPa."""
+
+    #: Diameter (m) of the cup's rim.
+    diameter: float = field(default=0.02, metadata=within(0.005, 0.08))
+    #: How far (m) the bellows gives along the approach axis before it is fully compressed.
+    stroke: float = field(default=0.01, metadata=within(0.001, 0.03))
+    #: Vacuum (kPa below ambient) the pump holds in a sealed cup.
+    vacuum_kpa: float = field(default=60.0, metadata=within(0.1, 100.0))
+    #: The pump's suction flow (L/min): the sealed cup and its hose evacuate in ``sim.suction.seal_time``.
+    flow_lpm: float = field(default=20.0, metadata=within(0.1, 1000.0))
+    #: The rim seals where every rim point lies this close (m) to the part's surface along the approach axis.
+    seal_tolerance: float = field(default=0.0015, metadata=within(0.0001, 0.01))
+    #: Friction coefficient of the rim on a part (shear and torsion the sealed cup resists).
+    friction: float = field(default=0.5, metadata=within(0.01, 2.0))
+    #: The hold is lost when the load times this factor exceeds what the vacuum resists.
+    safety: float = field(default=2.0, metadata=within(1.0, 10.0))
+
+    def __post_init__(self) -> None:
+        if self.seal_tolerance >= self.diameter / 2:
+            raise ConfigError(f"SuctionConfig.seal_tolerance = {self.seal_tolerance!r} m is no seal on a "
+                              f"{self.diameter!r} m cup: use less than its radius")
+
+
 @settings
 class WorkcellConfig:
     """Everything that defines the workcell; the world frame is the arm base on the table top, z up.
@@ -103,15 +133,31 @@ class WorkcellConfig:
     #: Object set folder the scenes draw from (`--objects`); "" is the shipped blocks.
     objects: str = ""
     #: The Jaco2's hand (``--hand``): ``3-finger`` (KG-3: finger 1 facing fingers 2 and 3, 74 mm across the squeeze
-    #: axis) or ``2-finger`` (KG-2: two of the same fingers facing each other, 23 mm across; it reaches parts lying
-    #: against a tote's wall).
+    #: axis), ``2-finger`` (KG-2: two of the same fingers facing each other, 23 mm across; it reaches parts lying
+    #: against a tote's wall) or ``suction`` (a bellows vacuum cup instead of fingers, ``suction``).
     hand: str = "3-finger"
+    #: The vacuum tool of ``hand = "suction"``.
+    suction: SuctionConfig = field(default_factory=SuctionConfig)
+
+    def __post_init__(self) -> None:
+        narrow = 2.0 * min(self.pick_area.half_size)
+        if self.suction.diameter >= narrow:
+            raise ConfigError(f"WorkcellConfig.suction.diameter = {self.suction.diameter!r} m is no cup for a "
+                              f"{narrow!r} m wide pick area: use a smaller cup")
 
 
 #: The hands ``WorkcellConfig.hand`` may name.
-HANDS = ("3-finger", "2-finger")
+HANDS = ("3-finger", "2-finger", "suction")
 
 DEFAULT_TOML = ASSETS / "workcell.toml"
+
+
+def workcell_record(d: dict) -> dict:
+    """A ``WorkcellConfig``'s ``dataclasses.asdict`` ``d`` as records keep it: the suction tool's settings only for
+    ``hand = "suction"`` (the records of the fingered hands stay those they were before the tool existed)."""
+    if d.get("hand") == "suction":
+        return d
+    return {k: v for k, v in d.items() if k != "suction"}
 
 
 def load_workcell_config(path: str | Path | None = None) -> WorkcellConfig:

@@ -142,7 +142,8 @@ def check_reach(workcell: WorkcellConfig, tote: Tote, pos_tol: float = 0.004, ro
 
     A corner is reached when, at one of the yaws of ``_corner_poses``, IK puts the pinch point ``reach_height``
     above the floor (and, on the way in, ``reach_approach`` above the walls' top) within ``pos_tol`` m and
-    ``rot_tol`` rad, the robot but its fingers at least ``reach_clearance`` from the walls there and the whole
+    ``rot_tol`` rad, the robot but its fingers (or suction cup) at
+    least ``reach_clearance`` from the walls there and the whole
     robot, fingers open, as far from them at the approach pose.
     """
     bad = _unreached_corners(workcell, tote, pos_tol, rot_tol)
@@ -164,7 +165,7 @@ def _unreached_corners(workcell: WorkcellConfig, tote: Tote, pos_tol: float, rot
     m, d = wc.model, wc.data
     walls = np.array([m.geom(f"{TOTE}/{w}").id for w in WALLS])  # the floor is under the fingertips by design
     robot = np.flatnonzero([m.body(b).name.startswith("jaco_arm/") for b in m.geom_bodyid])
-    rigid = np.array([g for g in robot if "finger" not in m.geom(g).name])
+    rigid = np.array([g for g in robot if not any(t in m.geom(g).name for t in ("finger", "suction"))])  # not the tool
     approach = tote.cfg.wall_height + tote.cfg.reach_approach
     bad = []
     for grasps, above in zip(_corner_poses(tote, tote.cfg.reach_height), _corner_poses(tote, approach)):

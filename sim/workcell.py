@@ -1,4 +1,4 @@
-"""The MuJoCo workcell: table, Jaco2 arm with the 3-finger hand, a hand camera, pick and place areas, blocks.
+"""The MuJoCo workcell: table, Jaco2 arm with its hand (``HANDS``), a hand camera, pick and place areas, blocks.
 
 The model is composed with ``dm_control.mjcf`` from dm-control's ``JacoArm`` and ``JacoHand`` entities
 (which add the arm's velocity actuators) and compiled with ``mujoco.MjModel`` directly: dm-control's own
@@ -22,6 +22,7 @@ from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
 from posegrasp.sim.camera import T_CV_MJ, rpy_deg_to_R
 from posegrasp.sim.config import HANDS, WorkcellConfig
 from posegrasp.sim.ik import ArmIK
+from posegrasp.sim.suction import add_tool, add_welds
 
 ARM_JOINTS = tuple(f"joint_{i}" for i in range(1, 7))
 FINGER_JOINTS = ("finger_1", "finger_2", "finger_3")
@@ -180,17 +181,24 @@ def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjc
                   rgba=(0.12, 0.12, 0.14, 1), mass=0.05, contype=2, conaffinity=0, group=1)
     if cfg.hand not in HANDS:
         raise ConfigError(f"workcell hand {cfg.hand!r} is not a hand; choose one of: {', '.join(HANDS)}")
+    cup = None
     if cfg.hand == "2-finger":
         _two_fingers(hand.mjcf_model, T_hand_gripper)
+    elif cfg.hand == "suction":
+        cup = add_tool(hand.mjcf_model, T_hand_gripper, cfg.suction)
     arm.attach(hand)
     root.attach(arm.mjcf_model)
     for k, inst in enumerate(blocks, start=1):
         _add_block(root, k, inst, cfg.timestep)
+    if cup is not None:
+        add_welds(root, cup, len(blocks))
     return root
 
 
 def finger_joints(hand: str) -> tuple[str, ...]:
-    """The finger joints of ``hand`` (``HANDS``)."""
+    """The finger joints of ``hand`` (``HANDS``; none on the suction tool)."""
+    if hand == "suction":
+        return ()
     return FINGER_JOINTS if hand == "3-finger" else ("finger_1", "finger_3")
 
 
@@ -245,12 +253,12 @@ class Workcell:
         self.arm_joint_names = [f"jaco_arm/{j}" for j in ARM_JOINTS]
         self.finger_joint_names = [f"jaco_arm/jaco_hand/{j}" for j in finger_joints(cfg.hand)]
         #: The number (1-3) of each finger joint's finger.
-        self.finger_numbers = np.array([int(n[-1]) for n in self.finger_joint_names])
+        self.finger_numbers = np.array([int(n[-1]) for n in self.finger_joint_names], dtype=int)
         self.arm_qadr = np.array([m.joint(n).qposadr[0] for n in self.arm_joint_names])
         self.arm_dadr = np.array([m.joint(n).dofadr[0] for n in self.arm_joint_names])
-        self.finger_qadr = np.array([m.joint(n).qposadr[0] for n in self.finger_joint_names])
+        self.finger_qadr = np.array([m.joint(n).qposadr[0] for n in self.finger_joint_names], dtype=int)
         self.arm_act = np.array([m.actuator(n).id for n in self.arm_joint_names])
-        self.finger_act = np.array([m.actuator(n).id for n in self.finger_joint_names])
+        self.finger_act = np.array([m.actuator(n).id for n in self.finger_joint_names], dtype=int)
         self.gripper_site = m.site(f"jaco_arm/jaco_hand/{GRIPPER_SITE}").id
         self.camera_ids = {HAND_CAMERA: m.camera(f"jaco_arm/jaco_hand/{HAND_CAMERA}").id,
                            OVERVIEW_CAMERA: m.camera(OVERVIEW_CAMERA).id}
@@ -275,7 +283,7 @@ class Workcell:
         mujoco.mj_forward(self.model, self.data)
 
     def _finger_jnt(self) -> np.ndarray:
-        return np.array([self.model.joint(n).id for n in self.finger_joint_names])
+        return np.array([self.model.joint(n).id for n in self.finger_joint_names], dtype=int)
 
     @property
     def arm_q(self) -> np.ndarray:

@@ -16,7 +16,8 @@ from posegrasp.catalog import load_catalog
 from posegrasp.config import from_dict
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
-from posegrasp.grasping.tasks.bin_pick.attempt import _Contacts, _look, _stopped_near, empty_tote, pick_and_drop, tally
+from posegrasp.grasping.tasks.bin_pick.attempt import _look, empty_tote, tally
+from posegrasp.grasping.tasks.bin_pick.pick import _Contacts, _stopped_near, pick_and_drop
 from posegrasp.grasping.tasks.bin_pick.planner import _clear_of, choose_part
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison

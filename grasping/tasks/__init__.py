@@ -46,6 +46,9 @@ def check_task(cfg: TrialConfig) -> None:
     if cfg.scene.workcell.hand not in HANDS:
         raise ConfigError(f"scene.workcell.hand {cfg.scene.workcell.hand!r} is not a hand; choose one of: "
                           f"{', '.join(HANDS)}")
+    if cfg.scene.workcell.hand == "suction" and not task.suction:
+        raise ConfigError(f"the suction tool (--hand suction) picks only in bin picking, not in the {task.name} task: "
+                          "use --task bin-pick or another --hand")
     unknown = [t for t in firm_hold_tasks(cfg) if t not in TASKS]
     if unknown:
         raise ConfigError(f"firm_hold_tasks names unknown task(s) {unknown}; choose among: {', '.join(TASKS)}")

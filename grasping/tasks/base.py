@@ -126,6 +126,8 @@ class Task(ABC):
     name: str = ""
     #: The ``Observation.im_id`` of every capture an episode takes (``perception.PICK_LOOK``, ...).
     looks: tuple[int, ...] = (PICK_LOOK,)
+    #: Can it pick with the suction tool (``--hand suction``)?
+    suction: bool = False
     #: The type of its episodes' records (registered for reading: ``record.RECORD_TYPES``).
     record_type: type[EpisodeRecord] = EpisodeRecord
 

@@ -18,19 +18,19 @@ import numpy as np
 
 from posegrasp.catalog import catalog_by_id
 from posegrasp.errors import SimulationError
-from posegrasp.geometry import axis_angle_R, transform_points
-from posegrasp.grasping.config import ScoringConfig, holds_firmly
+from posegrasp.geometry import transform_points
+from posegrasp.grasping.config import ScoringConfig
 from posegrasp.grasping.perception import Estimate, PerceptionError
-from posegrasp.grasping.record import FalseTarget, Failure, Target
+from posegrasp.grasping.record import FalseTarget, Failure
 from posegrasp.grasping.targets import Plan, blame, drive_to_look, gripper_yaw, look_down_q, match_block, pose_errors
 from posegrasp.grasping.tasks.base import EpisodeFailed
-from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
-from posegrasp.grasping.tasks.bin_pick.planner import choose_part, depth_points, heap_points, pregrasp_height
+from posegrasp.grasping.tasks.bin_pick.pick import Cup, Fingers, Tool
+from posegrasp.grasping.tasks.bin_pick.planner import depth_points, heap_points
 from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
 from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, outbox_of
 from posegrasp.sim.camera import Frame
 from posegrasp.sim.clutter import park
-from posegrasp.sim.tote import WALLS, Tote
+from posegrasp.sim.tote import Tote
 from posegrasp.sim.workcell import Workcell, wrap_angle
 
 if TYPE_CHECKING:
@@ -59,124 +59,13 @@ def visible_fraction(ep: Episode, frame: Frame, k: int) -> float | None:
     return None if alone == 0 else min(1.0, int(np.count_nonzero(frame.mask == k)) / alone)
 
 
-class _Contacts:
-    """Control-period monitor: has the robot touched the floor or the table (``floor``) or another part than the
-    target ``k`` (``parts``)? A protective stop (``EpisodeFailed``, raised in the control period, the arm stopping
-    where it is) when it touches the tote's walls ("hit the wall") or, while it has an ``approach`` axis (from the
-    pre-grasp to the lift: those moves keep the hand's orientation), contacts turn the hand more than
-    ``tilt_stop_deg`` from it ("collision")."""
-
-    def __init__(self, ep: Episode, walls: np.ndarray, floors: np.ndarray, k: int):
-        self.ep, self.walls, self.floors = ep, walls, floors
-        inst = ep.wc.geom_instance[:-1]
-        self.others = np.flatnonzero((inst > 0) & (inst != k))
-        self.cos_tilt = float(np.cos(np.radians(ep.cfg.bin_pick.tilt_stop_deg)))
-        self.floor = self.parts = False
-        self.approach: np.ndarray | None = None  # the grasp's approach axis (world), once at the pre-grasp
-
-    def __call__(self) -> None:
-        d = self.ep.wc.data
-        if d.ncon:
-            g = d.contact.geom[: d.ncon]
-            rob = self.ep.ctl.robot_geom[g]
-            touch = [bool(np.any(rob[:, 0] & np.isin(g[:, 1], ids) | rob[:, 1] & np.isin(g[:, 0], ids)))
-                     for ids in (self.walls, self.floors, self.others)]
-            self.floor |= touch[1]
-            self.parts |= touch[2]
-            if touch[0]:
-                raise EpisodeFailed(Failure.WALL_HIT)
-        if self.approach is not None and d.site_xmat[self.ep.wc.gripper_site][2::3] @ self.approach < self.cos_tilt:
-            raise EpisodeFailed(Failure.COLLISION)
-
-    def blocked(self) -> Failure:
-        """Why the hand did not get to the grasp or close on the part: it hit something, or (else) it timed out."""
-        return Failure.COLLISION if self.floor or self.parts else Failure.TIMEOUT
-
-
-def _bottoms(wc: Workcell) -> np.ndarray:
-    """Lowest point (m, world z) of every part."""
-    return np.array([transform_points(T, inst.block.vertices)[:, 2].min()
-                     for T, inst in zip(wc.block_poses(), wc.blocks)])
-
-
-def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None:
-    """Pick ``plan``'s part, lift it clear of the walls, carry it over the out-box ``box`` and let it go; marks
-    ``att.grasped``; ``EpisodeFailed`` when the robot hits a wall, the floor on a failed grasp, the part slips or
-    falls, or another part came up with it (after the drop). A neighbour that stops the hand short of the grasp
-    (``_stopped_near``) does not end the attempt: the fingers close where the hand stopped."""
-    ctl, cfg, k = ep.ctl, ep.cfg, plan.k
-    g_cfg, b = cfg.grasp, cfg.bin_pick
-    m = ep.wc.model
-    walls = np.array([m.geom(f"tote/{w}").id for w in WALLS]) if area.walls else np.zeros(0, int)
-    floors = np.array([m.geom("table").id] + ([m.geom("tote/floor").id] if area.walls else []))
-    watch = _Contacts(ep, walls, floors, k)
-    T_grasp = plan.grasp.T_world_gripper
-    T_pre = T_grasp.copy()
-    T_pre[2, 3] += pregrasp_height(cfg, area, T_grasp)
-    opening = plan.grasp.width + b.finger_margin
-    ctl.preshape(opening)
-    ctl.monitor = watch
-    try:
-        if not ctl.move(T_pre):
-            raise EpisodeFailed(Failure.TIMEOUT)
-        watch.approach = T_grasp[:3, 2]
-        if not ctl.move(T_grasp, speed=g_cfg.approach_speed):
-            if not _stopped_near(ep.wc.gripper_pose(), T_grasp, b) or watch.floor:
-                raise EpisodeFailed(watch.blocked())
-            ctl.target = ep.wc.gripper_pose()
-        if not ctl.close(k, wait_all=cfg.firm_hold.finger_wait if holds_firmly(cfg) else 0):
-            raise EpisodeFailed(Failure.COLLISION if watch.floor else Failure.SLIP)
-        ep.log.stop("pick", ctl, add=True)
-        start = _bottoms(ep.wc)
-        bottom_est, _ = plan.height_range()
-        clear = max(area.top, box.top_z) + b.wall_margin  # the part's bottom above both boxes' walls
-        T_lift = ctl.target.copy()  # the grasp, or where a neighbour stopped the hand above it
-        T_lift[2, 3] += max(clear - bottom_est, ep.cfg.scoring.lift_min)
-        ctl.move(T_lift)
-        att.grasped = bool(_bottoms(ep.wc)[k - 1] >= area.top + 0.5 * b.wall_margin and ctl.finger_contacts(k).any())
-        if not att.grasped:
-            raise EpisodeFailed(Failure.SLIP)
-        rose = _bottoms(ep.wc) - start
-        rose[k - 1] = 0.0
-        double = bool(np.any(rose > b.double_rise))
-        ep.log.stop("lift", ctl, add=True)
-        watch.approach = None  # the carry turns the hand about the vertical with the arm's base
-        T_drop = _swung(T_lift, np.asarray(box.center) + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3]))
-        ctl.move(T_drop, speed=g_cfg.carry_speed)
-        if not ctl.finger_contacts(k).any():
-            raise EpisodeFailed(Failure.DROP)
-        ctl.release(k, opening, g_cfg.release_time)
-        ep.log.stop("carry", ctl, add=True)
-        if double:
-            raise EpisodeFailed(Failure.DOUBLE_PICK)
-    finally:
-        ctl.monitor = None
-
-
-def _stopped_near(T: np.ndarray, T_grasp: np.ndarray, b: BinPickConfig) -> bool:
-    """Did the hand stop (gripper pose ``T``, world) close enough to ``T_grasp`` to close there: at most
-    ``close_slack`` above it and ``close_slack_side`` beside it?"""
-    d = T[:3, 3] - T_grasp[:3, 3]
-    return bool(0.0 <= d[2] <= b.close_slack and np.linalg.norm(d[:2]) <= b.close_slack_side)
-
-
-def _swung(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """``T`` (world gripper) moved over ``xy`` (m) at its height and turned about the vertical as the arm's base
-    turns between them (the world origin), so the wrist keeps its angle: a dropped part's yaw does not matter,
-    and the wrist's turn back to the look is what costs time."""
-    turn = float(np.arctan2(xy[1], xy[0]) - np.arctan2(T[1, 3], T[0, 3]))
-    out = T.copy()
-    out[:3, :3] = axis_angle_R(np.array([0.0, 0.0, 1.0]), turn) @ T[:3, :3]
-    out[:2, 3] = xy
-    return out
-
-
-def _open_and_retreat(ep: Episode, area: Area) -> None:
-    """Open the hand wide and raise it straight up above the walls from where it is (after a failed pick, before the
-    look): a hand stopped by a wall or a part lags its target, and a move from the target would drag it across."""
+def _open_and_retreat(ep: Episode, area: Area, tool: Tool) -> None:
+    """Let go (``Tool.let_go``) and raise the tool straight up above the walls from where it is (after a failed
+    pick, before the look): a hand stopped by a wall or a part lags its target, and a move from the target would
+    drag it across."""
     ctl = ep.ctl
     ctl.target = ep.wc.gripper_pose()
-    ctl.preshape(ep.cfg.grasp.max_width + ep.cfg.grasp.finger_margin, ctl.cfg.release_speed)
+    tool.let_go(ep)
     ctl.hold(0.2)
     T = ctl.target.copy()
     T[2, 3] = max(T[2, 3], area.top + ep.cfg.grasp.fingertip_depth + ep.cfg.grasp.pregrasp_height)
@@ -249,6 +138,7 @@ class _Emptying:
         self.stuck: list[Estimate] | None = None  # what the robot saw when it last found nothing graspable
         self.end = Failure.PARTS_LEFT
         self.ests: list[Estimate] = []
+        self.tool: Tool = Cup(ep) if ep.wc.cfg.hand == "suction" else Fingers()
 
     def attempt(self, a: int) -> bool:
         """Attempt ``a``: capture, perceive, pick and drop, look again, judge; False when the episode stops at
@@ -264,7 +154,7 @@ class _Emptying:
             att.failure = f.reason
             if att.target is not None and att.target.instance:
                 self.failed.append(self.grasp.T_world_gripper)
-                _open_and_retreat(ep, self.area)
+                _open_and_retreat(ep, self.area, self.tool)
         except SimulationError:
             att.failure = Failure.SIMULATION_ERROR
             self._finish(att, t0)
@@ -306,20 +196,19 @@ class _Emptying:
                 return False
             raise EpisodeFailed(Failure.NO_DETECTION)
         try:
-            j, self.grasp, T_est = choose_part(wc, cfg, ests, T_world_cam, heap, gripper_yaw(ep.ctl.target),
-                                               self.failed)
+            j, self.grasp, T_est = self.tool.choose(wc, cfg, ests, T_world_cam, heap, gripper_yaw(ep.ctl.target),
+                                                    self.failed)
         finally:
             ep.log.stop("plan", ep.ctl, add=True)
         k = match_block(wc, T_est)
         if k == 0:
             att.target = FalseTarget(0, ests[j].obj_id)
             raise EpisodeFailed(Failure.POSE_ERROR)
-        block, g = wc.blocks[k - 1].block, self.grasp
-        att.target = Target(k, block.name, block.obj_id == ests[j].obj_id, block.diameter, g.width, g.clearance,
-                            g.support, g.tilt_deg)
+        block = wc.blocks[k - 1].block
+        att.target = self.tool.target(k, block, block.obj_id == ests[j].obj_id, self.grasp)
         att.pose_error = pose_errors(block, T_est, wc.block_poses()[k - 1], cfg.scoring.pose_error_points)
         att.visib_fract = visible_fraction(ep, frame, k)
-        pick_and_drop(ep, Plan(k, block, g, T_est, cat[ests[j].obj_id]), self.area, self.box, att)
+        self.tool.pick(ep, Plan(k, block, self.grasp, T_est, cat[ests[j].obj_id]), self.area, self.box, att)
         return True
 
     def _tally(self, att: Attempt) -> None:

@@ -83,6 +83,23 @@ class BinPickConfig:
     wall_band: float = field(default=0.008, metadata=within(0.0, 0.1))
     #: Another part counts as lifted with the target when it rose this far (m).
     double_rise: float = field(default=0.03, metadata=within(0.001, 1.0))
+    #: Suction: the cup comes down along a face's inward normal lying within this angle (deg) of straight down.
+    suction_max_tilt_deg: float = field(default=40.0, metadata=within(0.0, 80.0))
+    #: Suction: points drawn on each part type's surface where the cup may seal (with its flat faces' centres).
+    suction_samples: int = field(default=400, metadata=within(1, 100000))
+    #: Suction: the cup and the wrist keep this far (m) from the other parts' estimated surfaces and depth points.
+    suction_clearance: float = field(default=0.002, metadata=within(0.0, 0.1))
+    #: Suction: the cup and the wrist keep this far (m) from the tote's walls.
+    suction_wall_clearance: float = field(default=0.005, metadata=within(0.0, 0.1))
+    #: Suction: a spot is taken only where the cup seals slid this far (m) any way (``edge_margin``: 0, 2, 4 or
+    #: 6 mm): the arm sets the cup down a millimetre or two off its target.
+    suction_min_edge_margin: float = field(default=0.002, metadata=within(0.0, 0.006))
+    #: Suction score: plus this per metre (1/m) of seal margin and of edge margin (how far the cup may slide off).
+    suction_margin_weight: float = field(default=100.0, metadata=within(0.0, 1e4))
+    #: Suction score: minus this per metre (1/m) from the part's centre of mass to the cup's axis (moment arm).
+    suction_com_weight: float = field(default=40.0, metadata=within(0.0, 1e4))
+    #: Suction score: minus this per degree (1/deg) of the approach's tilt from straight down.
+    suction_tilt_weight: float = field(default=0.01, metadata=within(0.0, 100.0))
 
     def __post_init__(self) -> None:
         if not self.part_clearance:

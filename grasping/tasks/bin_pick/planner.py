@@ -39,12 +39,14 @@ from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface
 from posegrasp.grasping.hand import CONTACT_BAND, ON_PLANE_TOL, Hand, camera_box, hand_of
 from posegrasp.grasping.perception import Estimate
 from posegrasp.grasping.record import Failure
+from posegrasp.grasping.suction_grasps import CupGeometry, CupSurroundings, SuctionGrasp, plan_suction
 from posegrasp.grasping.support import rest_on_table
 from posegrasp.grasping.targets import reach_q
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, wall_points
 from posegrasp.sim.camera import Frame
+from posegrasp.sim.suction import PALM_BOX, PALM_Z
 from posegrasp.sim.tote import WALLS, Tote
 from posegrasp.sim.workcell import Workcell
 
@@ -95,10 +97,52 @@ def pregrasp_height(cfg: TrialConfig, area: Area, T_grasp: np.ndarray) -> float:
 
 def _tried(grasp: Grasp, failed: list[np.ndarray], b: BinPickConfig) -> bool:
     """Is ``grasp`` one of the ``failed`` grasp poses (world gripper), within ``retry_distance`` and
-    ``retry_angle_deg``?"""
-    T = grasp.T_world_gripper
+    ``retry_angle_deg`` of its squeeze axis?"""
+    return _tried_axis(grasp.T_world_gripper, failed, b, 0)
+
+
+def _tried_axis(T: np.ndarray, failed: list[np.ndarray], b: BinPickConfig, axis: int) -> bool:
+    """Is the grasp pose ``T`` (world gripper) one of the ``failed`` ones: within ``retry_distance``, its ``axis``
+    (0: the squeeze axis x, 2: the approach z) within ``retry_angle_deg``?"""
     return any(np.linalg.norm(T[:3, 3] - F[:3, 3]) < b.retry_distance
-               and T[:3, 0] @ F[:3, 0] > np.cos(np.radians(b.retry_angle_deg)) for F in failed)
+               and T[:3, axis] @ F[:3, axis] > np.cos(np.radians(b.retry_angle_deg)) for F in failed)
+
+
+class HeapView:
+    """The heap as the planner sees it at one look: the estimates levelled (``poses``, world), their tops' heights,
+    their surface points, the tote's wall points, the camera's box and, per part, what a grasp on it must clear
+    (``around``)."""
+
+    def __init__(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
+                 heap: np.ndarray):
+        b, g_cfg = cfg.bin_pick, cfg.grasp
+        self.ests, self.b, self.heap = ests, b, heap
+        self.area = area_of(wc, b)
+        self.cat = cat = catalog_by_id(wc.cfg.objects)
+        self.poses = [level(cat[e.obj_id], T_world_cam @ e.T_cam_obj, cfg, self.area.floor) for e in ests]
+        self.tops = [float(transform_points(T, cat[e.obj_id].vertices)[:, 2].max()) for e, T in zip(ests, self.poses)]
+        self.clouds = [transform_points(T, surface_points(cat[e.obj_id], g_cfg.neighbour_points))
+                       for e, T in zip(ests, self.poses)]
+        self.walls = wall_points(self.area.tote) if self.area.walls else np.zeros((0, 3))
+        self.reach = g_cfg.max_width / 2 + b.finger_margin + 0.1  # the open hand and camera lie within this of a part
+        self.around = functools.cache(self._around)
+
+    def part(self, j: int) -> PartType:
+        """Estimate ``j``'s part type."""
+        return self.cat[self.ests[j].obj_id]
+
+    def highest_first(self) -> list[int]:
+        """The estimates' indices, highest top first."""
+        return sorted(range(len(self.ests)), key=lambda i: -self.tops[i])
+
+    def _around(self, j: int) -> tuple[cKDTree, np.ndarray, np.ndarray]:
+        """Part ``j``'s surface points (a tree), the obstacle points and the wall points near it (world)."""
+        T, r, b = self.poses[j], self.reach + 0.5 * self.part(j).diameter, self.b
+        near = lambda p: p[np.linalg.norm(p[:, :2] - T[:2, 3], axis=1) < r]  # noqa: E731
+        own = cKDTree(transform_points(T, surface_points(self.part(j))))
+        depth = near(self.heap)
+        depth = depth[own.query(depth, distance_upper_bound=b.own_margin)[0] > b.own_margin] if len(depth) else depth
+        return own, np.concatenate([near(c) for i, c in enumerate(self.clouds) if i != j] + [depth]), near(self.walls)
 
 
 def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
@@ -108,37 +152,21 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
     reachable grasp; ``EpisodeFailed``: "nothing graspable" when no part has a clear grasp at any, "unreachable"
     when the IK reaches none. ``heap``: the depth image's points on the heap (``heap_points``)."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
-    area = area_of(wc, b)
-    cat = catalog_by_id(wc.cfg.objects)
-    poses = [level(cat[e.obj_id], T_world_cam @ e.T_cam_obj, cfg, area.floor) for e in ests]
-    tops = [float(transform_points(T, cat[e.obj_id].vertices)[:, 2].max()) for e, T in zip(ests, poses)]
-    clouds = [transform_points(T, surface_points(cat[e.obj_id], g_cfg.neighbour_points)) for e, T in zip(ests, poses)]
-    walls = wall_points(area.tote) if area.walls else np.zeros((0, 3))
+    view = HeapView(wc, cfg, ests, T_world_cam, heap)
+    area, poses, tops = view.area, view.poses, view.tops
     cam, hand = camera_box(wc.cfg.hand_camera.mount_pos), hand_of(wc.cfg)
-    reach = g_cfg.max_width / 2 + b.finger_margin + 0.1  # the open hand and camera lie within this of the part
-
-    @functools.cache
-    def around(j: int) -> tuple[cKDTree, np.ndarray, np.ndarray]:
-        """Part ``j``'s surface points (a tree), the obstacle points and the wall points near it (world)."""
-        T, r = poses[j], reach + 0.5 * cat[ests[j].obj_id].diameter
-        near = lambda p: p[np.linalg.norm(p[:, :2] - T[:2, 3], axis=1) < r]  # noqa: E731
-        own = cKDTree(transform_points(T, surface_points(cat[ests[j].obj_id])))
-        depth = near(heap)
-        depth = depth[own.query(depth, distance_upper_bound=b.own_margin)[0] > b.own_margin] if len(depth) else depth
-        return own, np.concatenate([near(c) for i, c in enumerate(clouds) if i != j] + [depth]), near(walls)
-
     seen_any = False
     for clearance in b.part_clearance:
         plan_cfg = dataclasses.replace(g_cfg, min_pinch_height=area.floor + g_cfg.min_pinch_height,
                                        finger_margin=b.finger_margin, clearance_min=clearance,
                                        score=dataclasses.replace(g_cfg.score, turn=b.turn_weight))
         options, parts = [], 0
-        for j in sorted(range(len(ests)), key=lambda i: -tops[i]):
-            own, others, wall = around(j)
+        for j in view.highest_first():
+            own, others, wall = view.around(j)
             clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
                 not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
             fit = _Fit(own.data, others, clearance, lambda g: clear_of_walls(g, b.shift_clearance), b, hand)
-            grasps = [g for g0 in plan_grasps(cat[ests[j].obj_id], poses[j], others, plan_cfg, yaw_now,
+            grasps = [g for g0 in plan_grasps(view.part(j), poses[j], others, plan_cfg, yaw_now,
                                               yaw_stable=holds_firmly(cfg), hand=hand)
                       for g in ([g0] if clear_of_walls(g0) else
                                 fit.shifted(g0) or fit.tilted(g0, wc.cfg, area.floor, g_cfg.score.tilt))
@@ -151,12 +179,54 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
             if parts >= b.plan_parts:
                 break
         seen_any |= bool(options)
-        options.sort(key=lambda o: -o[0])
-        for _, j, g in options[:g_cfg.ik_checks]:
-            qs = reach_q(wc, g_cfg, g.T_world_gripper, pregrasp_height(cfg, area, g.T_world_gripper))
-            if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, g_cfg.clearance_min)):
-                return j, g, poses[j]
+        found = _reachable(wc, cfg, view, options)
+        if found is not None:
+            return found
     raise EpisodeFailed(Failure.UNREACHABLE if seen_any else Failure.NOTHING_GRASPABLE)
+
+
+def _reachable(wc: Workcell, cfg: TrialConfig, view: HeapView, options: list) -> tuple | None:
+    """The best of ``options`` ((rank, estimate index, grasp), any order) whose pre-grasp and grasp the arm
+    reaches clear of the tote's walls, as (index, grasp, levelled pose); None if none of the ``ik_checks`` best."""
+    g_cfg, area = cfg.grasp, view.area
+    options.sort(key=lambda o: -o[0])
+    for _, j, g in options[:g_cfg.ik_checks]:
+        qs = reach_q(wc, g_cfg, g.T_world_gripper, pregrasp_height(cfg, area, g.T_world_gripper))
+        if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, g_cfg.clearance_min)):
+            return j, g, view.poses[j]
+    return None
+
+
+def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
+               yaw_now: float, failed: list[np.ndarray] = ()) -> tuple[int, SuctionGrasp, np.ndarray]:
+    """With the suction tool: the estimate to pick (index), the cup's grasp on it (``suction_grasps.plan_suction``:
+    a face the rim seals on, facing up within ``suction_max_tilt_deg``, the tool clear of walls and neighbours)
+    and its levelled ``T_world_obj``; the best grasps of ``plan_parts`` parts, highest first, compete and the first
+    the arm reaches is taken; none within ``retry_distance`` of a grasp that ``failed`` before (with its approach
+    within ``retry_angle_deg``). ``EpisodeFailed`` as ``choose_part``."""
+    b, g_cfg = cfg.bin_pick, cfg.grasp
+    view, cup = HeapView(wc, cfg, ests, T_world_cam, heap), cup_of(wc.cfg)
+    options, parts = [], 0
+    for j in view.highest_first():
+        _, others, wall = view.around(j)
+        grasps = [g for g in plan_suction(view.part(j), view.poses[j],
+                                          CupSurroundings(others, wall, view.area.floor, yaw_now), cup, b)
+                  if not _tried_axis(g.T_world_gripper, failed, b, 2)][:g_cfg.grasps_per_block]
+        options += [(g.score + g_cfg.detection_weight * ests[j].score, j, g) for g in grasps]
+        parts += bool(grasps)
+        if parts >= b.plan_parts:
+            break
+    found = _reachable(wc, cfg, view, options)
+    if found is None:
+        raise EpisodeFailed(Failure.UNREACHABLE if options else Failure.NOTHING_GRASPABLE)
+    return found
+
+
+def cup_of(wc_cfg) -> CupGeometry:
+    """The suction tool of the workcell settings ``wc_cfg`` as the planner models it (``sim.suction``'s cup)."""
+    s = wc_cfg.suction
+    return CupGeometry(radius=s.diameter / 2, seal_tol=s.seal_tolerance, body_radius=s.diameter / 2,
+                       body_length=-PALM_Z, stroke=s.stroke, wrist=(PALM_BOX, camera_box(wc_cfg.hand_camera.mount_pos)))
 
 
 def _pad_overlap(T: np.ndarray, width: float, own: np.ndarray, hand: Hand) -> tuple[float, float]:
@@ -239,12 +309,13 @@ def _fingers_inside(grasp: Grasp, wc_cfg, margin: float, tote: Tote, clearance: 
 
 @functools.lru_cache(maxsize=4)
 def _tote_robot(wc_cfg, tote: Tote) -> tuple[Workcell, np.ndarray, np.ndarray, np.ndarray]:
-    """A robot-and-tote workcell (no parts), the tote walls' geoms, the robot's geoms and those but the fingers."""
+    """A robot-and-tote workcell (no parts), the tote walls' geoms, the robot's geoms and those but the tool (the
+    fingers or the suction cup: the planner checked them against the walls)."""
     wc = Workcell(wc_cfg, extras=tote.add_to)
     m = wc.model
     walls = np.array([m.geom(f"tote/{w}").id for w in WALLS])
     robot = np.flatnonzero([m.body(b).name.startswith("jaco_arm/") for b in m.geom_bodyid] & (m.geom_contype > 0))
-    return wc, walls, robot, np.array([g for g in robot if "finger" not in m.geom(g).name])
+    return wc, walls, robot, np.array([g for g in robot if not any(t in m.geom(g).name for t in ("finger", "suction"))])
 
 
 def arm_clear(wc_cfg, tote: Tote, q_pre: np.ndarray, q: np.ndarray, clearance: float) -> bool:

@@ -35,6 +35,7 @@ class BinPickTask(Task):
     name = BIN_PICK
     looks = BIN_LOOKS
     record_type = BinPickRecord
+    suction = True
     fixed_looks = BIN_LOOKS[:1]  # the first look only: the later ones follow the picks
 
     def blocks(self, cfg: TrialConfig) -> tuple[int, int]:

@@ -1,0 +1,270 @@
+"""Bin picking's pick: the tool that picks (``Tool``: a fingered hand, ``Fingers``, or the suction cup, ``Cup``), how
+each picks a part and drops it into the out-box, and the contact monitor that makes a protective stop.
+
+The verdicts use the simulator's truth: a robot touching the tote's walls (a protective stop: "hit the wall"; so
+is a hand that contacts turn ``tilt_stop_deg`` from the grasp's approach, "collision"), another part rising with the
+target ("two parts lifted"); with the cup, a rim that does not seal on the part ("no seal") and a vacuum that lets
+it go ("seal lost").
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from posegrasp.catalog import PartType
+from posegrasp.geometry import axis_angle_R, transform_points
+from posegrasp.grasping.config import holds_firmly
+from posegrasp.grasping.grasps import Grasp
+from posegrasp.grasping.perception import Estimate
+from posegrasp.grasping.record import Failure, Target
+from posegrasp.grasping.suction_grasps import SuctionGrasp
+from posegrasp.grasping.targets import Plan
+from posegrasp.grasping.tasks.base import EpisodeFailed
+from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.planner import choose_cup, choose_part, pregrasp_height
+from posegrasp.grasping.tasks.bin_pick.record import Attempt
+from posegrasp.grasping.tasks.bin_pick.scene import Area
+from posegrasp.sim.suction import Vacuum, seal_time
+from posegrasp.sim.tote import WALLS, Tote
+from posegrasp.sim.workcell import Workcell
+
+if TYPE_CHECKING:
+    from posegrasp.grasping.config import TrialConfig
+    from posegrasp.grasping.episode import Episode
+
+#: The cup comes down along its axis from this far (m) above the grasp ...
+CUP_APPROACH = 0.02
+#: ... and presses on by this share of its bellows' stroke ...
+CUP_PRESS = 0.3
+#: ... at this speed (m/s), once the arm has moved slower than ``CUP_SETTLE_SPEED`` (m/s) for 3 control periods,
+#: waiting at most ``CUP_SETTLE_TIME`` (s) for it.
+CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME = 0.05, 0.005, 1.0
+
+
+class _Contacts:
+    """Control-period monitor: has the robot touched the floor or the table (``floor``) or another part than the
+    target ``k`` (``parts``)? A protective stop (``EpisodeFailed``, raised in the control period, the arm stopping
+    where it is) when it touches the tote's walls ("hit the wall") or, while it has an ``approach`` axis (from the
+    pre-grasp to the lift: those moves keep the hand's orientation), contacts turn the hand more than
+    ``tilt_stop_deg`` from it ("collision")."""
+
+    def __init__(self, ep: Episode, walls: np.ndarray, floors: np.ndarray, k: int):
+        self.ep, self.walls, self.floors = ep, walls, floors
+        inst = ep.wc.geom_instance[:-1]
+        self.others = np.flatnonzero((inst > 0) & (inst != k))
+        self.cos_tilt = float(np.cos(np.radians(ep.cfg.bin_pick.tilt_stop_deg)))
+        self.floor = self.parts = False
+        self.approach: np.ndarray | None = None  # the grasp's approach axis (world), once at the pre-grasp
+
+    def __call__(self) -> None:
+        d = self.ep.wc.data
+        if d.ncon:
+            g = d.contact.geom[: d.ncon]
+            rob = self.ep.ctl.robot_geom[g]
+            touch = [bool(np.any(rob[:, 0] & np.isin(g[:, 1], ids) | rob[:, 1] & np.isin(g[:, 0], ids)))
+                     for ids in (self.walls, self.floors, self.others)]
+            self.floor |= touch[1]
+            self.parts |= touch[2]
+            if touch[0]:
+                raise EpisodeFailed(Failure.WALL_HIT)
+        if self.approach is not None and d.site_xmat[self.ep.wc.gripper_site][2::3] @ self.approach < self.cos_tilt:
+            raise EpisodeFailed(Failure.COLLISION)
+
+    def blocked(self) -> Failure:
+        """Why the hand did not get to the grasp or close on the part: it hit something, or (else) it timed out."""
+        return Failure.COLLISION if self.floor or self.parts else Failure.TIMEOUT
+
+
+def _bottoms(wc: Workcell) -> np.ndarray:
+    """Lowest point (m, world z) of every part."""
+    return np.array([transform_points(T, inst.block.vertices)[:, 2].min()
+                     for T, inst in zip(wc.block_poses(), wc.blocks)])
+
+
+def _watch(ep: Episode, area: Area, k: int) -> _Contacts:
+    """The contact monitor of a pick of part ``k``: the tote's walls, its floor and the table."""
+    m = ep.wc.model
+    walls = np.array([m.geom(f"tote/{w}").id for w in WALLS]) if area.walls else np.zeros(0, int)
+    floors = np.array([m.geom("table").id] + ([m.geom("tote/floor").id] if area.walls else []))
+    return _Contacts(ep, walls, floors, k)
+
+
+def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None:
+    """Pick ``plan``'s part, lift it clear of the walls, carry it over the out-box ``box`` and let it go; marks
+    ``att.grasped``; ``EpisodeFailed`` when the robot hits a wall, the floor on a failed grasp, the part slips or
+    falls, or another part came up with it (after the drop). A neighbour that stops the hand short of the grasp
+    (``_stopped_near``) does not end the attempt: the fingers close where the hand stopped."""
+    ctl, cfg, k = ep.ctl, ep.cfg, plan.k
+    g_cfg, b = cfg.grasp, cfg.bin_pick
+    watch = _watch(ep, area, k)
+    T_grasp = plan.grasp.T_world_gripper
+    T_pre = T_grasp.copy()
+    T_pre[2, 3] += pregrasp_height(cfg, area, T_grasp)
+    opening = plan.grasp.width + b.finger_margin
+    ctl.preshape(opening)
+    ctl.monitor = watch
+    try:
+        if not ctl.move(T_pre):
+            raise EpisodeFailed(Failure.TIMEOUT)
+        watch.approach = T_grasp[:3, 2]
+        if not ctl.move(T_grasp, speed=g_cfg.approach_speed):
+            if not _stopped_near(ep.wc.gripper_pose(), T_grasp, b) or watch.floor:
+                raise EpisodeFailed(watch.blocked())
+            ctl.target = ep.wc.gripper_pose()
+        if not ctl.close(k, wait_all=cfg.firm_hold.finger_wait if holds_firmly(cfg) else 0):
+            raise EpisodeFailed(Failure.COLLISION if watch.floor else Failure.SLIP)
+        ep.log.stop("pick", ctl, add=True)
+        start = _bottoms(ep.wc)
+        bottom_est, _ = plan.height_range()
+        clear = max(area.top, box.top_z) + b.wall_margin  # the part's bottom above both boxes' walls
+        T_lift = ctl.target.copy()  # the grasp, or where a neighbour stopped the hand above it
+        T_lift[2, 3] += max(clear - bottom_est, ep.cfg.scoring.lift_min)
+        ctl.move(T_lift)
+        att.grasped = bool(_bottoms(ep.wc)[k - 1] >= area.top + 0.5 * b.wall_margin and ctl.finger_contacts(k).any())
+        if not att.grasped:
+            raise EpisodeFailed(Failure.SLIP)
+        rose = _bottoms(ep.wc) - start
+        rose[k - 1] = 0.0
+        double = bool(np.any(rose > b.double_rise))
+        ep.log.stop("lift", ctl, add=True)
+        watch.approach = None  # the carry turns the hand about the vertical with the arm's base
+        T_drop = _swung(T_lift, np.asarray(box.center) + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3]))
+        ctl.move(T_drop, speed=g_cfg.carry_speed)
+        if not ctl.finger_contacts(k).any():
+            raise EpisodeFailed(Failure.DROP)
+        ctl.release(k, opening, g_cfg.release_time)
+        ep.log.stop("carry", ctl, add=True)
+        if double:
+            raise EpisodeFailed(Failure.DOUBLE_PICK)
+    finally:
+        ctl.monitor = None
+
+
+def pick_with_cup(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt, vacuum: Vacuum) -> None:
+    """Pick ``plan``'s part with the suction cup: come down above the grasp, approach along its axis, press the cup
+    on by ``CUP_PRESS`` of its stroke, switch the vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal
+    on the part's true surface), wait for the vacuum to build, lift clear of the walls with the hold model watching
+    every control period ("seal lost"), carry over the out-box ``box`` and switch the vacuum off; marks
+    ``att.grasped``; "two parts lifted" after the drop when another part came up with it."""
+    ctl, cfg, k, wc = ep.ctl, ep.cfg, plan.k, ep.wc
+    g_cfg, b, s = cfg.grasp, cfg.bin_pick, wc.cfg.suction
+    watch = _watch(ep, area, k)
+    T_grasp = plan.grasp.T_world_gripper
+    z = T_grasp[:3, 2]
+    T_near, T_press = T_grasp.copy(), T_grasp.copy()
+    T_near[:3, 3] -= CUP_APPROACH * z
+    T_press[:3, 3] += CUP_PRESS * s.stroke * z
+    T_pre = T_near.copy()
+    T_pre[2, 3] += pregrasp_height(cfg, area, T_near)
+
+    def holding() -> None:
+        watch()
+        if not vacuum.check().held:
+            raise EpisodeFailed(Failure.SEAL_LOST)
+
+    ctl.monitor = watch
+    try:
+        if not ctl.move(T_pre) or not ctl.move(T_near, speed=g_cfg.approach_speed):
+            raise EpisodeFailed(watch.blocked())
+        watch.approach = z
+        ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)  # the arm sways a few mm after its descent: still, then press
+        ctl.move(T_press, speed=CUP_PRESS_SPEED)
+        if watch.floor:
+            raise EpisodeFailed(Failure.COLLISION)
+        if not vacuum.on(k).sealed:
+            raise EpisodeFailed(Failure.NO_SEAL)
+        ctl.hold(seal_time(s))
+        ep.log.stop("pick", ctl, add=True)
+        start = _bottoms(wc)
+        bottom_est, _ = plan.height_range()
+        T_lift = ctl.target.copy()
+        T_lift[2, 3] += max(max(area.top, box.top_z) + b.wall_margin - bottom_est, cfg.scoring.lift_min)
+        ctl.monitor = holding
+        ctl.move(T_lift)
+        att.grasped = bool(vacuum.holding and _bottoms(wc)[k - 1] >= area.top + 0.5 * b.wall_margin)
+        if not att.grasped:
+            raise EpisodeFailed(Failure.SEAL_LOST if not vacuum.holding else Failure.TIMEOUT)
+        rose = _bottoms(wc) - start
+        rose[k - 1] = 0.0
+        ep.log.stop("lift", ctl, add=True)
+        watch.approach = None  # the carry turns the tool about the vertical with the arm's base
+        ctl.move(_swung(T_lift, np.asarray(box.center) + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3])),
+                 speed=g_cfg.carry_speed)
+        ctl.monitor = watch
+        vacuum.off()
+        ctl.hold(g_cfg.release_time)
+        ep.log.stop("carry", ctl, add=True)
+        if bool(np.any(rose > b.double_rise)):
+            raise EpisodeFailed(Failure.DOUBLE_PICK)
+    finally:
+        ctl.monitor = None
+
+
+class Tool(Protocol):
+    """What picks in a bin-picking attempt: how it chooses a part and its grasp from the estimates (``planner``),
+    how it picks and drops it, what the record says of its grasp, and how it lets go after a failed pick."""
+
+    def choose(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
+               heap: np.ndarray, yaw_now: float, failed: list[np.ndarray]) -> tuple[int, object, np.ndarray]: ...
+
+    def pick(self, ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None: ...
+
+    def target(self, k: int, block: PartType, class_ok: bool, grasp: object) -> Target: ...
+
+    def let_go(self, ep: Episode) -> None: ...
+
+
+class Fingers:
+    """A fingered hand (``planner.choose_part``, ``pick_and_drop``)."""
+
+    choose = staticmethod(choose_part)
+    pick = staticmethod(pick_and_drop)
+
+    @staticmethod
+    def target(k: int, block: PartType, class_ok: bool, g: Grasp) -> Target:
+        return Target(k, block.name, class_ok, block.diameter, g.width, g.clearance, g.support, g.tilt_deg)
+
+    @staticmethod
+    def let_go(ep: Episode) -> None:
+        """Open the hand wide."""
+        ep.ctl.preshape(ep.cfg.grasp.max_width + ep.cfg.grasp.finger_margin, ep.ctl.cfg.release_speed)
+
+
+class Cup:
+    """The suction tool (``planner.choose_cup``, ``pick_with_cup``) and its vacuum."""
+
+    choose = staticmethod(choose_cup)
+
+    def __init__(self, ep: Episode):
+        self.vacuum = Vacuum(ep.wc)
+        self.diameter = ep.wc.cfg.suction.diameter
+
+    def pick(self, ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None:
+        pick_with_cup(ep, plan, area, box, att, self.vacuum)
+
+    def target(self, k: int, block: PartType, class_ok: bool, g: SuctionGrasp) -> Target:
+        return Target(k, block.name, class_ok, block.diameter, self.diameter, g.clearance, g.seal_margin, g.tilt_deg)
+
+    def let_go(self, ep: Episode) -> None:
+        """Switch the vacuum off."""
+        self.vacuum.off()
+
+
+def _stopped_near(T: np.ndarray, T_grasp: np.ndarray, b: BinPickConfig) -> bool:
+    """Did the hand stop (gripper pose ``T``, world) close enough to ``T_grasp`` to close there: at most
+    ``close_slack`` above it and ``close_slack_side`` beside it?"""
+    d = T[:3, 3] - T_grasp[:3, 3]
+    return bool(0.0 <= d[2] <= b.close_slack and np.linalg.norm(d[:2]) <= b.close_slack_side)
+
+
+def _swung(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """``T`` (world gripper) moved over ``xy`` (m) at its height and turned about the vertical as the arm's base
+    turns between them (the world origin), so the wrist keeps its angle: a dropped part's yaw does not matter,
+    and the wrist's turn back to the look is what costs time."""
+    turn = float(np.arctan2(xy[1], xy[0]) - np.arctan2(T[1, 3], T[0, 3]))
+    out = T.copy()
+    out[:3, :3] = axis_angle_R(np.array([0.0, 0.0, 1.0]), turn) @ T[:3, :3]
+    out[:2, 3] = xy
+    return out

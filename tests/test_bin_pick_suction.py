@@ -1,0 +1,72 @@
+"""Bin picking with the suction tool (``--hand suction``): the cup's planner on the estimates, its pick in the tote
+(press, seal, lift with the hold model watching, carry, let go), and its place among the tasks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from posegrasp.grasping.perception import Estimate
+from posegrasp.grasping.record import Failure
+from posegrasp.grasping.targets import Plan
+from posegrasp.grasping.tasks.base import EpisodeFailed
+from posegrasp.grasping.tasks.bin_pick.pick import Cup
+from posegrasp.grasping.tasks.bin_pick.planner import choose_cup
+from posegrasp.grasping.tasks.bin_pick.record import Attempt
+from posegrasp.grasping.tasks.bin_pick.scene import area_of, outbox_of
+from test_bin_pick import CAT, _alone, _inner_bounds, _oracle_episode, _cfg
+from tests.helpers import run_cli
+
+
+def _cup_pick(ep, ests, T_world_cam) -> Attempt:
+    """The cup's grasp on the only part, picked and dropped into the out-box."""
+    j, grasp, T_est = choose_cup(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    b, att, part = ep.cfg.bin_pick, Attempt(0), ep.wc.blocks[0].block
+    Cup(ep).pick(ep, Plan(1, part, grasp, T_est, part), area_of(ep.wc, b), outbox_of(ep.wc.cfg, b), att)
+    return att
+
+
+def test_a_cube_flat_in_a_corner_is_picked_by_the_cup():
+    lo, hi = _inner_bounds()
+    half = 0.5 * float(np.ptp(CAT["cube"].vertices[:, :2], 0).max())
+    ep, ests, T_world_cam = _alone("cube", hi[:2] - half - 0.003, "suction")  # 3 mm from the +x and the +y wall
+    att = _cup_pick(ep, ests, T_world_cam)
+    assert att.grasped and att.failure is None
+    assert ep.wc.block_poses()[0][2, 3] < 0.1  # let go over the out-box: it fell
+
+
+def test_a_studs_up_brick_gives_the_cup_nothing_to_seal_on():
+    lo, hi = _inner_bounds()
+    ep, ests, T_world_cam = _alone("brick_2x2", 0.5 * (lo[:2] + hi[:2]), "suction")
+    with pytest.raises(EpisodeFailed) as e:
+        choose_cup(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+    assert e.value.reason == Failure.NOTHING_GRASPABLE
+
+
+def test_a_cup_set_off_the_estimate_does_not_seal():
+    """An estimate 8 mm off along the long cuboid's narrow side puts the rim across its edge: no seal."""
+    lo, hi = _inner_bounds()
+    ep, ests, T_world_cam = _alone("long_cuboid", 0.5 * (lo[:2] + hi[:2]), "suction")
+    T = np.linalg.inv(T_world_cam) @ ep.wc.block_poses()[0]
+    narrow = int(np.argmin(np.ptp(CAT["long_cuboid"].vertices[:, :2], 0)))  # the object axis across the top face
+    T_off = T.copy()
+    T_off[:3, 3] += 0.008 * (T_world_cam[:3, :3].T @ ep.wc.block_poses()[0][:3, narrow])
+    with pytest.raises(EpisodeFailed) as e:
+        _cup_pick(ep, [Estimate(ests[0].obj_id, T_off, 1.0)], T_world_cam)
+    assert e.value.reason == Failure.NO_SEAL
+
+
+@pytest.mark.slow
+def test_a_suction_episode_is_deterministic_and_picks_parts():
+    cfg = _cfg(4, "suction")
+    a, b = _oracle_episode(cfg, index=1), _oracle_episode(cfg, index=1)
+    assert a.to_json() == b.to_json()
+    assert a.removed >= 1 and all(t.failure != Failure.NO_SEAL for t in a.attempts if t.pose_error
+                                  and t.pose_error.err < 1e-3)
+
+
+def test_the_suction_tool_picks_only_in_bin_picking(tmp_path):
+    out = tmp_path / "run"
+    r = run_cli("trials", "--task", "pick-place", "--hand", "suction", "--episodes", "1", "--out", str(out))
+    assert r.returncode == 2 and "picks only in bin picking" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not out.exists()
