@@ -46,8 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="object set folder to draw objects from (default: the shipped blocks; docs/objects.md)")
     p.add_argument("--hand", type=_hand_arg, default=None,
                    help="3-finger (default) | 2-finger: the Jaco2's KG-2 hand, two fingers facing each other, which "
-                        "reaches parts lying against a tote's walls | suction: a vacuum cup (bin picking only) "
-                        "(docs/workcell.md)")
+                        "reaches parts lying against a tote's walls | suction: a vacuum cup (bin picking only) | "
+                        "hybrid: the 2-finger hand with a cup between its fingers (docs/workcell.md)")
     p.add_argument("--sweep-noise", action="store_true",
                    help="run noisy-oracle campaigns at increasing noise and plot success against pose error")
     p.add_argument("--noise", type=_noise_arg, default=None,

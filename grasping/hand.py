@@ -72,7 +72,7 @@ KG2 = Hand(hand_y=0.0, finger1_y=((-0.012, 0.012),), facing_y=((-0.012, 0.012),)
 
 def hand_of(cfg) -> Hand:
     """The planner's model of the hand of a workcell (``WorkcellConfig.hand``)."""
-    return KG2 if cfg.hand == "2-finger" else KG3
+    return KG2 if cfg.hand in ("2-finger", "hybrid") else KG3
 
 
 #: Half width (m) of the hand camera's housing along the gripper x axis and y axis (``camera_box``).

@@ -98,6 +98,36 @@ class SuctionConfig:
                               f"{self.diameter!r} m cup: use less than its radius")
 
 
+#: The hybrid hand's slide (``sim.hybrid``; m along the gripper z axis from the pinch point, negative toward the
+#: palm): where the cup's rim retracts to, 1 mm inside a bore in the palm (whose face lies at -0.072); how far past the
+#: pinch point the 2-finger hand's fingertips reach at their farthest (at any finger angle); the least lead of the
+#: extended rim past that reach.
+HYBRID_RETRACTED_Z, FINGERTIP_REACH, HYBRID_MIN_LEAD = -0.073, 0.0097, 0.002
+#: The palm's bore (m deep from the retracted rim) that holds the retracted cup and the stem above it, the stem (m)
+#: left in the bore with the cup out, and the widest cup (m) the fingers' knuckles round the bore clear.
+HYBRID_BORE, HYBRID_STEM_OVERLAP, HYBRID_MAX_DIAMETER = 0.118, 0.003, 0.03
+
+
+@settings
+class HybridConfig:
+    """The slide of ``hand = "hybrid"`` (``sim.hybrid``): the 2-finger hand with the suction tool's cup (``suction``)
+    between its fingers on an actuated slide along the gripper axis, retracted into the palm for a pinch, extended
+    past the fingertips for a suction pick."""
+
+    #: The slide's stroke (m): extended, the cup's rim lies this far past its retracted place (73 mm above the pinch
+    #: point), at least 2 mm past the fingertips' farthest reach (9.7 mm below the pinch point): 84.7 mm or more.
+    extension: float = field(default=0.088, metadata=within(0.01, 0.115))
+    #: Speed (m/s) of the slide, out and in.
+    extension_speed: float = field(default=0.25, metadata=within(0.01, 2.0))
+
+    def __post_init__(self) -> None:
+        least = FINGERTIP_REACH + HYBRID_MIN_LEAD - HYBRID_RETRACTED_Z
+        if self.extension < least:
+            short = (FINGERTIP_REACH - HYBRID_RETRACTED_Z - self.extension) * 1e3
+            raise ConfigError(f"HybridConfig.extension = {self.extension!r} m does not clear the fingertips: the "
+                              f"extended rim lies {short:.1f} mm above their reach; use at least {least:.4f} m")
+
+
 @settings
 class WorkcellConfig:
     """Everything that defines the workcell; the world frame is the arm base on the table top, z up.
@@ -134,30 +164,49 @@ class WorkcellConfig:
     objects: str = ""
     #: The Jaco2's hand (``--hand``): ``3-finger`` (KG-3: finger 1 facing fingers 2 and 3, 74 mm across the squeeze
     #: axis), ``2-finger`` (KG-2: two of the same fingers facing each other, 23 mm across; it reaches parts lying
-    #: against a tote's wall) or ``suction`` (a bellows vacuum cup instead of fingers, ``suction``).
+    #: against a tote's wall), ``suction`` (a bellows vacuum cup instead of fingers, ``suction``) or ``hybrid`` (the
+    #: 2-finger hand with the cup between its fingers on a slide, ``hybrid``).
     hand: str = "3-finger"
-    #: The vacuum tool of ``hand = "suction"``.
+    #: The vacuum tool of ``hand = "suction"`` and the cup of ``hand = "hybrid"``.
     suction: SuctionConfig = field(default_factory=SuctionConfig)
+    #: The cup's slide of ``hand = "hybrid"``.
+    hybrid: HybridConfig = field(default_factory=HybridConfig)
 
     def __post_init__(self) -> None:
         narrow = 2.0 * min(self.pick_area.half_size)
         if self.suction.diameter >= narrow:
             raise ConfigError(f"WorkcellConfig.suction.diameter = {self.suction.diameter!r} m is no cup for a "
                               f"{narrow!r} m wide pick area: use a smaller cup")
+        if self.hand == "hybrid":
+            _check_hybrid(self)
+
+
+def _check_hybrid(cfg: WorkcellConfig) -> None:
+    """Refuse, in one line, a hybrid hand whose retracted cup (``suction``) and slide (``hybrid``) do not fit in the
+    palm's bore or between the fingers' knuckles."""
+    height, ext = 2.0 * cfg.suction.stroke, cfg.hybrid.extension  # the bellows at rest: twice its stroke
+    room = HYBRID_BORE - HYBRID_STEM_OVERLAP - height
+    if ext > room:
+        raise ConfigError(f"WorkcellConfig.hybrid.extension = {ext!r} m is more than the slide allows: retracted, "
+                          f"the {height * 1e3:.0f} mm cup and the stem above it fill the palm's "
+                          f"{HYBRID_BORE * 1e3:.0f} mm bore; use at most {room:.4f} m or a shorter bellows stroke")
+    if cfg.suction.diameter > HYBRID_MAX_DIAMETER:
+        raise ConfigError(f"WorkcellConfig.suction.diameter = {cfg.suction.diameter!r} m is no cup between the "
+                          f"hybrid hand's fingers: use at most {HYBRID_MAX_DIAMETER!r} m")
 
 
 #: The hands ``WorkcellConfig.hand`` may name.
-HANDS = ("3-finger", "2-finger", "suction")
+HANDS = ("3-finger", "2-finger", "suction", "hybrid")
 
 DEFAULT_TOML = ASSETS / "workcell.toml"
 
 
 def workcell_record(d: dict) -> dict:
-    """A ``WorkcellConfig``'s ``dataclasses.asdict`` ``d`` as records keep it: the suction tool's settings only for
-    ``hand = "suction"`` (the records of the fingered hands stay those they were before the tool existed)."""
-    if d.get("hand") == "suction":
-        return d
-    return {k: v for k, v in d.items() if k != "suction"}
+    """A ``WorkcellConfig``'s ``dataclasses.asdict`` ``d`` as records keep it: the cup's settings only for the hands
+    with one (``suction`` and ``hybrid``), the slide's only for ``hybrid`` (the records of the fingered hands stay
+    those they were before the tools existed)."""
+    keep = {"suction": ("suction",), "hybrid": ("suction", "hybrid")}.get(d.get("hand"), ())
+    return {k: v for k, v in d.items() if k not in ("suction", "hybrid") or k in keep}
 
 
 def load_workcell_config(path: str | Path | None = None) -> WorkcellConfig:

@@ -1,5 +1,7 @@
 """The vacuum tool of ``WorkcellConfig.hand = "suction"``: a bellows suction cup on the Jaco2's wrist (its MJCF and
-its geometry for a planner), its seal model and its hold model (``SuctionConfig`` holds the settings).
+its geometry for a planner), its seal model and its hold model (``SuctionConfig`` holds the settings). The hybrid
+hand (``sim.hybrid``) carries the same cup between the 2-finger hand's fingers; seal, hold and ``cup_pose`` serve
+both.
 
 Frames: the cup frame is the gripper frame (``workcell.GRIPPER_SITE``: z along the approach direction, into the
 part) carried along by the bellows, its origin at the rim's centre; with the bellows at rest (uncompressed) the two
@@ -35,6 +37,8 @@ if TYPE_CHECKING:
 
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]
 
+#: The hands with the cup: the vacuum tool and the 2-finger hand with the cup between its fingers (``sim.hybrid``).
+CUP_HANDS = ("suction", "hybrid")
 #: Points sampled on the rim for the seal test.
 RIM_POINTS = 32
 #: Names in the hand's model (``jaco_arm/jaco_hand/...`` in a workcell): the cup's body on its slide joint, the
@@ -112,21 +116,27 @@ def rim_points(cfg: SuctionConfig, n: int = RIM_POINTS) -> np.ndarray:
 # -- the model ------------------------------------------------------------------------------------------------------
 def add_tool(hand: mjcf.RootElement, T_hand_gripper: np.ndarray, cfg: SuctionConfig) -> mjcf.Element:
     """Make dm-control's 3-finger hand the vacuum tool: the fingers go (bodies, actuators and contact exclusions);
-    a steel stem comes out of the palm along the gripper z axis, and the bellows cup rides on it on a slide joint
-    along that axis (range [-stroke, 0], a spring and damper holding it at 0), its rim centre (site ``RIM_SITE``)
-    at the gripper site when at rest. Returns the cup's body (the welds' first body)."""
+    a steel stem comes out of the palm along the gripper z axis, and the bellows cup rides on it (``add_cup``), its
+    rim centre (site ``RIM_SITE``) at the gripper site when at rest. Returns the cup's body (the welds' first
+    body)."""
     for ex in list(hand.contact.exclude):  # each one excludes a finger's contacts with the palm
         ex.remove()
     for f in (1, 2, 3):
         hand.find("actuator", f"finger_{f}").remove()
         hand.find("body", f"b_finger_{f}").remove()
-    palm = hand.find("body", "hand")
-    stem, cup = tool_cylinders(cfg)
-    R, quat = T_hand_gripper[:3, :3], R_to_quat(T_hand_gripper[:3, :3])
-    mid = T_hand_gripper[:3, 3] + 0.5 * (stem.z0 + stem.z1) * R[:, 2]
-    palm.add("geom", name=STEM_GEOM, type="cylinder", size=(stem.radius, 0.5 * (stem.z1 - stem.z0)), pos=mid,
-             quat=quat, mass=STEM_MASS, rgba=_STEEL, **_HAND_CONTACT)
-    body = palm.add("body", name=CUP_BODY, pos=T_hand_gripper[:3, 3], quat=quat)
+    return add_cup(hand.find("body", "hand"), T_hand_gripper, tool_cylinders(cfg)[0], cfg)
+
+
+def add_cup(parent: mjcf.Element, T_parent_rim: np.ndarray, stem: ToolCylinder, cfg: SuctionConfig) -> mjcf.Element:
+    """The cup on body ``parent``: geom ``STEM_GEOM`` (``stem``, from the rim at rest along its z axis) and the
+    bellows cup (body ``CUP_BODY``) on a slide joint along that axis (range [-stroke, 0], a spring and damper
+    holding it at 0), its rim centre (site ``RIM_SITE``) at ``T_parent_rim`` at rest. Returns the cup's body."""
+    _, cup = tool_cylinders(cfg)
+    R, quat = T_parent_rim[:3, :3], R_to_quat(T_parent_rim[:3, :3])
+    mid = T_parent_rim[:3, 3] + 0.5 * (stem.z0 + stem.z1) * R[:, 2]
+    parent.add("geom", name=STEM_GEOM, type="cylinder", size=(stem.radius, 0.5 * (stem.z1 - stem.z0)), pos=mid,
+               quat=quat, mass=STEM_MASS, rgba=_STEEL, **_HAND_CONTACT)
+    body = parent.add("body", name=CUP_BODY, pos=T_parent_rim[:3, 3], quat=quat)
     body.add("joint", name=SLIDE_JOINT, type="slide", axis=(0, 0, 1), range=(-cfg.stroke, 0.0), limited="true",
              stiffness=BELLOWS_STIFFNESS, springref=0.0, damping=BELLOWS_DAMPING, armature=0.001, frictionloss=0.0)
     body.add("geom", name=BELLOWS_GEOM, type="cylinder", size=(cup.radius, 0.5 * (cup.z1 - cup.z0)),
@@ -294,13 +304,13 @@ _CONTACT_ROWS = (mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS, mujoco.mjtCo
 
 
 class Vacuum:
-    """The vacuum tool of a suction workcell (``hand = "suction"``), switched by a controller: ``on(k)`` seals on
-    part ``k`` where ``seal_check`` passes, ``check()`` each control period releases the part when the hold model
-    says the vacuum lets go, ``off()`` releases it. ``part``: the part held (1-based; 0: none)."""
+    """The vacuum of a workcell with a cup (``hand = "suction"`` or ``"hybrid"``), switched by a controller:
+    ``on(k)`` seals on part ``k`` where ``seal_check`` passes, ``check()`` each control period releases the part
+    when the hold model says the vacuum lets go, ``off()`` releases it. ``part``: the part held (1-based; 0: none)."""
 
     def __init__(self, wc: Workcell):
-        if wc.cfg.hand != "suction":
-            raise ConfigError(f"a vacuum needs workcell hand 'suction', not {wc.cfg.hand!r}")
+        if wc.cfg.hand not in CUP_HANDS:
+            raise ConfigError(f"a vacuum needs workcell hand 'suction' or 'hybrid', not {wc.cfg.hand!r}")
         m = wc.model
         self.wc, self.cfg = wc, wc.cfg.suction
         self.cup_body = m.body(f"jaco_arm/jaco_hand/{CUP_BODY}").id

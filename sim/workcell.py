@@ -21,6 +21,7 @@ from posegrasp.errors import ConfigError
 from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
 from posegrasp.sim.camera import T_CV_MJ, rpy_deg_to_R
 from posegrasp.sim.config import HANDS, WorkcellConfig
+from posegrasp.sim.hybrid import add_slide
 from posegrasp.sim.ik import ArmIK
 from posegrasp.sim.suction import add_tool, add_welds
 
@@ -182,8 +183,10 @@ def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjc
     if cfg.hand not in HANDS:
         raise ConfigError(f"workcell hand {cfg.hand!r} is not a hand; choose one of: {', '.join(HANDS)}")
     cup = None
-    if cfg.hand == "2-finger":
+    if cfg.hand in ("2-finger", "hybrid"):
         _two_fingers(hand.mjcf_model, T_hand_gripper)
+    if cfg.hand == "hybrid":
+        cup = add_slide(hand.mjcf_model, T_hand_gripper, cfg)
     elif cfg.hand == "suction":
         cup = add_tool(hand.mjcf_model, T_hand_gripper, cfg.suction)
     arm.attach(hand)
@@ -196,7 +199,7 @@ def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjc
 
 
 def finger_joints(hand: str) -> tuple[str, ...]:
-    """The finger joints of ``hand`` (``HANDS``; none on the suction tool)."""
+    """The finger joints of ``hand`` (``HANDS``; none on the suction tool, the 2-finger hand's on the hybrid one)."""
     if hand == "suction":
         return ()
     return FINGER_JOINTS if hand == "3-finger" else ("finger_1", "finger_3")

@@ -1,4 +1,4 @@
-"""Bin picking with the suction tool (``--hand suction``): the cup's planner on the estimates, its pick in the tote
+"""Bin picking with the suction tool (``--hand suction``) and the hybrid hand (``--hand hybrid``): the cup's planner on the estimates, its pick in the tote
 (press, seal, lift with the hold model watching, carry, let go), and its place among the tasks."""
 
 from __future__ import annotations
@@ -10,7 +10,9 @@ from posegrasp.grasping.perception import Estimate
 from posegrasp.grasping.record import Failure
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
-from posegrasp.grasping.tasks.bin_pick.pick import Cup
+from posegrasp.grasping.grasps import Grasp
+from posegrasp.grasping.suction_grasps import SuctionGrasp
+from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid
 from posegrasp.grasping.tasks.bin_pick.planner import choose_cup
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import area_of, outbox_of
@@ -70,3 +72,26 @@ def test_the_suction_tool_picks_only_in_bin_picking(tmp_path):
     r = run_cli("trials", "--task", "pick-place", "--hand", "suction", "--episodes", "1", "--out", str(out))
     assert r.returncode == 2 and "picks only in bin picking" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def _hybrid_pick(name: str, xy) -> tuple[object, Attempt]:
+    """Part ``name`` alone at ``xy`` in the tote, chosen and picked by the hybrid hand: its grasp and attempt."""
+    ep, ests, T_world_cam = _alone(name, xy, "hybrid")
+    tool = Hybrid(ep)
+    j, grasp, T_est = tool.choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
+    b, att, part = ep.cfg.bin_pick, Attempt(0), ep.wc.blocks[0].block
+    tool.pick(ep, Plan(1, part, grasp, T_est, part), area_of(ep.wc, b), outbox_of(ep.wc.cfg, b), att)
+    return grasp, att
+
+
+def test_the_hybrid_hand_takes_a_studs_up_brick_with_its_fingers():
+    lo, hi = _inner_bounds()
+    grasp, att = _hybrid_pick("brick_2x2", 0.5 * (lo[:2] + hi[:2]))
+    assert isinstance(grasp, Grasp) and att.grasped and att.failure is None
+
+
+def test_the_hybrid_hand_takes_a_cube_flat_in_a_corner_with_its_cup():
+    lo, hi = _inner_bounds()
+    half = 0.5 * float(np.ptp(CAT["cube"].vertices[:, :2], 0).max())
+    grasp, att = _hybrid_pick("cube", hi[:2] - half - 0.003)
+    assert isinstance(grasp, SuctionGrasp) and att.grasped and att.failure is None

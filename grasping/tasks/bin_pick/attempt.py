@@ -24,7 +24,7 @@ from posegrasp.grasping.perception import Estimate, PerceptionError
 from posegrasp.grasping.record import FalseTarget, Failure
 from posegrasp.grasping.targets import Plan, blame, drive_to_look, gripper_yaw, look_down_q, match_block, pose_errors
 from posegrasp.grasping.tasks.base import EpisodeFailed
-from posegrasp.grasping.tasks.bin_pick.pick import Cup, Fingers, Tool
+from posegrasp.grasping.tasks.bin_pick.pick import Tool, tool_of
 from posegrasp.grasping.tasks.bin_pick.planner import depth_points, heap_points
 from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
 from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, outbox_of
@@ -138,7 +138,7 @@ class _Emptying:
         self.stuck: list[Estimate] | None = None  # what the robot saw when it last found nothing graspable
         self.end = Failure.PARTS_LEFT
         self.ests: list[Estimate] = []
-        self.tool: Tool = Cup(ep) if ep.wc.cfg.hand == "suction" else Fingers()
+        self.tool: Tool = tool_of(ep)
 
     def attempt(self, a: int) -> bool:
         """Attempt ``a``: capture, perceive, pick and drop, look again, judge; False when the episode stops at

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from posegrasp.catalog import PartType
+from posegrasp.catalog import PartType, catalog_by_id
 from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import holds_firmly
 from posegrasp.grasping.grasps import Grasp
@@ -23,9 +23,12 @@ from posegrasp.grasping.suction_grasps import SuctionGrasp
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
-from posegrasp.grasping.tasks.bin_pick.planner import choose_cup, choose_part, pregrasp_height
+from posegrasp.grasping.tasks.bin_pick.planner import (CUP_APPROACH, CUP_PRESS, CUP_PRESS_SPEED, CUP_SETTLE_SPEED,
+                                                       CUP_SETTLE_TIME, HYBRID_TIE, choose_cup, choose_part,
+                                                       pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import Area
+from posegrasp.sim.hybrid import extend
 from posegrasp.sim.suction import Vacuum, seal_time
 from posegrasp.sim.tote import WALLS, Tote
 from posegrasp.sim.workcell import Workcell
@@ -34,13 +37,6 @@ if TYPE_CHECKING:
     from posegrasp.grasping.config import TrialConfig
     from posegrasp.grasping.episode import Episode
 
-#: The cup comes down along its axis from this far (m) above the grasp ...
-CUP_APPROACH = 0.02
-#: ... and presses on by this share of its bellows' stroke ...
-CUP_PRESS = 0.3
-#: ... at this speed (m/s), once the arm has moved slower than ``CUP_SETTLE_SPEED`` (m/s) for 3 control periods,
-#: waiting at most ``CUP_SETTLE_TIME`` (s) for it.
-CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME = 0.05, 0.005, 1.0
 
 
 class _Contacts:
@@ -151,6 +147,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt, 
     ctl, cfg, k, wc = ep.ctl, ep.cfg, plan.k, ep.wc
     g_cfg, b, s = cfg.grasp, cfg.bin_pick, wc.cfg.suction
     watch = _watch(ep, area, k)
+    out_at = ctl.sim_time + (extend(wc, True) if wc.cfg.hand == "hybrid" else 0.0)  # the hybrid's cup goes out
     T_grasp = plan.grasp.T_world_gripper
     z = T_grasp[:3, 2]
     T_near, T_press = T_grasp.copy(), T_grasp.copy()
@@ -169,6 +166,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt, 
         if not ctl.move(T_pre) or not ctl.move(T_near, speed=g_cfg.approach_speed):
             raise EpisodeFailed(watch.blocked())
         watch.approach = z
+        ctl.hold(max(0.0, out_at - ctl.sim_time))
         ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)  # the arm sways a few mm after its descent: still, then press
         ctl.move(T_press, speed=CUP_PRESS_SPEED)
         if watch.floor:
@@ -194,6 +192,8 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt, 
                  speed=g_cfg.carry_speed)
         ctl.monitor = watch
         vacuum.off()
+        if wc.cfg.hand == "hybrid":
+            extend(wc, False)  # in again while the part falls and the arm goes back to the look
         ctl.hold(g_cfg.release_time)
         ep.log.stop("carry", ctl, add=True)
         if bool(np.any(rose > b.double_rise)):
@@ -250,6 +250,57 @@ class Cup:
     def let_go(self, ep: Episode) -> None:
         """Switch the vacuum off."""
         self.vacuum.off()
+
+
+class Hybrid:
+    """The hybrid hand: the 2-finger hand with a cup between its fingers (``sim.hybrid``), which picks each part
+    with the cup or with the fingers. Both planners run on the estimates (``choose_cup``, ``choose_part``); the
+    grasp on the higher part wins, the cup where both go for parts within ``HYBRID_TIE`` of each other's height (a
+    suction pick neither reaches between neighbours nor needs a wall's room): an ambidextrous policy."""
+
+    def __init__(self, ep: Episode):
+        self.cup = Cup(ep)
+
+    def choose(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
+               heap: np.ndarray, yaw_now: float, failed: list[np.ndarray]) -> tuple[int, object, np.ndarray]:
+        found, why = [], []
+        for bonus, choose in ((HYBRID_TIE, choose_cup), (0.0, choose_part)):
+            try:
+                j, g, T = choose(wc, cfg, ests, T_world_cam, heap, yaw_now, failed)
+            except EpisodeFailed as e:
+                why.append(e.reason)
+                continue
+            top = float(transform_points(T, _estimate_part(wc, ests[j]).vertices)[:, 2].max())
+            found.append((top + bonus, j, g, T))
+        if not found:
+            raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)
+        _, j, g, T = max(found, key=lambda f: f[0])
+        return j, g, T
+
+    def pick(self, ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None:
+        if isinstance(plan.grasp, SuctionGrasp):
+            self.cup.pick(ep, plan, area, box, att)
+        else:
+            pick_and_drop(ep, plan, area, box, att)
+
+    def target(self, k: int, block: PartType, class_ok: bool, g: object) -> Target:
+        return (self.cup if isinstance(g, SuctionGrasp) else Fingers).target(k, block, class_ok, g)
+
+    def let_go(self, ep: Episode) -> None:
+        """Switch the vacuum off, take the cup in and open the fingers wide."""
+        self.cup.let_go(ep)
+        extend(ep.wc, False)
+        Fingers.let_go(ep)
+
+
+def _estimate_part(wc: Workcell, est: Estimate) -> PartType:
+    """The part type an estimate names."""
+    return catalog_by_id(wc.cfg.objects)[est.obj_id]
+
+
+def tool_of(ep: Episode) -> Tool:
+    """The tool of the episode's workcell (``WorkcellConfig.hand``)."""
+    return {"suction": Cup, "hybrid": Hybrid}.get(ep.wc.cfg.hand, lambda ep: Fingers())(ep)
 
 
 def _stopped_near(T: np.ndarray, T_grasp: np.ndarray, b: BinPickConfig) -> bool:

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from posegrasp.catalog import PartType, catalog_by_id
-from posegrasp.geometry import axis_angle_R, transform_points
+from posegrasp.geometry import axis_angle_R, invert, transform_points
 from posegrasp.grasping.config import TrialConfig, holds_firmly
 from posegrasp.grasping.controller import open_finger_points
 from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
@@ -46,10 +46,21 @@ from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, wall_points
 from posegrasp.sim.camera import Frame
+from posegrasp.sim.hybrid import T_gripper_cup, hybrid_boxes, hybrid_cylinders, rim_offset
 from posegrasp.sim.suction import PALM_BOX, PALM_Z
 from posegrasp.sim.tote import WALLS, Tote
 from posegrasp.sim.workcell import Workcell
 
+
+#: The cup comes down along its axis from this far (m) above the grasp ...
+CUP_APPROACH = 0.02
+#: ... and presses on by this share of its bellows' stroke ...
+CUP_PRESS = 0.3
+#: ... at this speed (m/s), once the arm has moved slower than ``CUP_SETTLE_SPEED`` (m/s) for 3 control periods,
+#: waiting at most ``CUP_SETTLE_TIME`` (s) for it.
+CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME = 0.05, 0.005, 1.0
+#: The hybrid hand picks with its cup where the cup's part stands at most this far (m) below the fingers' part.
+HYBRID_TIE = 0.005
 
 def depth_points(frame: Frame, T_world_cam: np.ndarray, stride: int) -> np.ndarray:
     """(N, 3) world points (m) of every ``stride``-th valid depth pixel along each axis (the camera's pose as the
@@ -203,15 +214,18 @@ def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam
     a face the rim seals on, facing up within ``suction_max_tilt_deg``, the tool clear of walls and neighbours)
     and its levelled ``T_world_obj``; the best grasps of ``plan_parts`` parts, highest first, compete and the first
     the arm reaches is taken; none within ``retry_distance`` of a grasp that ``failed`` before (with its approach
-    within ``retry_angle_deg``). ``EpisodeFailed`` as ``choose_part``."""
+    within ``retry_angle_deg``). The grasp's pose is the gripper's (the hybrid hand's cup lies ``rim_offset`` below
+    it). ``EpisodeFailed`` as ``choose_part``."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
     view, cup = HeapView(wc, cfg, ests, T_world_cam, heap), cup_of(wc.cfg)
+    T_cup_gripper = invert(T_gripper_cup(wc.cfg)) if wc.cfg.hand == "hybrid" else np.eye(4)
     options, parts = [], 0
     for j in view.highest_first():
         _, others, wall = view.around(j)
-        grasps = [g for g in plan_suction(view.part(j), view.poses[j],
-                                          CupSurroundings(others, wall, view.area.floor, yaw_now), cup, b)
-                  if not _tried_axis(g.T_world_gripper, failed, b, 2)][:g_cfg.grasps_per_block]
+        grasps = [dataclasses.replace(g, T_world_gripper=g.T_world_gripper @ T_cup_gripper)
+                  for g in plan_suction(view.part(j), view.poses[j],
+                                        CupSurroundings(others, wall, view.area.floor, yaw_now), cup, b)]
+        grasps = [g for g in grasps if not _tried_axis(g.T_world_gripper, failed, b, 2)][:g_cfg.grasps_per_block]
         options += [(g.score + g_cfg.detection_weight * ests[j].score, j, g) for g in grasps]
         parts += bool(grasps)
         if parts >= b.plan_parts:
@@ -223,10 +237,20 @@ def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam
 
 
 def cup_of(wc_cfg) -> CupGeometry:
-    """The suction tool of the workcell settings ``wc_cfg`` as the planner models it (``sim.suction``'s cup)."""
+    """The cup of the workcell settings ``wc_cfg`` as the planner models it (cup frame): the suction tool's
+    (``sim.suction``; the wrist may come the bellows' whole stroke nearer) or the hybrid hand's extended cup
+    (``sim.hybrid``: the open fingers around it, the wrist coming as near as the pick presses, ``CUP_PRESS``)."""
     s = wc_cfg.suction
+    if wc_cfg.hand == "suction":
+        return CupGeometry(radius=s.diameter / 2, seal_tol=s.seal_tolerance, body_radius=s.diameter / 2,
+                           body_length=-PALM_Z, stroke=s.stroke,
+                           wrist=(PALM_BOX, camera_box(wc_cfg.hand_camera.mount_pos)))
+    stem, _ = hybrid_cylinders(wc_cfg)
+    lo, hi = camera_box(wc_cfg.hand_camera.mount_pos)
+    dz = rim_offset(wc_cfg)
+    boxes = hybrid_boxes(wc_cfg)[2:] + [((lo[0], lo[1], lo[2] - dz), (hi[0], hi[1], hi[2] - dz))]
     return CupGeometry(radius=s.diameter / 2, seal_tol=s.seal_tolerance, body_radius=s.diameter / 2,
-                       body_length=-PALM_Z, stroke=s.stroke, wrist=(PALM_BOX, camera_box(wc_cfg.hand_camera.mount_pos)))
+                       body_length=-stem.z0, stroke=CUP_PRESS * s.stroke, wrist=tuple(boxes))
 
 
 def _pad_overlap(T: np.ndarray, width: float, own: np.ndarray, hand: Hand) -> tuple[float, float]:
