@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from posegrasp.catalog import PartType, catalog_by_id
+from posegrasp.catalog import PartType
 from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import holds_firmly
 from posegrasp.grasping.grasps import Grasp
@@ -24,8 +24,8 @@ from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.planner import (CUP_APPROACH, CUP_PRESS, CUP_PRESS_SPEED, CUP_SETTLE_SPEED,
-                                                       CUP_SETTLE_TIME, HYBRID_TIE, choose_cup, choose_part,
-                                                       pregrasp_height)
+                                                       CUP_SETTLE_TIME, HYBRID_TIE, HeapView, choose_cup,
+                                                       choose_part, pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import Area
 from posegrasp.sim.hybrid import extend
@@ -264,14 +264,14 @@ class Hybrid:
     def choose(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
                heap: np.ndarray, yaw_now: float, failed: list[np.ndarray]) -> tuple[int, object, np.ndarray]:
         found, why = [], []
+        view = HeapView(wc, cfg, ests, T_world_cam, heap)  # one view of the heap for both planners
         for bonus, choose in ((HYBRID_TIE, choose_cup), (0.0, choose_part)):
             try:
-                j, g, T = choose(wc, cfg, ests, T_world_cam, heap, yaw_now, failed)
+                j, g, T = choose(wc, cfg, ests, T_world_cam, heap, yaw_now, failed, view)
             except EpisodeFailed as e:
                 why.append(e.reason)
                 continue
-            top = float(transform_points(T, _estimate_part(wc, ests[j]).vertices)[:, 2].max())
-            found.append((top + bonus, j, g, T))
+            found.append((view.tops[j] + bonus, j, g, T))
         if not found:
             raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)
         _, j, g, T = max(found, key=lambda f: f[0])
@@ -291,11 +291,6 @@ class Hybrid:
         self.cup.let_go(ep)
         extend(ep.wc, False)
         Fingers.let_go(ep)
-
-
-def _estimate_part(wc: Workcell, est: Estimate) -> PartType:
-    """The part type an estimate names."""
-    return catalog_by_id(wc.cfg.objects)[est.obj_id]
 
 
 def tool_of(ep: Episode) -> Tool:

@@ -157,13 +157,15 @@ class HeapView:
 
 
 def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
-                yaw_now: float, failed: list[np.ndarray] = ()) -> tuple[int, Grasp, np.ndarray]:
+                yaw_now: float, failed: list[np.ndarray] = (), view: HeapView | None = None
+                ) -> tuple[int, Grasp, np.ndarray]:
     """The estimate to pick (index), its grasp and its levelled ``T_world_obj`` among the estimates in the tote,
     none of the grasps that ``failed`` before (``_tried``), at the first of ``part_clearance`` that gives a
     reachable grasp; ``EpisodeFailed``: "nothing graspable" when no part has a clear grasp at any, "unreachable"
-    when the IK reaches none. ``heap``: the depth image's points on the heap (``heap_points``)."""
+    when the IK reaches none. ``heap``: the depth image's points on the heap (``heap_points``); ``view``: the
+    ``HeapView`` of these, when the caller has it."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
-    view = HeapView(wc, cfg, ests, T_world_cam, heap)
+    view = view or HeapView(wc, cfg, ests, T_world_cam, heap)
     area, poses, tops = view.area, view.poses, view.tops
     cam, hand = camera_box(wc.cfg.hand_camera.mount_pos), hand_of(wc.cfg)
     seen_any = False
@@ -209,7 +211,8 @@ def _reachable(wc: Workcell, cfg: TrialConfig, view: HeapView, options: list) ->
 
 
 def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
-               yaw_now: float, failed: list[np.ndarray] = ()) -> tuple[int, SuctionGrasp, np.ndarray]:
+               yaw_now: float, failed: list[np.ndarray] = (), view: HeapView | None = None
+               ) -> tuple[int, SuctionGrasp, np.ndarray]:
     """With the suction tool: the estimate to pick (index), the cup's grasp on it (``suction_grasps.plan_suction``:
     a face the rim seals on, facing up within ``suction_max_tilt_deg``, the tool clear of walls and neighbours)
     and its levelled ``T_world_obj``; the best grasps of ``plan_parts`` parts, highest first, compete and the first
@@ -217,7 +220,7 @@ def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam
     within ``retry_angle_deg``). The grasp's pose is the gripper's (the hybrid hand's cup lies ``rim_offset`` below
     it). ``EpisodeFailed`` as ``choose_part``."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
-    view, cup = HeapView(wc, cfg, ests, T_world_cam, heap), cup_of(wc.cfg)
+    view, cup = view or HeapView(wc, cfg, ests, T_world_cam, heap), cup_of(wc.cfg)
     T_cup_gripper = invert(T_gripper_cup(wc.cfg)) if wc.cfg.hand == "hybrid" else np.eye(4)
     options, parts = [], 0
     for j in view.highest_first():
