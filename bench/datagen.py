@@ -5,7 +5,8 @@ writing) into a fresh temporary folder and prints a table and a JSON line, with 
 machine before and after (other processes on the machine slow this down; say so when you quote the figure),
 and the CPU seconds spent per frame by this process and its workers, with the rate they would give if the
 worker count of cores were free.
-Run: ``MUJOCO_GL=egl .venv/bin/python bench/datagen.py [--workers 2] [--scenes 8] [--views 25]``.
+Run: ``MUJOCO_GL=egl .venv/bin/python bench/datagen.py [--workers 2] [--scenes 8] [--views 25]``; with
+``--baseline REF [--rounds N]`` also on git ref REF's code, alternating, and the ratio (``bench/baseline.py``).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+import baseline
 from posegrasp.datagen.cli import parse_blocks
 from posegrasp.datagen.config import DatagenConfig
 from posegrasp.datagen.generate import generate_dataset
@@ -47,7 +49,12 @@ def main() -> None:
     ap.add_argument("--rgb-format", default="jpg", choices=("jpg", "png"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--msaa", type=int, default=DatagenConfig().msaa, help="colour anti-aliasing samples (0: off)")
+    baseline.add_arguments(ap)
     args = ap.parse_args()
+    if args.baseline:
+        baseline.compare(__file__, sys.argv[1:], args.baseline, "frames_per_s", True, args.rounds,
+                         args.baseline_script, "cpu_ms_per_frame")
+        return
 
     w, h = parse_resolution(args.resolution)
     wc = DatagenConfig().workcell

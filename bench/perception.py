@@ -1,6 +1,7 @@
 """Time per 640x480 RGB-D frame with 5 objects, per perception stage, on this machine's CPU.
 
     MUJOCO_GL=egl python bench/perception.py [--weights RUN] [--threads 2] [--repeats 20] [--json out.json]
+    MUJOCO_GL=egl python bench/perception.py ... --baseline REF [--rounds N]  # also on REF's code, and the ratio
 
 The frame is a real hand-camera capture of a 5-block workcell scene; the stages after segmentation get the
 5 blocks' true masks, so every run times the same work.
@@ -33,6 +34,7 @@ import torch
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+import baseline
 
 from posegrasp.perception import checkpoint
 from posegrasp import ASSETS
@@ -125,7 +127,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--json", type=Path, help="also write the JSON result here")
+    baseline.add_arguments(ap)
     args = ap.parse_args(argv)
+    if args.baseline:
+        return baseline.compare(__file__, sys.argv[1:] if argv is None else argv, args.baseline,
+                                "stages.total.median_ms", False, args.rounds, args.baseline_script)
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         weights = args.weights or make_default_run(Path(tmp))

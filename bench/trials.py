@@ -9,6 +9,7 @@ Run: ``MUJOCO_GL=egl .venv/bin/python bench/trials.py [EPISODES] [WORKERS] [TASK
 oracle, the 3-finger hand; TASK is a ``--task``: pick-place, kitting, stack or bin-pick, whose SCENE is bin or pile;
 HAND is 3-finger or 2-finger). For bin picking it also prints
 the successful picks per wall-clock minute and per simulated hour, percent cleared and attempt success.
+With ``--baseline REF [--rounds N]``: also on git ref REF's code, alternating, and the ratio (``bench/baseline.py``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from rich.console import Console
+
+import baseline
 
 from posegrasp.grasping.cli import with_scene
 from posegrasp.grasping.config import TrialConfig
@@ -96,5 +99,9 @@ if __name__ == "__main__":
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--perception", default="oracle")
     p.add_argument("--hand", default="3-finger")
+    baseline.add_arguments(p)
     a = p.parse_args()
+    if a.baseline:
+        sys.exit(baseline.compare(__file__, sys.argv[1:], a.baseline, "episodes_per_min", True, a.rounds,
+                                  a.baseline_script, "mean_cpu_per_episode_s"))
     main(a.episodes, a.workers, a.task or a.task_pos or "pick-place", a.scene, a.blocks, a.seed, a.perception, a.hand)

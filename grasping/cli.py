@@ -48,6 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="3-finger (default) | 2-finger: the Jaco2's KG-2 hand, two fingers facing each other, which "
                         "reaches parts lying against a tote's walls | suction: a vacuum cup (bin picking only) | "
                         "hybrid: the 2-finger hand with a cup between its fingers (docs/workcell.md)")
+    p.add_argument("--place", choices=("out-box", "tray"), default=None,
+                   help="bin-pick: where picked parts go: out-box (default: dropped) | tray: set down in a slot of "
+                        "their type at its pose, judged within 3 mm and 3 deg (docs/trials.md)")
     p.add_argument("--sweep-noise", action="store_true",
                    help="run noisy-oracle campaigns at increasing noise and plot success against pose error")
     p.add_argument("--noise", type=_noise_arg, default=None,
@@ -122,6 +125,10 @@ def run_trials_cmd(args: argparse.Namespace) -> int:
     if args.task:
         cfg = dataclasses.replace(cfg, task=args.task)
     cfg = with_scene(cfg, args.scene, args.blocks)
+    if args.place:
+        if cfg.task != "bin-pick":
+            raise UserError("--place says where bin picking puts the parts: use it with --task bin-pick")
+        cfg = dataclasses.replace(cfg, bin_pick=dataclasses.replace(cfg.bin_pick, place=args.place))
     if args.noise is not None and not args.sweep_noise:
         raise UserError(f"--noise {args.noise} sets the levels of --sweep-noise; add --sweep-noise, or use "
                         "--perception noisy-oracle:TRANS_M,ROT_DEG for one noisy campaign")

@@ -5,9 +5,9 @@ Two trial runs on the same episode seeds are paired episode by episode, whatever
 its Wilson 95 % interval, the difference, McNemar's exact test on the discordant pairs (b = A succeeded and B
 failed, c = A failed and B succeeded; two-sided p = min(1, 2 P[X <= min(b, c)]) with X ~ Binomial(b + c, 1/2)),
 per-block differences and the episodes that flipped. A task adds its own comparison and says what judges it
-(``Task.compare``, ``Task.judged_by``): bin picking adds percent cleared paired by episode (Wilcoxon signed-rank test)
-and attempt success (Wilson intervals, Newcombe's interval of the difference). ``--fail-if-worse`` makes the exit
-status 1 when B is worse than A with p < alpha by that judgement, for CI.
+(``Task.compare``, ``Task.judged_by``): bin picking is judged by reliability (attempt success, Fisher's exact test),
+then picks per hour of cycle time with each run's perception latency, with percent cleared as a figure.
+``--fail-if-worse`` makes the exit status 1 when B is worse than A with p < alpha by that judgement, for CI.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from rich.table import Table
 
 from posegrasp.arguments import number, out_file
 from posegrasp.errors import DatasetError, UserError
+from posegrasp.grasping.latency import run_latency
 from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, read_campaign, read_episodes
 from posegrasp.grasping.stats import rate_row
 from posegrasp.grasping.tasks import get_task
@@ -69,8 +70,9 @@ def check_same_objects(path_a: str | Path, path_b: str | Path) -> None:
                         f"({sb['path']}): compare runs on the same --objects")
 
 
-def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
-    """Paired comparison of two runs on their common episodes (the same seeds in both)."""
+def compare_runs(a: dict[int, dict], b: dict[int, dict], latency: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """Paired comparison of two runs on their common episodes (the same seeds in both); ``latency``: each run's
+    perception seconds per look (``grasping.latency``), which a task judging throughput counts."""
     common = sorted(set(a) & set(b))
     if not common:
         raise UserError("the two runs share no episodes; run both with the same --seed and --episodes")
@@ -89,7 +91,7 @@ def compare_runs(a: dict[int, dict], b: dict[int, dict]) -> dict:
         blocks[target_label(a[i].get("target"))].append((x, y))
     n = len(common)
     return {
-        **get_task(ta).compare(a, b, common),
+        **get_task(ta).compare(a, b, common, latency),
         "task": ta,
         "episodes": n,
         "a": {"perception": a[common[0]].get("perception"), **rate_row(sum(sa), n)},  # any providers pair up
@@ -152,7 +154,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run_compare(args: argparse.Namespace) -> int:
     a, b = load_run(args.run_a), load_run(args.run_b)
     check_same_objects(args.run_a, args.run_b)
-    result = compare_runs(a, b)
+    result = compare_runs(a, b, (run_latency(args.run_a), run_latency(args.run_b)))
     print_comparison(result, (f"A {args.run_a}", f"B {args.run_b}"), Console())
     if args.out:
         write_json(args.out, result)

@@ -249,6 +249,9 @@ class TrialConfig:
     bin_pick: BinPickConfig = field(default_factory=BinPickConfig)
     #: Wall seconds a provider may take per capture, else "perception error"; 0: no limit.
     perception_timeout_s: float = field(default=60.0, metadata=within(0.0, 86400.0))
+    #: Seconds a look waits for the provider's estimates, counted in the cycle time (picks per hour, ``compare``);
+    #: unset: the provider's own figure (the oracles: 0), else the campaign's measured median (``grasping.latency``).
+    perception_latency: float | None = field(default=None, metadata=within(0.0, 3600.0))
 
 
 def firm_hold_tasks(cfg: TrialConfig) -> tuple[str, ...]:

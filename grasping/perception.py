@@ -259,6 +259,7 @@ class OracleProvider:
 
     min_px: int = 150
     name: str = "oracle"
+    latency_s = 0.0  # seconds a look waits for it (``grasping.latency``): the simulator's labels, no computation
 
     def estimate_truth(self, frame: Frame, seed: int) -> list[Estimate]:
         counts = np.bincount(frame.mask.ravel(), minlength=len(frame.obj_ids) + 1)
@@ -273,6 +274,7 @@ class NoisyOracleProvider:
     trans_m: float = 0.005
     rot_deg: float = 5.0
     min_px: int = 150
+    latency_s = 0.0  # as the oracle's
 
     @property
     def name(self) -> str:

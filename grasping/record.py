@@ -46,6 +46,7 @@ class Failure(StrEnum):
     THROWN_OUT = "part thrown out"  # bin: a part left the tote other than into the out-box
     NO_SEAL = "no seal"  # bin, suction: the cup's rim did not seal on the part
     SEAL_LOST = "seal lost"  # bin, suction: the vacuum let the part go in the lift or the carry
+    NO_SLOT = "no free slot"  # bin, tray: parts were seen, none of a type with a free slot left in the tray
     PARTS_LEFT = "parts left"  # bin episode: the robot saw nothing more to pick, yet parts were not removed
     FAILED_IN_A_ROW = "failed in a row"  # bin episode: ended after too many failed attempts in a row
     ATTEMPT_LIMIT = "attempt limit"  # bin episode: ended after its most attempts (twice the parts)

@@ -26,6 +26,7 @@ from posegrasp.grasping.captures import open_export, run_capturing
 from posegrasp.catalog import set_record
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.episode import EpisodeJob, check_draws, run_episode
+from posegrasp.grasping.latency import campaign_latency
 from posegrasp.grasping.provider_registry import canonical_spec, make_provider
 from posegrasp.grasping.report import write_report
 from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, SUMMARY, TIMINGS, Campaign, append_record,
@@ -71,8 +72,8 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     cfg, mount = campaign_settings(episodes, cfg)
     perception = canonical_spec(perception)  # a plug-in file's path absolute, for the workers and the record
     task = get_task(cfg.task)
-    check_rows(make_provider(perception, cfg.scene.workcell.objects, cfg.perception_timeout_s), episodes,
-               cfg.task, task.looks)  # before any work starts
+    provider = make_provider(perception, cfg.scene.workcell.objects, cfg.perception_timeout_s)
+    check_rows(provider, episodes, cfg.task, task.looks)  # before any work starts
     console, progress = display.console or Console(stderr=True), display.progress
     # Ray connects in make_executor, before anything is written; the pool's workers stay for the report's frames
     out = Path(out).absolute()  # a provider changing the working directory cannot move the run's files
@@ -116,8 +117,9 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
         ran = sum(not t.captures_only for t in todo)  # (the others were only captured)
         records = [done[i] for i in sorted(done)]
         write_records(out / EPISODES, records)
-        summary = {**summarise(records), **task.metrics(records)}
-        summary.update(task=cfg.task, seed=seed, perception=perception, workers=workers,
+        latency = campaign_latency(cfg.perception_latency, provider, records, read_records(out / TIMINGS))
+        summary = {**summarise(records), **task.metrics(records, latency["seconds"])}
+        summary.update(task=cfg.task, perception_latency=latency, seed=seed, perception=perception, workers=workers,
                        objects=set_record(cfg.scene.workcell.objects),
                        wall={"seconds": elapsed, "episodes_run": ran,
                              "episodes_per_min": 60 * ran / elapsed if ran and elapsed > 0 else None})

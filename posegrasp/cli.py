@@ -19,17 +19,18 @@ from posegrasp.io import is_no_space
 EXIT_NO_SPACE = 74
 
 
-#: Modules that register subcommands, in the order they appear in ``--help``.
-COMMAND_MODULES = (
-    "posegrasp.sim.cli",
-    "posegrasp.datagen.cli",
-    "posegrasp.bop.cli",
-    "posegrasp.perception.cli",
-    "posegrasp.grasping.cli",
-    "posegrasp.grasping.compare",
-    "posegrasp.grasping.report",
-    "posegrasp.objects.cli",
-)
+#: Modules that register subcommands, in the order they appear in ``--help``, with the commands each registers:
+#: a command line names one, and only its module is imported (a program's start-up is its imports).
+COMMAND_MODULES = {
+    "posegrasp.sim.cli": ("scene",),
+    "posegrasp.datagen.cli": ("datagen",),
+    "posegrasp.bop.cli": ("dataset",),
+    "posegrasp.perception.cli": ("train", "eval", "perturb"),
+    "posegrasp.grasping.cli": ("trials", "calibrate"),
+    "posegrasp.grasping.compare": ("compare",),
+    "posegrasp.grasping.report": ("report",),
+    "posegrasp.objects.cli": ("objects",),
+}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -37,10 +38,13 @@ class _Parser(argparse.ArgumentParser):
         raise UserError(message)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The program's parser; with ``argv`` whose first word is a command, that command's module alone registers."""
     parser = _Parser(prog="posegrasp", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for name in COMMAND_MODULES:
+    word = next((a for a in argv or () if not a.startswith("-")), None)
+    chosen = [m for m, cmds in COMMAND_MODULES.items() if word in cmds] or list(COMMAND_MODULES)
+    for name in chosen:
         importlib.import_module(name).register(sub)
     return parser
 
@@ -50,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     args = None
     try:
-        args = build_parser().parse_args(argv)
+        args = build_parser(sys.argv[1:] if argv is None else argv).parse_args(argv)
         return int(args.run(args) or 0)
     except UserError as e:
         print(f"posegrasp: error: {e}", file=sys.stderr)

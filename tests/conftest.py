@@ -11,9 +11,12 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 SLOW_FIXTURES = {"tiny_run",  # four networks trained for a few steps on the tiny BOP dataset
                  "fuzzer"}  # the fuzz harness's corpus and its seeded cases
 
+#: Modules of end-to-end fault runs (full disks, Ctrl-C, every command's refusals run as a user would): slow.
+SLOW_MODULES = {"test_full_disk.py", "test_interrupt.py", "test_hardening_runs.py", "test_fuzz.py"}
+
 
 @pytest.hookimpl(tryfirst=True)  # before ``-m`` deselects by mark
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
-        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
+        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())) or item.path.name in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)

@@ -1,11 +1,15 @@
-"""Helpers shared by the tests: the command line in a child process, and success floors for short trial runs
-taken from documented 200-episode measurements."""
+"""Helpers shared by the tests: the command line in a child process, success floors for short trial runs taken
+from documented 200-episode measurements, and session fixtures built once for all the run's worker processes."""
 
 from __future__ import annotations
 
 import math
+import os
+import shutil
 import subprocess
 import sys
+from pathlib import Path
+from typing import Callable
 
 from posegrasp.grasping.stats import wilson
 
@@ -48,3 +52,20 @@ def cli(*args: str) -> list[str]:
 def run_cli(*args: str, timeout: float = 300, **kw) -> subprocess.CompletedProcess:
     """``posegrasp ARGS`` run in a child process, its output captured as text."""
     return subprocess.run(cli(*args), capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def build_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> Path:
+    """The folder ``name`` that ``build(folder)`` fills, built once per test run: under ``pytest -n`` (xdist) the
+    workers share it (the first builds it while the others wait on a lock), else it is the process's own."""
+    from filelock import FileLock
+
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # the run's folder, shared by workers
+    target, built = root / name, root / f"{name}.built"
+    with FileLock(str(root / f"{name}.lock")):
+        if not built.exists():
+            shutil.rmtree(target, ignore_errors=True)
+            target.mkdir(parents=True)
+            build(target)
+            built.touch()
+    return target

@@ -67,6 +67,7 @@ def test_dropped_dominoes_rest_on_the_table(dominoes):
         assert np.all((z > 0.0025) & (z < 0.015)), (seed, z)
 
 
+@pytest.mark.slow
 def test_a_flat_domino_is_pinched_low_and_picked(dominoes, tmp_path):
     """Lying flat, its top 6.4 mm up, below the lowest pinch height: pinched ``FLAT_PINCH_DROP`` lower, where the
     fingertips grip its edges (at the lowest pinch height 5 of these 8 episodes slipped out of the fingers)."""

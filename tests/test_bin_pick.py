@@ -17,7 +17,7 @@ from posegrasp.config import from_dict
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.tasks.bin_pick.attempt import _look, empty_tote, tally
-from posegrasp.grasping.tasks.bin_pick.pick import _Contacts, _stopped_near, pick_and_drop
+from posegrasp.grasping.tasks.bin_pick.pick import OutBox, _Contacts, _stopped_near, pick_and_drop
 from posegrasp.grasping.tasks.bin_pick.planner import _clear_of, choose_part
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison
@@ -91,7 +91,8 @@ def test_a_hand_driven_into_the_wall_stops_with_a_wall_hit():
     # squeezing across the wall: a finger comes down on the wall
     plan = _plan(ep, 1, lambda gs: max(gs, key=lambda g: abs(g.T_world_gripper[1, 0])))
     with pytest.raises(EpisodeFailed) as e:
-        pick_and_drop(ep, plan, area_of(ep.wc, cfg.bin_pick), outbox_of(ep.wc.cfg, cfg.bin_pick), Attempt(0))
+        pick_and_drop(ep, plan, area_of(ep.wc, cfg.bin_pick), OutBox(ep, outbox_of(ep.wc.cfg, cfg.bin_pick)),
+                      Attempt(0))
     assert e.value.reason == Failure.WALL_HIT
 
 
@@ -104,7 +105,8 @@ def test_a_part_riding_on_the_target_is_two_parts_lifted():
     assert ep.wc.block_poses()[1][2, 3] > 0.04  # still on top after settling
     plan = _plan(ep, 1, lambda gs: min(gs, key=lambda g: g.T_world_gripper[0, 3]))  # pinched at the -x end
     with pytest.raises(EpisodeFailed) as e:
-        pick_and_drop(ep, plan, area_of(ep.wc, cfg.bin_pick), outbox_of(ep.wc.cfg, cfg.bin_pick), Attempt(0))
+        pick_and_drop(ep, plan, area_of(ep.wc, cfg.bin_pick), OutBox(ep, outbox_of(ep.wc.cfg, cfg.bin_pick)),
+                      Attempt(0))
     assert e.value.reason == Failure.DOUBLE_PICK
 
 
@@ -203,7 +205,8 @@ def _cube_off_the_wall(gap: float, hand: str = "3-finger") -> tuple[Episode, lis
 def _picked(ep: Episode, grasp) -> bool:
     """Does the hand, on ``grasp``, lift the episode's only part clear of the walls?"""
     b, att, part = ep.cfg.bin_pick, Attempt(0), ep.wc.blocks[0].block
-    pick_and_drop(ep, Plan(1, part, grasp, ep.wc.block_poses()[0], part), area_of(ep.wc, b), outbox_of(ep.wc.cfg, b),
+    pick_and_drop(ep, Plan(1, part, grasp, ep.wc.block_poses()[0], part), area_of(ep.wc, b),
+                  OutBox(ep, outbox_of(ep.wc.cfg, b)),
                   att)
     return att.grasped
 
@@ -278,7 +281,7 @@ def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():
     poses = [_flat("cube", area.tote.center), _flat("cube", box.center),
              _flat("cube", (lo[0] - 0.08, area.tote.center[1]), z=0.0)]  # on the table beside the tote
     ep = _episode(cfg, ["cube", "cube", "cube"], poses)
-    assert tally(ep.wc, area, box, [1, 2, 3]) == ([2], [3])
+    assert tally(ep.wc, area, OutBox(ep, box), [1, 2, 3]) == ([2], [3])
 
 
 def _oracle_episode(cfg: TrialConfig, index: int = 0, perception: str = "oracle") -> BinPickRecord:
@@ -339,20 +342,25 @@ def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path
     assert b["percent_cleared"]["mean"] >= 25.0 and b["attempts"]["success"] >= floor, b
     recs = {i: json.loads(line) for i, line in enumerate((tmp_path / "a" / EPISODES).read_text().splitlines())}
     r = compare_runs(recs, recs)
-    assert r["bin_pick"]["percent_cleared"]["wilcoxon_p"] == 1.0 and not is_worse(r, 0.05)
+    assert r["bin_pick"]["better"] == "neither" and not is_worse(r, 0.05)
+    assert s["perception_latency"] == {"seconds": 0.0, "how": "provider"}  # the oracle computes nothing
 
 
-def test_compare_pairs_bin_pick_episodes_by_percent_cleared():
-    def run(cleared: list[float], ok: int) -> dict[int, dict]:
-        return {i: {"episode": i, "seed": 0, "task": "bin-pick", "outcome": "failure", "cleared": c,
-                    "attempts": [{"outcome": "success" if j < ok else "failure", "target": {"type": "cube"}}
-                                 for j in range(10)] + [{"outcome": "failure", "target": None}] * 2}
-                for i, c in enumerate(cleared)}  # two looks that found nothing to go for: no grasps
+def _bin_run(cleared: list[float], ok: int, tries: int = 10, sim_time: float = 60.0) -> dict[int, dict]:
+    """Bin-picking records: per episode ``ok`` of ``tries`` attempts succeed, then two looks that found nothing to go
+    for (no grasps)."""
+    return {i: {"episode": i, "seed": 0, "task": "bin-pick", "outcome": "failure", "cleared": c, "sim_time": sim_time,
+                "attempts": [{"outcome": "success" if j < ok else "failure", "target": {"type": "cube"}}
+                             for j in range(tries)] + [{"outcome": "failure", "target": None}] * 2}
+            for i, c in enumerate(cleared)}
 
-    a = run([1.0] * 8, 9)
-    b = run([0.5, 0.6, 0.4, 0.7, 0.5, 0.3, 0.6, 0.5], 5)
+
+def test_compare_judges_bin_picking_by_reliability_not_by_percent_cleared():
+    a = _bin_run([0.8] * 8, 9)
+    b = _bin_run([1.0] * 8, 5)  # clears more, by trying again: less reliable
     r = compare_runs(a, b)["bin_pick"]
-    assert r["better"] == "A" and r["percent_cleared"]["wilcoxon_p"] < 0.05
+    assert r["percent_cleared"]["difference"] == pytest.approx(20.0) and r["percent_cleared"]["wilcoxon_p"] < 0.05
+    assert r["better"] == "A" and r["decided_by"] == "reliability" and r["attempts"]["fisher_p"] < 0.05
     lo, hi = r["grasps"]["difference_ci95"]
     assert r["grasps"]["difference"] == pytest.approx(-0.4) and lo < -0.4 < hi < 0
     assert r["attempts"]["a"]["n"] == 96 and r["attempts"]["difference"] == pytest.approx(-4 / 12)
@@ -360,8 +368,19 @@ def test_compare_pairs_bin_pick_episodes_by_percent_cleared():
     console = Console(file=io.StringIO(), width=200)
     print_comparison(compare_runs(a, b), ("a", "b"), console)
     printed = console.file.getvalue()
-    assert "percent cleared: A 100.0 %, B 51.2 %" in printed and "per block" not in printed, printed
+    assert "percent cleared (a figure, not the verdict): A 80.0 %, B 100.0 %" in printed, printed
     assert "grasp success (attempts that went for a part): A 72/80, B 40/80" in printed, printed
+    assert "better: A (more reliable" in printed and "per block" not in printed, printed
+
+
+def test_compare_counts_perception_latency_in_picks_per_hour_where_reliability_ties():
+    a, b = _bin_run([1.0] * 8, 9), _bin_run([1.0] * 8, 9)
+    r = compare_runs(a, b, (0.0, 5.0))["bin_pick"]
+    assert r["attempts"]["difference"] == 0 and r["attempts"]["fisher_p"] == 1.0
+    # 9 picks in 60 s of motion against 60 s + 13 looks x 5 s: 540 against 259.2 picks per hour
+    assert r["picks_per_hour"]["a_mean"] == pytest.approx(540.0) and r["picks_per_hour"]["b_mean"] == pytest.approx(259.2)
+    assert r["better"] == "A" and r["decided_by"] == "picks_per_hour" and r["picks_per_hour"]["wilcoxon_p"] < 0.05
+    assert compare_runs(a, b)["bin_pick"]["better"] == "neither" and not is_worse(compare_runs(a, b), 0.05)
 
 
 @pytest.mark.parametrize("args, message", [

@@ -12,7 +12,7 @@ from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.grasps import Grasp
 from posegrasp.grasping.suction_grasps import SuctionGrasp
-from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid
+from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid, OutBox
 from posegrasp.grasping.tasks.bin_pick.planner import choose_cup
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import area_of, outbox_of
@@ -24,7 +24,7 @@ def _cup_pick(ep, ests, T_world_cam) -> Attempt:
     """The cup's grasp on the only part, picked and dropped into the out-box."""
     j, grasp, T_est = choose_cup(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
     b, att, part = ep.cfg.bin_pick, Attempt(0), ep.wc.blocks[0].block
-    Cup(ep).pick(ep, Plan(1, part, grasp, T_est, part), area_of(ep.wc, b), outbox_of(ep.wc.cfg, b), att)
+    Cup(ep).pick(ep, Plan(1, part, grasp, T_est, part), area_of(ep.wc, b), OutBox(ep, outbox_of(ep.wc.cfg, b)), att)
     return att
 
 
@@ -80,7 +80,7 @@ def _hybrid_pick(name: str, xy) -> tuple[object, Attempt]:
     tool = Hybrid(ep)
     j, grasp, T_est = tool.choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
     b, att, part = ep.cfg.bin_pick, Attempt(0), ep.wc.blocks[0].block
-    tool.pick(ep, Plan(1, part, grasp, T_est, part), area_of(ep.wc, b), outbox_of(ep.wc.cfg, b), att)
+    tool.pick(ep, Plan(1, part, grasp, T_est, part), area_of(ep.wc, b), OutBox(ep, outbox_of(ep.wc.cfg, b)), att)
     return grasp, att
 
 

@@ -120,6 +120,7 @@ def bin_dataset(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_bin_dataset_passes_check_and_records_its_scene(bin_dataset):
     assert check_dataset(bin_dataset).ok
     info = json.loads((bin_dataset / "train_pbr" / "000000" / "scene_datagen.json").read_text())

@@ -53,6 +53,7 @@ def test_mismatched_seeds_are_refused():
         compare_runs(a, b)
 
 
+@pytest.mark.slow
 def test_cli_fail_if_worse(tmp_path):
     a, b = _runs([True] * 12, [True] * 2 + [False] * 10)
     for name, recs in (("A", a), ("B", b)):

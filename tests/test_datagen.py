@@ -72,6 +72,7 @@ def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray) -> np.ndarra
 
 # ------------------------------------------------------------------------------------------- round trip
 
+@pytest.mark.slow
 def test_dataset_layout_and_check_passes(dataset):
     assert (dataset / "models" / "models_info.json").is_file() and (dataset / "camera.json").is_file()
     cam = bop.load_camera(dataset)
@@ -273,6 +274,7 @@ def test_other_settings_are_refused_on_resume(dataset, tmp_path, small_toml):
 
 # ------------------------------------------------------------------------------------------- dataset check
 
+@pytest.mark.slow
 def test_check_names_corrupt_png_missing_key_and_metres(dataset, tmp_path):
     import shutil
 
@@ -314,6 +316,7 @@ def test_check_flags_models_in_metres(dataset, tmp_path):
     assert any("models/models_info.json: obj 3 'diameter'" in p and "metres" in p for p in report.problems)
 
 
+@pytest.mark.slow
 def test_show_draws_a_panel(dataset, tmp_path):
     r = run_cli("dataset", "show", str(dataset), "--scene", "1", "--im", "2", "--out", str(tmp_path / "f.png"))
     assert r.returncode == 0, r.stderr
@@ -349,6 +352,7 @@ def test_bad_arguments_give_one_line(tmp_path, capsys, args, words):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_bad_arguments_exit_code_from_the_shell(tmp_path):
     r = run_cli("datagen", "--out", str(tmp_path / "o"), "--views", "many")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr

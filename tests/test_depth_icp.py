@@ -42,6 +42,7 @@ def _look_frame(seed: int, n_blocks: int):
         cam.close()
 
 
+@pytest.mark.slow
 def test_depth_icp_finds_the_visible_blocks_within_mm_and_degrees():
     frame = _look_frame(5, 7)  # seven blocks in view, two of them touching at one height, painted differently
     provider = make_provider("depth-icp")
@@ -60,6 +61,7 @@ def test_depth_icp_finds_the_visible_blocks_within_mm_and_degrees():
         assert err[0] < 0.003 and err[1] < 4.0, (cat[t.obj_id].name, err)
 
 
+@pytest.mark.slow
 def test_depth_icp_settings_come_from_their_table(tmp_path):
     toml = tmp_path / "icp.toml"
     toml.write_text("[depth_icp]\nsize_tol = 0.01\n[depth_icp.depth_fit.fit]\nmax_points = 150\n")

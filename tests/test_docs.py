@@ -279,6 +279,7 @@ def sample_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return work
 
 
+@pytest.mark.slow
 def test_python_samples_run(sample_dir: Path, monkeypatch: pytest.MonkeyPatch,
                             capsys: pytest.CaptureFixture[str]) -> None:
     """Every ```python block of a page runs, in order, in one namespace per page, beside a rendered frame."""

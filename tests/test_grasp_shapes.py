@@ -39,6 +39,7 @@ def parts(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_antipodal_pairs_lie_on_the_surface_oppose_within_the_cone_and_fit_the_hand(parts):
     u = load_catalog(parts)["u_channel"]
     pairs = antipodal_pairs(u)

@@ -104,6 +104,7 @@ def _step_deviation(tmp_path: Path, name: str, *extra: str) -> tuple[float, floa
             float(cylinder_distance(samples + shift, r, h).max()), mesh.volume / (np.pi * r * r * h))
 
 
+@pytest.mark.slow
 def test_a_step_cylinder_tessellates_within_half_a_millimetre(tmp_path: Path) -> None:
     v, s, vol = _step_deviation(tmp_path, "fine")
     assert v < 1e-5 and s < 0.5e-3 and vol == pytest.approx(1.0, abs=0.01), (v, s, vol)

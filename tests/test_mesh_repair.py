@@ -101,6 +101,7 @@ CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(CASES))
 def test_defective_mesh_is_repaired_into_a_solid(name: str) -> None:
     make, words = CASES[name]
@@ -117,6 +118,7 @@ def test_defective_mesh_is_repaired_into_a_solid(name: str) -> None:
         assert fixed.volume_change == pytest.approx(expected.get(name, 0.0), abs=0.03), (name, fixed.volume_change)
 
 
+@pytest.mark.slow
 def test_remeshed_solid_keeps_the_volume() -> None:
     """The non-manifold pair of boxes (joined along one edge) keeps its volume within 3 % through the remesh."""
     fixed = repair(CASES["non-manifold edge"][0](), "nm", 0.25)

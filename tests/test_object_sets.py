@@ -34,6 +34,7 @@ def parts(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_the_catalogue_loads_a_set_and_its_upright_data(parts):
     cat = load_catalog(parts)
     assert list(cat) == ["bar", "post"] and [b.obj_id for b in cat.values()] == [1, 2]

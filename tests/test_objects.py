@@ -70,6 +70,7 @@ def _on_surface(mesh: trimesh.Trimesh, pts: np.ndarray, tol: float) -> bool:
     return float(trimesh.proximity.closest_point(mesh, pts)[1].max()) <= tol
 
 
+@pytest.mark.slow
 def test_import_measures_repairs_and_centres(imported: Path) -> None:
     objs = load_object_set(imported).by_name()
     assert list(objs) == ["box", "cyl", "u", "blob", "cup"]
@@ -167,12 +168,14 @@ def test_the_fit_check_defaults_are_the_shipped_workcell() -> None:
         (w.hand_camera.height, w.hand_camera.fovy_deg, w.look_height)
 
 
+@pytest.mark.slow
 def test_same_input_gives_byte_identical_files(meshes, imported: Path, tmp_path: Path) -> None:
     again = tmp_path / "again"
     assert _import(meshes, again) == 0
     assert snapshot(again) == snapshot(imported)
 
 
+@pytest.mark.slow
 def test_bop_models_folder_keeps_its_symmetries(imported: Path, tmp_path: Path) -> None:
     """A BOP models folder is read in mm and its models_info.json symmetries are taken, not searched."""
     models = tmp_path / "ds" / "models"
@@ -317,6 +320,7 @@ def _closed(rotations: list[np.ndarray], angle: float = 1e-3) -> bool:
     return all(((np.einsum("kij,ij->k", group, A @ B) - 1) / 2).max() >= np.cos(angle) for A in group for B in group)
 
 
+@pytest.mark.slow
 def test_a_found_symmetry_set_is_a_group() -> None:
     """A soccer ball's turns about its 6 five-fold, 10 three-fold and 15 two-fold axes: 59 and the identity,
     closed under composition (the search's candidates alone miss the two-fold axes; closing the group finds them)."""

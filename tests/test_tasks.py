@@ -142,6 +142,7 @@ def test_short_oracle_campaign_and_same_seed_same_records(tmp_path, task, measur
         (tmp_path / "a" / EPISODES).read_text().splitlines()[:2]
 
 
+@pytest.mark.slow
 def test_unknown_task_and_unservable_task_are_one_line(tmp_path):
     r = run_cli("trials", "--task", "juggling", "--out", str(tmp_path / "o"))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "juggling" in r.stderr, r.stderr

@@ -108,6 +108,7 @@ def test_wilson_interval_matches_hand_computation(k, n, lo, hi):
     (["trials", "--workers", "zero"], "--workers"),
     (["calibrate", "--poses", "2"], "at least 3"),
 ])
+@pytest.mark.slow
 def test_bad_input_is_one_line(tmp_path, args, words):
     if args[0] == "trials":
         args = [*args, "--out", str(tmp_path / "o")]

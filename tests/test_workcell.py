@@ -101,6 +101,7 @@ def test_masks_agree_with_pyrender(look_frame):
     assert checked >= 3
 
 
+@pytest.mark.slow
 def test_shared_gl_context_renders_like_an_own_one():
     """Renderers sharing the process's GL context, two drawing in turns, across scenes, give the images of a
     ``mujoco.Renderer`` with a GL context of its own."""

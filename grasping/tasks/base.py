@@ -166,18 +166,20 @@ class Task(ABC):
     def run(self, ep: Episode) -> None:
         """The episode after its scene: its phases in order, filling in ``ep.rec``; raises ``EpisodeFailed``."""
 
-    def metrics(self, records: list[dict]) -> dict:
-        """The task's own entries of the campaign summary, over its episodes' JSON records (none beyond
-        ``grasping.stats.summarise``'s by default)."""
+    def metrics(self, records: list[dict], latency: float = 0.0) -> dict:
+        """The task's own entries of the campaign summary, over its episodes' JSON records and the campaign's
+        perception ``latency`` (s per look, ``grasping.latency``); none beyond ``grasping.stats.summarise``'s by
+        default."""
         return {}
 
     def print_summary(self, summary: dict, console: Console) -> None:
         """The campaign summary's terminal lines: the episodes' success rate, per block and per failure."""
         print_episodes(summary, console)
 
-    def compare(self, a: dict[int, dict], b: dict[int, dict], common: list[int]) -> dict:
-        """The task's own entries of a comparison of two runs' JSON records on their ``common`` episodes
-        (``grasping.compare``; none by default)."""
+    def compare(self, a: dict[int, dict], b: dict[int, dict], common: list[int],
+                latency: tuple[float, float] = (0.0, 0.0)) -> dict:
+        """The task's own entries of a comparison of two runs' JSON records on their ``common`` episodes, with
+        each run's perception ``latency`` (s per look; ``grasping.compare``; none by default)."""
         return {}
 
     def judged_by(self, result: dict) -> tuple[float, float]:

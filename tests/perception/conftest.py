@@ -12,12 +12,14 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+from helpers import build_once  # noqa: E402
 from bop_helpers import object_info_from_mesh, write_depth, write_mask, write_model_ply, write_models_info  # noqa: E402
 from posegrasp import bop  # noqa: E402
 from posegrasp.geometry import axis_angle_R, make_T  # noqa: E402
+from posegrasp.gl import pyrender_renderer  # noqa: E402
 from posegrasp.io import write_image  # noqa: E402
 
-torch.set_num_threads(2)
+torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)  # two workers: a core each
 
 WIDTH, HEIGHT = 160, 120
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
@@ -67,52 +69,49 @@ def make_tiny_bop(root: Path, n_train: int = 8, n_test: int = 3, seed: int = 0) 
     write_models_info(root, infos)
     bop.write_camera(root, bop.Camera(WIDTH, HEIGHT, K, depth_scale=0.1))
 
-    renderer = pyrender.OffscreenRenderer(WIDTH, HEIGHT)
+    renderer = pyrender_renderer(WIDTH, HEIGHT)  # kept: deleting one ends the EGL display MuJoCo renders on
     cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], znear=0.05, zfar=3.0)
     cv_to_gl = np.diag([1.0, -1.0, -1.0, 1.0])
     meshes = {oid: pyrender.Mesh.from_trimesh(m, smooth=False) for oid, (m, _, _) in models.items()}
     rng = np.random.default_rng(seed)
-    try:
-        for split, scene_id, n in (("train", 0, n_train), ("test", 1, n_test)):
-            sd = bop.scene_dir(root, split, scene_id)
-            gts, cams, infos_gt = {}, {}, {}
-            for im in range(n):
-                poses = {oid: _random_pose(rng) for oid in models}
-                scene = pyrender.Scene(ambient_light=np.full(3, 0.5), bg_color=[0.3, 0.3, 0.3, 1.0])
-                scene.add(cam, pose=cv_to_gl)
-                scene.add(pyrender.DirectionalLight(intensity=2.0), pose=cv_to_gl)
-                nodes = {oid: scene.add(meshes[oid], pose=T) for oid, T in poses.items()}
-                rgb, depth = renderer.render(scene)
-                singles = {}
-                for oid, node in nodes.items():
-                    for other in nodes.values():
-                        other.mesh.is_visible = other is node
-                    singles[oid] = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
-                for node in nodes.values():
-                    node.mesh.is_visible = True
-                write_image(bop.image_path(sd, "rgb", im), rgb)
-                write_depth(bop.image_path(sd, "depth", im), depth, depth_scale=0.1)
-                gts[im], infos_gt[im] = [], []
-                for gi, (oid, T) in enumerate(poses.items()):
-                    full = singles[oid] > 0
-                    visib = full & (np.abs(singles[oid] - depth) < 1e-3)
-                    write_mask(bop.mask_path(sd, im, gi, visible=False), full)
-                    write_mask(bop.mask_path(sd, im, gi, visible=True), visib)
-                    gts[im].append((oid, T))
-                    infos_gt[im].append(bop.gt_info_from_masks(full, visib, depth))
-                cams[im] = bop.SceneCamera(K=K, depth_scale=0.1)
-            bop.write_scene_gt(sd / "scene_gt.json", gts)
-            bop.write_scene_camera(sd / "scene_camera.json", cams)
-            bop.write_scene_gt_info(sd / "scene_gt_info.json", infos_gt)
-    finally:
-        renderer.delete()
+    for split, scene_id, n in (("train", 0, n_train), ("test", 1, n_test)):
+        sd = bop.scene_dir(root, split, scene_id)
+        gts, cams, infos_gt = {}, {}, {}
+        for im in range(n):
+            poses = {oid: _random_pose(rng) for oid in models}
+            scene = pyrender.Scene(ambient_light=np.full(3, 0.5), bg_color=[0.3, 0.3, 0.3, 1.0])
+            scene.add(cam, pose=cv_to_gl)
+            scene.add(pyrender.DirectionalLight(intensity=2.0), pose=cv_to_gl)
+            nodes = {oid: scene.add(meshes[oid], pose=T) for oid, T in poses.items()}
+            rgb, depth = renderer.render(scene)
+            singles = {}
+            for oid, node in nodes.items():
+                for other in nodes.values():
+                    other.mesh.is_visible = other is node
+                singles[oid] = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
+            for node in nodes.values():
+                node.mesh.is_visible = True
+            write_image(bop.image_path(sd, "rgb", im), rgb)
+            write_depth(bop.image_path(sd, "depth", im), depth, depth_scale=0.1)
+            gts[im], infos_gt[im] = [], []
+            for gi, (oid, T) in enumerate(poses.items()):
+                full = singles[oid] > 0
+                visib = full & (np.abs(singles[oid] - depth) < 1e-3)
+                write_mask(bop.mask_path(sd, im, gi, visible=False), full)
+                write_mask(bop.mask_path(sd, im, gi, visible=True), visib)
+                gts[im].append((oid, T))
+                infos_gt[im].append(bop.gt_info_from_masks(full, visib, depth))
+            cams[im] = bop.SceneCamera(K=K, depth_scale=0.1)
+        bop.write_scene_gt(sd / "scene_gt.json", gts)
+        bop.write_scene_camera(sd / "scene_camera.json", cams)
+        bop.write_scene_gt_info(sd / "scene_gt_info.json", infos_gt)
     return root
 
 
 @pytest.fixture(scope="session")
 def tiny_bop(tmp_path_factory) -> Path:
     """Root of the tiny BOP dataset (3 objects, 8 train and 3 test images of 160 x 120 px)."""
-    return make_tiny_bop(tmp_path_factory.mktemp("tiny_bop"))
+    return build_once(tmp_path_factory, "tiny_bop", make_tiny_bop)
 
 
 # --------------------------------------------------------------------------- a tiny trained run
@@ -168,10 +167,11 @@ def tiny_run(tiny_bop, tmp_path_factory) -> Path:
     from posegrasp.perception.train_refiner import train_refiner
     from posegrasp.perception.train_seg import train_seg
 
-    out = tmp_path_factory.mktemp("tiny_run")
-    seg, pose, refiner = tiny_configs()
-    train_seg(tiny_bop, out, seg, steps=15, progress=False)
-    train_pose(tiny_bop, out, pose, steps=20, progress=False)
-    train_refiner(tiny_bop, out, refiner, steps=5, progress=False)
-    train_cls(tiny_bop, out, tiny_cls_config(), steps=60, progress=False)
-    return out
+    def build(out: Path) -> None:
+        seg, pose, refiner = tiny_configs()
+        train_seg(tiny_bop, out, seg, steps=15, progress=False)
+        train_pose(tiny_bop, out, pose, steps=20, progress=False)
+        train_refiner(tiny_bop, out, refiner, steps=5, progress=False)
+        train_cls(tiny_bop, out, tiny_cls_config(), steps=60, progress=False)
+
+    return build_once(tmp_path_factory, "tiny_run", build)

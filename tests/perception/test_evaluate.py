@@ -15,7 +15,7 @@ from posegrasp.perception.evaluate import EvalConfig, evaluate
 @pytest.mark.slow
 def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
     rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", progress=False)
-    for name in ("metrics.json", "per_object.csv", "instances.csv", "curves.png", "posegrasp_tiny_bop0-test.csv",
+    for name in ("metrics.json", "per_object.csv", "instances.csv", "curves.png", f"posegrasp_{tiny_bop.name}-test.csv",
                  "scores_bop19.json"):
         assert (tmp_path / "ev" / name).exists(), name
     bop19 = json.loads((tmp_path / "ev" / "scores_bop19.json").read_text())
@@ -58,7 +58,7 @@ def test_evaluate_gt_masks_without_the_refiner(tiny_bop, tiny_run, tmp_path):
     assert rep["ablation"]["refiner_iterations"] == 0 and rep["time_per_image_s"]["refiner"] == 0.0
     assert rep["time_per_image_s"]["depth_fit"] > 0  # every estimate fitted to the depth image
     assert np.isfinite(rep["overall"]["mean_ADD-S"])
-    res = read_results_csv(tmp_path / "ev" / "posegrasp_tiny_bop0-test.csv")
+    res = read_results_csv(tmp_path / "ev" / f"posegrasp_{tiny_bop.name}-test.csv")
     assert len(res) == 9
 
 

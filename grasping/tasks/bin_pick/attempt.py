@@ -18,19 +18,18 @@ import numpy as np
 
 from posegrasp.catalog import catalog_by_id
 from posegrasp.errors import SimulationError
-from posegrasp.geometry import transform_points
 from posegrasp.grasping.config import ScoringConfig
 from posegrasp.grasping.perception import Estimate, PerceptionError
 from posegrasp.grasping.record import FalseTarget, Failure
 from posegrasp.grasping.targets import Plan, blame, drive_to_look, gripper_yaw, look_down_q, match_block, pose_errors
 from posegrasp.grasping.tasks.base import EpisodeFailed
-from posegrasp.grasping.tasks.bin_pick.pick import Tool, tool_of
+from posegrasp.grasping.tasks.bin_pick.pick import Destination, OutBox, Tool, tool_of
 from posegrasp.grasping.tasks.bin_pick.planner import depth_points, heap_points
 from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
-from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, outbox_of
+from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, outbox_of, tray_of
+from posegrasp.grasping.tasks.bin_pick.tray import TrayPlace
 from posegrasp.sim.camera import Frame
 from posegrasp.sim.clutter import park
-from posegrasp.sim.tote import Tote
 from posegrasp.sim.workcell import Workcell, wrap_angle
 
 if TYPE_CHECKING:
@@ -90,11 +89,12 @@ def _look(ep: Episode, area: Area) -> None:
     ep.log.stop("look", ep.ctl, add=True)
 
 
-def tally(wc: Workcell, area: Area, box: Tote, parts: list[int]) -> tuple[list[int], list[int]]:
-    """Which of ``parts`` (1-based) lie in the out-box ``box`` (every vertex, within 5 mm), and which of the others
-    have left the heap's area (their centre outside it: thrown out)? The simulator's truth, for the verdicts."""
+def tally(wc: Workcell, area: Area, dest: Destination, parts: list[int]) -> tuple[list[int], list[int]]:
+    """Which of ``parts`` (1-based) lie in the destination ``dest`` (the out-box or the tray), and which of the
+    others have left the heap's area (their centre outside it: thrown out)? The simulator's truth, for the
+    verdicts."""
     poses = wc.block_poses()
-    gone = [k for k in parts if box.contains(transform_points(poses[k - 1], wc.blocks[k - 1].block.vertices), 0.005)]
+    gone = [k for k in parts if dest.holds(poses[k - 1], wc.blocks[k - 1].block)]
     thrown = [k for k in parts if k not in gone and not area.holds(poses[k - 1][None, :3, 3])[0]]
     return gone, thrown
 
@@ -105,6 +105,7 @@ def empty_tote(ep: Episode) -> None:
     is recorded for that look: it would find no grasp again); fills in ``ep.rec`` (a ``BinPickRecord``). Raises
     ``EpisodeFailed`` with the episode's end reason unless every part went into the out-box."""
     run = _Emptying(ep)
+    ep.rec.place = ep.cfg.bin_pick.place
     _look(ep, run.area)
     b, n = ep.cfg.bin_pick, run.n
     for a in range(b.attempts_per_part * n):
@@ -129,7 +130,10 @@ class _Emptying:
 
     def __init__(self, ep: Episode):
         self.ep, self.rec = ep, ep.rec
-        self.area, self.box = area_of(ep.wc, ep.cfg.bin_pick), outbox_of(ep.wc.cfg, ep.cfg.bin_pick)
+        b = ep.cfg.bin_pick
+        self.area = area_of(ep.wc, b)
+        self.tray = TrayPlace(ep, tray_of(ep.wc.cfg, b)) if b.place == "tray" else None
+        self.dest: Destination = self.tray or OutBox(ep, outbox_of(ep.wc.cfg, b))
         self.n = len(ep.wc.blocks)
         self.left = list(range(1, self.n + 1))  # parts neither in the out-box nor thrown out
         self.lost: list[int] = []
@@ -195,6 +199,11 @@ class _Emptying:
             if len(heap) < 10:  # nothing seen, nothing above the floor: the robot believes the tote empty
                 return False
             raise EpisodeFailed(Failure.NO_DETECTION)
+        if self.tray is not None:  # only parts of a type with a free slot
+            self.tray.placing = None
+            ests = [e for e in ests if self.tray.free(cat[e.obj_id].name) is not None]
+            if not ests:
+                raise EpisodeFailed(Failure.NO_SLOT)
         try:
             j, self.grasp, T_est = self.tool.choose(wc, cfg, ests, T_world_cam, heap, gripper_yaw(ep.ctl.target),
                                                     self.failed)
@@ -208,20 +217,24 @@ class _Emptying:
         att.target = self.tool.target(k, block, block.obj_id == ests[j].obj_id, self.grasp)
         att.pose_error = pose_errors(block, T_est, wc.block_poses()[k - 1], cfg.scoring.pose_error_points)
         att.visib_fract = visible_fraction(ep, frame, k)
-        self.tool.pick(ep, Plan(k, block, self.grasp, T_est, cat[ests[j].obj_id]), self.area, self.box, att)
+        self.tool.pick(ep, Plan(k, block, self.grasp, T_est, cat[ests[j].obj_id]), self.area, self.dest, att)
         return True
 
     def _tally(self, att: Attempt) -> None:
         """After the attempt, the simulator's truth: the parts in the out-box (taken out of the scene) and those
         thrown out, and the attempt's verdict on its target."""
         wc = self.ep.wc
-        gone, thrown = tally(wc, self.area, self.box, self.left)
-        for k in gone:
+        gone, thrown = tally(wc, self.area, self.dest, self.left)
+        for k in gone if self.dest.parks else ():
             park(wc, k)
         self.left = [k for k in self.left if k not in gone and k not in thrown]
         self.lost += thrown
         att.removed, att.thrown_out = gone, thrown
         target = att.target.instance if att.target is not None else 0
+        if self.tray is not None and att.failure is None and target in gone:
+            err, att.failure = self.tray.judge(target, wc.blocks[target - 1].block)
+            att.place_error = err.to_json() if err is not None else None
+            att.slot = self.tray.placing.slot if self.tray.placing is not None else None
         if att.failure is None and target not in gone:
             att.failure = Failure.DROP if target in self.left else Failure.MISPLACED
         if att.failure is None and [k for k in thrown if k != target]:

@@ -8,9 +8,13 @@ from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.sim.clutter import ClutterConfig
 from posegrasp.sim.tote import ToteConfig
+from posegrasp.sim.tray import TrayConfig
 
 #: The task's name (``--task``); its records are ``record.BinPickRecord``s.
 BIN_PICK = "bin-pick"
+
+#: Where picked parts go (``--place``): dropped into the out-box, or set down in the tray's slots at their poses.
+PLACES = ("out-box", "tray")
 
 
 @settings
@@ -29,6 +33,19 @@ class BinPickConfig:
     look_timeout: float = field(default=8.0, metadata=within(0.1, 100.0))
     #: The out-box the parts are dropped into, centred on the place area.
     outbox: ToteConfig = field(default_factory=lambda: ToteConfig(inner_size=(0.14, 0.14), wall_height=0.05))
+    #: Where picked parts go (``PLACES``): ``out-box`` (dropped, any pose) or ``tray`` (set down in a slot at its pose;
+    #: the tote then holds the tray's kit).
+    place: str = "out-box"
+    #: The tray of ``place = "tray"``, on the place area.
+    tray: TrayConfig = field(default_factory=TrayConfig)
+    #: Tray: a part is placed when its model frame lies within this distance (m, xy) of its slot's ...
+    pos_tol: float = field(default=0.003, metadata=within(0.0, 0.1))
+    #: ... its turn about the vertical within this (deg) of the slot's, both modulo its symmetries ...
+    yaw_tol_deg: float = field(default=3.0, metadata=within(0.0, 180.0))
+    #: ... and its resting face within this (deg) of the face it was planned to rest on (else "wrong face up").
+    face_tol_deg: float = field(default=10.0, metadata=within(0.0, 90.0))
+    #: Tray: the part's bottom is let go this far (m) above the plate (the hand stops early where it touches).
+    place_gap: float = field(default=0.002, metadata=within(0.0, 0.05))
     #: The hand and the carried part's bottom clear the walls' top (tote and out-box) by this much (m).
     wall_margin: float = field(default=0.02, metadata=within(0.0, 0.5))
     #: Pick order: a grasp's rank is its score plus this much per metre (1/m) its part's estimated top stands
@@ -102,6 +119,8 @@ class BinPickConfig:
     suction_tilt_weight: float = field(default=0.01, metadata=within(0.0, 100.0))
 
     def __post_init__(self) -> None:
+        if self.place not in PLACES:
+            raise ConfigError(f"bin_pick.place {self.place!r} is not a place; choose one of: {', '.join(PLACES)}")
         if not self.part_clearance:
             raise ConfigError("bin_pick.part_clearance must be one or more distances (m) in [-0.05, 0.1], got []")
         if not all(0.0 < t <= 40.0 for t in self.wall_tilts_deg):

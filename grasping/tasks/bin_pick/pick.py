@@ -1,5 +1,6 @@
 """Bin picking's pick: the tool that picks (``Tool``: a fingered hand, ``Fingers``, or the suction cup, ``Cup``), how
-each picks a part and drops it into the out-box, and the contact monitor that makes a protective stop.
+each picks a part and hands it to its destination (``Destination``: the out-box, ``OutBox``, or the tray,
+``tray.TrayPlace``), and the contact monitor that makes a protective stop.
 
 The verdicts use the simulator's truth: a robot touching the tote's walls (a protective stop: "hit the wall"; so
 is a hand that contacts turn ``tilt_stop_deg`` from the grasp's approach, "collision"), another part rising with the
@@ -9,7 +10,7 @@ it go ("seal lost").
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
@@ -87,11 +88,11 @@ def _watch(ep: Episode, area: Area, k: int) -> _Contacts:
     return _Contacts(ep, walls, floors, k)
 
 
-def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None:
-    """Pick ``plan``'s part, lift it clear of the walls, carry it over the out-box ``box`` and let it go; marks
-    ``att.grasped``; ``EpisodeFailed`` when the robot hits a wall, the floor on a failed grasp, the part slips or
-    falls, or another part came up with it (after the drop). A neighbour that stops the hand short of the grasp
-    (``_stopped_near``) does not end the attempt: the fingers close where the hand stopped."""
+def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None:
+    """Pick ``plan``'s part, lift it clear of the walls and hand it to ``dest`` (the out-box or the tray) to let go
+    of; marks ``att.grasped``; ``EpisodeFailed`` when the robot hits a wall, the floor on a failed grasp, the part
+    slips or falls, or another part came up with it (after the drop). A neighbour that stops the hand short of the
+    grasp (``_stopped_near``) does not end the attempt: the fingers close where the hand stopped."""
     ctl, cfg, k = ep.ctl, ep.cfg, plan.k
     g_cfg, b = cfg.grasp, cfg.bin_pick
     watch = _watch(ep, area, k)
@@ -113,8 +114,9 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
             raise EpisodeFailed(Failure.COLLISION if watch.floor else Failure.SLIP)
         ep.log.stop("pick", ctl, add=True)
         start = _bottoms(ep.wc)
+        T_hold = ep.wc.gripper_pose()
         bottom_est, _ = plan.height_range()
-        clear = max(area.top, box.top_z) + b.wall_margin  # the part's bottom above both boxes' walls
+        clear = max(area.top, dest.top_z) + b.wall_margin  # the part's bottom above both boxes' walls
         T_lift = ctl.target.copy()  # the grasp, or where a neighbour stopped the hand above it
         T_lift[2, 3] += max(clear - bottom_est, ep.cfg.scoring.lift_min)
         ctl.move(T_lift)
@@ -126,24 +128,26 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) 
         double = bool(np.any(rose > b.double_rise))
         ep.log.stop("lift", ctl, add=True)
         watch.approach = None  # the carry turns the hand about the vertical with the arm's base
-        T_drop = _swung(T_lift, np.asarray(box.center) + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3]))
-        ctl.move(T_drop, speed=g_cfg.carry_speed)
-        if not ctl.finger_contacts(k).any():
-            raise EpisodeFailed(Failure.DROP)
-        ctl.release(k, opening, g_cfg.release_time)
-        ep.log.stop("carry", ctl, add=True)
+
+        def let_go() -> None:
+            if not ctl.finger_contacts(k).any():
+                raise EpisodeFailed(Failure.DROP)
+            ctl.release(k, opening, g_cfg.release_time)
+
+        dest.deliver(plan, T_lift, T_hold, let_go)
         if double:
             raise EpisodeFailed(Failure.DOUBLE_PICK)
     finally:
         ctl.monitor = None
 
 
-def pick_with_cup(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt, vacuum: Vacuum) -> None:
+def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt, vacuum: Vacuum) -> None:
     """Pick ``plan``'s part with the suction cup: come down above the grasp, approach along its axis, press the cup
     on by ``CUP_PRESS`` of its stroke, switch the vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal
     on the part's true surface), wait for the vacuum to build, lift clear of the walls with the hold model watching
-    every control period ("seal lost"), carry over the out-box ``box`` and switch the vacuum off; marks
-    ``att.grasped``; "two parts lifted" after the drop when another part came up with it."""
+    every control period ("seal lost"), and hand the part to ``dest`` (the out-box or the tray), which has the
+    vacuum switched off; marks ``att.grasped``; "two parts lifted" after the drop when another part came up with
+    it."""
     ctl, cfg, k, wc = ep.ctl, ep.cfg, plan.k, ep.wc
     g_cfg, b, s = cfg.grasp, cfg.bin_pick, wc.cfg.suction
     watch = _watch(ep, area, k)
@@ -176,9 +180,10 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt, 
         ctl.hold(seal_time(s))
         ep.log.stop("pick", ctl, add=True)
         start = _bottoms(wc)
+        T_hold = wc.gripper_pose()
         bottom_est, _ = plan.height_range()
         T_lift = ctl.target.copy()
-        T_lift[2, 3] += max(max(area.top, box.top_z) + b.wall_margin - bottom_est, cfg.scoring.lift_min)
+        T_lift[2, 3] += max(max(area.top, dest.top_z) + b.wall_margin - bottom_est, cfg.scoring.lift_min)
         ctl.monitor = holding
         ctl.move(T_lift)
         att.grasped = bool(vacuum.holding and _bottoms(wc)[k - 1] >= area.top + 0.5 * b.wall_margin)
@@ -188,18 +193,61 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt, 
         rose[k - 1] = 0.0
         ep.log.stop("lift", ctl, add=True)
         watch.approach = None  # the carry turns the tool about the vertical with the arm's base
-        ctl.move(_swung(T_lift, np.asarray(box.center) + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3])),
-                 speed=g_cfg.carry_speed)
-        ctl.monitor = watch
-        vacuum.off()
-        if wc.cfg.hand == "hybrid":
-            extend(wc, False)  # in again while the part falls and the arm goes back to the look
-        ctl.hold(g_cfg.release_time)
-        ep.log.stop("carry", ctl, add=True)
+
+        def let_go() -> None:
+            ctl.monitor = watch
+            vacuum.off()
+            if wc.cfg.hand == "hybrid":
+                extend(wc, False)  # in again while the part falls and the arm goes back to the look
+            ctl.hold(g_cfg.release_time)
+
+        dest.deliver(plan, T_lift, T_hold, let_go)
         if bool(np.any(rose > b.double_rise)):
             raise EpisodeFailed(Failure.DOUBLE_PICK)
     finally:
         ctl.monitor = None
+
+
+class Destination(Protocol):
+    """Where a picked part goes (``OutBox`` or ``tray.TrayPlace``): the height (m) of its top, which the carried
+    part's bottom clears, and how it takes the part from the lifted hand."""
+
+    #: Are the parts it holds taken out of the scene (parked) once counted?
+    parks: bool
+
+    @property
+    def top_z(self) -> float: ...
+
+    def holds(self, T_world_obj: np.ndarray, block: PartType) -> bool:
+        """Does a part of type ``block`` at ``T_world_obj`` (the simulator's truth) lie in it?"""
+
+    def deliver(self, plan: Plan, T_lift: np.ndarray, T_hold: np.ndarray, let_go: Callable[[], None]) -> None: ...
+
+
+class OutBox:
+    """The out-box the parts are dropped into, in any pose."""
+
+    parks = True
+
+    def __init__(self, ep: Episode, box: Tote):
+        self.ep, self.box = ep, box
+
+    @property
+    def top_z(self) -> float:
+        return self.box.top_z
+
+    def holds(self, T_world_obj: np.ndarray, block: PartType) -> bool:
+        """Every vertex of the part inside the out-box, within 5 mm."""
+        return self.box.contains(transform_points(T_world_obj, block.vertices), 0.005)
+
+    def deliver(self, plan: Plan, T_lift: np.ndarray, T_hold: np.ndarray, let_go: Callable[[], None]) -> None:
+        """Carry the part from the lift pose ``T_lift`` over the out-box, the arm's base turning, and let go."""
+        ctl = self.ep.ctl
+        T_grasp = plan.grasp.T_world_gripper
+        ctl.move(_swung(T_lift, np.asarray(self.box.center) + (T_grasp[:2, 3] - plan.T_world_obj[:2, 3])),
+                 speed=self.ep.cfg.grasp.carry_speed)
+        let_go()
+        self.ep.log.stop("carry", ctl, add=True)
 
 
 class Tool(Protocol):
@@ -209,7 +257,7 @@ class Tool(Protocol):
     def choose(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
                heap: np.ndarray, yaw_now: float, failed: list[np.ndarray]) -> tuple[int, object, np.ndarray]: ...
 
-    def pick(self, ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None: ...
+    def pick(self, ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None: ...
 
     def target(self, k: int, block: PartType, class_ok: bool, grasp: object) -> Target: ...
 
@@ -241,8 +289,8 @@ class Cup:
         self.vacuum = Vacuum(ep.wc)
         self.diameter = ep.wc.cfg.suction.diameter
 
-    def pick(self, ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None:
-        pick_with_cup(ep, plan, area, box, att, self.vacuum)
+    def pick(self, ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None:
+        pick_with_cup(ep, plan, area, dest, att, self.vacuum)
 
     def target(self, k: int, block: PartType, class_ok: bool, g: SuctionGrasp) -> Target:
         return Target(k, block.name, class_ok, block.diameter, self.diameter, g.clearance, g.seal_margin, g.tilt_deg)
@@ -256,7 +304,8 @@ class Hybrid:
     """The hybrid hand: the 2-finger hand with a cup between its fingers (``sim.hybrid``), which picks each part
     with the cup or with the fingers. Both planners run on the estimates (``choose_cup``, ``choose_part``); the
     grasp on the higher part wins, the cup where both go for parts within ``HYBRID_TIE`` of each other's height (a
-    suction pick neither reaches between neighbours nor needs a wall's room): an ambidextrous policy."""
+    suction pick neither reaches between neighbours nor needs a wall's room): an ambidextrous policy. Placing in the
+    tray, the cup wherever it has a grasp: it holds the part as the estimate has it, where closing fingers shift it."""
 
     def __init__(self, ep: Episode):
         self.cup = Cup(ep)
@@ -265,7 +314,10 @@ class Hybrid:
                heap: np.ndarray, yaw_now: float, failed: list[np.ndarray]) -> tuple[int, object, np.ndarray]:
         found, why = [], []
         view = HeapView(wc, cfg, ests, T_world_cam, heap)  # one view of the heap for both planners
+        cup_first = cfg.bin_pick.place == "tray"  # the fingers shift a part as they close: it lands off its slot
         for bonus, choose in ((HYBRID_TIE, choose_cup), (0.0, choose_part)):
+            if found and cup_first:
+                break
             try:
                 j, g, T = choose(wc, cfg, ests, T_world_cam, heap, yaw_now, failed, view)
             except EpisodeFailed as e:
@@ -277,11 +329,11 @@ class Hybrid:
         _, j, g, T = max(found, key=lambda f: f[0])
         return j, g, T
 
-    def pick(self, ep: Episode, plan: Plan, area: Area, box: Tote, att: Attempt) -> None:
+    def pick(self, ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None:
         if isinstance(plan.grasp, SuctionGrasp):
-            self.cup.pick(ep, plan, area, box, att)
+            self.cup.pick(ep, plan, area, dest, att)
         else:
-            pick_and_drop(ep, plan, area, box, att)
+            pick_and_drop(ep, plan, area, dest, att)
 
     def target(self, k: int, block: PartType, class_ok: bool, g: object) -> Target:
         return (self.cup if isinstance(g, SuctionGrasp) else Fingers).target(k, block, class_ok, g)

@@ -19,7 +19,7 @@ class Attempt:
     (0-based) is also the ``im_id`` of its capture."""
 
     attempt: int
-    outcome: str = "failure"  # or "success": the target, alone, ended in the out-box
+    outcome: str = "failure"  # or "success": the target, alone, ended in the out-box (in its slot, within tolerance)
     failure: Failure | None = None
     detected: int = 0  # estimates the provider returned
     target: Target | FalseTarget | None = None
@@ -29,11 +29,16 @@ class Attempt:
     removed: list[int] = field(default_factory=list)  # parts (1-based) that went into the out-box
     thrown_out: list[int] = field(default_factory=list)  # parts (1-based) that left the tote elsewhere
     sim_time: float = 0.0  # simulated seconds the attempt took
+    slot: int | None = None  # tray: the slot (0-based) the target was set down in
+    place_error: dict | None = None  # tray: the target at rest against its slot (``tray.PlaceError``: m, deg)
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
         if self.failure is not None:
             d["failure"] = Failure(self.failure).value
+        for key in ("slot", "place_error"):  # the tray's: an out-box record has neither
+            if d[key] is None:
+                del d[key]
         return d
 
 
@@ -43,13 +48,16 @@ class BinPickRecord(EpisodeRecord, task=BIN_PICK):
     "success" when every part went into the out-box, else ``failure`` says how the episode ended (the last
     attempt's reason after a simulation error); ``sim_time`` is the robot's simulated time."""
 
-    removed: int = 0  # parts in the out-box at the end
+    removed: int = 0  # parts in the out-box (or on the tray) at the end
     cleared: float = 0.0  # removed / n_blocks
     attempts: list[Attempt] = field(default_factory=list)
+    place: str = "out-box"  # where the parts went (``BinPickConfig.place``); an out-box record leaves it out
 
     def to_json(self) -> dict:
         d = super().to_json()
         d["attempts"] = [jsonable(a.to_json(), digits=6) for a in self.attempts]
+        if self.place == "out-box":
+            del d["place"]
         return d
 
     @classmethod

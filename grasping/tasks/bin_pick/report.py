@@ -44,6 +44,7 @@ class BinPickSummary:
     episode_ends: dict[str, int]  # episodes by how they ended ("cleared" or a failure reason)
     per_type: dict[str, Rate]  # attempts by the target's part type
     per_visibility: dict[str, Rate]  # attempts by the target's visible fraction (``VISIBILITY_BINS``)
+    picks_per_hour: float | None = None  # of the cycle time: the arm's and perception's (``grasping.latency``)
 
     @classmethod
     def from_json(cls, data: dict, where: str) -> BinPickSummary:
@@ -59,7 +60,8 @@ class BinPickSummary:
                        {str(f): int(k) for f, k in data["attempt_failures"].items()},
                        {str(f): int(k) for f, k in data["episode_ends"].items()},
                        {str(t): rate_of(r, f"{where}.per_type.{t}") for t, r in data["per_type"].items()},
-                       {str(b): rate_of(r, f"{where}.per_visibility.{b}") for b, r in data["per_visibility"].items()})
+                       {str(b): rate_of(r, f"{where}.per_visibility.{b}") for b, r in data["per_visibility"].items()},
+                       None if data.get("picks_per_hour") is None else float(data["picks_per_hour"]))
         except (KeyError, TypeError, ValueError, AttributeError, IndexError):
             raise DatasetError(f"{where} is corrupt (needs the keys of bin picking's summary); rerun the trials "
                                "into a new --out") from None
@@ -91,7 +93,9 @@ def statistics(run: TrialRun, b: BinPickSummary) -> str:
         ["attempt success", f"{a.success}/{a.n} = {pct(a.rate)} (Wilson 95 % interval {interval(a)})"],
         ["grasp success (attempts that went for a part)",
          "-" if g is None else f"{g.success}/{g.n} = {pct(g.rate)} (Wilson 95 % interval {interval(g)})"],
-        ["picks per simulated hour", per_hour], ["simulated hours", f"{b.sim_hours:.3f}"]])
+        ["picks per hour (the arm's motion and perception's latency)",
+         "-" if b.picks_per_hour is None else f"{b.picks_per_hour:.0f}"],
+        ["picks per simulated hour (the arm's motion)", per_hour], ["simulated hours", f"{b.sim_hours:.3f}"]])
         + counts("Failed attempts", "reason", b.attempt_failures)
         + counts("Episode ends", "end", b.episode_ends)
         + rates("Attempt success by part type", "part type", b.per_type)
@@ -165,6 +169,51 @@ def headline(run: TrialRun, b: BinPickSummary) -> str:
             f"(Wilson 95 % interval {interval(b.attempts)}){grasps}</p>")
 
 
+def tray_section(run: TrialRun, tray: dict | None) -> str:
+    """The tray's statistics (``metrics.tray_metrics``) and a plot of the set-down parts' errors against their
+    slots with the tolerances; empty for an out-box run."""
+    if not tray:
+        return ""
+    b = run.campaign.config.bin_pick
+    errs = [a.place_error for r in run.episodes for a in getattr(r, "attempts", ()) if a.place_error]
+    p, pos, yaw = tray["placed"], tray["position_error_mm"], tray["yaw_error_deg"]
+    rows = [["placement success per attempt", f"{p['success']}/{p['n']} = {pct(p['rate'])}"],
+            ["parts placed per episode (mean)", f"{tray['placed_per_episode']['mean']:.2f}"],
+            ["parts set down in a slot", str(tray["set_down"])]]
+    if tray["set_down"]:
+        rows += [["position error (mm): median, 90 %, largest", f"{pos['median']:.2f}, {pos['p90']:.2f}, {pos['max']:.2f}"],
+                 ["yaw error (deg): median, 90 %, largest", f"{yaw['median']:.2f}, {yaw['p90']:.2f}, {yaw['max']:.2f}"]]
+    out = f"<h2>Tray</h2>{table(['measure', 'value'], rows)}"
+    if errs:
+        out += (f'<figure><img alt="placement errors" src="{_error_scatter(errs, b.pos_tol, b.yaw_tol_deg)}">'
+                "<figcaption>each part set down: its position error against its yaw error, modulo its "
+                "symmetries; the box is the tolerance</figcaption></figure>")
+    return out
+
+
+def _error_scatter(errs: list[dict], pos_tol: float, yaw_tol_deg: float) -> str:
+    """PNG data URI: position error (mm) against yaw error (deg) per placed part, the tolerance drawn as a box."""
+    import base64
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    ax.scatter([e["yaw_deg"] for e in errs], [1000 * e["te"] for e in errs], s=14, alpha=0.7)
+    ax.add_patch(plt.Rectangle((-yaw_tol_deg, 0), 2 * yaw_tol_deg, 1000 * pos_tol, fill=False, color="tab:green"))
+    ax.set_xlabel("yaw error (deg)")
+    ax.set_ylabel("position error (mm)")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    plt.close(fig)
+    return f"data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}"
+
+
 def perception_seed(job: EpisodeJob, attempt: int) -> int:
     """The perception seed of ``attempt`` (its capture's ``im_id``), as ``attempt.empty_tote`` draws it."""
     from posegrasp.grasping.episode import episode_draws, further_seed
@@ -185,5 +234,6 @@ def page(task: Task, run: TrialRun, samples: int, executor: Executor | None) -> 
                  frozenset(a.attempt for a in r.attempts if a.outcome != "success")) for r in shown]
         replays = replay_episodes(jobs, perception_seed, executor)
     b = BinPickSummary.from_json(run.summary.data["bin_pick"], f"{run.path / SUMMARY}.bin_pick")
-    return sections.page([headline(run, b), sections.settings(run), statistics(run, b), attempts(run, shown, replays),
-                          films(shown, replays)])
+    tray = run.summary.data["bin_pick"].get("tray")
+    return sections.page([headline(run, b), sections.settings(run), statistics(run, b), tray_section(run, tray),
+                          attempts(run, shown, replays), films(shown, replays)])

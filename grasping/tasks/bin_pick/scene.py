@@ -10,11 +10,13 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 from dm_control import mjcf
 
+from posegrasp.catalog import PartType, catalog_by_id
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.sim.clutter import build_clutter_scene, clutter_workcell, tote_of
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import choose_types
 from posegrasp.sim.tote import Tote
+from posegrasp.sim.tray import Tray
 from posegrasp.sim.workcell import BlockInstance, Workcell
 
 if TYPE_CHECKING:
@@ -29,6 +31,12 @@ def outbox_of(workcell: WorkcellConfig, cfg: BinPickConfig) -> Tote:
     return Tote(cfg.outbox, tuple(float(c) for c in workcell.place_area.center))
 
 
+def tray_of(workcell: WorkcellConfig, cfg: BinPickConfig) -> Tray:
+    """The tray of ``cfg``, centred on the workcell's place area (plus the tray's offset)."""
+    c = np.asarray(workcell.place_area.center) + np.asarray(cfg.tray.offset)
+    return Tray(cfg.tray, (float(c[0]), float(c[1])))
+
+
 def add_outbox(box: Tote) -> Callable[[mjcf.RootElement], None]:
     """``extras(root)`` for a workcell: attach the out-box ``box`` (geoms ``outbox/floor``, ``outbox/wall_x0``, ...)."""
 
@@ -41,16 +49,24 @@ def add_outbox(box: Tote) -> Callable[[mjcf.RootElement], None]:
 
 
 def bin_workcell(cfg: TrialConfig, parts: list[BlockInstance]) -> Workcell:
-    """The campaign's bin or pile workcell with ``parts`` (parked until dropped) and the out-box."""
-    b = cfg.bin_pick
-    return clutter_workcell(cfg.scene.workcell, b.scene, parts, b.clutter,
-                            extras=add_outbox(outbox_of(cfg.scene.workcell, b)))
+    """The campaign's bin or pile workcell with ``parts`` (parked until dropped) and the out-box or the tray."""
+    b, wc = cfg.bin_pick, cfg.scene.workcell
+    extras = tray_of(wc, b).add_to if b.place == "tray" else add_outbox(outbox_of(wc, b))
+    return clutter_workcell(wc, b.scene, parts, b.clutter, extras=extras)
+
+
+def kit_types(cfg: TrialConfig, n_parts: int, rng: np.random.Generator) -> list[PartType]:
+    """The types of ``n_parts`` parts of the tray's kit (slots drawn without replacement), in drawn order."""
+    by_name = {t.name: t for t in catalog_by_id(cfg.scene.workcell.objects).values()}
+    slots = cfg.bin_pick.tray.slots
+    return [by_name[slots[i].type] for i in rng.permutation(len(slots))[:n_parts]]
 
 
 def bin_scene(cfg: TrialConfig, seed: int, n_parts: int) -> Workcell:
-    """A settled heap of ``n_parts`` parts (types and colours drawn from ``seed``) in the tote or on the table."""
+    """A settled heap of ``n_parts`` parts (types and colours drawn from ``seed``; with the tray, of its kit) in the
+    tote or on the table."""
     rng = np.random.default_rng(seed)
-    types = choose_types(cfg.scene, n_parts, rng)
+    types = kit_types(cfg, n_parts, rng) if cfg.bin_pick.place == "tray" else choose_types(cfg.scene, n_parts, rng)
     colours = [cfg.scene.palette[i] for i in rng.integers(0, len(cfg.scene.palette), size=n_parts)]
     wc = bin_workcell(cfg, [BlockInstance(t, (*c, 1.0)) for t, c in zip(types, colours)])
     build_clutter_scene(wc, cfg.bin_pick.scene, cfg.bin_pick.clutter, rng)

@@ -66,6 +66,11 @@ class BinPickTask(Task):
             raise UserError(f"part(s) {too_big} are wider than the hand opens ({cfg.grasp.max_width} m, "
                             "grasp.max_width) every way: choose other scene.block_types or --objects")
         check_clutter(cfg.scene.workcell, b.scene, b.clutter, types, hi)
+        if b.place == "tray":
+            from posegrasp.grasping.tasks.bin_pick.scene import tray_of
+            from posegrasp.grasping.tasks.bin_pick.tray import check_tray
+
+            check_tray(cfg, tray_of(cfg.scene.workcell, b))
 
     def scene(self, cfg: TrialConfig, seed: int, n_blocks: int, graspable: Graspable) -> Workcell:
         return bin_scene(cfg, seed, n_blocks)
@@ -76,8 +81,8 @@ class BinPickTask(Task):
 
         empty_tote(ep)
 
-    def metrics(self, records: list[dict]) -> dict:
-        return metrics.bin_metrics(records)
+    def metrics(self, records: list[dict], latency: float = 0.0) -> dict:
+        return metrics.bin_metrics(records, latency)
 
     def print_summary(self, summary: dict, console: Console) -> None:
         """Percent cleared, attempt and grasp success, picks per hour and attempt failures, then how the episodes
@@ -87,13 +92,15 @@ class BinPickTask(Task):
         metrics.print_summary(summary["bin_pick"], console)
         print_failures(summary["failures"], "episodes ended by", console)
 
-    def compare(self, a: dict[int, dict], b: dict[int, dict], common: list[int]) -> dict:
-        return {"bin_pick": metrics.compare(a, b, common)}
+    def compare(self, a: dict[int, dict], b: dict[int, dict], common: list[int],
+                latency: tuple[float, float] = (0.0, 0.0)) -> dict:
+        return {"bin_pick": metrics.compare(a, b, common, latency)}
 
     def judged_by(self, result: dict) -> tuple[float, float]:
-        """Percent cleared: the mean paired difference B - A (points) and its Wilcoxon p."""
-        c = result["bin_pick"]["percent_cleared"]
-        return c["difference"], c["wilcoxon_p"]
+        """Reliability (attempt success), else picks per hour where reliability does not differ
+        (``metrics.verdict``): the difference B - A and its p-value."""
+        diff, p = result["bin_pick"]["judged_by"]
+        return diff, p
 
     def print_comparison(self, result: dict, console: Console) -> None:
         metrics.print_comparison(result["bin_pick"], console)

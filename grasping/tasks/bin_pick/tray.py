@@ -1,0 +1,295 @@
+"""Bin picking into a tray (``place = "tray"``): each picked part is set down in a free slot of its type at the
+slot's pose, and judged there.
+
+The goal pose of a part (world, model frame): resting on the plate on the face whose outward normal ``n`` (object
+frame, a face of its convex hull that it can stand on) lay nearest straight down at the pick (the face up that it
+was picked with stays up), turned about the vertical by the slot's yaw::
+
+    R_goal = Rz(yaw_slot) R_n,    R_n n = -z  (the least rotation that does it),
+    p_goal = (x_slot, y_slot, z_plate - min_v (R_goal v)_z).
+
+The hand sets it down holding it as the estimate at the pick says it holds it: the gripper's release pose is
+``T_goal T_gripper_obj^-1`` with ``T_gripper_obj = T_world_gripper^-1 T_world_obj`` at the grasp, the goal taken
+over the part's symmetries ``T_goal S`` as the one the wrist turns least to. The verdict (the simulator's truth) on
+the part at rest, modulo its symmetries (``PlaceError``): its face within ``face_tol_deg`` of the planned one (else
+"wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else "misplaced", as for a part of another type
+than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from posegrasp.catalog import PartType, catalog_by_id
+from posegrasp.errors import ConfigError
+from posegrasp.geometry import make_T, transform_points
+from posegrasp.grasping.record import Failure
+from posegrasp.grasping.targets import Plan
+from posegrasp.grasping.tasks.base import EpisodeFailed
+from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.planner import CUP_SETTLE_SPEED, CUP_SETTLE_TIME
+from posegrasp.grasping.upright import match, symmetries
+from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.tray import TRAY, Tray
+from posegrasp.sim.workcell import Workcell
+
+if TYPE_CHECKING:
+    from posegrasp.grasping.config import TrialConfig
+    from posegrasp.grasping.episode import Episode
+
+DOWN = np.array([0.0, 0.0, -1.0])
+#: The hand stops this far (m) above its release pose, where the arm's settled offset is measured and taken out.
+NEAR = 0.008
+
+
+@functools.lru_cache(maxsize=64)
+def rest_normals(block: PartType) -> np.ndarray:
+    """(F, 3) outward unit normals (object frame) of the convex hull's faces the part can rest on: its centre of
+    mass (``centre_of_mass``) projects inside the face."""
+    v = np.asarray(block.vertices, float)
+    hull = ConvexHull(v)
+    com = centre_of_mass(block)
+    out: list[np.ndarray] = []
+    for eq in np.unique(np.round(hull.equations, 6), axis=0):
+        n, d = eq[:3] / np.linalg.norm(eq[:3]), eq[3]
+        on = v[np.abs(v @ n + d) < 1e-6]  # the face's vertices
+        foot = com - (com @ n + d) * n  # the centre of mass dropped onto the face's plane
+        if len(on) >= 3 and _inside(foot, on, n):
+            out.append(n)
+    return np.array(out)
+
+
+def centre_of_mass(block: PartType) -> np.ndarray:
+    """The solid's centre of mass (m, object frame) at uniform density: the volume-weighted centroids of the
+    tetrahedra its faces span with the origin."""
+    a, b, c = (block.vertices[block.faces[:, i]] for i in range(3))
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+    return (vol[:, None] * (a + b + c) / 4.0).sum(axis=0) / vol.sum()
+
+
+def _inside(p: np.ndarray, pts: np.ndarray, n: np.ndarray, margin: float = 1e-4) -> bool:
+    """Does ``p`` lie inside the convex polygon of the coplanar ``pts`` (normal ``n``), ``margin`` (m) in?"""
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(n, u)
+    q = np.stack([pts @ u, pts @ w], axis=1)
+    hull = ConvexHull(q)
+    return bool(np.all(hull.equations[:, :2] @ np.array([p @ u, p @ w]) + hull.equations[:, 2] <= -margin))
+
+
+def align_down(n: np.ndarray) -> np.ndarray:
+    """The least rotation taking the unit vector ``n`` onto straight down (-z)."""
+    axis = np.cross(n, DOWN)
+    s, c = np.linalg.norm(axis), float(n @ DOWN)
+    if s < 1e-9:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = axis / s
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * K + (1 - c) * K @ K
+
+
+def rest_face(block: PartType, R_world_obj: np.ndarray) -> np.ndarray:
+    """The rest face's outward normal (object frame) nearest straight down for a part turned ``R_world_obj``."""
+    normals = rest_normals(block)
+    return normals[int(np.argmax(normals @ (R_world_obj.T @ DOWN)))]
+
+
+def goal_pose(block: PartType, n: np.ndarray, xy: np.ndarray, yaw: float, z_plate: float) -> np.ndarray:
+    """``T_world_obj`` of the part resting on face ``n`` on a plate at height ``z_plate``, its model origin over
+    ``xy`` and turned ``yaw`` (rad) about the vertical."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ align_down(n)
+    z = z_plate - float((block.vertices @ R.T)[:, 2].min())
+    return make_T(R, (xy[0], xy[1], z))
+
+
+@dataclass(frozen=True)
+class PlaceError:
+    """A placed part against its slot's goal, modulo the part's symmetries: xy distance and height difference of
+    the model origins (m), yaw about the vertical and tilt of the resting face (deg)."""
+
+    te: float
+    dz: float
+    yaw_deg: float
+    tilt_deg: float
+
+    def to_json(self) -> dict:
+        return {"te": self.te, "dz": self.dz, "yaw_deg": self.yaw_deg, "tilt_deg": self.tilt_deg}
+
+
+def place_error(block: PartType, T_final: np.ndarray, T_goal: np.ndarray, n: np.ndarray) -> PlaceError:
+    """The final pose ``T_final`` (world) against ``T_goal``, over the part's symmetries (the copy whose rotation is
+    nearest the goal's); ``n`` the planned rest face's normal (object frame)."""
+    copies = T_final @ symmetries(block)
+    i, _, _ = match(copies, T_goal[None])
+    T = copies[i]
+    M = T[:3, :3] @ T_goal[:3, :3].T
+    yaw = float(np.degrees(np.arctan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])))
+    tilt = float(np.degrees(np.arccos(np.clip(-(T[:3, :3] @ n)[2], -1.0, 1.0))))
+    d = T[:3, 3] - T_goal[:3, 3]
+    return PlaceError(float(np.hypot(d[0], d[1])), float(d[2]), yaw, tilt)
+
+
+def verdict(err: PlaceError, right_type: bool, b: BinPickConfig) -> Failure | None:
+    """The placement's failure reason (None: placed within the tolerances)."""
+    if err.tilt_deg > b.face_tol_deg:
+        return Failure.WRONG_FACE
+    if not right_type or err.te > b.pos_tol:
+        return Failure.MISPLACED
+    if abs(err.yaw_deg) > b.yaw_tol_deg:
+        return Failure.MISALIGNED
+    return None
+
+
+@dataclass
+class Placing:
+    """A part on its way to slot ``slot``: the goal pose (world) and the rest face's normal (object frame)."""
+
+    slot: int
+    T_goal: np.ndarray
+    n: np.ndarray
+
+
+class TrayPlace:
+    """The tray of an episode: which slots the robot has filled, where it sets each part down, and the verdict."""
+
+    parks = False  # placed parts stay in their slots
+
+    def __init__(self, ep: Episode, tray: Tray):
+        self.ep, self.tray = ep, tray
+        self.filled = [False] * len(tray.cfg.slots)
+        self.placing: Placing | None = None
+        m = ep.wc.model
+        self.plate = m.geom(f"{TRAY}/plate").id
+
+    @property
+    def top_z(self) -> float:
+        return self.tray.top_z
+
+    def holds(self, T_world_obj: np.ndarray, block: PartType) -> bool:
+        """The part's vertex centroid over the plate (within 5 mm) and above its top."""
+        return bool(self.tray.holds(transform_points(T_world_obj, block.vertices).mean(axis=0)[None], 0.005)[0])
+
+    def free(self, type_name: str) -> int | None:
+        """The first free slot of part type ``type_name`` (None: none left)."""
+        return next((i for i, (s, f) in enumerate(zip(self.tray.cfg.slots, self.filled))
+                     if not f and s.type == type_name), None)
+
+    def deliver(self, plan: Plan, T_lift: np.ndarray, T_hold: np.ndarray, let_go: Callable[[], None]) -> None:
+        """Carry the part held at gripper pose ``T_hold`` (at the grasp) from ``T_lift`` over its slot, set it down
+        there at the goal pose (the hand stops early where the part touches the plate or another part) and let go
+        (``let_go``: the tool's release), then raise the hand; the slot counts as filled once the part is let go
+        over it."""
+        ep, b = self.ep, self.ep.cfg.bin_pick
+        ctl, g_cfg, block = ep.ctl, ep.cfg.grasp, plan.est_block or plan.block
+        slot = self.free(block.name)
+        if slot is None:  # the planner only goes for parts with a free slot
+            raise EpisodeFailed(Failure.NO_SLOT)
+        xy, yaw = self.tray.slot_pose(slot)
+        n = rest_face(block, plan.T_world_obj[:3, :3])
+        T_obj_gripper = np.linalg.inv(plan.T_world_obj) @ T_hold
+        goals = goal_pose(block, n, xy, yaw, self.top_z)[None] @ np.linalg.inv(symmetries(block))
+        releases = goals @ T_obj_gripper
+        i, _, _ = match(releases, T_lift[None])  # the goal the wrist turns least to
+        T_goal, T_release = goals[i], releases[i].copy()
+        self.placing = Placing(slot, T_goal, n)
+        T_release[2, 3] += b.place_gap
+        T_above = T_release.copy()
+        T_above[2, 3] = max(T_lift[2, 3], T_release[2, 3] + g_cfg.pregrasp_height)
+        ctl.move(T_above, speed=g_cfg.carry_speed)
+        ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)  # the arm sways after the carry: still, then down
+        touches = functools.partial(self._touches, plan.k)
+        T_near = T_release.copy()
+        T_near[2, 3] += NEAR
+        ctl.move(T_near, speed=g_cfg.approach_speed, until=touches)
+        off = np.zeros(2)
+        for _ in range(2):  # the arm settles a millimetre or two off its target: move the target by what is off
+            ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)
+            if touches():
+                break
+            off += T_near[:2, 3] - ep.wc.gripper_pose()[:2, 3]
+            ctl.target[:2, 3] = T_near[:2, 3] + off
+        T_down = T_release.copy()
+        T_down[:2, 3] += off
+        ctl.move(T_down, speed=g_cfg.approach_speed, until=touches)
+        ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)
+        ep.log.stop("carry", ctl, add=True)
+        let_go()
+        self.filled[slot] = True
+        T_up = ctl.target.copy()
+        T_up[2, 3] += g_cfg.pregrasp_height
+        ctl.move(T_up)
+        ep.log.stop("place", ctl, add=True)
+
+    def _touches(self, k: int) -> bool:
+        """Does part ``k`` touch the plate or another part?"""
+        wc = self.ep.wc
+        d = wc.data
+        if not d.ncon:
+            return False
+        g = d.contact.geom[: d.ncon]
+        inst = wc.geom_instance[g]
+        other = (g == self.plate) | (inst > 0)
+        return bool(np.any((inst[:, 0] == k) & other[:, 1] & (inst[:, 1] != k))
+                    or np.any((inst[:, 1] == k) & other[:, 0] & (inst[:, 0] != k)))
+
+    def judge(self, k: int, block: PartType) -> tuple[PlaceError | None, Failure | None]:
+        """The target ``k``'s placement, once at rest, against the goal it was set down for: its error and the
+        failure reason (None: placed; "misplaced" when it is not on the tray or was never let go over it)."""
+        p, ep = self.placing, self.ep
+        if p is None:
+            return None, Failure.MISPLACED
+        ep.wait_for_rest(k)
+        T = ep.wc.block_poses()[k - 1]
+        if not self.holds(T, block):
+            return None, Failure.MISPLACED
+        err = place_error(block, T, p.T_goal, p.n)
+        return err, verdict(err, block.name == self.tray.cfg.slots[p.slot].type, ep.cfg.bin_pick)
+
+
+#: Reach check: the pinch point this high (m) over each slot's plate, the gripper pointing straight down at one of
+#: these yaws (deg), within the IK's position (m) and rotation (rad) tolerances.
+REACH_HEIGHT, REACH_YAWS, REACH_TOL = 0.03, tuple(range(0, 180, 30)), (0.004, 0.02)
+
+
+def check_tray(cfg: TrialConfig, tray: Tray) -> None:
+    """A one-line ConfigError unless the tray's slots take the object set's part types without overlapping, hold
+    the most parts an episode has, and lie within the arm's reach from above."""
+    b = cfg.bin_pick
+    radii = {t.name: float(np.linalg.norm(t.vertices, axis=1).max())
+             for t in catalog_by_id(cfg.scene.workcell.objects).values()}
+    tray.check_layout(radii)
+    slots = len(tray.cfg.slots)
+    if b.clutter.parts[1] > slots:
+        raise ConfigError(f"{b.clutter.parts[1]} parts per episode but the tray has {slots} slots: use --blocks "
+                          f"{slots} or fewer, or add [[bin_pick.tray.slots]]")
+    bad = unreached_slots(cfg.scene.workcell, tray)
+    if bad:
+        raise ConfigError(f"the hand cannot reach tray slot(s) {bad} from above (tray centred at "
+                          f"{[round(c, 3) for c in tray.center]}): move them, or the tray with bin_pick.tray.offset")
+
+
+@functools.lru_cache(maxsize=8)
+def unreached_slots(workcell: WorkcellConfig, tray: Tray) -> list[int]:
+    """The slots (0-based) whose point ``REACH_HEIGHT`` above the plate the gripper, pointing down, reaches at none
+    of ``REACH_YAWS``."""
+    wc = Workcell(workcell)
+    down = np.diag([1.0, -1.0, -1.0])
+    bad = []
+    for i in range(len(tray.cfg.slots)):
+        xy, _ = tray.slot_pose(i)
+        for yaw in np.radians(REACH_YAWS):
+            c, s = np.cos(yaw), np.sin(yaw)
+            T = make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ down,
+                       (xy[0], xy[1], tray.top_z + REACH_HEIGHT))
+            _, dp, dr = wc.solve_gripper_ik(T, wc.look_q)
+            if dp <= REACH_TOL[0] and dr <= REACH_TOL[1]:
+                break
+        else:
+            bad.append(i)
+    return bad

@@ -1,0 +1,50 @@
+"""The bench scripts' tools (never their timings): ``bench/profile.py`` writes a profile of a tiny job, and
+``bench/baseline.py`` checks a ref out so that its own code is imported, not the installed checkout's."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import pstats
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench_module(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_profile_writes_a_profile_and_its_table(tmp_path: Path) -> None:
+    env = {**os.environ, "MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl"}
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "profile.py"), "datagen", "--size", "1", "--top", "5",
+                        "--out", str(tmp_path)], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    stats = pstats.Stats(str(tmp_path / "datagen.prof"))
+    assert any(fn == "generate_scene" for _, _, fn in stats.stats), "the job's work is not in the profile"
+    text = (tmp_path / "datagen.txt").read_text()
+    assert "function (by cumulative)" in text and "function (by tottime)" in text
+    assert "generate_scene" in text  # the job's own frames, not the harness's
+
+
+def test_baseline_options_are_not_passed_on() -> None:
+    own_argv = _bench_module("baseline").own_argv
+    assert own_argv(["200", "2", "--baseline", "cb9cd60", "--rounds=3", "--seed", "0", "--baseline-script",
+                     "current"]) == ["200", "2", "--seed", "0"]
+
+
+def test_baseline_checkout_imports_its_own_code() -> None:
+    """PYTHONPATH=WORKTREE imports every part from the worktree (the editable install maps them elsewhere), and the
+    worktree is gone afterwards."""
+    baseline = _bench_module("baseline")
+    with baseline.checkout("HEAD") as tree:
+        files = baseline._imported_from({**os.environ, "PYTHONPATH": str(tree)})
+        assert all(Path(f).is_relative_to(tree.resolve()) for f in files.values()), files
+    assert not tree.exists()
+    listed = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True).stdout
+    assert str(tree) not in listed

@@ -1,0 +1,129 @@
+"""Bin picking into a tray: the slot's goal pose, the placement verdict modulo symmetries, the layout's checks on
+the command line, and a short campaign that sets parts down in their slots."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from helpers import run_cli
+from posegrasp.catalog import load_catalog
+from posegrasp.errors import ConfigError
+from posegrasp.geometry import axis_angle_R, make_T
+from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.record import Failure
+from posegrasp.grasping.runfolder import EPISODES, SUMMARY
+from posegrasp.grasping.tasks import with_set
+from posegrasp.grasping.tasks.bin_pick import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.scene import tray_of
+from posegrasp.grasping.tasks.bin_pick.tray import (check_tray, goal_pose, place_error, rest_face, rest_normals,
+                                                    verdict)
+from posegrasp.grasping.trials import Display, run_trials
+from posegrasp.sim.clutter import ClutterConfig
+from posegrasp.sim.tray import Slot, TrayConfig
+
+CAT = load_catalog()
+Z = np.array([0.0, 0.0, 1.0])
+B = BinPickConfig(place="tray")
+
+
+def _turned(T: np.ndarray, deg: float, dx: float = 0.0) -> np.ndarray:
+    out = T.copy()
+    out[:3, :3] = axis_angle_R(Z, np.radians(deg)) @ T[:3, :3]
+    out[0, 3] += dx
+    return out
+
+
+def test_a_part_rests_on_the_face_nearest_down_at_its_slots_pose():
+    brick = CAT["brick_2x4"]
+    normals = rest_normals(brick)  # a box rests on any of its six faces (and on the studs' slopes)
+    assert all(np.any(np.all(np.isclose(normals, v), axis=1)) for v in np.vstack([np.eye(3), -np.eye(3)]))
+    R = axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(170.0))  # studs nearly down
+    n = rest_face(brick, R)
+    np.testing.assert_allclose(n, [0.0, 0.0, 1.0], atol=1e-6)  # it rests on its studs' face, as it was picked
+    T = goal_pose(brick, n, np.array([0.1, 0.4]), np.radians(30.0), 0.006)
+    np.testing.assert_allclose(T[:3, :3] @ n, [0.0, 0.0, -1.0], atol=1e-9)
+    assert (T[:3, :3] @ brick.vertices.T)[2].min() + T[2, 3] == pytest.approx(0.006)
+    np.testing.assert_allclose(T[:2, 3], [0.1, 0.4])
+
+
+@pytest.mark.parametrize("dx, deg, reason", [(0.005, 0.0, Failure.MISPLACED), (0.0, 5.0, Failure.MISALIGNED),
+                                             (0.002, 2.0, None)])
+def test_a_part_5_mm_or_5_deg_off_its_slot_fails_with_its_reason(dx, deg, reason):
+    part = CAT["l_block"]
+    n = np.array([0.0, 0.0, -1.0])
+    goal = goal_pose(part, n, np.array([0.1, 0.45]), 0.3, 0.006)
+    err = place_error(part, _turned(goal, deg, dx), goal, n)
+    assert err.te == pytest.approx(abs(dx), abs=1e-9) and abs(err.yaw_deg) == pytest.approx(deg, abs=1e-6)
+    assert verdict(err, True, B) == reason
+
+
+def test_a_symmetric_part_turned_by_its_symmetry_is_placed():
+    n = np.array([0.0, 0.0, -1.0])
+    for name, deg in (("cube", 90.0), ("brick_2x4", 180.0), ("cylinder", 37.0)):
+        goal = goal_pose(CAT[name], n, np.array([0.0, 0.5]), 0.0, 0.006)
+        err = place_error(CAT[name], _turned(goal, deg), goal, n)
+        assert err.te < 1e-6 and abs(err.yaw_deg) < 0.6 and verdict(err, True, B) is None, (name, err)
+    goal = goal_pose(CAT["brick_2x4"], n, np.array([0.0, 0.5]), 0.0, 0.006)  # a half turn maps it, a quarter not
+    assert verdict(place_error(CAT["brick_2x4"], _turned(goal, 90.0), goal, n), True, B) == Failure.MISALIGNED
+    assert verdict(place_error(CAT["cube"], goal_pose(CAT["cube"], n, np.zeros(2), 0.0, 0.006),
+                               goal_pose(CAT["cube"], n, np.zeros(2), 0.0, 0.006), n), False, B) == Failure.MISPLACED
+
+
+def _tray_cfg(slots: tuple[Slot, ...], parts: int = 2) -> TrialConfig:
+    b = BinPickConfig(place="tray", tray=TrayConfig(slots=slots), clutter=ClutterConfig(parts=(parts, parts)))
+    return with_set(dataclasses.replace(TrialConfig(), task="bin-pick", bin_pick=b))
+
+
+def test_the_layout_refuses_overlapping_slots_too_few_slots_and_slots_out_of_reach():
+    cfg = _tray_cfg((Slot("cube", (0.0, 0.0)), Slot("cube", (0.05, 0.0))))
+    with pytest.raises(ConfigError, match=r"slots\[0\] \(cube\) and \[1\] \(cube\) overlap by \d+ mm"):
+        check_tray(cfg, tray_of(cfg.scene.workcell, cfg.bin_pick))
+    cfg = _tray_cfg((Slot("cube", (0.0, 0.0)),), parts=2)
+    with pytest.raises(ConfigError, match="2 parts per episode but the tray has 1 slots"):
+        check_tray(cfg, tray_of(cfg.scene.workcell, cfg.bin_pick))
+    cfg = dataclasses.replace(cfg, bin_pick=dataclasses.replace(
+        cfg.bin_pick, clutter=ClutterConfig(parts=(1, 1)),
+        tray=TrayConfig(size=(2.0, 0.26), slots=(Slot("cube", (0.9, 0.0)),))))
+    with pytest.raises(ConfigError, match=r"cannot reach tray slot\(s\) \[0\]"):
+        check_tray(cfg, tray_of(cfg.scene.workcell, cfg.bin_pick))
+    with pytest.raises(ConfigError, match="'gear' is not a part type"):
+        c = _tray_cfg((Slot("gear", (0.0, 0.0)),), parts=1)
+        check_tray(c, tray_of(c.scene.workcell, c.bin_pick))
+    with pytest.raises(ConfigError, match="lies off the"):
+        TrayConfig(slots=(Slot("cube", (0.5, 0.0)),))
+
+
+def test_a_bad_layout_is_one_line_and_writes_nothing(tmp_path):
+    cfg = tmp_path / "tray.toml"
+    cfg.write_text('[[bin_pick.tray.slots]]\ntype = "cube"\nxy = [0.0, 0.0]\n'
+                   '[[bin_pick.tray.slots]]\ntype = "cube"\nxy = [0.03, 0.0]\n')
+    out = tmp_path / "run"
+    r = run_cli("trials", "--task", "bin-pick", "--place", "tray", "--blocks", "2", "--config", str(cfg),
+                "--episodes", "1", "--out", str(out), "--no-progress")
+    assert r.returncode == 2 and "overlap by" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not out.exists()
+    r = run_cli("trials", "--place", "tray", "--episodes", "1", "--out", str(out), "--no-progress")
+    assert r.returncode == 2 and "use it with --task bin-pick" in r.stderr and not out.exists(), r.stderr
+
+
+@pytest.mark.slow
+def test_the_cup_sets_parts_down_in_their_slots(tmp_path):
+    slots = (Slot("cube", (-0.05, 0.0), 30.0), Slot("brick_2x2", (0.05, 0.0), -20.0))
+    cfg = _tray_cfg(slots)
+    cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, workcell=dataclasses.replace(
+        cfg.scene.workcell, hand="suction")))
+    s = run_trials(tmp_path / "a", 2, 3, "oracle", 1, cfg, display=Display(progress=False))
+    run_trials(tmp_path / "b", 2, 3, "oracle", 2, cfg, display=Display(progress=False))
+    assert (tmp_path / "a" / EPISODES).read_bytes() == (tmp_path / "b" / EPISODES).read_bytes()  # workers: no matter
+    rec = json.loads((tmp_path / "a" / EPISODES).read_text().splitlines()[0])
+    assert rec["place"] == "tray"
+    down = [a for a in rec["attempts"] if "place_error" in a]
+    assert down and all(a["slot"] in (0, 1) for a in down)
+    ok = [a for a in down if a["outcome"] == "success"]
+    assert ok and all(a["place_error"]["te"] <= 0.003 and abs(a["place_error"]["yaw_deg"]) <= 3.0 for a in ok)
+    t = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]["tray"]
+    assert t == s["bin_pick"]["tray"] and t["set_down"] >= len(down) and t["placed"]["success"] >= len(ok)
