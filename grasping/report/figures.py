@@ -140,6 +140,13 @@ def error_plot(records: list[EpisodeRecord], value: Callable[[EpisodeRecord], fl
     ax.set_ylim(-8, 108)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower left")
+    return figure_uri(fig)
+
+
+def figure_uri(fig) -> str:
+    """PNG data URI of a matplotlib figure (laid out tightly, 90 dpi), which it then closes."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)

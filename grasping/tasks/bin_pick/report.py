@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Iterable, Mapping
 from posegrasp.errors import DatasetError
 from posegrasp.grasping.record import Target
 from posegrasp.grasping.report import sections
-from posegrasp.grasping.report.figures import EST_RGB, TRUE_RGB, animation_uri, data_uri, pose_overlay
+from posegrasp.grasping.report.figures import EST_RGB, TRUE_RGB, animation_uri, data_uri, figure_uri, pose_overlay
 from posegrasp.grasping.report.replay import REPLAYED, Replay, replay_episodes, replayable
 from posegrasp.grasping.report.run import Rate, TrialRun, rate_of
 from posegrasp.grasping.report.sections import interval, pct, table
@@ -193,9 +193,6 @@ def tray_section(run: TrialRun, tray: dict | None) -> str:
 
 def _error_scatter(errs: list[dict], pos_tol: float, yaw_tol_deg: float) -> str:
     """PNG data URI: position error (mm) against yaw error (deg) per placed part, the tolerance drawn as a box."""
-    import base64
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -207,11 +204,7 @@ def _error_scatter(errs: list[dict], pos_tol: float, yaw_tol_deg: float) -> str:
     ax.set_xlabel("yaw error (deg)")
     ax.set_ylabel("position error (mm)")
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    return f"data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}"
+    return figure_uri(fig)
 
 
 def perception_seed(job: EpisodeJob, attempt: int) -> int:
