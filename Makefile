@@ -23,6 +23,8 @@ $(STAMP): pyproject.toml constraints.txt | sysdeps
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0
+	@# OpenCV's plain and contrib wheels share the cv2 folder: a .venv that holds the plain one gets the contrib one alone
+	@if $(BIN)/pip show -q opencv-python-headless 2>/dev/null; then $(BIN)/pip uninstall -y -q opencv-python-headless opencv-contrib-python-headless; fi
 	$(BIN)/pip install -q -c constraints.txt -e '.[test,ray]'
 	$(BIN)/pip install -q -c constraints.txt --no-deps pyrender==0.1.45
 	@touch $(STAMP)

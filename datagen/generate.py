@@ -25,11 +25,12 @@ from posegrasp.datagen.render import LabelRenderer
 from posegrasp.datagen.scene import build_scene, check_capacity
 from posegrasp.datagen.views import ViewStats, visit_views
 from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root
-from posegrasp import bop
+from posegrasp import bop, inputs
 from posegrasp import io as pio
 from posegrasp.errors import ConfigError, DatasetError, SceneUnsettled
 from posegrasp.executor import make_executor
 from posegrasp.lock import folder_lock
+from posegrasp.outputs import Record
 from posegrasp.sim.camera import intrinsics
 from posegrasp.sim.config import workcell_record
 from posegrasp.sim.workcell import HAND_CAMERA
@@ -104,10 +105,11 @@ def check_settings(path: Path, settings: dict[str, Any], binding: bool) -> None:
     """Record the settings of a split, or refuse to mix a resumed split with other settings (``binding``: the
     split holds a complete scene; settings left by a failed start are replaced)."""
     want = json.loads(pio.dumps_json(settings))
-    if binding and path.is_file():
+    if binding and os.path.lexists(path):
+        inputs.check_file(path, "json", DatasetError)
         try:
-            have = json.loads(path.read_text())
-        except json.JSONDecodeError:
+            have = inputs.read_json(path, DatasetError)
+        except DatasetError:
             have = None
         if have != want:
             diff = sorted(k for k in want if not isinstance(have, dict) or have.get(k) != want[k])
@@ -137,7 +139,8 @@ def aggregate_stats(root: Path, split: str, scenes: int) -> dict[str, Any]:
     timings: the file is part of the byte-identical output)."""
     while is_complete(root, split, scenes):
         scenes += 1
-    per_scene = [json.loads((bop.scene_dir(root, split, s) / "scene_datagen.json").read_text()) for s in range(scenes)]
+    per_scene = [inputs.read_json(bop.scene_dir(root, split, s) / "scene_datagen.json", DatasetError)
+                 for s in range(scenes)]
     totals = {k: sum(p["views"][k] for p in per_scene) for k in ViewStats().as_dict()}
     inst = sum(len(p["blocks"]) * p["images"] for p in per_scene)
     return {"scenes": scenes, "images": sum(p["images"] for p in per_scene), "instances": inst, "views": totals,
@@ -161,7 +164,8 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
     root = Path(out)
     c = cfg.workcell.hand_camera
     # a split's settings, written first (or their temporary file, of a run killed meanwhile), mark our datasets
-    with folder_lock(root, owns=(f"*/{SETTINGS_FILE}", f"*/.{SETTINGS_FILE}.*.tmp")):
+    with folder_lock(root, owns=(Record(f"*/{SETTINGS_FILE}", ("seed", "views", "config")),
+                                 Record(f"*/.{SETTINGS_FILE}.*.tmp"))):
         todo = [s for s in range(scenes) if not is_complete(root, split, s)]
         if isinstance(workers, int) or workers is None:  # no idle worker processes
             workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))

@@ -19,13 +19,14 @@ import functools
 import os
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
 from posegrasp import bop
 from posegrasp.bop import models as bop_models
 from posegrasp.bop import images as bop_images
+from posegrasp import inputs
 from posegrasp import io as pio
 from posegrasp.catalog import set_root
 from posegrasp.errors import DatasetError
@@ -38,14 +39,19 @@ EVAL_EDGE = 0.05  #: longest edge of a ``models_eval/`` model, as a fraction of 
 
 def write_if_changed(path: Path, data: bytes) -> None:
     """Atomically write ``data`` unless ``path`` already holds exactly it."""
-    if not (path.is_file() and path.read_bytes() == data):
+    if not (path.is_file() and inputs.read_bytes(path, "mesh", DatasetError) == data):
         pio.write_bytes(path, data)
 
 
 def _set_models(objects: str) -> dict[str, bytes]:
     """The object set's BOP ``models/`` files (name -> bytes): its PLY models and ``models_info.json``."""
     src = set_root(objects) / "models"
-    return {p.name: p.read_bytes() for p in sorted(src.iterdir()) if p.suffix in (".ply", ".json")}
+    return _set_models_in(src, [p.name for p in sorted(src.iterdir()) if p.suffix in (".ply", ".json")])
+
+
+def _set_models_in(folder: Path, names: Iterable[str]) -> dict[str, bytes]:
+    """The files ``names`` of ``folder`` (name -> bytes), each a bounded regular file (``posegrasp.inputs``)."""
+    return {n: inputs.read_bytes(folder / n, "mesh", DatasetError) for n in names}
 
 
 def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
@@ -57,8 +63,7 @@ def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
         tmp.unlink(missing_ok=True)
     models = _set_models(objects)
     have = {p.name for p in bop.models_dir(root).glob("*") if p.suffix in (".ply", ".json")}
-    if has_scenes(root) and (have != set(models) or any((bop.models_dir(root) / n).read_bytes() != b
-                                                        for n, b in models.items())):
+    if has_scenes(root) and (have != set(models) or _set_models_in(bop.models_dir(root), models) != models):
         raise DatasetError(f"{root} was generated from another object set (its models/ differ from those of "
                            f"{set_root(objects)}); use a new --out or the original --objects")
     for name in sorted(have - set(models)):  # a failed start with another set

@@ -5,14 +5,14 @@ textured thin box. The arm visits ``n_poses`` camera poses looking at it (IK on 
 through the actuators with ``Workcell.drive_arm``); each view gives ``T_world_gripper`` from the measured
 joints and ``T_cam_board`` from ``solvePnP`` on the detected ChArUco corners. Park and Martin's method
 solves ``T_gripper_cam``: ``cv2.calibrateHandEye(..., CALIB_HAND_EYE_PARK)`` where the installed OpenCV has
-it (the pinned opencv-python-headless 5.0 wheel ships the constants but not the function), else
+it (the pinned opencv-contrib-python-headless 5.0 wheel ships the constants but not the function), else
 ``park_martin`` below. The result is compared with the simulator's true mount.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +24,9 @@ from dm_control import mjcf
 from posegrasp.config import settings
 from posegrasp.errors import ConfigError, DatasetError, UserError
 from posegrasp.geometry import axis_angle_R, invert, look_at_R, make_T, rotation_angle
+from posegrasp.inputs import read_json
 from posegrasp.io import write_json
+from posegrasp.outputs import mark_json
 from posegrasp.sim.camera import CameraRenderer
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell, build_mjcf, compile_mjcf
@@ -207,18 +209,19 @@ def solve_hand_eye(T_base_gripper: list[np.ndarray], T_cam_target: list[np.ndarr
 
 
 def save_hand_eye(path: str | Path, result: CalibrationResult) -> Path:
-    """Write the calibration JSON atomically."""
-    return write_json(path, result.to_json())
+    """Write the calibration JSON atomically, marked as written by ``posegrasp calibrate``."""
+    return write_json(path, mark_json(result.to_json(), "calibrate"))
 
 
 def load_hand_eye(path: str | Path) -> np.ndarray:
     """``T_gripper_cam`` (4x4, m, OpenCV camera frame) from a calibration JSON."""
     p = Path(path)
+    if not os.path.lexists(p):
+        raise DatasetError(f"hand-eye calibration {p} does not exist; run `posegrasp calibrate --out {p}`")
+    doc = read_json(p, DatasetError)
     try:
-        T = np.asarray(json.loads(p.read_text())["T_gripper_cam"], dtype=float)
-    except FileNotFoundError:
-        raise DatasetError(f"hand-eye calibration {p} does not exist; run `posegrasp calibrate --out {p}`") from None
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        T = np.asarray(doc["T_gripper_cam"], dtype=float)
+    except (KeyError, TypeError, ValueError):
         raise DatasetError(f"hand-eye calibration {p} is not a calibration JSON with a 4x4 T_gripper_cam") from None
     if T.shape != (4, 4) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6):
         raise DatasetError(f"hand-eye calibration {p}: T_gripper_cam is not a 4x4 rigid transform")

@@ -39,6 +39,7 @@ from posegrasp.grasping.perception import DEPTH_SCALE
 from posegrasp.grasping.record import EpisodeRecord, EpisodeTimings, Failure
 from posegrasp.grasping.tasks import get_task
 from posegrasp.lock import folder_lock
+from posegrasp.outputs import Record
 from posegrasp.progress import progress as progress_bar
 from posegrasp.sim.camera import Frame, intrinsics
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell
@@ -108,7 +109,7 @@ def open_export(root: Path | None, seed: int, cfg: TrialConfig) -> Iterator[Capt
         yield None
         return
     c = cfg.scene.workcell.hand_camera
-    with folder_lock(root, owns=(SETTINGS_FILE,)):  # its settings file first: a folder without it is not ours
+    with folder_lock(root, owns=(Record(SETTINGS_FILE, ("seed", "config")),)):  # its settings file first: a folder without it is not ours
         check_settings(root / SETTINGS_FILE, {"seed": seed, "task": cfg.task, "config": config_record(cfg)},
                        binding=has_scenes(root, SPLIT))
         prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), DEPTH_SCALE),

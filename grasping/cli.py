@@ -18,6 +18,8 @@ SETTINGS = (
          command="`posegrasp trials --config FILE`"),
     dict(title="Training-free estimator", target="posegrasp.perception.depth_icp:DepthIcpConfig", table="depth_icp",
          command="`posegrasp trials --perception depth-icp:FILE`, table `[depth_icp]`"),
+    dict(title="Point pair features", target="posegrasp.perception.ppf:PpfConfig", table="ppf",
+         command="`posegrasp trials --perception ppf:FILE` (and `eval --perception ppf:FILE`), table `[ppf]`"),
 )
 
 
@@ -69,6 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--poses", type=positive_int("--poses"), default=12, help="number of arm poses viewing the board (>= 3)")
     c.add_argument("--seed", type=nonneg_int("--seed"), default=0, help="seed of the viewpoints")
     c.add_argument("--config", default=None, help="workcell TOML file (default: assets/workcell.toml)")
+    c.add_argument("--force", action="store_true", help="replace --out even if this command did not write it")
     c.set_defaults(run=run_calibrate_cmd)
 
 
@@ -167,18 +170,14 @@ def _check_export_args(args: argparse.Namespace) -> None:
 
 
 def run_calibrate_cmd(args: argparse.Namespace) -> int:
-    from posegrasp.grasping.calibration import CalibrationConfig, calibrate, load_hand_eye, save_hand_eye
+    from posegrasp.grasping.calibration import CalibrationConfig, calibrate, save_hand_eye
+    from posegrasp.outputs import check_out_file
     from posegrasp.sim.config import load_workcell_config
 
     if args.poses < 3:
         raise UserError(f"--poses must be at least 3 (10 or more for an accurate result), got {args.poses}")
-    out = args.out
-    if out.exists():  # replace an earlier calibration only, never another file
-        try:
-            load_hand_eye(out)
-        except UserError:
-            raise UserError(f"--out {out} exists and is not a hand-eye calibration JSON (T_gripper_cam); choose a "
-                            "new file name") from None
+    out = check_out_file(args.out, "calibrate", [args.config] if args.config else [], args.force,
+                         what="a hand-eye calibration")
     wcfg = load_workcell_config(args.config)
     result = calibrate(wcfg, dataclasses.replace(CalibrationConfig(), n_poses=args.poses), args.seed)
     try:

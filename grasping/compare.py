@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from collections import defaultdict
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from posegrasp.grasping.runfolder import CAMPAIGN, EPISODES, read_campaign, read
 from posegrasp.grasping.stats import rate_row
 from posegrasp.grasping.tasks import get_task
 from posegrasp.io import write_json
+from posegrasp.outputs import check_out_file, mark_json
 
 
 def mcnemar_exact(b: int, c: int) -> float:
@@ -51,6 +53,10 @@ def load_run(path: str | Path) -> dict[int, dict]:
     recs = {i: raw for i, (raw, _) in read_episodes(f).items()}  # each record checked, as a resume checks it
     if not recs:
         raise DatasetError(f"{path} holds no trial episodes (expected {EPISODES} written by 'posegrasp trials')")
+    gaps = sorted(set(range(max(recs) + 1)) - set(recs))
+    if gaps:
+        raise DatasetError(f"{path} lacks episode {gaps[0]} of 0..{max(recs)} ({len(gaps)} missing): run its trials "
+                           "command again to complete it")
     return recs
 
 
@@ -59,7 +65,7 @@ def run_objects(path: str | Path) -> dict | None:
     campaign.json); None when there is no campaign.json beside the episodes."""
     p = Path(path)
     folder = p if p.is_dir() else p.parent
-    return read_campaign(folder).set_record() if (folder / CAMPAIGN).is_file() else None
+    return read_campaign(folder).set_record() if os.path.lexists(folder / CAMPAIGN) else None
 
 
 def check_same_objects(path_a: str | Path, path_b: str | Path) -> None:
@@ -148,16 +154,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--alpha", type=number("--alpha", 0, 1, open_lo=True, open_hi=True), default=0.05,
                    help="significance level for --fail-if-worse")
     p.add_argument("--out", type=out_file("--out", (".json",)), default=None, help="also write the comparison as JSON here")
+    p.add_argument("--force", action="store_true", help="replace --out even if this command did not write it")
     p.set_defaults(run=run_compare)
 
 
 def run_compare(args: argparse.Namespace) -> int:
+    if args.out:
+        check_out_file(args.out, "compare", [args.run_a, args.run_b], args.force)
     a, b = load_run(args.run_a), load_run(args.run_b)
     check_same_objects(args.run_a, args.run_b)
     result = compare_runs(a, b, (run_latency(args.run_a), run_latency(args.run_b)))
     print_comparison(result, (f"A {args.run_a}", f"B {args.run_b}"), Console())
     if args.out:
-        write_json(args.out, result)
+        write_json(args.out, mark_json(result, "compare"))
     if args.fail_if_worse and is_worse(result, args.alpha):
         print(f"B is worse than A (p = {get_task(result['task']).judged_by(result)[1]:.4g} < {args.alpha})")
         return 1

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from posegrasp.catalog import catalog_by_id, set_root
 from posegrasp.config import load_toml
-from posegrasp.grasping.perception import Estimate, Observation
+from posegrasp.grasping.perception import Estimate, Observation, SetProvider
 from posegrasp.perception.depth_icp import DepthIcp, DepthIcpConfig
 
 #: The TOML table holding ``DepthIcpConfig``.
@@ -33,15 +33,10 @@ def load_depth_icp(objects: str, settings: str | None) -> DepthIcp:
 
 
 @dataclass(frozen=True)
-class DepthIcpProvider:
+class DepthIcpProvider(SetProvider):
     """Pose estimates of the parts of the set ``objects`` from the depth image and colours alone (module doc)."""
 
-    objects: str = ""
-    settings: str | None = None
-
-    @property
-    def name(self) -> str:
-        return "depth-icp" + (f":{self.settings}" if self.settings else "")
+    kind: ClassVar[str] = "depth-icp"
 
     def estimate(self, obs: Observation, seed: int) -> list[Estimate]:
         """The parts seen in ``obs``, as pose estimates T_cam_obj (m, OpenCV camera frame)."""
@@ -52,6 +47,6 @@ class DepthIcpProvider:
 def from_spec(args: str | None, objects: str = "") -> DepthIcpProvider:
     """The provider for ``--perception depth-icp[:SETTINGS.toml]`` on the object set ``objects``; builds the
     estimator here, so that a bad settings file or set fails before the campaign starts."""
-    settings = str(Path(args).expanduser().resolve()) if args else None
+    settings = DepthIcpProvider.settings_file(args)
     load_depth_icp(objects, settings)
     return DepthIcpProvider(objects, settings)

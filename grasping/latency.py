@@ -9,9 +9,11 @@ campaign's episodes of their wall seconds in perception per look (``timings.json
 
 from __future__ import annotations
 
-import json
 import statistics
 from pathlib import Path
+
+from posegrasp.errors import UserError
+from posegrasp.inputs import read_json
 
 
 def looks(record: dict) -> int:
@@ -46,7 +48,7 @@ def run_latency(path: str | Path) -> float:
     p = Path(path)
     f = (p if p.is_dir() else p.parent) / SUMMARY
     try:
-        seconds = json.loads(f.read_text())["perception_latency"]["seconds"] if f.is_file() else 0.0
-    except (OSError, ValueError, KeyError, TypeError):
+        seconds = read_json(f)["perception_latency"]["seconds"] if f.exists() else 0.0
+    except (UserError, KeyError, TypeError):
         return 0.0
     return float(seconds) if isinstance(seconds, (int, float)) and 0.0 <= seconds < 1e6 else 0.0

@@ -20,7 +20,8 @@ import signal
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, Collection, Protocol, TypeVar
+from pathlib import Path
+from typing import Callable, ClassVar, Collection, Protocol, TypeVar
 
 import numpy as np
 
@@ -85,6 +86,25 @@ class GroundTruthProvider(Protocol):
     name: str
 
     def estimate_truth(self, frame: Frame, seed: int) -> list[Estimate]: ...
+
+
+@dataclass(frozen=True)
+class SetProvider:
+    """A provider built from the models of the object set ``objects`` (``""``: the shipped blocks) and the settings
+    TOML file ``settings`` (an absolute path; None: the defaults), named ``KIND[:settings]`` as on the command line."""
+
+    objects: str = ""
+    settings: str | None = None
+    kind: ClassVar[str] = ""
+
+    @property
+    def name(self) -> str:
+        return self.kind + (f":{self.settings}" if self.settings else "")
+
+    @staticmethod
+    def settings_file(args: str | None) -> str | None:
+        """The absolute path of the settings file a spec's ARGS name (None without one)."""
+        return str(Path(args).expanduser().resolve()) if args else None
 
 
 def reads_labels(provider: Provider | GroundTruthProvider) -> bool:

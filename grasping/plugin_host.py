@@ -11,9 +11,12 @@ returned is checked in the child (``checked_estimates``), so its own classes nev
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
+import multiprocessing.util as mp_util
 import os
 import signal
+import time
 from multiprocessing.connection import Connection
 from typing import Any, Callable
 
@@ -31,7 +34,9 @@ def _host(conn: Connection, build: Callable[[str, str], Any], spec: str, objects
     from posegrasp.executor import die_with_parent
     from posegrasp.grasping.perception import checked_estimates
 
-    die_with_parent(parent)
+    os.setpgid(0, 0)  # a process group of its own: whatever the plug-in forks ends with it (``_kill``)
+    signal.signal(signal.SIGTERM, lambda *_: os.killpg(0, signal.SIGKILL))
+    die_with_parent(parent, signal.SIGTERM)  # a campaign killed (even by SIGKILL) takes the whole group with it
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the campaign's to handle
     conn.send(("ready", None))  # posegrasp is loaded: the plug-in's own time starts
     try:
@@ -94,6 +99,7 @@ class IsolatedProvider:
                            name="posegrasp-plugin")
         proc.start()
         child.close()
+        mp_util.Finalize(self, _kill, args=(proc,), exitpriority=10)  # at the process's exit, the group goes too
         try:
             self._answer(conn, proc, READY_TIMEOUT_S)
             kind, value = self._answer(conn, proc, self.timeout_s)
@@ -107,11 +113,16 @@ class IsolatedProvider:
 
     @staticmethod
     def _answer(conn: Connection, proc: Any, timeout_s: float | None) -> tuple[str, Any]:
-        """The child's next message within ``timeout_s`` (None or 0: no limit); ``_Gone`` if none comes (the child
-        killed when it ran out of time)."""
-        if not conn.poll(timeout_s or None):
-            _kill(proc)
-            raise _Gone(f"did not finish within {timeout_s:g} s (TrialConfig.perception_timeout_s)")
+        """The child's next message within ``timeout_s`` (None or 0: no limit); ``_Gone`` if none comes: the child
+        ended (how, even while a process it forked holds the pipe open), or was killed when it ran out of time."""
+        end = time.monotonic() + timeout_s if timeout_s else math.inf
+        while not conn.poll(min(0.1, max(0.0, end - time.monotonic()))):
+            if not proc.is_alive() and not conn.poll(0):
+                _kill(proc)
+                raise _Gone(_death(proc))
+            if time.monotonic() >= end:
+                _kill(proc)
+                raise _Gone(f"did not finish within {timeout_s:g} s (TrialConfig.perception_timeout_s)")
         try:
             return conn.recv()
         except (EOFError, OSError):
@@ -151,6 +162,12 @@ class _Gone(Exception):
 
 
 def _kill(proc: Any) -> None:
+    """End the child ``proc`` and its process group (what the plug-in forked)."""
+    if proc.pid is not None:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except OSError:  # the group is gone (or not made yet)
+            pass
     if proc.is_alive():
         proc.kill()
     proc.join(5)

@@ -58,6 +58,7 @@ FACTORIES: dict[str, Callable[[str | None, str], Provider]] = {
     "model": _model,
     "depth-icp": _depth_icp,
     "bop-csv": _bop_csv,
+    "ppf": lambda args, objects: importlib.import_module("posegrasp.grasping.ppf_provider").from_spec(args, objects),
 }
 
 
@@ -93,7 +94,7 @@ def make_provider(spec: str, objects: str = "", timeout_s: float | None = None) 
 
 def canonical_spec(spec: str) -> str:
     """``spec`` with a ``py:`` plug-in file's path made absolute, so that workers and later runs find it."""
-    for name in ("bop-csv:", "depth-icp:"):  # the results or settings file's path absolute too
+    for name in ("bop-csv:", "depth-icp:", "ppf:"):  # the results or settings file's path absolute too
         if spec.startswith(name) and spec[len(name):]:
             return name + str(Path(spec[len(name):]).expanduser().resolve())
     if not spec.startswith("py:"):

@@ -15,14 +15,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Iterable
 
+from posegrasp import inputs
 from posegrasp.catalog import set_record
 from posegrasp.config import from_dict
 from posegrasp.errors import DatasetError, UserError
 from posegrasp.grasping.config import TrialConfig, config_record
 from posegrasp.grasping.record import EpisodeRecord
 from posegrasp.io import atomic_write, dumps_json, write_json
+from posegrasp.outputs import Record
 
 EPISODES, TIMINGS, SUMMARY, CAMPAIGN = "episodes.jsonl", "timings.jsonl", "summary.json", "campaign.json"
+#: What marks a campaign's folder (``posegrasp.outputs``): its campaign record, or its episode records.
+RECORDS = (Record(CAMPAIGN, ("seed", "perception")), Record(EPISODES, ("episode",)))
 
 
 def _line(rec: dict) -> str:
@@ -50,23 +54,23 @@ def read_episodes(path: Path) -> dict[int, tuple[dict, EpisodeRecord]]:
 def _numbered(path: Path) -> dict[int, tuple[int, dict]]:
     """``read_records`` with each record's line number (from 1)."""
     out: dict[int, tuple[int, dict]] = {}
-    if not path.exists():
+    if not os.path.lexists(path):
         return out
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"cannot read {path}: {getattr(e, 'strerror', None) or 'not UTF-8 text'}") from None
+    lines = inputs.read_text(path, "jsonl", DatasetError).splitlines(keepends=True)
     for n, line in enumerate(lines, start=1):
         if not line.endswith("\n"):
             break  # torn last line of a killed run
         try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
+            rec = inputs.parse_json(line, f"{path} line {n}", DatasetError)
+        except DatasetError:
             rec = None
         episode = rec.get("episode") if isinstance(rec, dict) else None
         if not isinstance(episode, int) or isinstance(episode, bool) or episode < 0:
             raise DatasetError(f"{path} line {n} is not an episode record (a JSON object with an integer "
                                f"\"episode\"); the file is corrupt: rerun the trials into a new --out")
+        if episode in out:
+            raise DatasetError(f"{path} line {n} repeats episode {episode} of line {out[episode][0]}; the file is "
+                               "corrupt: rerun the trials into a new --out")
         out[episode] = n, rec
     return out
 
@@ -134,12 +138,13 @@ def _number(v: object) -> float:
 
 def read_json_object(path: Path) -> dict:
     """The JSON object in ``path``, or a DatasetError naming the file."""
+    if not os.path.lexists(path):
+        raise DatasetError(f"{path} is missing: give a folder written by 'posegrasp trials --out'")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DatasetError(f"{path} is missing: give a folder written by 'posegrasp trials --out'") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DatasetError(f"{path} is not readable JSON ({e}); rerun the trials into a new --out") from None
+        data = inputs.read_json(path, DatasetError)
+    except DatasetError as e:
+        raise DatasetError(f"{path} is not readable JSON ({inputs.reason(e, path)}); rerun the trials into a new "
+                           "--out") from None
     if not isinstance(data, dict):
         raise DatasetError(f"{path} is not a JSON object; rerun the trials into a new --out")
     return data

@@ -29,12 +29,13 @@ from posegrasp.grasping.episode import EpisodeJob, check_draws, run_episode
 from posegrasp.grasping.latency import campaign_latency
 from posegrasp.grasping.provider_registry import canonical_spec, make_provider
 from posegrasp.grasping.report import write_report
-from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, SUMMARY, TIMINGS, Campaign, append_record,
+from posegrasp.grasping.runfolder import (CAMPAIGN, EPISODES, RECORDS, SUMMARY, TIMINGS, Campaign, append_record,
                                           check_campaign, read_episodes, read_records, write_records)
 from posegrasp.grasping.stats import rate_row, summarise
 from posegrasp.grasping.tasks import check_task, get_task, with_set
 from posegrasp.io import write_bytes, write_json
 from posegrasp.lock import folder_lock
+from posegrasp.outputs import Record
 from posegrasp.progress import progress as progress_bar
 
 #: Noise levels (translation m, rotation deg) of ``--sweep-noise``, by ``--noise``.
@@ -77,7 +78,7 @@ def run_trials(out: Path, episodes: int, seed: int, perception: str, workers: in
     console, progress = display.console or Console(stderr=True), display.progress
     # Ray connects in make_executor, before anything is written; the pool's workers stay for the report's frames
     out = Path(out).absolute()  # a provider changing the working directory cannot move the run's files
-    with folder_lock(out, owns=(CAMPAIGN, EPISODES)), open_export(export, seed, cfg) as captures, \
+    with folder_lock(out, owns=RECORDS), open_export(export, seed, cfg) as captures, \
             make_executor(workers) as executor:
         done = read_records(out / EPISODES)
         check_kept(out, done, episodes)
@@ -148,7 +149,9 @@ def sweep_noise(out: Path, episodes: int, seed: int, workers: int | str | None, 
     """Noisy-oracle campaigns at increasing noise (same seeds) for ``cfg.task``; writes ``sweep.json`` and
     ``sweep.png``."""
     console = console or Console(stderr=True)
-    with folder_lock(out, owns=("sweep.json", "noise_*")):  # the sweep's files; each campaign locks its subfolder
+    # the sweep's files (each campaign locks its subfolder)
+    with folder_lock(out, owns=(Record("sweep.json", ("trans_m", "rot_deg")), Record(f"noise_*/{CAMPAIGN}",
+                                                                                      RECORDS[0].keys))):
         rows = []
         for t, r in levels:
             spec, run_dir = f"noisy-oracle:{t:g},{r:g}", out / f"noise_{t:g}m_{r:g}deg"

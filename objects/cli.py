@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
-from posegrasp.arguments import number, out_dir, out_file, workers_arg
+from posegrasp.arguments import in_dir, number, out_dir, out_file, workers_arg
 
 #: The settings its commands read, for the settings page (``posegrasp.settings_doc``).
 SETTINGS = (
@@ -30,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                             "0.1 with --unit m for a mesh in decimetres)")
     imp.add_argument("--density", type=number("--density", 1.0, 25000.0), default=None,
                      help="density in kg/m^3 (default 1050, ABS plastic)")
+    imp.add_argument("--mesh-root", type=in_dir("--mesh-root"), default=None, metavar="DIR",
+                     help="the folder a URDF's meshes are found under, package://NAME/ paths included, never outside "
+                          "it (default: the URDF's folder and the one above)")
     imp.add_argument("--name", nargs="+", default=None, metavar="NAME", help="one name per mesh (default: file names)")
     imp.add_argument("--config", default=None,
                      help="import settings TOML: an [import] table of objects.config.ImportConfig's fields")
@@ -40,6 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     show = cmds.add_parser("show", help="draw each object of a set with its collision pieces and symmetry axes")
     show.add_argument("set", metavar="SET", help="object set folder")
     show.add_argument("--out", required=True, type=out_file("--out", (".png",)), help="PNG file to write")
+    show.add_argument("--force", action="store_true", help="replace --out even if this command did not write it")
     show.set_defaults(run=run_show)
 
 
@@ -52,8 +57,10 @@ def run_import(args: argparse.Namespace) -> int:
     from posegrasp.objset import check_writable_set, write_object_set
     from posegrasp.progress import progress
 
-    cfg = override(load_import_config(args.config), density=args.density)
+    cfg = override(load_import_config(args.config), density=args.density,
+                   mesh_root=None if args.mesh_root is None else str(args.mesh_root))
     check_writable_set(args.out)
+    replacing = (args.out / "objectset.json").is_file()
     srcs = sources(args.meshes, args.unit, args.name, args.scale)
     reports: dict[int, list[str]] = {}
 
@@ -77,15 +84,19 @@ def run_import(args: argparse.Namespace) -> int:
         task = bar.add_task("import", total=len(srcs))
         objects = import_objects(srcs, cfg, report, args.workers)
     write_object_set(args.out, objects, cfg.firm_hold_tasks)
+    if replacing:
+        print(f"posegrasp: note: replaced the object set that was in {args.out}", file=sys.stderr)
     print("\n".join(ln for i in sorted(reports) for ln in reports[i]))
     print(f"wrote object set {args.out} ({len(objects)} objects)")
     return 0
 
 
 def run_show(args: argparse.Namespace) -> int:
-    from posegrasp.objset import load_object_set
     from posegrasp.objects.show import draw_set
+    from posegrasp.objset import load_object_set
+    from posegrasp.outputs import check_out_file
 
+    check_out_file(args.out, "objects show", force=args.force, sealed=[args.set])
     draw_set(load_object_set(args.set), args.out)
     print(f"wrote {args.out}")
     return 0

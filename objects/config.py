@@ -7,13 +7,12 @@ Lengths are relative where the name says ``_rel`` (a fraction of the object's di
 from __future__ import annotations
 
 import sys
-import tomllib
 from dataclasses import field
 from pathlib import Path
 
 import numpy as np
 
-from posegrasp.config import load_toml, settings, within
+from posegrasp.config import load_toml, read_toml, settings, within
 from posegrasp.errors import ConfigError
 
 #: The TOML table of the import settings.
@@ -54,6 +53,9 @@ class ImportConfig:
     density: float = field(default=1050.0, metadata=within(1.0, 25000.0))
     #: MuJoCo friction: sliding, torsional, rolling.
     friction: tuple[float, float, float] = (0.5, 0.005, 0.0001)
+    #: The folder a URDF's meshes are found under, never outside it (``package://NAME/`` paths in it or in its folder
+    #: ``NAME``); empty: the URDF's package, its folder and the one above (`--mesh-root`).
+    mesh_root: str = ""
     #: STEP tessellation: largest distance (m) between a triangle and the true surface it stands for.
     step_linear_tolerance: float = field(default=1e-4, metadata=within(1e-6, 0.01))
     #: STEP tessellation: largest angle (rad) between the normals of neighbouring triangles on a curved face.
@@ -100,10 +102,7 @@ def load_import_config(path: str | Path | None) -> ImportConfig:
     one, its top-level keys (with a one-line notice on stderr naming the table)."""
     if path is None:
         return ImportConfig()
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        data = {TABLE: {}}  # load_toml names the problem
+    data = read_toml(path)
     if isinstance(data.get(TABLE), dict) or not data:
         return load_toml(ImportConfig, path, TABLE, (TABLE,))
     cfg = load_toml(ImportConfig, path)

@@ -141,7 +141,8 @@ def import_object(src: Source, obj_id: int, cfg: ImportConfig) -> SetObject:
     """One object of a set from ``src``, with id ``obj_id``."""
     step = src.path.suffix.lower() in (".step", ".stp")  # in its own declared unit
     scale = src.scale * (1.0 if step else UNITS[src.unit])
-    part = read_part(src.path, scale, (cfg.step_linear_tolerance, cfg.step_angular_tolerance))
+    part = read_part(src.path, scale, (cfg.step_linear_tolerance, cfg.step_angular_tolerance),
+                     Path(cfg.mesh_root) if cfg.mesh_root else None)
     solid = centred(part.mesh, scale, str(src.path), "m" if step else src.unit, cfg.max_hole_fraction,
                     (cfg.min_size, cfg.max_size), cfg.remesh_cells)
     mesh = solid.mesh

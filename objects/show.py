@@ -14,6 +14,7 @@ import numpy as np
 
 from posegrasp.geometry import make_T, quat_to_R
 from posegrasp.io import write_bytes
+from posegrasp.outputs import mark_image
 from posegrasp.objset import ObjectSet, SetObject
 
 
@@ -93,4 +94,4 @@ def draw_set(objset: ObjectSet, out: Path, cols: int = 4) -> Path:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
     plt.close(fig)
-    return write_bytes(out, buf.getvalue())
+    return write_bytes(out, mark_image(buf.getvalue(), "objects show"))

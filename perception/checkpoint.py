@@ -30,6 +30,7 @@ from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 from torch import nn
 
+from posegrasp import inputs
 from posegrasp import io as pio
 from posegrasp.config import from_dict
 from posegrasp.errors import UserError, WeightsError
@@ -152,10 +153,9 @@ def safetensors_bytes(tensors: dict[str, torch.Tensor], metadata: dict[str, str]
 
 
 def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise WeightsError(f"weights file {path} does not exist") from None
+    if not os.path.lexists(path):
+        raise WeightsError(f"weights file {path} does not exist")
+    data = inputs.read_bytes(path, "weights", WeightsError)
     try:
         tensors = st_load(data)
         n = int.from_bytes(data[:8], "little")
@@ -192,7 +192,7 @@ def _read_json(p: Path, missing: str) -> Any:
     from posegrasp.bop.schema import read_json
     from posegrasp.errors import DatasetError
 
-    if not p.exists():
+    if not os.path.lexists(p):
         raise WeightsError(missing)
     try:
         return read_json(p)

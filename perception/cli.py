@@ -21,6 +21,7 @@ from posegrasp.config import load_toml, override
 from posegrasp.errors import UserError, WeightsError
 
 if TYPE_CHECKING:
+    from posegrasp.perception.evaluate import EvalConfig
     from posegrasp.perception.training import StageTraining
 
 TRAIN_STAGES = ("seg", "pose", "refiner", "cls")  #: ``train``'s stages, each a table of a training TOML
@@ -84,11 +85,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_train, resume_hint="run the same command with --resume to continue")
 
-    e = subparsers.add_parser("eval", help="evaluate a trained run on a BOP split",
+    e = subparsers.add_parser("eval", help="evaluate a trained run (or any perception provider) on a BOP split",
                               description="mPA/mIoU, ADD, ADD-S, AUC, accuracies, curves, BOP results CSV.")
     e.add_argument("--data", required=True, type=in_dir("--data"), help="BOP dataset root")
-    e.add_argument("--weights", required=True, type=in_dir("--weights"),
-                   help="run directory with seg/, pose/ [, refiner/, cls/]")
+    e.add_argument("--weights", type=in_dir("--weights"),
+                   help="run directory with seg/, pose/ [, refiner/, cls/] (or --perception SPEC)")
     e.add_argument("--split", help="split to evaluate (default: test)")
     e.add_argument("--out", type=out_dir(), help="report directory (default: WEIGHTS/eval_<split>)")
     e.add_argument("--config", type=Path, help="TOML file with an [eval] section")
@@ -150,25 +151,39 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_eval(args: argparse.Namespace) -> int:
-    """Handler of ``posegrasp eval``."""
-    from posegrasp.bop.check import require_valid
-    from posegrasp.perception.evaluate import EvalConfig, evaluate
+def eval_settings(args: argparse.Namespace) -> EvalConfig:
+    """``posegrasp eval``'s settings: the ``[eval]`` table of ``--config``, then the flags."""
+    from posegrasp.perception.evaluate import EvalConfig
 
     cfg = load_toml(EvalConfig, args.config, "eval", SECTIONS, renamed_sections=RENAMED)
-    cfg = override(cfg, split=args.split, max_images=args.max_images, min_mask_px=args.min_mask_px,
-                   threads=args.threads,
-                   masks="gt" if args.gt_masks else None, refiner_iterations=0 if args.no_refiner else None,
-                   classify=False if args.no_cls else None, depth_fit=False if args.no_depth_fit else None,
-                   plane=False if args.no_plane else None,
-                   guided=False if args.no_guided else None, split_merged=False if args.no_split else None)
-    out = args.out or out_dir("--weights")(str(args.weights / f"eval_{cfg.split}"))
-    require_valid(args.data, cfg.split, cfg.max_images or None, scoring=True, progress=not args.no_progress)
-    report = evaluate(args.data, args.weights, out, cfg, progress=not args.no_progress)
+    return override(cfg, split=args.split, max_images=args.max_images, min_mask_px=args.min_mask_px,
+                    threads=args.threads,
+                    masks="gt" if args.gt_masks else None, refiner_iterations=0 if args.no_refiner else None,
+                    classify=False if args.no_cls else None, depth_fit=False if args.no_depth_fit else None,
+                    plane=False if args.no_plane else None,
+                    guided=False if args.no_guided else None, split_merged=False if args.no_split else None)
+
+
+def print_eval_summary(out: Path, report: dict) -> None:
+    """``posegrasp eval``'s one line of JSON on stdout: the main scores of ``report``, written into ``out``."""
     summary = {"out": str(out), "segmentation": (report["segmentation"] or {}).get("mIoU"),
                **{k: report["overall"][k] for k in ("ADD-S_AUC", "ADD_AUC", "ADD(-S)_acc_0.1d")},
                "bop19": report["bop19"], "time_per_image_s": report["time_per_image_s"]}
     print(json.dumps(summary))
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    """Handler of ``posegrasp eval --weights RUN`` (``--perception SPEC``: ``grasping.provider_eval``)."""
+    from posegrasp.bop.check import require_valid
+    from posegrasp.perception.evaluate import evaluate
+
+    if args.weights is None:
+        raise UserError("eval needs --weights RUN (a trained run) or --perception SPEC (a perception provider)")
+    cfg = eval_settings(args)
+    out = args.out or out_dir("--weights")(str(args.weights / f"eval_{cfg.split}"))
+    require_valid(args.data, cfg.split, cfg.max_images or None, scoring=True, progress=not args.no_progress)
+    report = evaluate(args.data, args.weights, out, cfg, progress=not args.no_progress)
+    print_eval_summary(out, report)
     return 0
 
 

@@ -24,7 +24,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -35,6 +35,7 @@ from posegrasp import io as pio
 from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.lock import folder_lock
+from posegrasp.outputs import Record
 from posegrasp.perception import bop19 as B
 from posegrasp.perception import metrics as M
 from posegrasp.perception.data import label_map, load_records
@@ -180,15 +181,15 @@ def _csv_bytes(rows: list[dict[str, Any]], columns: list[str]) -> bytes:
     return buf.getvalue().encode()
 
 
-#: What ``evaluate`` writes into its folder (glob patterns): a folder holding none of it is not an eval's.
-EVAL_FILES = ("metrics.json", "per_object.csv", "instances.csv", "curves.png", "scores_bop19.json", "*_*-*.csv")
+#: The record that makes a folder an eval's (of the network or of any method): ``eval`` writes only into its own.
+EVAL_RECORD = (Record("metrics.json", ("data", "split", "bop19")),)
 
 
 def evaluate(data: str | Path, weights: str | Path, out: str | Path, cfg: EvalConfig | None = None,
              progress: bool = True) -> dict[str, Any]:
     """Evaluate the run ``weights`` on split ``cfg.split`` of BOP dataset ``data``; write reports in
     ``out`` (locked meanwhile: ``posegrasp.lock``); return the metrics dict (also in ``out/metrics.json``)."""
-    with folder_lock(out, owns=EVAL_FILES):
+    with folder_lock(out, owns=EVAL_RECORD):
         return _evaluate(Path(data), weights, Path(out), cfg, progress)
 
 
@@ -204,30 +205,46 @@ class _Tally:
     groups: list[B.ObjectErrors] = field(default_factory=list)
 
 
-def _tally(est: Estimator, data: Path, records: list[bop.ImageRecord], infos: dict[int, bop.ObjectInfo],
+#: What a method makes of one frame: its detections (each with ``obj_id``, ``T_cam_obj`` 4x4 in metres, camera frame,
+#: and ``score``), the seconds of its stages and its class map (H, W) for the segmentation scores (None: it has none).
+FrameResult = tuple[list[Any], dict[str, float], "np.ndarray | None"]
+#: A pose estimation method as eval runs it: (record, rgb (H, W, 3) uint8, depth (H, W) m, K (3, 3), the
+#: ground-truth masks [(obj_id, mask)] with ``masks = "gt"``, else []) -> ``FrameResult``.
+FrameMethod = Callable[[bop.ImageRecord, np.ndarray, np.ndarray, np.ndarray, list], FrameResult]
+
+
+@dataclass(frozen=True)
+class Method:
+    """What ``evaluate_method`` scores: the per-frame ``run``, the objects it knows, its stages' names (the keys of
+    ``time_per_image_s`` besides ``total``), its segmentation classes (0: no class map) and the report's first keys
+    (what was evaluated)."""
+
+    run: FrameMethod
+    obj_ids: list[int]
+    stages: tuple[str, ...] = ()
+    num_classes: int = 0
+    head: dict[str, Any] = field(default_factory=dict)
+
+
+def _tally(method: Method, data: Path, records: list[bop.ImageRecord], infos: dict[int, bop.ObjectInfo],
            obj_ids: list[int], cfg: EvalConfig, progress: bool) -> _Tally:
-    """Run ``est`` on every image of ``records`` and score its detections of the objects ``obj_ids``."""
+    """Run ``method`` on every image of ``records`` and score its detections of the objects ``obj_ids``."""
     from posegrasp.progress import track
 
     pts = {o: bop_models.sample_model_points(bop_models.load_model(data, o), cfg.model_points, seed=o) for o in obj_ids}
     bop19, targets = _bop19_setup(data, cfg.split, records, infos)
-    nc = est.seg_cfg.num_classes
-    tally = _Tally(np.zeros((nc, nc), dtype=np.int64), {k: [] for k in (*STAGES, "total")})
+    nc = method.num_classes
+    tally = _Tally(np.zeros((nc, nc), dtype=np.int64), {k: [] for k in (*method.stages, "total")})
     for rec in track(records, f"eval {cfg.split}", enabled=progress):
         rgb, depth, K = rec.load_rgb(), rec.load_depth(), rec.camera.K
         gts = [g for g in rec.instances if g.obj_id in obj_ids
                and (g.info is None or g.info.visib_fract >= cfg.min_visib_fract)]
         gt_masks = [(g.obj_id, rec.load_mask(g.gt_index)) for g in gts] if cfg.masks == "gt" else []
         t0 = time.perf_counter()
-        if cfg.masks == "pred":
-            res = est(rgb, depth, K)
-            dets, timings = [d for d in res.detections if _kept(d, cfg.min_mask_px)], res.timings
-        else:  # no segmentation, classifier, split or guided stage with ground-truth masks
-            dets, stages = est.estimate(rgb, depth, K, gt_masks)
-            timings = {**dict.fromkeys(STAGES, 0.0), **stages}
+        dets, timings, labels = method.run(rec, rgb, depth, K, gt_masks)
         total = time.perf_counter() - t0
-        if cfg.masks == "pred":
-            tally.conf += M.confusion_matrix(res.labels, label_map(rec, rgb.shape[:2]), nc)
+        if labels is not None:
+            tally.conf += M.confusion_matrix(labels, label_map(rec, rgb.shape[:2]), nc)
         for k, v in timings.items():
             tally.times[k].append(v)
         tally.times["total"].append(total)
@@ -240,28 +257,56 @@ def _tally(est: Estimator, data: Path, records: list[bop.ImageRecord], infos: di
     return tally
 
 
+def _estimator_method(weights: str | Path, data: Path, cfg: EvalConfig) -> Method:
+    """The network of the run ``weights`` as eval runs it (``cfg``: masks, ablations, ``min_mask_px``)."""
+    est = Estimator(weights, cfg.estimator(data))
+
+    def run(rec: bop.ImageRecord, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, gt_masks: list) -> FrameResult:
+        if cfg.masks == "pred":
+            res = est(rgb, depth, K)
+            return [d for d in res.detections if _kept(d, cfg.min_mask_px)], res.timings, res.labels
+        # no segmentation, classifier, split or guided stage with ground-truth masks
+        dets, stages = est.estimate(rgb, depth, K, gt_masks)
+        return dets, {**dict.fromkeys(STAGES, 0.0), **stages}, None
+
+    pose_cfg = est.pose_cfg
+    head = {"weights": str(weights),
+            "ablation": {"pam": pose_cfg.use_pam, "cam": pose_cfg.use_cam, "gfem": pose_cfg.use_gfem,
+                         "refiner_iterations": est.refiner_iterations, "masks": cfg.masks,
+                         "classifier": est.classifier is not None and cfg.masks == "pred", "depth_fit": cfg.depth_fit,
+                         "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.depth_fit}}
+    return Method(run, list(est.obj_ids), STAGES, est.seg_cfg.num_classes, head)
+
+
 def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None, progress: bool) -> dict[str, Any]:
     cfg = cfg or EvalConfig()
-    data, out = Path(data), Path(out)
-    est = Estimator(weights, cfg.estimator(data))
+    return _score(Path(data), _estimator_method(weights, Path(data), cfg), Path(out), cfg, progress)
+
+
+def evaluate_method(data: str | Path, method: Method, out: str | Path, cfg: EvalConfig | None = None,
+                    progress: bool = True) -> dict[str, Any]:
+    """``evaluate`` of any pose estimation ``method`` (``grasping.provider_eval`` scores a ``--perception``
+    provider with it): the same metrics, tables and results CSV in ``out`` (locked meanwhile)."""
+    with folder_lock(out, owns=EVAL_RECORD):
+        return _score(Path(data), method, Path(out), cfg or EvalConfig(), progress)
+
+
+def _score(data: Path, method: Method, out: Path, cfg: EvalConfig, progress: bool) -> dict[str, Any]:
+    """Run ``method`` on the split, score it and write the reports (module doc) into ``out``."""
     infos = bop.load_models_info(data)
-    obj_ids = [o for o in est.obj_ids if o in infos]
+    obj_ids = [o for o in method.obj_ids if o in infos]
     records = load_records(data, cfg.split)
     if cfg.max_images:
         records = records[:cfg.max_images]
-    tally = _tally(est, data, records, infos, obj_ids, cfg, progress)
-    rows, nc = tally.rows, est.seg_cfg.num_classes
+    tally = _tally(method, data, records, infos, obj_ids, cfg, progress)
+    rows, nc = tally.rows, method.num_classes
 
     per_object = {o: _summary([r for r in rows if r["obj_id"] == o], infos[o].diameter) for o in obj_ids}
     overall = _summary(rows, None)
-    pose_cfg = est.pose_cfg
+    head = dict(method.head)
     report: dict[str, Any] = {
-        "data": str(data), "split": cfg.split, "weights": str(weights), "images": len(records),
-        "config": asdict(cfg),
-        "ablation": {"pam": pose_cfg.use_pam, "cam": pose_cfg.use_cam, "gfem": pose_cfg.use_gfem,
-                     "refiner_iterations": est.refiner_iterations, "masks": cfg.masks,
-                     "classifier": est.classifier is not None and cfg.masks == "pred", "depth_fit": cfg.depth_fit,
-                     "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.depth_fit},
+        "data": str(data), "split": cfg.split, **{k: head.pop(k) for k in ("weights", "perception") if k in head},
+        "images": len(records), "config": asdict(cfg), **head,
         "segmentation": None,
         "overall": overall,
         "mean_over_objects": {k: _nanmean([per_object[o][k] for o in obj_ids if per_object[o]["n"]])
@@ -269,7 +314,7 @@ def _evaluate(data: Path, weights: str | Path, out: Path, cfg: EvalConfig | None
         "per_object": {str(o): per_object[o] for o in obj_ids},
         "time_per_image_s": {k: float(np.mean(v)) if v else 0.0 for k, v in tally.times.items()},
     }
-    if cfg.masks == "pred":
+    if nc and cfg.masks == "pred":
         s = M.segmentation_scores(tally.conf)
         report["segmentation"] = {"mPA": s["mPA"], "mIoU": s["mIoU"],
                                   "per_class": {str(c): {"PA": _f(s["pa"][c]), "IoU": _f(s["iou"][c])}

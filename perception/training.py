@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import math
+import os
 import signal
 import threading
 import time
@@ -26,12 +28,16 @@ from typing import Any, Callable, ClassVar, Iterator
 import numpy as np
 import torch
 
-from posegrasp import bop
+from posegrasp import bop, inputs
 from posegrasp import io as pio
 from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError, UserError, WeightsError
 from posegrasp.lock import folder_lock
+from posegrasp.outputs import Record
 from posegrasp.perception import checkpoint as ckpt_mod
+
+#: What marks a training run's folder (``posegrasp.outputs``): a stage's checkpoint settings or metrics log.
+RUN_RECORDS = (Record("*/config.json", ("format", "stage", "model")), Record("*_metrics.csv", head=b"step,"))
 
 
 @settings
@@ -119,15 +125,15 @@ class MetricsLog:
     def __init__(self, path: Path, columns: list[str], resume_step: int | None):
         self.path, self.columns = path, columns
         rows: list[dict[str, str]] = []
-        if resume_step is not None and path.exists():
+        if resume_step is not None and os.path.lexists(path):
+            raw = inputs.read_bytes(path, "csv")
             try:
-                with open(path, newline="", encoding="utf-8") as f:
-                    for r in csv.DictReader(f):
-                        try:
-                            if int(r["step"]) <= resume_step and None not in r.values():
-                                rows.append(r)
-                        except (KeyError, TypeError, ValueError):
-                            continue
+                for r in csv.DictReader(io.StringIO(raw.decode("utf-8"), newline="")):
+                    try:
+                        if int(r["step"]) <= resume_step and None not in r.values():
+                            rows.append(r)
+                    except (KeyError, TypeError, ValueError):
+                        continue
             except (UnicodeDecodeError, csv.Error) as e:
                 raise UserError(f"{path} is not a metrics CSV ({str(e).splitlines()[0][:80]}); move it away to "
                                 "resume") from None
@@ -228,7 +234,7 @@ class StageTraining(ABC):
         if cls.needs and not ckpt_mod.exists(run.out / cls.needs):
             raise WeightsError(f"{run.out / cls.needs} holds no {cls.needs} net: run 'train {cls.needs}' with --out "
                                f"{run.out} first")
-        with folder_lock(run.out):  # one process writes a run folder at a time
+        with folder_lock(run.out, owns=RUN_RECORDS):  # one process writes a run folder at a time
             prior = run.prepare()
             t = cls(data, run, resumed_cfg(cls.config, prior, cfg or cls.config(), {"steps": steps, "seed": seed}))
             torch.set_num_threads(max(1, int(t.cfg.threads)))

@@ -7,12 +7,13 @@ the handler it sets with ``set_defaults(run=...)`` receives the parsed arguments
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import sys
 
 from posegrasp.arguments import positive_int, workers_arg  # noqa: F401  (option types, re-exported)
-from posegrasp.errors import NoSpaceError, UserError
+from posegrasp.errors import NoSpaceError, SimulationError, UserError
 from posegrasp.io import is_no_space
 
 #: Exit status of a full disk (``EX_IOERR`` of sysexits.h); bad input exits 2, Ctrl-C 130.
@@ -26,6 +27,7 @@ COMMAND_MODULES = {
     "posegrasp.datagen.cli": ("datagen",),
     "posegrasp.bop.cli": ("dataset",),
     "posegrasp.perception.cli": ("train", "eval", "perturb"),
+    "posegrasp.grasping.provider_eval": ("eval",),  # eval --perception SPEC: providers live in grasping
     "posegrasp.grasping.cli": ("trials", "calibrate"),
     "posegrasp.grasping.compare": ("compare",),
     "posegrasp.grasping.report": ("report",),
@@ -62,7 +64,14 @@ def main(argv: list[str] | None = None) -> int:
     except NoSpaceError as e:
         print(f"posegrasp: error: {e}", file=sys.stderr)
         return EXIT_NO_SPACE
+    except SimulationError as e:  # a scene that never settles, physics the settings make unstable
+        print(f"posegrasp: error: {str(e).splitlines()[0] if str(e) else type(e).__name__}; check the settings",
+              file=sys.stderr)
+        return 2
     except OSError as e:  # a full disk met outside the writers that name their folder
+        if e.errno == errno.ENAMETOOLONG:
+            print(f"posegrasp: error: {str(e.filename)[:80]}...: the path is too long to name a file", file=sys.stderr)
+            return 2
         if not is_no_space(e):
             raise
         print(f"posegrasp: error: {NoSpaceError(_written_folder(e, args))}", file=sys.stderr)

@@ -7,12 +7,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import tomllib
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
+from posegrasp import inputs
 from posegrasp.errors import ConfigError
 
 C = TypeVar("C")
@@ -119,19 +121,7 @@ def load_toml(cls: type[C], path: str | Path | None, section: str | None = None,
     them perhaps under an old name (``renamed_sections``: old -> new)."""
     if path is None:
         return cls()
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"config file {path} does not exist")
-    if not path.is_file():
-        raise ConfigError(f"config file {path} is not a file; name a TOML file")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise ConfigError(f"cannot read config file {path}: {e.strerror}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"config file {path} is not UTF-8 text; save it as a UTF-8 TOML file") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+    data = read_toml(path)
     data = renamed(data, renamed_sections or {}, str(path))
     unknown = sorted(set(data) - set(sections)) if sections else []
     if unknown:
@@ -139,6 +129,21 @@ def load_toml(cls: type[C], path: str | Path | None, section: str | None = None,
     if section is not None:
         data = data.get(section, {})
     return from_dict(cls, data, where=str(path))
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """The TOML document of the settings file ``path`` (a bounded regular file: ``posegrasp.inputs``), or a
+    one-line ConfigError naming it."""
+    path = Path(path)
+    if not os.path.lexists(path):
+        raise ConfigError(f"config file {path} does not exist")
+    raw = inputs.read_bytes(path, "toml", ConfigError)
+    try:
+        return inputs.parse_toml(raw.decode("utf-8"), f"config file {path}", ConfigError)
+    except UnicodeDecodeError:
+        raise ConfigError(f"config file {path} is not UTF-8 text; save it as a UTF-8 TOML file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
 
 
 def override(cfg: C, **changes: Any) -> C:

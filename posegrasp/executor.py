@@ -58,15 +58,15 @@ class SerialExecutor(_NothingToKeep):
             yield i, fn(item)
 
 
-def die_with_parent(parent: int) -> None:
-    """Pool worker initializer: SIGINT ignored (the parent handles Ctrl-C), and the kernel sends this process SIGKILL
+def die_with_parent(parent: int, sig: signal.Signals = signal.SIGKILL) -> None:
+    """Pool worker initializer: SIGINT ignored (the parent handles Ctrl-C), and the kernel sends this process ``sig``
     when ``parent`` dies (Linux ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing is set); a parent already gone ends it
     at once."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if not sys.platform.startswith("linux"):
         return
     libc = ctypes.CDLL(None, use_errno=True)
-    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+    if libc.prctl(PR_SET_PDEATHSIG, sig, 0, 0, 0) != 0:
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
     if os.getppid() != parent:  # the parent died before the prctl call
         os._exit(1)

@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from posegrasp.errors import NoSpaceError
+from posegrasp.errors import NoSpaceError, UserError
 
 #: ``errno`` values of a full disk: no space left on the device, or the user's disk quota exceeded.
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
@@ -46,6 +46,8 @@ def atomic_write(path: str | Path, write: Callable[[Path], None], fsync: bool = 
     new one); without it, a killed process still never leaves a partial file.
     """
     path = Path(path)
+    if path.is_dir() and not path.is_symlink():
+        raise UserError(f"{path} is a folder where a file is written; move it away")
     with writing_into(path.parent):
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -110,25 +112,26 @@ def encode_image(ext: str, image: np.ndarray, params: list[int] | tuple[int, ...
     return buf.tobytes()
 
 
-def write_image(path: str | Path, image: np.ndarray, jpg_quality: int = 95) -> Path:
+def write_image(path: str | Path, image: np.ndarray, jpg_quality: int = 95, mark: str = "") -> Path:
     """Atomically write an image: JPEG for a ``.jpg`` / ``.jpeg`` path (RGB uint8), else PNG (RGB or single-channel
-    uint8, or uint16 depth) at zlib level 1, deterministically."""
+    uint8, or uint16 depth) at zlib level 1, deterministically; ``mark``: marked as written by that command
+    (``posegrasp.outputs.mark_image``)."""
     import cv2
+
+    from posegrasp.outputs import mark_image
 
     if Path(path).suffix.lower() in (".jpg", ".jpeg"):
         data = encode_image(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpg_quality])
     else:
         data = encode_image(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    return write_bytes(path, data)
+    return write_bytes(path, mark_image(data, mark) if mark else data)
 
 
 def read_image(path: str | Path) -> np.ndarray:
     """Read a PNG/JPEG as stored (RGB for colour, uint16 kept for depth)."""
-    import cv2
+    from posegrasp import inputs
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise OSError(f"cannot read image {path}: missing or corrupt")
+    img = inputs.decode_image(inputs.read_bytes(path, "image"), f"image {path}")
     if img.ndim == 3:
         img = img[..., :3][..., ::-1].copy()
     return img

@@ -5,19 +5,24 @@ writes the holder's PID into the file. The kernel releases a flock when its hold
 lock left by a killed run is simply taken over (the PID then only tells who held it). A second process gets a
 one-line ``UserError`` naming the holder. On release the file is removed, so a finished folder holds only its
 results; a lock file found replaced after ``flock`` (removed by a holder releasing meanwhile) is opened again.
-Folders the lock created and nothing was written into are removed on release. ``owns`` names the files a command
-writes (glob patterns); a folder that holds something but none of them is someone else's and is refused.
+Folders the lock created and nothing was written into are removed on release. ``owns`` are the command's records
+(``posegrasp.outputs.Record``); a folder that holds something but none of them is someone else's and is refused.
+The lock file is opened without following a link, and only if it is a regular file.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
+import stat
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
 from posegrasp.errors import UserError
+from posegrasp.inputs import what_is
+from posegrasp.outputs import Record, check_own_folder
 
 LOCK_FILE = ".posegrasp.lock"
 
@@ -33,7 +38,11 @@ def _holder(path: Path) -> str:
 def _open_locked(path: Path) -> int:
     """A descriptor of ``path`` holding its exclusive flock (retried while the file is being replaced)."""
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o644)
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            os.close(fd)
+            raise UserError(f"{path} is {what_is(mode)}, not a lock file; remove it or choose another --out")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -58,29 +67,16 @@ def _created(folder: Path) -> list[Path]:
     return made
 
 
-def _holds_a_file(p: Path) -> bool:
-    """Is ``p`` a file, or a folder with a file somewhere inside?"""
-    return not p.is_dir() or any(not q.is_dir() for q in p.rglob("*"))
-
-
-def check_owned(folder: Path, owns: tuple[str, ...]) -> None:
-    """A one-line UserError if ``folder`` holds a file (besides a lock file; empty folders do not count) but
-    nothing matching the glob patterns ``owns`` (the files the command writing it leaves): a folder it did not
-    create."""
-    entries = sorted(p.name for p in folder.iterdir() if p.name != LOCK_FILE and _holds_a_file(p)) \
-        if folder.is_dir() else []
-    if entries and not any(next(folder.glob(pattern), None) is not None for pattern in owns):
-        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
-        raise UserError(f"{folder} is not empty ({shown}) and was not written by this command (it has none of "
-                        f"{', '.join(owns)}); choose a new or empty --out")
+def check_owned(folder: Path, owns: tuple[Record | str, ...]) -> None:
+    """``posegrasp.outputs.check_own_folder`` of ``folder``, its lock file aside."""
+    check_own_folder(folder, owns, ignore=(LOCK_FILE,))
 
 
 @contextmanager
-def folder_lock(folder: str | Path, owns: tuple[str, ...] = ()) -> Iterator[Path]:
+def folder_lock(folder: str | Path, owns: tuple[Record | str, ...] = ()) -> Iterator[Path]:
     """Create ``folder`` if needed and hold its exclusive lock inside the block; yields the folder. Folders it
-    created and that stay empty (a run that failed before writing) are removed again. With ``owns`` (glob
-    patterns of the files the command writes), a non-empty folder holding none of them is refused
-    (``check_owned``)."""
+    created and that stay empty (a run that failed before writing) are removed again. With ``owns`` (the command's
+    records, ``posegrasp.outputs.Record``), a non-empty folder holding none of them is refused (``check_owned``)."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise UserError(f"{folder} is a file, not a folder; choose another --out")
@@ -91,7 +87,8 @@ def folder_lock(folder: str | Path, owns: tuple[str, ...] = ()) -> Iterator[Path
     except UserError:
         raise
     except OSError as e:
-        raise UserError(f"cannot lock output folder {folder}: {e.strerror}; choose another --out") from None
+        why = "its lock file is a link" if e.errno == errno.ELOOP else e.strerror
+        raise UserError(f"cannot lock output folder {folder}: {why}; choose another --out") from None
     path = folder / LOCK_FILE
     try:
         os.ftruncate(fd, 0)

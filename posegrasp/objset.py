@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from posegrasp import inputs
 from posegrasp.bop import load_models_info
 from posegrasp.bop.models import load_model
 from posegrasp.errors import DatasetError, UserError
@@ -244,13 +245,12 @@ def write_object_set(out: Path, objects: list[SetObject], firm_hold_tasks: tuple
 def _read(path: Path, what: str) -> dict[str, Any]:
     """The JSON object in the set's file ``path`` (UTF-8; a NaN is refused by the key's own check); a one-line
     DatasetError if not."""
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise DatasetError(f"object set file {path} is missing ({what}); re-import the set")
-    try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, binary data
-        raise DatasetError(f"object set file {path} is not valid JSON ({str(e).splitlines()[0]}); "
-                           "re-import the set") from None
+    d = inputs.read_json(path, DatasetError, finite=False)
+    bad = inputs.nonfinite(d)
+    if bad:
+        raise DatasetError(f"{path}: {bad[0]} = {json.dumps(bad[1])} is not a finite number; re-import the set")
     if not isinstance(d, dict):
         raise DatasetError(f"object set file {path}: expected a JSON object, got {type(d).__name__}; "
                            "re-import the set")
@@ -281,16 +281,26 @@ def _check_numbers(where: Path, key: str, value: Any, n: int, lo: float, hi: flo
                            "re-import the set")
 
 
+def _in_set(root: Path, rel: Any, where: Path | str) -> Path:
+    """The file ``rel`` (a path relative to the set folder ``root``, as the set's files name theirs); a DatasetError
+    naming ``where`` if it is not a relative path inside the set (absolute, climbing out, or through a link out)."""
+    path = root / str(rel)
+    top = root.resolve()
+    if not isinstance(rel, str) or Path(rel).is_absolute() or top not in path.resolve().parents:
+        raise DatasetError(f"{where}: {rel!r} is not a file inside the set folder {root}; re-import the set")
+    return path
+
+
 def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> SetObject:
     oid, name = int(entry["obj_id"]), str(entry["name"])
-    d = _read(root / entry["file"], f"object {name}")
-    where = root / entry["file"]
+    where = _in_set(root, entry["file"], root / MANIFEST)
+    d = _read(where, f"object {name}")
     if d.get("obj_id") != oid or d.get("name") != name:
         raise DatasetError(f"{where} says obj_id {d.get('obj_id')} {d.get('name')!r}, the manifest {oid} {name!r}; "
                            "re-import the set")
     if oid not in info:
         raise DatasetError(f"{root / 'models/models_info.json'} has no entry for obj_id {oid}; re-import the set")
-    mesh = load_model(root / d["model"])
+    mesh = load_model(_in_set(root, d["model"], where))
     mi = info[oid]
     if np.abs(mesh.bounds[0] - mi.min_xyz).max() > 1e-5 or np.abs(mesh.extents - mi.size_xyz).max() > 1e-5:
         raise DatasetError(f"{root / d['model']} does not match its models_info.json entry (bounding box); "
@@ -304,12 +314,14 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
         raise DatasetError(f"{where}: needs at least one collision piece; re-import the set")
     surface = None
     if "surface" in d:
-        ply, tex = root / d["surface"]["mesh"], root / d["surface"]["texture"]
+        ply, tex = (_in_set(root, d["surface"][k], where) for k in ("mesh", "texture"))
         for f in (ply, tex):
-            if not f.is_file():
+            if not os.path.lexists(f):
                 raise DatasetError(f"object set file {f} is missing (the surface of {name}); re-import the set")
+        data = [inputs.read_bytes(f, kind, DatasetError) for f, kind in ((ply, "mesh"), (tex, "image"))]
+        inputs.check_image_header(data[1], str(tex), DatasetError)
         try:
-            surface = read_surface(ply.read_bytes(), tex.read_bytes())
+            surface = read_surface(*data)
         except Exception as e:  # PIL and numpy raise many types on damaged files
             raise DatasetError(f"{ply} or {tex.name} is damaged ({e}); re-import the set") from None
     up = d["upright"]
@@ -335,7 +347,7 @@ def load_object_set(root: str | Path) -> ObjectSet:
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"object set {root} does not exist (or is not a folder)")
-    if not (root / MANIFEST).is_file():
+    if not os.path.lexists(root / MANIFEST):
         raise _not_a_set(root)
     man = _read(root / MANIFEST, "the manifest")
     if man.get("format") != FORMAT or man.get("version") != VERSION or type(man.get("version")) is not int:

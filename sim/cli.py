@@ -12,6 +12,7 @@ from posegrasp.arguments import nonneg_int, out_dir, positive_int
 from posegrasp.config import check_range
 from posegrasp.errors import SimulationError, UserError
 from posegrasp.lock import folder_lock
+from posegrasp.outputs import Record
 from posegrasp.sim.config import CameraConfig
 
 #: The settings its commands read, for the settings page (``posegrasp.settings_doc``).
@@ -56,13 +57,15 @@ def run_scene(args: argparse.Namespace) -> int:
         wcfg = dataclasses.replace(wcfg, hand_camera=dataclasses.replace(wcfg.hand_camera, width=w, height=h))
     types = tuple(t.strip() for t in args.types.split(",") if t.strip())
     scene = make_scene(args.seed, args.blocks, SceneConfig(block_types=types, workcell=wcfg))
-    with folder_lock(args.out, owns=SCENE_FILES) as out:
+    with folder_lock(args.out, owns=(SCENE_RECORD,)) as out:
         _write_scene(args, scene, wcfg, out)
     return 0
 
 
 #: The files ``posegrasp scene`` writes: a non-empty --out holding none of them is someone else's folder.
 SCENE_FILES = ("rgb.png", "depth.png", "mask.png", "overview.png", "scene.json")
+#: What marks a folder ``posegrasp scene`` wrote (``posegrasp.outputs``).
+SCENE_RECORD = Record("scene.json", ("seed", "camera", "K", "blocks"))
 
 
 def _write_scene(args: argparse.Namespace, scene, wcfg, out: Path) -> None:
@@ -78,10 +81,6 @@ def _write_scene(args: argparse.Namespace, scene, wcfg, out: Path) -> None:
     hand = CameraRenderer(wc, HAND_CAMERA, c, wcfg.render)
     frame = hand.capture()
     over = CameraRenderer(wc, OVERVIEW_CAMERA, wcfg.overview_camera, wcfg.render)
-    write_image(out / "rgb.png", frame.rgb)
-    write_image(out / "depth.png", np.round(frame.depth * 1000.0).astype(np.uint16))
-    write_image(out / "mask.png", frame.mask.astype(np.uint8))
-    write_image(out / "overview.png", over.rgb())
     T_world_obj = wc.block_poses()
     write_json(out / "scene.json", {
         "seed": args.seed,
@@ -97,7 +96,11 @@ def _write_scene(args: argparse.Namespace, scene, wcfg, out: Path) -> None:
              "visible_px": int((frame.mask == k).sum())}
             for k, inst in enumerate(wc.blocks, start=1)
         ],
-    })
+    })  # first: the record that marks the folder as a scene's
+    write_image(out / "rgb.png", frame.rgb)
+    write_image(out / "depth.png", np.round(frame.depth * 1000.0).astype(np.uint16))
+    write_image(out / "mask.png", frame.mask.astype(np.uint8))
+    write_image(out / "overview.png", over.rgb())
     hand.close()
     over.close()
     print(f"scene seed {args.seed}: {len(wc.blocks)} blocks -> {out}")

@@ -43,9 +43,14 @@ class CameraConfig:
     #: Farthest valid depth (m); farther reads 0.
     far: float = field(default=2.0, metadata=within(0.01, 100.0))
     #: Camera position (m) in the gripper frame.
-    mount_pos: tuple[float, float, float] = (0.0, 0.065, -0.11)
+    mount_pos: tuple[float, float, float] = field(default=(0.0, 0.065, -0.11), metadata=within(-1.0, 1.0))
     #: Camera orientation in the gripper frame (deg), extrinsic x-y-z rotations.
-    mount_rpy_deg: tuple[float, float, float] = (12.0, 0.0, 0.0)
+    mount_rpy_deg: tuple[float, float, float] = field(default=(12.0, 0.0, 0.0), metadata=within(-360.0, 360.0))
+
+    def __post_init__(self) -> None:
+        if not self.near < self.far:
+            raise ConfigError(f"CameraConfig.near = {self.near!r} m is not nearer than far = {self.far!r} m: every "
+                              "depth would read 0; use near < far")
 
 
 @settings
@@ -63,9 +68,9 @@ class AreaConfig:
     """An axis-aligned rectangle on the table top: centre (x, y) and half sizes (m), world frame."""
 
     #: Centre (x, y) (m), world frame.
-    center: tuple[float, float] = (0.45, 0.0)
+    center: tuple[float, float] = field(default=(0.45, 0.0), metadata=within(-5.0, 5.0))
     #: Half sizes along x and y (m).
-    half_size: tuple[float, float] = (0.12, 0.15)
+    half_size: tuple[float, float] = field(default=(0.12, 0.15), metadata=within(0.005, 2.0))
 
 
 #: Ambient (atmospheric) pressure (kPa): no vacuum pulls harder than this below it.
@@ -137,9 +142,9 @@ class WorkcellConfig:
     """
 
     #: Table half sizes x, y, z (m).
-    table_half_size: tuple[float, float, float] = (0.55, 0.75, 0.02)
+    table_half_size: tuple[float, float, float] = field(default=(0.55, 0.75, 0.02), metadata=within(0.005, 5.0))
     #: Table centre (x, y) (m), world frame.
-    table_center: tuple[float, float] = (0.3, 0.0)
+    table_center: tuple[float, float] = field(default=(0.3, 0.0), metadata=within(-5.0, 5.0))
     #: Where scenes drop the blocks.
     pick_area: AreaConfig = field(default_factory=AreaConfig)
     #: The place pad.
@@ -149,17 +154,17 @@ class WorkcellConfig:
     #: The fixed camera of the overview pictures.
     overview_camera: CameraConfig = field(default_factory=lambda: CameraConfig(fovy_deg=45.0))
     #: Overview camera position (m), world frame.
-    overview_pos: tuple[float, float, float] = (1.45, -0.7, 1.05)
+    overview_pos: tuple[float, float, float] = field(default=(1.45, -0.7, 1.05), metadata=within(-20.0, 20.0))
     #: Point the overview camera looks at (m), world frame.
-    overview_target: tuple[float, float, float] = (0.25, 0.1, 0.2)
+    overview_target: tuple[float, float, float] = field(default=(0.25, 0.1, 0.2), metadata=within(-20.0, 20.0))
     #: Renderer settings.
     render: RenderConfig = field(default_factory=RenderConfig)
     #: Height (m) of the hand camera above the pick area at the look pose.
-    look_height: float = 0.38
+    look_height: float = field(default=0.38, metadata=within(0.05, 3.0))
     #: Arm joint angles (rad) at the start of a scene.
-    home_qpos: tuple[float, ...] = (-0.37, 3.34, 5.10, 2.65, 1.64, 2.28)
+    home_qpos: tuple[float, ...] = field(default=(-0.37, 3.34, 5.10, 2.65, 1.64, 2.28), metadata=within(-10.0, 10.0))
     #: Physics time step (s).
-    timestep: float = 0.002
+    timestep: float = field(default=0.002, metadata=within(0.0001, 0.01))
     #: Object set folder the scenes draw from (`--objects`); "" is the shipped blocks.
     objects: str = ""
     #: The Jaco2's hand (``--hand``): ``3-finger`` (KG-3: finger 1 facing fingers 2 and 3, 74 mm across the squeeze

@@ -642,9 +642,14 @@ class Zygote:
 
 
 def tree_hashes(root: Path) -> dict[str, str]:
-    """Each file under ``root`` (but the harness's own) by its relative path: a hash of its bytes."""
-    return {p.relative_to(root).as_posix(): hashlib.sha1(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file() and not p.name.startswith(".fuzz_")}
+    """Each regular file under ``root`` (but the harness's own) by its relative path: a hash of its bytes (of a file
+    over 64 MiB, a sparse one a case made: its size and modification time)."""
+    def sign(p: Path) -> str:
+        st = p.stat()
+        return f"{st.st_size}:{st.st_mtime_ns}" if st.st_size > 64 << 20 else hashlib.sha1(p.read_bytes()).hexdigest()
+
+    return {p.relative_to(root).as_posix(): sign(p) for p in sorted(root.rglob("*"))
+            if p.is_file() and not p.name.startswith(".fuzz_")}
 
 
 def _link_copy(base: Path, dest: Path) -> None:
@@ -707,8 +712,10 @@ class Fuzzer:
         for z in self.zygotes:
             z.close()
 
-    def run_cases(self, cases: list[Case], keep_failures: bool = False,
-                  progress: Callable[[Verdict], None] | None = None) -> list[Verdict]:
+    def run_cases(self, cases: list, keep_failures: bool = False, progress: Callable[[Verdict], None] | None = None,
+                  run: Callable | None = None) -> list[Verdict]:
+        """Run ``cases`` on the workers: ``run(case, zygote, keep)`` (default ``run_case``) gives each verdict."""
+        run = run or self.run_case
         free = list(self.zygotes)
         lock = threading.Lock()
 
@@ -716,7 +723,7 @@ class Fuzzer:
             with lock:
                 z = free.pop()
             try:
-                v = self.run_case(case, z, keep_failures)
+                v = run(case, z, keep_failures)
             finally:
                 with lock:
                     free.append(z)
@@ -811,7 +818,7 @@ def format_report(verdicts: list[Verdict]) -> str:
     counts = summarize(verdicts)
     lines = ["fuzz: " + ", ".join(f"{k} {counts.get(k, 0)}" for k in
                                   ("cases", "refused", "accepted", "traceback", "hang", "crash", "stderr",
-                                   "false-ok", "changed", "range", "harness"))]
+                                   "false-ok", "changed", "range", "slow", "harness"))]
     by_cmd: dict[str, int] = {}
     by_kind: dict[str, int] = {}
     for v in verdicts:

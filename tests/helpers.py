@@ -69,3 +69,17 @@ def build_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> 
             build(target)
             built.touch()
     return target
+
+
+def refused(capsys, argv: list[str], words: str, code: int = 2) -> str:
+    """Run ``posegrasp argv`` in this process (``posegrasp.cli.main``, as the entry point runs it): exit ``code``,
+    one stderr line holding ``words``, no traceback; the line."""
+    from posegrasp.cli import main
+
+    rc = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert rc == code, err
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert words in lines[0], lines[0]
+    return lines[0]

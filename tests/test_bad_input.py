@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from helpers import refused
 from posegrasp import ASSETS
 from posegrasp.cli import main
 from posegrasp.grasping.record import EpisodeRecord
@@ -24,17 +25,6 @@ def snapshot(root: Path) -> dict[str, bytes | None] | None:
     if not root.exists():
         return None
     return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
-
-
-def refused(capsys, argv: list[str], words: str, code: int = 2) -> str:
-    """Run ``posegrasp argv``: exit ``code``, one stderr line holding ``words``, no traceback; the line."""
-    rc = main([str(a) for a in argv])
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert rc == code, err
-    assert len(lines) == 1 and "Traceback" not in err, err
-    assert words in lines[0], lines[0]
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -235,7 +225,7 @@ def test_trials_refuse_a_corrupt_run_folder(capsys, tmp_path, lines, campaign, w
 
 @pytest.mark.parametrize("argv, words", [
     (["--perception", "sonar"], "unknown perception 'sonar'; choose one of: "),
-    (["--perception", "sonar"], "oracle, py:MODULE_OR_FILE:FACTORY[:ARGS]; installed: "),
+    (["--perception", "sonar"], "oracle, ppf, py:MODULE_OR_FILE:FACTORY[:ARGS]; installed: "),
     (["--perception", "noisy-oracle:far"], "are not TRANS_M,ROT_DEG"),
     (["--perception", "model:/nonexistent"], "must hold seg/ and pose/"),
     (["--episodes", "0"], "--episodes must be a positive integer"),

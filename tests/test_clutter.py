@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_bad_input import refused, snapshot
+from helpers import refused
+from test_bad_input import snapshot
 
 from posegrasp import bop
 from posegrasp.bop import models as bop_models

@@ -3,8 +3,10 @@ and settings file mutated, and every reading command run on the mutated copy: on
 traceback, no hang, no false OK, no score out of range, nothing already written changed.
 
 ``make test`` runs a fixed, seeded selection (``POSEGRASP_FUZZ_CASES``, default 26) covering every file kind and
-command; ``POSEGRASP_FUZZ=full`` runs 1000 cases (``POSEGRASP_FUZZ_CASES`` to change) on two workers and prints the
-counts and every failing case to stdout (``POSEGRASP_FUZZ_ONLY=N,M`` reruns cases N and M of that draw).
+command, and 24 hostile cases (``tests/fuzz_hostile.py``: file kinds, sizes, nesting, values, output paths, physics;
+``POSEGRASP_FUZZ_HOSTILE``); ``POSEGRASP_FUZZ=full`` runs 1000 mutations and 1200 hostile cases on two workers and
+prints the counts and every failing case to stdout (``POSEGRASP_FUZZ_ONLY=N,M`` reruns cases N and M of a draw;
+hostile cases are numbered from 100000).
 """
 
 from __future__ import annotations
@@ -15,10 +17,12 @@ import random
 import pytest
 
 import fuzz
+import fuzz_hostile
 
 FULL = os.environ.get("POSEGRASP_FUZZ") == "full"
 N_CASES = int(os.environ.get("POSEGRASP_FUZZ_CASES", 1000 if FULL else 26))  # 26: one per file kind
 SEED = int(os.environ.get("POSEGRASP_FUZZ_SEED", 0))
+N_HOSTILE = int(os.environ.get("POSEGRASP_FUZZ_HOSTILE", 1200 if FULL else 24))  # 24: each generator 4 times
 
 
 @pytest.fixture(scope="module")
@@ -63,4 +67,27 @@ def test_fuzz(fuzzer):
     verdicts = fuzzer.run_cases(cases, keep_failures=FULL, progress=progress)
     report = fuzz.format_report(verdicts)
     print(report)
+    assert not [v for v in verdicts if v.problem], report
+
+
+def _only(cases: list) -> list:
+    if os.environ.get("POSEGRASP_FUZZ_ONLY"):  # case numbers, comma-separated: rerun those of a report
+        only = {int(n) for n in os.environ["POSEGRASP_FUZZ_ONLY"].split(",")}
+        cases = [c for c in cases if c.number in only]
+    return cases
+
+
+def test_fuzz_hostile(fuzzer):
+    cases = _only(fuzz_hostile.draw_hostile(fuzzer.base, N_HOSTILE, SEED, start=100000))
+    assert len({c.generator for c in cases}) == len(fuzz_hostile.GENERATORS) or os.environ.get("POSEGRASP_FUZZ_ONLY")
+    progress = (lambda v: print(f"hcase {v.case.number} {v.category} {v.case.generator}/{v.case.variant} "
+                                f"{v.case.command} {v.mutation} {v.seconds:.1f}s", flush=True)) if FULL else None
+    verdicts = fuzzer.run_cases(cases, keep_failures=FULL, progress=progress,
+                                run=lambda c, z, keep: fuzz_hostile.run_hostile(fuzzer, c, z, keep))
+    report = fuzz.format_report(verdicts)
+    by_gen: dict[str, int] = {}
+    for v in verdicts:
+        by_gen[v.case.generator] = by_gen.get(v.case.generator, 0) + 1
+    print(report.replace("by file kind", "by generator: " + ", ".join(f"{k} {n}" for k, n in sorted(by_gen.items()))
+                         + "\nby file kind", 1))
     assert not [v for v in verdicts if v.problem], report

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from test_bad_input import refused
+from helpers import refused
 
 from posegrasp.cli import main
 from posegrasp.sim.config import WorkcellConfig

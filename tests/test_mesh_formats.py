@@ -12,9 +12,11 @@ import numpy as np
 import pytest
 import trimesh
 from PIL import Image
-from test_bad_input import refused
+from helpers import refused
 
 from posegrasp.cli import main
+from posegrasp.errors import UserError
+import posegrasp.objects.formats.urdf as urdf_format
 from posegrasp.objset import load_object_set
 
 R_MM, H_MM = 20.0, 30.0
@@ -277,3 +279,40 @@ def test_bad_input_is_one_line_and_writes_nothing(capsys, tmp_path: Path, case: 
     refused(capsys, ["objects", "import", *args, "--out", out, "--no-progress"], words)
     assert not out.exists() and not list(tmp_path.glob(".set*"))
 
+
+
+def test_urdf_meshes_resolve_under_the_root_the_user_names_and_never_outside_it(capsys, tmp_path: Path) -> None:
+    """A robot package's URDF in ``pkg/urdf/`` naming ``package://parts/...`` of another package in the workspace:
+    found under ``--mesh-root`` (the workspace), refused without it; a path climbing out of the root is refused."""
+    (tmp_path / "ws" / "parts" / "meshes").mkdir(parents=True)
+    trimesh.creation.box([0.02, 0.02, 0.02]).export(tmp_path / "ws" / "parts" / "meshes" / "body.stl")
+    trimesh.creation.box([0.02, 0.02, 0.02]).export(tmp_path / "outside.stl")
+    (tmp_path / "ws" / "robot" / "urdf").mkdir(parents=True)
+    urdf = tmp_path / "ws" / "robot" / "urdf" / "part.urdf"
+
+    def with_mesh(name: str) -> Path:
+        urdf.write_text(f'<robot name="p"><link name="b"><visual><geometry><mesh filename="{name}"/></geometry>'
+                        '</visual></link></robot>')
+        return urdf
+
+    with pytest.raises(UserError, match="not found under"):
+        urdf_format.read(with_mesh("package://parts/meshes/body.stl"))
+    part = urdf_format.read(urdf, tmp_path / "ws")
+    assert np.asarray(part.mesh.extents) == pytest.approx([0.02] * 3)
+    for name in ("../../../outside.stl", str(tmp_path / "outside.stl"), "package://../../outside.stl"):
+        with pytest.raises(UserError, match="not found under"):
+            urdf_format.read(with_mesh(name), tmp_path / "ws")
+    refused(capsys, ["objects", "import", urdf, "--mesh-root", tmp_path / "nowhere", "--out", tmp_path / "set"],
+            "--mesh-root")
+    assert not (tmp_path / "set").exists()
+
+
+def test_opencascades_messages_stay_off_the_terminal_and_its_error_is_in_ours(capfd, tmp_path: Path) -> None:
+    import posegrasp.objects.formats.step as step_format
+
+    bad = tmp_path / "corrupt.step"
+    bad.write_text("ISO-10303-21;\nHEADER;\nENDSEC;\nDATA;\n#1=CARTESIAN_POINT('',(0.,0.,\n")
+    with pytest.raises(UserError, match="could not read a solid .*Undefined Parsing"):
+        step_format.read(bad, 1e-4, 0.5)
+    out, err = capfd.readouterr()
+    assert "StepFile" not in out + err and "Failed to read" not in out + err, out + err

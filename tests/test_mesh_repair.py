@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from test_bad_input import refused
+from helpers import refused
 
 from posegrasp.errors import UserError
 from posegrasp.objects.mesh import check_size

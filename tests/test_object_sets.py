@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from test_bad_input import refused, snapshot
+from helpers import refused
+from test_bad_input import snapshot
 
 from posegrasp import bop
 from posegrasp.catalog import DEFAULT_SET, load_catalog, set_record
@@ -108,3 +109,27 @@ def test_a_set_that_cannot_serve_the_stack_task_is_refused(tmp_path, capsys):
     refused(capsys, ["trials", "--task", "stack", "--objects", str(cones), "--episodes", "1", "--out",
                      str(tmp_path / "r")], "task stack needs an object type with a flat top")
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("edit", [
+    lambda man, obj: man["objects"][0].update(file="/etc/hostname"),
+    lambda man, obj: man["objects"][0].update(file="../objectset.json"),
+    lambda man, obj: obj.update(model="../../blocks/models/obj_000001.ply"),
+    lambda man, obj: obj.update(model=7),
+])
+def test_a_set_naming_a_file_outside_its_folder_is_refused(tmp_path, edit):
+    import shutil
+
+    from posegrasp.errors import DatasetError
+    from posegrasp.objset import load_object_set
+
+    root = tmp_path / "set"
+    shutil.copytree(DEFAULT_SET, root)
+    man = json.loads((root / "objectset.json").read_text())
+    obj_file = root / man["objects"][0]["file"]
+    obj = json.loads(obj_file.read_text())
+    edit(man, obj)
+    (root / "objectset.json").write_text(json.dumps(man))
+    obj_file.write_text(json.dumps(obj))
+    with pytest.raises(DatasetError, match="is not a file inside the set folder"):
+        load_object_set(root)

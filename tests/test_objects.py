@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from test_bad_input import refused, snapshot
+from helpers import refused
+from test_bad_input import snapshot
 
 from posegrasp.catalog import load_catalog
 from posegrasp.cli import main

@@ -22,15 +22,17 @@ from posegrasp.objects.formats.part import FORMATS, Part, check_file
 __all__ = ["FORMATS", "Part", "check_file", "read_part"]
 
 
-def read_part(path: Path, metres_per_unit: float, step_tolerance: tuple[float, float] = (1e-4, 0.5)) -> Part:
+def read_part(path: Path, metres_per_unit: float, step_tolerance: tuple[float, float] = (1e-4, 0.5),
+              mesh_root: Path | None = None) -> Part:
     """The part in ``path``, scaled to metres by ``metres_per_unit`` (``--unit`` times ``--scale``; a STEP file
-    is in its own declared unit first). ``step_tolerance``: tessellation's (linear m, angular rad) deflection."""
+    is in its own declared unit first). ``step_tolerance``: tessellation's (linear m, angular rad) deflection;
+    ``mesh_root``: the folder a URDF's meshes are found under (None: its package)."""
     check_file(path)
     suffix = path.suffix.lower()
     if suffix in (".step", ".stp"):
         part = step.read(path, *step_tolerance)
     elif suffix == ".urdf":
-        part = urdf.read(path)
+        part = urdf.read(path, mesh_root)
     else:
         part = meshfile.read(path)
     if len(part.mesh.faces) == 0:

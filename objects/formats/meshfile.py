@@ -123,6 +123,11 @@ def read(path: Path) -> Part:
         raise UserError(f"{path}: cannot read it as {path.suffix[1:].upper()}: {why}") from None
     if not meshes:
         raise UserError(f"{path}: the file holds no triangles (empty mesh or a point cloud)")
+    for m in meshes:  # an index out of range (a negative one would wrap to a real vertex)
+        f = np.asarray(m.faces)
+        if f.min() < 0 or f.max() >= len(m.vertices):
+            bad = int(f.min() if f.min() < 0 else f.max())
+            raise UserError(f"{path}: a face names vertex {bad}, not one of its {len(m.vertices)} vertices")
     notes = unread_materials(path)
     if len(meshes) == 1 and meshes[0].visual.kind is None:
         return Part(trimesh.Trimesh(meshes[0].vertices, meshes[0].faces, process=False), notes=notes)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import trimesh
 
+from posegrasp import inputs
 from posegrasp.errors import UserError
 from posegrasp.surface import TexturedSurface
 
@@ -28,8 +30,9 @@ class Part:
 
 def check_file(path: Path) -> None:
     """Refuse a missing file or one of a type ``read_part`` does not read."""
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise UserError(f"{path}: no such file")
+    inputs.check_file(path, "mesh")  # a regular file, not too large
     if path.suffix.lower() not in FORMATS:
         raise UserError(f"{path}: unknown mesh format {path.suffix or '(no suffix)'!r}; use STL, OBJ, PLY, GLB, "
                         "GLTF, STEP or URDF (or a BOP models/ folder)")

@@ -7,10 +7,12 @@ so ``--unit`` is not; ``--scale`` is. Solid colours of the file are not read.
 
 from __future__ import annotations
 
+import re
 import tempfile
 from pathlib import Path
 
 from posegrasp.errors import UserError
+from posegrasp.inputs import library_output
 import posegrasp.objects.formats.meshfile as meshfile
 from posegrasp.objects.formats.part import Part
 
@@ -24,11 +26,14 @@ def read(path: Path, linear: float, angular: float) -> Part:
         raise UserError(f"{path}: not a STEP file (it does not start with ISO-10303-21)")
     with tempfile.TemporaryDirectory(prefix="posegrasp-step-") as tmp:
         glb = Path(tmp) / "part.glb"
-        # OpenCASCADE reads STEP in millimetres: the linear deflection is given in mm
-        rc = cascadio.step_to_glb(str(path), str(glb), tol_linear=linear * 1000.0, tol_angular=angular,
-                                  tol_relative=False, use_parallel=False)
+        with library_output((1, 2)) as said:  # OpenCASCADE's own messages: the first error goes into ours
+            # OpenCASCADE reads STEP in millimetres: the linear deflection is given in mm
+            rc = cascadio.step_to_glb(str(path), str(glb), tol_linear=linear * 1000.0, tol_angular=angular,
+                                      tol_relative=False, use_parallel=False)
         if rc != 0 or not glb.is_file() or glb.stat().st_size == 0:
-            raise UserError(f"{path}: OpenCASCADE could not read a solid from it (corrupt or empty STEP)")
+            why = next((re.sub(r"\x1b\[[0-9;]*m|\*+", "", ln).strip() for ln in said if "ERR" in ln), "")
+            raise UserError(f"{path}: OpenCASCADE could not read a solid from it (corrupt or empty STEP"
+                            f"{'; ' + why[:160] if why else ''})")
         try:
             part = meshfile.read(glb)
         except UserError:

@@ -1,8 +1,9 @@
 """URDF parts: every link's visual geometry (meshes, boxes, cylinders, spheres), placed where the links stand with
 all joints at zero, with its origin, scale and material colour. Collision geometry is ignored (the importer makes
 its own from the visual), except in a URDF without any visual (pybullet_data's ``sphere_1cm.urdf``): then the
-collision geometry is the part's shape, and the notes say so. ``package://PKG/rest`` and relative mesh paths are looked up beside the URDF (and, for
-``package://``, in a folder ``PKG`` in it or above it).
+collision geometry is the part's shape, and the notes say so. Mesh paths (relative, ``package://PKG/rest``) resolve
+under one root folder, never outside it (``_mesh_path``): the one the user names (``ImportConfig.mesh_root``,
+``--mesh-root``), by default the URDF's package (its folder and the one above).
 """
 
 from __future__ import annotations
@@ -47,20 +48,26 @@ def _origin(elem: ET.Element | None, where: str) -> np.ndarray:
     return T
 
 
-def _mesh_path(urdf: Path, name: str, where: str) -> Path:
-    """The file a mesh ``filename`` names, looked up beside the URDF."""
+def _mesh_path(urdf: Path, name: str, where: str, root: Path | None = None) -> Path:
+    """The file a mesh ``filename`` names, looked up beside the URDF and under ``root`` (default: the URDF's package,
+    the folder above its own: ``meshes/x.obj`` or ``../meshes/x.obj`` of a ``urdf/`` folder; ``package://NAME/...``
+    in ``root`` or in a folder ``NAME`` in it), never outside ``root`` (an absolute path or one climbing out of it is
+    not found)."""
+    folder = urdf.absolute().parent
+    root = (folder.parent if root is None else Path(root)).resolve()
     rel = name.removeprefix("file://")
-    tries = [Path(rel)] if Path(rel).is_absolute() else [urdf.parent / rel]
+    tries = [folder / rel, root / rel]
     if name.startswith("package://"):
         pkg, _, rest = name.removeprefix("package://").partition("/")
-        tries = [urdf.parent / rest] + [d / pkg / rest for d in (urdf.parent, *urdf.parent.parents)]
+        tries = [folder / rest, root / rest, folder / pkg / rest, root / pkg / rest]
     for p in tries:
-        if p.is_file():
+        r = p.resolve()
+        if (root == r or root in r.parents) and p.is_file():
             return p
-    raise UserError(f"{where}: mesh {name!r} not found (looked for {tries[0]}); copy it there")
+    raise UserError(f"{where}: mesh {name!r} not found under {root} (looked for {tries[0]}); copy it there")
 
 
-def _geometry(urdf: Path, geom: ET.Element | None, where: str) -> list[trimesh.Trimesh]:
+def _geometry(urdf: Path, geom: ET.Element | None, where: str, root: Path | None) -> list[trimesh.Trimesh]:
     """The visual's meshes in its own frame (m, scale applied), each with the look its file gives."""
     shape = None if geom is None else next(iter(geom), None)
     if shape is None:
@@ -74,7 +81,7 @@ def _geometry(urdf: Path, geom: ET.Element | None, where: str) -> list[trimesh.T
         return [trimesh.creation.icosphere(subdivisions=4, radius=_floats(shape.get("radius"), 1, np.nan, where)[0])]
     if shape.tag != "mesh" or not shape.get("filename"):
         raise UserError(f"{where}: geometry <{shape.tag}> is not a mesh, box, cylinder or sphere")
-    path = _mesh_path(urdf, shape.get("filename"), where)
+    path = _mesh_path(urdf, shape.get("filename"), where, root)
     check_file(path)
     if path.suffix.lower() in (".urdf", ".step", ".stp"):
         raise UserError(f"{where}: a link's mesh must be STL, OBJ, PLY, GLB or GLTF, not {path.name}")
@@ -137,9 +144,9 @@ def _link_poses(robot: ET.Element, where: str) -> dict[str, np.ndarray]:
     return poses
 
 
-def read(path: Path) -> Part:
+def read(path: Path, mesh_root: Path | None = None) -> Part:
     """The part a URDF describes (m): its links' visuals (or, without any, collision shapes) in one mesh, in the root
-    link's frame."""
+    link's frame; its meshes found under ``mesh_root`` (None: the URDF's package; ``_mesh_path``)."""
     try:
         robot = ET.parse(path).getroot()
     except ET.ParseError as e:
@@ -160,8 +167,8 @@ def read(path: Path) -> Part:
             colour = _colour(vis.find("material"), named, where)
             shape = vis.find("geometry/mesh")
             if colour is None and shape is not None and shape.get("filename"):  # the mesh file's look is used
-                notes += meshfile.unread_materials(_mesh_path(path, shape.get("filename"), where))
-            for m in _geometry(path, vis.find("geometry"), where):
+                notes += meshfile.unread_materials(_mesh_path(path, shape.get("filename"), where, mesh_root))
+            for m in _geometry(path, vis.find("geometry"), where, mesh_root):
                 m.apply_transform(T)
                 meshes.append(m)
                 looks.append(colour if colour is not None else meshfile.look(m))

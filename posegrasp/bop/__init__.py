@@ -18,6 +18,7 @@ codecs are in ``posegrasp.bop.images``, the models' meshes in ``posegrasp.bop.mo
 
 from __future__ import annotations
 
+import os
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,7 +56,7 @@ def models_eval_dir(root: str | Path) -> Path:
 def eval_model_path(root: str | Path, obj_id: int) -> Path:
     """``<root>/models_eval/obj_XXXXXX.ply`` when the dataset has it, else the model itself."""
     p = models_eval_dir(root) / f"obj_{obj_id:06d}.ply"
-    return p if p.is_file() else model_path(root, obj_id)
+    return p if os.path.lexists(p) else model_path(root, obj_id)
 
 
 def targets_path(root: str | Path) -> Path:
@@ -185,7 +186,7 @@ class ImageRecord:
     def rgb_path(self) -> Path:
         """The colour image (png, else jpg)."""
         p = image_path(self.scene_dir, "rgb", self.im_id, "png")
-        return p if p.exists() else image_path(self.scene_dir, "rgb", self.im_id, "jpg")
+        return p if os.path.lexists(p) else image_path(self.scene_dir, "rgb", self.im_id, "jpg")
 
     @property
     def depth_path(self) -> Path:
@@ -280,8 +281,8 @@ def iter_scene_images(root: str | Path, split: str, scene_ids: Iterable[int] | N
     for sid in (list_scenes(root, split) if scene_ids is None else scene_ids):
         sd = scene_dir(root, split, sid)
         cams = load_scene_camera(sd / "scene_camera.json")
-        gts = load_scene_gt(sd / "scene_gt.json") if (sd / "scene_gt.json").exists() else {}
-        infos = load_scene_gt_info(sd / "scene_gt_info.json") if (sd / "scene_gt_info.json").exists() else None
+        gts = load_scene_gt(sd / "scene_gt.json") if os.path.lexists(sd / "scene_gt.json") else {}
+        infos = load_scene_gt_info(sd / "scene_gt_info.json") if os.path.lexists(sd / "scene_gt_info.json") else None
         for name, ims in (("scene_gt.json", gts), ("scene_gt_info.json", infos or {})):
             if extra := sorted(set(ims) - set(cams)):
                 raise DatasetFileError(f"{sd / name}: image {extra[0]}: expected images of scene_camera.json "
@@ -422,4 +423,4 @@ def write_test_targets(root: str | Path, targets: Iterable[EvalTarget]) -> Path:
 def load_test_targets(root: str | Path) -> list[EvalTarget] | None:
     """``<root>/test_targets_bop19.json`` as EvalTargets, or None when the dataset has no such file."""
     p = targets_path(root)
-    return [EvalTarget(*t) for t in bop_schema.targets(p)] if p.exists() else None
+    return [EvalTarget(*t) for t in bop_schema.targets(p)] if os.path.lexists(p) else None

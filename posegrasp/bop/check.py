@@ -9,6 +9,7 @@ Every problem is a line naming the file (relative to the dataset root) and what 
 
 from __future__ import annotations
 
+import os
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -147,7 +148,7 @@ class _Checker:
         """``models_eval/`` (the BOP metrics' points and renderings) holds the model, with its extent and at least
         its vertices."""
         p = bop.models_eval_dir(self.root) / f"obj_{obj_id:06d}.ply"
-        if not p.is_file():
+        if not os.path.lexists(p):
             if self.opts.complete:
                 self.add(f"{self.rel(p)}: missing; BOP's metrics use models_eval/ (rerun the datagen command to add "
                          "it)")
@@ -167,7 +168,7 @@ class _Checker:
         """``models_eval/models_info.json`` (bop_toolkit's ``eval_bop19_pose.py`` reads it): the objects and
         diameters of ``models/models_info.json``."""
         p = bop.models_eval_dir(self.root) / "models_info.json"
-        if not p.is_file():
+        if not os.path.lexists(p):
             self.add(f"{self.rel(p)}: missing; bop_toolkit's eval_bop19_pose.py reads it (rerun the datagen "
                      "command to add it)")
             return
@@ -186,7 +187,7 @@ class _Checker:
         """``test_targets_bop19.json`` (test split): entries naming images of the split and objects of the
         models, with inst_count = the object's instances there at least 10 % visible (BOP 2019)."""
         path = bop.targets_path(self.root)
-        if not path.is_file():
+        if not os.path.lexists(path):
             if self.opts.complete:
                 self.add(f"{self.rel(path)}: missing; BOP 2019 scores the test split on it (rerun the datagen "
                          "command to add it)")
@@ -225,7 +226,7 @@ class _Checker:
     def scene(self, split: str, scene_id: int, max_images: int | None) -> None:
         sd = bop.scene_dir(self.root, split, scene_id)
         for name in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"):
-            if not (sd / name).is_file():
+            if not os.path.lexists(sd / name):
                 self.add(f"{self.rel(sd / name)}: missing")
                 return
         records = self.read(lambda: list(bop.iter_scene_images(self.root, split, [scene_id])))

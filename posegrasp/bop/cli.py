@@ -29,6 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", required=True, type=out_file("--out", (".png", ".jpg", ".jpeg")),
                    help="output image (.png, or .jpg)")
     s.add_argument("--split", default=None, help="split (default: the only one present)")
+    s.add_argument("--force", action="store_true", help="replace --out even if this command did not write it")
     s.set_defaults(run=run_show)
     m = dsub.add_parser("merge", help="write a new BOP root holding the scenes of several, renumbered (to train on "
                         "them together)")
@@ -55,6 +56,7 @@ def run_show(args: argparse.Namespace) -> int:
     from posegrasp.bop.check import find_splits
     from posegrasp.bop.show import show_image
     from posegrasp.io import write_image
+    from posegrasp.outputs import check_out_file
 
     root = Path(args.dir)
     if not root.is_dir():
@@ -65,9 +67,10 @@ def run_show(args: argparse.Namespace) -> int:
         if len(splits) != 1:
             raise DatasetError(f"{root} has splits {splits or 'none'}; choose one with --split")
         split = splits[0]
+    check_out_file(args.out, "dataset show", force=args.force, sealed=[root])
     panel = show_image(root, split, args.scene, args.im)
     try:
-        write_image(args.out, panel)
+        write_image(args.out, panel, mark="dataset show")
     except OSError as e:
         raise UserError(f"cannot write {args.out}: {e.strerror or e}") from None
     print(f"scene {args.scene} image {args.im} -> {args.out}")

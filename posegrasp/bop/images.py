@@ -6,11 +6,13 @@ Depth PNGs hold uint16 values; a value times the camera's ``depth_scale`` is mil
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import cv2
 import numpy as np
 
-from pathlib import Path
-
+from posegrasp import inputs
 from posegrasp import io as pio
 from posegrasp.errors import DatasetFileError
 
@@ -67,21 +69,16 @@ def read(path: str | Path, kind: str, size: tuple[int, int] | None = None) -> np
     (not truncated), of ``kind`` (``rgb``, ``depth`` or ``mask``: dtype and channels as ``_KINDS``), ``size``
     (width, height) px when given, a depth image with some measurement, a mask not covering every pixel.
     ``DatasetFileError`` naming the file and what was expected otherwise."""
-    import cv2
-
     path = Path(path)
     dtype, channels, what = _KINDS[kind]
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise DatasetFileError(f"{path}: expected {what} (it does not exist)") from None
-    except OSError as e:
-        raise DatasetFileError(f"{path}: expected a readable {what} ({e.strerror})") from None
+    if not os.path.lexists(path):
+        raise DatasetFileError(f"{path}: expected {what} (it does not exist)")
+    data = inputs.read_bytes(path, "image", DatasetFileError)
     whole = (data.startswith(_PNG_SIGNATURE) and b"IEND" in data[-12:]) or \
             (data.startswith(_JPEG_SIGNATURE) and data.rstrip(b"\0").endswith(b"\xff\xd9"))
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if whole else None
-    if img is None:
+    if not whole:
         raise DatasetFileError(f"{path}: expected {what}, got a truncated or corrupt file ({len(data)} bytes)")
+    img = inputs.decode_image(data, f"{path}: expected {what}, got", DatasetFileError)
     c = 1 if img.ndim == 2 else img.shape[2]
     if img.dtype != dtype or c not in channels:
         got = f"{img.dtype.itemsize * 8}-bit, {c} channel{'s' if c > 1 else ''}"

@@ -16,7 +16,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from posegrasp import bop
+from posegrasp import bop, inputs
 from posegrasp.errors import DatasetError, UserError
 from posegrasp.io import write_json, writing_into
 
@@ -50,15 +50,16 @@ def merge_datasets(out: str | Path, sources: list[tuple[Path, str | None]], spli
     """Write the BOP root ``out`` (which must not exist) with the scenes of every ``(root, split)`` of ``sources``
     in ``out/<split>``, numbered in order from 0; returns the number of scenes."""
     out = Path(out)
-    if out.exists():
+    if os.path.lexists(out):
         raise UserError(f"{out} already exists; give a new folder to merge into")
     picked = [(root, source_split(root, s)) for root, s in sources]
     first = picked[0][0]
     for root, _ in picked:
         for name in SHARED:
-            if not (root / name).is_file():
+            if not os.path.lexists(root / name):
                 raise DatasetError(f"{root / name} does not exist; each source must be a BOP root with models")
-            if (root / name).read_bytes() != (first / name).read_bytes():
+            if inputs.read_bytes(root / name, "json", DatasetError) != inputs.read_bytes(first / name, "json",
+                                                                                          DatasetError):
                 raise DatasetError(f"{root / name} differs from {first / name}; merge datasets of one object set "
                                    "and one image size")
     with writing_into(out.parent):

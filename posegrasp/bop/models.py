@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import io
+import os
 from pathlib import Path
 
 import numpy as np
 
+from posegrasp import inputs
 from posegrasp.bop import MM, model_path
 from posegrasp.bop.schema import MAX_MM
 from posegrasp.errors import DatasetFileError
@@ -19,10 +22,11 @@ def load_model(root_or_file: str | Path, obj_id: int | None = None):
     import trimesh
 
     p = model_path(root_or_file, obj_id) if obj_id is not None else Path(root_or_file)
-    if not p.is_file():
+    if not os.path.lexists(p):
         raise DatasetFileError(f"{p}: expected a PLY model (it does not exist)")
+    data = inputs.read_bytes(p, "mesh", DatasetFileError)
     try:
-        mesh = trimesh.load(p, force="mesh", process=False)
+        mesh = trimesh.load(io.BytesIO(data), file_type="ply", force="mesh", process=False)
     except Exception as e:  # trimesh raises many types on corrupt files
         raise DatasetFileError(f"{p}: expected a PLY triangle mesh, got an unreadable file "
                                f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None

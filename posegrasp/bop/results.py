@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import csv
 import io
+import math
+import os
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
@@ -12,10 +14,13 @@ from typing import Iterable
 
 import numpy as np
 
+from posegrasp import inputs
 from posegrasp import io as pio
 from posegrasp.errors import DatasetError
 
 RESULTS_HEADER = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
+#: Longest line (characters) a result may take.
+MAX_LINE = 4096
 
 
 @dataclass
@@ -55,13 +60,12 @@ def read_results_csv(path: str | Path) -> list[PoseResult]:
     order. A DatasetError naming the line for a wrong header, a missing field, a negative or non-integer id or a
     number that does not parse or is not finite; R is not checked to be a rotation here."""
     p = Path(path)
+    if not os.path.lexists(p):
+        raise DatasetError(f"results file {p} does not exist")
     try:
-        lines = p.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"results file {p} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        why = getattr(e, "strerror", None) or "not UTF-8 text"
-        raise DatasetError(f"cannot read results file {p}: {why}") from None
+        lines = inputs.read_text(p, "csv", DatasetError).splitlines()
+    except DatasetError as e:
+        raise DatasetError(f"cannot read results file {p}: {inputs.reason(e, p)}") from None
     header = [h.strip() for h in lines[0].split(",")] if lines else []
     if tuple(header) != RESULTS_HEADER:
         raise DatasetError(f"{p} line 1: the header must be {','.join(RESULTS_HEADER)} (BOP results format), got "
@@ -69,10 +73,12 @@ def read_results_csv(path: str | Path) -> list[PoseResult]:
     while len(lines) > 1 and not lines[-1].strip():  # blank lines at the end
         lines.pop()
     out = []
-    for n, row in enumerate(csv.reader(lines[1:]), start=2):  # result i is on line i + 2
+    for n, line in enumerate(lines[1:], start=2):  # result i is on line i + 2
+        if len(line) > MAX_LINE:
+            raise DatasetError(f"{p} line {n}: {len(line)} characters, more than a result's {MAX_LINE}")
         try:
-            out.append(_result(row))
-        except ValueError as e:
+            out.append(_result(next(csv.reader([line]), [])))
+        except (ValueError, csv.Error) as e:
             raise DatasetError(f"{p} line {n}: {e}") from None
     return out
 
@@ -101,6 +107,7 @@ def _numbers(name: str, text: str, count: int) -> list[Decimal]:
         v = [Decimal(x) for x in text.split()]
     except InvalidOperation:
         v = []
-    if len(v) != count or not all(x.is_finite() for x in v):
-        raise ValueError(f"{name} {text!r} is not {count} finite number{'s' if count > 1 else ''}")
+    if len(v) != count or not all(x.is_finite() and math.isfinite(float(x)) for x in v):
+        shown = text if len(text) <= 60 else text[:57] + "..."
+        raise ValueError(f"{name} {shown!r} is not {count} finite number{'s' if count > 1 else ''}")
     return v

@@ -7,13 +7,14 @@ JSON is read as UTF-8 without NaN or Infinity; ids are JSON object keys of decim
 
 from __future__ import annotations
 
-import json
 import math
+import os
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
+from posegrasp import inputs
 from posegrasp.errors import DatasetFileError
 
 #: Largest length (mm) any BOP file may hold: a model diameter, a translation, a box size (100 m).
@@ -39,27 +40,13 @@ def fail(path: Path, key: str, expected: str, got: Any = ...) -> DatasetFileErro
                             + ("" if got is ... else f", got {_short(got)}"))
 
 
-def _reject_constant(name: str) -> float:
-    raise ValueError(f"{name} is not a JSON number")
-
-
 def read_json(path: str | Path) -> Any:
-    """The parsed JSON of ``path``: UTF-8 text, no NaN or Infinity."""
+    """The parsed JSON of ``path`` (``posegrasp.inputs.read_json``: a bounded regular file of UTF-8 text, no NaN,
+    Infinity or duplicate key)."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise fail(path, "", "a file (it does not exist)") from None
-    except IsADirectoryError:
-        raise fail(path, "", "a file, got a folder") from None
-    except OSError as e:
-        raise fail(path, "", f"a readable file ({e.strerror})") from None
-    try:
-        return json.loads(raw.decode("utf-8"), parse_constant=_reject_constant)
-    except UnicodeDecodeError:
-        raise fail(path, "", "UTF-8 JSON text, got binary data") from None
-    except ValueError as e:  # json.JSONDecodeError, or NaN / Infinity
-        raise fail(path, "", f"valid JSON ({str(e).splitlines()[0]})") from None
+    if not os.path.lexists(path):
+        raise fail(path, "", "a file (it does not exist)")
+    return inputs.read_json(path, DatasetFileError)
 
 
 # ---------------------------------------------------------------------------- values
@@ -116,7 +103,12 @@ def id_key(k: str, path: Path, key: str) -> int:
 def by_id(data: Any, path: Path, what: str) -> dict[int, Any]:
     """A JSON object keyed by ids (``what``: image, obj) as {id: value}."""
     d = obj(data, path, "", f"a JSON object keyed by {what} id")
-    return {id_key(k, path, f"{what} {k}"): v for k, v in d.items()}
+    out = {id_key(k, path, f"{what} {k}"): v for k, v in d.items()}
+    if len(out) != len(d):
+        keys = sorted(d, key=lambda k: (int(k), k))
+        dup = next(b for a, b in zip(keys, keys[1:]) if int(a) == int(b))
+        raise fail(path, f"{what} {dup}", f"one key per {what} id ({dup!r} names the id of another key)")
+    return out
 
 
 def entries(v: Any, path: Path, key: str) -> list[Any]:
