@@ -285,8 +285,11 @@ def _in_set(root: Path, rel: Any, where: Path | str) -> Path:
     """The file ``rel`` (a path relative to the set folder ``root``, as the set's files name theirs); a DatasetError
     naming ``where`` if it is not a relative path inside the set (absolute, climbing out, or through a link out)."""
     path = root / str(rel)
-    top = root.resolve()
-    if not isinstance(rel, str) or Path(rel).is_absolute() or top not in path.resolve().parents:
+    try:
+        inside = isinstance(rel, str) and not Path(rel).is_absolute() and root.resolve() in path.resolve().parents
+    except RuntimeError:  # a link loop: the reader names it
+        return path
+    if not inside:
         raise DatasetError(f"{where}: {rel!r} is not a file inside the set folder {root}; re-import the set")
     return path
 

@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -20,6 +22,7 @@ def _bench_module(name: str):
     return module
 
 
+@pytest.mark.slow
 def test_profile_writes_a_profile_and_its_table(tmp_path: Path) -> None:
     env = {**os.environ, "MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl"}
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "profile.py"), "datagen", "--size", "1", "--top", "5",
@@ -38,6 +41,7 @@ def test_baseline_options_are_not_passed_on() -> None:
                      "current"]) == ["200", "2", "--seed", "0"]
 
 
+@pytest.mark.slow
 def test_baseline_checkout_imports_its_own_code() -> None:
     """PYTHONPATH=WORKTREE imports every part from the worktree (the editable install maps them elsewhere), and the
     worktree is gone afterwards."""

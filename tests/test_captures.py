@@ -92,7 +92,8 @@ def test_replayed_eval_results_give_the_live_model_episodes(tmp_path):
     csv = tmp_path / "eval" / "posegrasp_export-test.csv"
     run_trials(tmp_path / "replay", n, 0, f"bop-csv:{csv}", 1, cfg, **QUIET)
     live, replay = records(tmp_path / "live"), records(tmp_path / "replay")
-    assert live == replay
+    assert live == replay, {e: {k: (r.get(k), replay[e].get(k)) for k in r if r.get(k) != replay[e].get(k)}
+                            for e, r in live.items()}
     assert all(r["pose_error"] is not None for r in live.values())
     assert {r["perception"] for r in read_records(tmp_path / "replay" / EPISODES).values()} == {f"bop-csv:{csv}"}
 

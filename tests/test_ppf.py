@@ -34,6 +34,7 @@ def _error(truth, estimate) -> tuple[float, float]:
                for P in poses)
 
 
+@pytest.mark.slow
 def test_ppf_finds_one_block_within_5_mm_and_5_deg():
     frame = _look_frame(0, 1)  # one arch, alone in the pick area
     (truth,) = OracleProvider(min_px=500).estimate_truth(frame, 0)

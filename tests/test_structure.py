@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import functools
 import importlib
 from collections import defaultdict
 from pathlib import Path
@@ -29,6 +30,7 @@ def layer(module: str) -> str:
     return parts[1] if len(parts) > 1 and parts[1] in ALLOWED and parts[1] != "core" else "core"
 
 
+@functools.lru_cache(maxsize=1)
 def _trees() -> dict[str, tuple[Path, ast.Module]]:
     return {name: (path, ast.parse(path.read_text(), str(path))) for name, path in _modules().items()}
 

@@ -61,7 +61,10 @@ def _mesh_path(urdf: Path, name: str, where: str, root: Path | None = None) -> P
         pkg, _, rest = name.removeprefix("package://").partition("/")
         tries = [folder / rest, root / rest, folder / pkg / rest, root / pkg / rest]
     for p in tries:
-        r = p.resolve()
+        try:
+            r = p.resolve()
+        except RuntimeError:  # a link loop: not a mesh file
+            continue
         if (root == r or root in r.parents) and p.is_file():
             return p
     raise UserError(f"{where}: mesh {name!r} not found under {root} (looked for {tries[0]}); copy it there")
