@@ -33,23 +33,26 @@ demo: setup sysdeps
 	$(BIN)/posegrasp trials --episodes 20 --seed 0 --perception model --workers 2 --out demo_out
 	@echo "Open demo_out/report.html (episodes.jsonl and summary.json beside it)"
 
-# The fault tests (full disks on a mounted tmpfs, Ctrl-C, the fuzz harness) run in a pytest process of their own,
+# The fault tests (full disks on a mounted tmpfs, Ctrl-C, the fuzz harness) run in pytest processes of their own,
 # after the rest: their tiny dataset is drawn with pyrender in the test process, whose EGL teardown ends the display
 # MuJoCo renders with there.
 # The Ctrl-C tests signal their commands' process groups: they too get a process of their own.
+# The record-for-record comparison of a model campaign with its replay runs alone, in one process.
 FAULT_TESTS := tests/test_fuzz.py tests/test_full_disk.py
 SIGNAL_TESTS := tests/test_interrupt.py
+ALONE_TESTS := tests/test_captures.py
+XDIST := -n 2 --dist loadfile
 
-# test-fast runs on two worker processes (pytest-xdist), a test file to a worker so that its fixtures are built
-# once; the session fixtures of many files (the tiny dataset, its trained run) once for both. The full suite stays in
-# one process: a model campaign and its replay compared record for record need the same threads in both.
+# The suites run on two worker processes (pytest-xdist), a test file to a worker so that its fixtures are built
+# once; the session fixtures of many files (the tiny dataset, its trained run) once for both.
 test: setup sysdeps
-	$(BIN)/python -m pytest -q $(addprefix --ignore=,$(FAULT_TESTS) $(SIGNAL_TESTS))
-	$(BIN)/python -m pytest -q $(FAULT_TESTS)
+	$(BIN)/python -m pytest -q $(XDIST) $(addprefix --ignore=,$(FAULT_TESTS) $(SIGNAL_TESTS) $(ALONE_TESTS))
+	$(BIN)/python -m pytest -q $(ALONE_TESTS)
+	$(BIN)/python -m pytest -q $(XDIST) $(FAULT_TESTS)
 	$(BIN)/python -m pytest -q $(SIGNAL_TESTS)
 
 test-fast: setup sysdeps
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
+	$(BIN)/python -m pytest -q $(XDIST) -m "not slow"
 
 clean:
 	rm -rf $(VENV) demo_out

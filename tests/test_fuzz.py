@@ -4,7 +4,7 @@ traceback, no hang, no false OK, no score out of range, nothing already written 
 
 ``make test`` runs a fixed, seeded selection (``POSEGRASP_FUZZ_CASES``, default 26) covering every file kind and
 command, and 24 hostile cases (``tests/fuzz_hostile.py``: file kinds, sizes, nesting, values, output paths, physics;
-``POSEGRASP_FUZZ_HOSTILE``); ``POSEGRASP_FUZZ=full`` runs 1000 mutations and 1200 hostile cases on two workers and
+``POSEGRASP_FUZZ_HOSTILE``), on two workers; ``POSEGRASP_FUZZ=full`` runs 1000 mutations and 1200 hostile cases and
 prints the counts and every failing case to stdout (``POSEGRASP_FUZZ_ONLY=N,M`` reruns cases N and M of a draw;
 hostile cases are numbered from 100000).
 """
@@ -33,7 +33,7 @@ def fuzzer(tmp_path_factory):
         base = fuzz.build_corpus(work, lambda argv, cwd: z.run(argv, cwd, 600))
     finally:
         z.close()
-    f = fuzz.Fuzzer(base, work, workers=2 if FULL else 1)
+    f = fuzz.Fuzzer(base, work, workers=2)
     yield f
     f.close()
     assert fuzz.tree_hashes(base) == f.base_hashes, "a command changed the shared corpus through a hard link"
