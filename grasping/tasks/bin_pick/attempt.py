@@ -142,7 +142,7 @@ class _Emptying:
         self.stuck: list[Estimate] | None = None  # what the robot saw when it last found nothing graspable
         self.end = Failure.PARTS_LEFT
         self.ests: list[Estimate] = []
-        self.tool: Tool = tool_of(ep)
+        self.tool: Tool = tool_of(ep, self.dest)
 
     def attempt(self, a: int) -> bool:
         """Attempt ``a``: capture, perceive, pick and drop, look again, judge; False when the episode stops at

@@ -214,6 +214,8 @@ class Destination(Protocol):
 
     #: Are the parts it holds taken out of the scene (parked) once counted?
     parks: bool
+    #: Does a part's pose in the hand matter there (it is set down at a pose), so that a tool holds it as picked?
+    keeps_pose: bool
 
     @property
     def top_z(self) -> float: ...
@@ -227,7 +229,7 @@ class Destination(Protocol):
 class OutBox:
     """The out-box the parts are dropped into, in any pose."""
 
-    parks = True
+    parks, keeps_pose = True, False
 
     def __init__(self, ep: Episode, box: Tote):
         self.ep, self.box = ep, box
@@ -304,19 +306,20 @@ class Hybrid:
     """The hybrid hand: the 2-finger hand with a cup between its fingers (``sim.hybrid``), which picks each part
     with the cup or with the fingers. Both planners run on the estimates (``choose_cup``, ``choose_part``); the
     grasp on the higher part wins, the cup where both go for parts within ``HYBRID_TIE`` of each other's height (a
-    suction pick neither reaches between neighbours nor needs a wall's room): an ambidextrous policy. Placing in the
-    tray, the cup wherever it has a grasp: it holds the part as the estimate has it, where closing fingers shift it."""
+    suction pick neither reaches between neighbours nor needs a wall's room): an ambidextrous policy. With
+    ``cup_first`` (a destination that keeps the pose: the tray), the cup wherever it has a grasp: it holds the part
+    as the estimate has it, where closing fingers shift it."""
 
-    def __init__(self, ep: Episode):
+    def __init__(self, ep: Episode, cup_first: bool = False):
         self.cup = Cup(ep)
+        self.cup_first = cup_first
 
     def choose(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
                heap: np.ndarray, yaw_now: float, failed: list[np.ndarray]) -> tuple[int, object, np.ndarray]:
         found, why = [], []
         view = HeapView(wc, cfg, ests, T_world_cam, heap)  # one view of the heap for both planners
-        cup_first = cfg.bin_pick.place == "tray"  # the fingers shift a part as they close: it lands off its slot
         for bonus, choose in ((HYBRID_TIE, choose_cup), (0.0, choose_part)):
-            if found and cup_first:
+            if found and self.cup_first:
                 break
             try:
                 j, g, T = choose(wc, cfg, ests, T_world_cam, heap, yaw_now, failed, view)
@@ -345,9 +348,10 @@ class Hybrid:
         Fingers.let_go(ep)
 
 
-def tool_of(ep: Episode) -> Tool:
-    """The tool of the episode's workcell (``WorkcellConfig.hand``)."""
-    return {"suction": Cup, "hybrid": Hybrid}.get(ep.wc.cfg.hand, lambda ep: Fingers())(ep)
+def tool_of(ep: Episode, dest: Destination) -> Tool:
+    """The tool of the episode's workcell (``WorkcellConfig.hand``) for the destination ``dest``."""
+    hand = ep.wc.cfg.hand
+    return Cup(ep) if hand == "suction" else Hybrid(ep, dest.keeps_pose) if hand == "hybrid" else Fingers()
 
 
 def _stopped_near(T: np.ndarray, T_grasp: np.ndarray, b: BinPickConfig) -> bool:

@@ -158,7 +158,7 @@ class Placing:
 class TrayPlace:
     """The tray of an episode: which slots the robot has filled, where it sets each part down, and the verdict."""
 
-    parks = False  # placed parts stay in their slots
+    parks, keeps_pose = False, True  # placed parts stay in their slots, at the pose they were set down
 
     def __init__(self, ep: Episode, tray: Tray):
         self.ep, self.tray = ep, tray
