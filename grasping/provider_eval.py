@@ -73,15 +73,11 @@ def provider_method(spec: str, objects: str = "", cfg: EvalConfig | None = None)
 
 def check_models(data: Path, objects: str) -> None:
     """A one-line DatasetError unless the dataset ``data`` shows the object set ``objects``'s models."""
-    from posegrasp import bop
+    from posegrasp import bop, inputs
     from posegrasp.catalog import set_root
 
     ours, theirs = bop.models_info_path(set_root(objects)), bop.models_info_path(data)
-    try:
-        same = ours.read_bytes() == theirs.read_bytes()
-    except OSError as e:
-        raise DatasetError(f"cannot read {e.filename}: {e.strerror}") from None
-    if not same:
+    if inputs.read_bytes(ours, "text", DatasetError) != inputs.read_bytes(theirs, "text", DatasetError):
         raise DatasetError(f"--data {data} shows other models than the object set {set_root(objects)} "
                            "(models/models_info.json differs); give the set it was generated with: --objects SET")
 
