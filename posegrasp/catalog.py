@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from posegrasp import ASSETS
+from posegrasp import ASSETS, inputs
+from posegrasp.errors import DatasetError
 from posegrasp.geometry import axis_angle_R, make_T
 from posegrasp.objset import MANIFEST, ObjectSet, SetObject, load_object_set
 from posegrasp.surface import TexturedSurface
@@ -150,7 +151,7 @@ def _digest(root: Path) -> str:
                                                           for p in (root / d).glob("obj_*"))]
     h = hashlib.sha256()
     for rel in files:
-        h.update(rel.encode() + b"\0" + hashlib.sha256((root / rel).read_bytes()).digest())
+        h.update(rel.encode() + b"\0" + hashlib.sha256(inputs.read_bytes(root / rel, "mesh", DatasetError)).digest())
     return h.hexdigest()
 
 
