@@ -132,7 +132,8 @@ class CupSurroundings:
 class SuctionGrasp:
     """One suction grasp: the tool pose (world), its seal and edge margins and the moment arm of the part's centre of
     mass (m; ``CupSpots``), the tool's clearance from the other parts and the walls (m, at most 2 cm), the
-    approach's tilt from straight down (deg), the wrist's turn to it (rad) and the score (higher is better)."""
+    approach's tilt from straight down (deg), the wrist's turn to it (rad), the score (higher is better) and, on the
+    hybrid hand, the fingers' opening (m) in the pick (None: the suction tool has none)."""
 
     T_world_gripper: np.ndarray
     seal_margin: float
@@ -142,6 +143,7 @@ class SuctionGrasp:
     tilt_deg: float
     turn: float
     score: float
+    opening: float | None = None
 
 
 @functools.lru_cache(maxsize=32)

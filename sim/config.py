@@ -124,6 +124,9 @@ class HybridConfig:
     extension: float = field(default=0.088, metadata=within(0.01, 0.115))
     #: Speed (m/s) of the slide, out and in.
     extension_speed: float = field(default=0.25, metadata=within(0.01, 2.0))
+    #: In a suction pick the fingers close round the extended cup, in its shadow (open, they would reach the tote's
+    #: walls), as far as keeps them this far (m) from the cup and its stem.
+    cup_room: float = field(default=0.003, metadata=within(0.0005, 0.05))
 
     def __post_init__(self) -> None:
         least = FINGERTIP_REACH + HYBRID_MIN_LEAD - HYBRID_RETRACTED_Z

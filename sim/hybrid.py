@@ -37,12 +37,6 @@ BORE_EXCLUDE = "suction_bore"
 EXTEND_KP, EXTEND_FORCE, EXTEND_DAMPING, EXTEND_ARMATURE = 2000.0, 30.0, 25.0, 0.01
 #: Time (s) the slide takes to settle at an end after its reference reaches it (five of its time constants).
 EXTEND_SETTLE = 0.07
-#: The open (resting) fingers of the 2-finger hand as boxes (min corner, max corner; m, gripper frame), from their
-#: tips up out of reach like ``grasping.hand.Hand.boxes``: the extended cup's neighbours in a suction pick.
-OPEN_FINGERS: tuple[Box, Box] = (((0.022, -0.012, -1.0), (0.098, 0.012, -0.02)),
-                                 ((-0.098, -0.012, -1.0), (-0.022, 0.012, -0.02)))
-
-
 def _check_hand(cfg: WorkcellConfig) -> None:
     """Refuse, in one line, a workcell whose hand has no slide."""
     if cfg.hand != "hybrid":
@@ -81,11 +75,11 @@ def hybrid_cylinders(cfg: WorkcellConfig) -> tuple[ToolCylinder, ToolCylinder]:
 
 def hybrid_boxes(cfg: WorkcellConfig) -> list[Box]:
     """The hybrid hand in a suction pick for a clearance check (min corner, max corner; m, cup frame): the bounding
-    boxes of the extended stem and cup, the palm and the open fingers (the hand camera:
-    ``grasping.hand.camera_box``, moved ``-rim_offset`` along z)."""
-    dz = np.array([0.0, 0.0, rim_offset(cfg)])
-    moved = [(tuple(np.subtract(lo, dz)), tuple(np.subtract(hi, dz))) for lo, hi in (PALM_BOX, *OPEN_FINGERS)]
-    return [c.box() for c in hybrid_cylinders(cfg)] + moved
+    boxes of the extended stem and cup and the palm (the fingers closed round the cup:
+    ``grasping.tasks.bin_pick.planner.finger_boxes``; the hand camera: ``grasping.hand.camera_box``, each moved
+    ``-rim_offset`` along z)."""
+    lo, hi = np.subtract(PALM_BOX, [0.0, 0.0, rim_offset(cfg)])
+    return [c.box() for c in hybrid_cylinders(cfg)] + [(tuple(lo), tuple(hi))]
 
 
 # -- the model ------------------------------------------------------------------------------------------------------

@@ -13,9 +13,9 @@ from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.grasps import Grasp
 from posegrasp.grasping.suction_grasps import SuctionGrasp
 from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid, OutBox
-from posegrasp.grasping.tasks.bin_pick.planner import choose_cup
+from posegrasp.grasping.tasks.bin_pick.planner import choose_cup, off_the_walls
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
-from posegrasp.grasping.tasks.bin_pick.scene import area_of, outbox_of
+from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
 from test_bin_pick import CAT, _alone, _inner_bounds, _oracle_episode, _cfg
 from tests.helpers import run_cli
 
@@ -95,3 +95,23 @@ def test_the_hybrid_hand_takes_a_cube_flat_in_a_corner_with_its_cup():
     half = 0.5 * float(np.ptp(CAT["cube"].vertices[:, :2], 0).max())
     grasp, att = _hybrid_pick("cube", hi[:2] - half - 0.003)
     assert isinstance(grasp, SuctionGrasp) and att.grasped and att.failure is None
+
+
+def test_the_hybrid_hand_closes_its_fingers_round_the_cup_to_reach_a_part_flat_in_a_corner():
+    """A long cuboid 5 mm from two walls, its top 25 mm above the floor: open, the fingers would reach the walls;
+    closed round the cup, they stay in its shadow, and the part is drawn off the walls before the lift."""
+    lo, hi = _inner_bounds()
+    half = 0.5 * np.ptp(CAT["long_cuboid"].vertices[:, :2], 0)
+    grasp, att = _hybrid_pick("long_cuboid", lo[:2] + half + 0.005)
+    assert isinstance(grasp, SuctionGrasp) and att.grasped and att.failure is None
+
+
+def test_a_part_near_a_wall_is_drawn_off_it():
+    cfg = _cfg(1)
+    part, tote = CAT["cube"], area_of(bin_workcell(cfg, []), cfg.bin_pick).tote
+    lo, hi = tote.inner_bounds()
+    T = np.eye(4)
+    T[:3, 3] = (lo[0] + 0.022, hi[1] - 0.020, lo[2])  # 2 mm from the -x wall, at the +y wall
+    assert np.allclose(off_the_walls(part, T, tote, 0.006), (0.004, -0.006, 0.0))
+    T[:2, 3] = 0.5 * (lo[:2] + hi[:2])
+    assert not off_the_walls(part, T, tote, 0.006).any()

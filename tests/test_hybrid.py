@@ -127,14 +127,6 @@ def test_retracted_cup_clears_the_fingers_at_any_angle_and_extended_leads_them()
             reach = max(reach, float((v @ T[:3, :3].T + T[:3, 3])[:, 2].max()))
     assert FINGERTIP_REACH - 2e-4 < reach <= FINGERTIP_REACH  # the constant is the meshes' farthest reach
     assert H.rim_offset(HYBRID) - reach > 0.005  # the extended rim leads the fingertips by 5 mm
-    d.qpos[wc.finger_qadr] = lo
-    mujoco.mj_kinematics(m, d)
-    T = invert(wc.gripper_pose())
-    for f in fingers:  # the open fingers lie inside their boxes
-        g = m.geom(int(f))
-        a, n = m.mesh_vertadr[g.dataid[0]], m.mesh_vertnum[g.dataid[0]]
-        v = (m.mesh_vert[a:a + n] @ d.geom_xmat[f].reshape(3, 3).T + d.geom_xpos[f]) @ T[:3, :3].T + T[:3, 3]
-        assert any(np.all(v >= b[0]) and np.all(v <= b[1]) for b in H.OPEN_FINGERS)
     stem, body = H.hybrid_cylinders(HYBRID)
     assert body.z1 == 0.0 and stem.z1 == body.z0 and H.hybrid_boxes(HYBRID)[0] == stem.box()
 
@@ -220,3 +212,27 @@ def test_settings_no_slide_can_have_are_refused(hybrid, suction, names):
     assert "\n" not in str(e.value)
     if "slide allows" in names or "between" in names:  # only the hybrid hand carries the slide
         assert from_dict(WorkcellConfig, {"hand": "suction", "hybrid": hybrid, "suction": suction}).hand == "suction"
+
+
+def test_the_fingers_closed_round_the_cup_lie_in_their_boxes_and_clear_it():
+    """In a suction pick the fingers close to ``cup_opening``: their meshes lie inside the planner's boxes
+    (``finger_boxes``), within 51 mm of the axis (86 mm open), and with the cup out they keep ``cup_room`` from it,
+    a millimetre narrower they would not."""
+    from posegrasp.grasping.controller import finger_angle_for_opening, open_finger_points
+    from posegrasp.grasping.tasks.bin_pick.planner import cup_opening, finger_boxes
+
+    opening = cup_opening(HYBRID)
+    boxes = [(np.asarray(lo) - 1e-9, np.asarray(hi) + 1e-9) for lo, hi in finger_boxes(HYBRID, opening)]
+    pts = open_finger_points(HYBRID, round(1000 * opening))
+    assert all(any(np.all(p >= lo) and np.all(p <= hi) for lo, hi in boxes) for p in pts)
+    assert max(abs(x) for lo, hi in boxes for x in (lo[0], hi[0])) < 0.051
+    wc = cell()
+    m, d = wc.model, wc.data
+    d.qpos[wc.model.joint(f"jaco_arm/jaco_hand/{H.EXTEND_JOINT}").qposadr[0]] = HYBRID.hybrid.extension
+    cup, fingers = geoms(wc, "suction"), geoms(wc, "finger")
+    gaps = []
+    for o in (opening, opening - 0.001):
+        d.qpos[wc.finger_qadr] = finger_angle_for_opening(HYBRID, o)
+        mujoco.mj_kinematics(m, d)
+        gaps.append(min(mujoco.mj_geomDistance(m, d, int(c), int(f), 0.1, None) for c in cup for f in fingers))
+    assert gaps[0] >= HYBRID.hybrid.cup_room > gaps[1]

@@ -24,9 +24,10 @@ from posegrasp.grasping.suction_grasps import SuctionGrasp
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
-from posegrasp.grasping.tasks.bin_pick.planner import (CUP_APPROACH, CUP_PRESS, CUP_PRESS_SPEED, CUP_SETTLE_SPEED,
-                                                       CUP_SETTLE_TIME, HYBRID_TIE, HeapView, choose_cup,
-                                                       choose_part, pregrasp_height)
+from posegrasp.grasping.tasks.bin_pick.planner import (CUP_APPROACH, CUP_BACKOFF, CUP_BACKOFF_RISE, CUP_PRESS,
+                                                       CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME, HYBRID_TIE,
+                                                       HeapView, choose_cup, choose_part, off_the_walls,
+                                                       pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import Area
 from posegrasp.sim.hybrid import extend
@@ -142,7 +143,8 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
 
 
 def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt, vacuum: Vacuum) -> None:
-    """Pick ``plan``'s part with the suction cup: come down above the grasp, approach along its axis, press the cup
+    """Pick ``plan``'s part with the suction cup (the hybrid hand's out, its fingers at the grasp's ``opening``):
+    come down above the grasp, approach along its axis, press the cup
     on by ``CUP_PRESS`` of its stroke, switch the vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal
     on the part's true surface), wait for the vacuum to build, lift clear of the walls with the hold model watching
     every control period ("seal lost"), and hand the part to ``dest`` (the out-box or the tray), which has the
@@ -151,7 +153,10 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
     ctl, cfg, k, wc = ep.ctl, ep.cfg, plan.k, ep.wc
     g_cfg, b, s = cfg.grasp, cfg.bin_pick, wc.cfg.suction
     watch = _watch(ep, area, k)
-    out_at = ctl.sim_time + (extend(wc, True) if wc.cfg.hand == "hybrid" else 0.0)  # the hybrid's cup goes out
+    out_at = ctl.sim_time
+    if wc.cfg.hand == "hybrid":  # the cup goes out, the fingers open or close round it as planned
+        out_at += extend(wc, True)
+        ctl.preshape(plan.grasp.opening)
     T_grasp = plan.grasp.T_world_gripper
     z = T_grasp[:3, 2]
     T_near, T_press = T_grasp.copy(), T_grasp.copy()
@@ -181,6 +186,12 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
         ep.log.stop("pick", ctl, add=True)
         start = _bottoms(wc)
         T_hold = wc.gripper_pose()
+        off = off_the_walls(plan.est_block or plan.block, plan.T_world_obj, area.tote, CUP_BACKOFF) \
+            if area.walls else np.zeros(3)
+        if off.any():  # drawn off the walls before the lift
+            T = ctl.target.copy()
+            T[:3, 3] += off + [0.0, 0.0, CUP_BACKOFF_RISE]
+            ctl.move(T, speed=CUP_PRESS_SPEED)
         bottom_est, _ = plan.height_range()
         T_lift = ctl.target.copy()
         T_lift[2, 3] += max(max(area.top, dest.top_z) + b.wall_margin - bottom_est, cfg.scoring.lift_min)

@@ -29,12 +29,12 @@ from typing import Callable
 
 import mujoco
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 
 from posegrasp.catalog import PartType, catalog_by_id
 from posegrasp.geometry import axis_angle_R, invert, transform_points
 from posegrasp.grasping.config import TrialConfig, holds_firmly
-from posegrasp.grasping.controller import open_finger_points
+from posegrasp.grasping.controller import finger_angle_for_opening, finger_geoms, open_finger_points, robot_workcell
 from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
 from posegrasp.grasping.hand import CONTACT_BAND, ON_PLANE_TOL, Hand, camera_box, hand_of
 from posegrasp.grasping.perception import Estimate
@@ -46,8 +46,8 @@ from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, wall_points
 from posegrasp.sim.camera import Frame
-from posegrasp.sim.hybrid import T_gripper_cup, hybrid_boxes, hybrid_cylinders, rim_offset
-from posegrasp.sim.suction import PALM_BOX, PALM_Z
+from posegrasp.sim.hybrid import CARRIAGE_BODY, EXTEND_JOINT, T_gripper_cup, hybrid_boxes, hybrid_cylinders, rim_offset
+from posegrasp.sim.suction import CUP_BODY, PALM_BOX, PALM_Z
 from posegrasp.sim.tote import WALLS, Tote
 from posegrasp.sim.workcell import Workcell
 
@@ -59,6 +59,9 @@ CUP_PRESS = 0.3
 #: ... at this speed (m/s), once the arm has moved slower than ``CUP_SETTLE_SPEED`` (m/s) for 3 control periods,
 #: waiting at most ``CUP_SETTLE_TIME`` (s) for it.
 CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME = 0.05, 0.005, 1.0
+#: After the seal a part lying within this distance (m) of a tote's wall is drawn off it to this distance, raised
+#: ``CUP_BACKOFF_RISE`` (m) off the floor, before the lift: rubbing on the wall as it rises, it would pull the cup off.
+CUP_BACKOFF, CUP_BACKOFF_RISE = 0.006, 0.003
 #: The hybrid hand picks with its cup where the cup's part stands at most this far (m) below the fingers' part.
 HYBRID_TIE = 0.005
 
@@ -198,6 +201,16 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
     raise EpisodeFailed(Failure.UNREACHABLE if seen_any else Failure.NOTHING_GRASPABLE)
 
 
+def off_the_walls(block: PartType, T_world_obj: np.ndarray, tote: Tote, distance: float) -> np.ndarray:
+    """(3,) the horizontal move (m, world) that brings the part ``block`` at ``T_world_obj`` at least ``distance`` (m)
+    off each of the ``tote``'s inner walls that it lies nearer to (zero where it lies farther from all)."""
+    v = transform_points(T_world_obj, block.vertices)
+    lo, hi = tote.inner_bounds()
+    move = np.zeros(3)
+    move[:2] = np.maximum(0.0, lo[:2] + distance - v[:, :2].min(0)) - np.maximum(0.0, v[:, :2].max(0) - hi[:2] + distance)
+    return move
+
+
 def _reachable(wc: Workcell, cfg: TrialConfig, view: HeapView, options: list) -> tuple | None:
     """The best of ``options`` ((rank, estimate index, grasp), any order) whose pre-grasp and grasp the arm
     reaches clear of the tote's walls, as (index, grasp, levelled pose); None if none of the ``ik_checks`` best."""
@@ -220,40 +233,97 @@ def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam
     within ``retry_angle_deg``). The grasp's pose is the gripper's (the hybrid hand's cup lies ``rim_offset`` below
     it). ``EpisodeFailed`` as ``choose_part``."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
-    view, cup = view or HeapView(wc, cfg, ests, T_world_cam, heap), cup_of(wc.cfg)
+    view = view or HeapView(wc, cfg, ests, T_world_cam, heap)
     T_cup_gripper = invert(T_gripper_cup(wc.cfg)) if wc.cfg.hand == "hybrid" else np.eye(4)
-    options, parts = [], 0
-    for j in view.highest_first():
-        _, others, wall = view.around(j)
-        grasps = [dataclasses.replace(g, T_world_gripper=g.T_world_gripper @ T_cup_gripper)
-                  for g in plan_suction(view.part(j), view.poses[j],
-                                        CupSurroundings(others, wall, view.area.floor, yaw_now), cup, b)]
-        grasps = [g for g in grasps if not _tried_axis(g.T_world_gripper, failed, b, 2)][:g_cfg.grasps_per_block]
-        options += [(g.score + g_cfg.detection_weight * ests[j].score, j, g) for g in grasps]
-        parts += bool(grasps)
-        if parts >= b.plan_parts:
-            break
-    found = _reachable(wc, cfg, view, options)
-    if found is None:
-        raise EpisodeFailed(Failure.UNREACHABLE if options else Failure.NOTHING_GRASPABLE)
-    return found
+    seen_any = False
+    for opening in cup_openings(wc.cfg, g_cfg.max_width + b.finger_margin):
+        cup, options, parts = cup_of(wc.cfg, opening), [], 0
+        for j in view.highest_first():
+            _, others, wall = view.around(j)
+            grasps = [dataclasses.replace(g, T_world_gripper=g.T_world_gripper @ T_cup_gripper, opening=opening)
+                      for g in plan_suction(view.part(j), view.poses[j],
+                                            CupSurroundings(others, wall, view.area.floor, yaw_now), cup, b)]
+            grasps = [g for g in grasps if not _tried_axis(g.T_world_gripper, failed, b, 2)][:g_cfg.grasps_per_block]
+            options += [(g.score + g_cfg.detection_weight * ests[j].score, j, g) for g in grasps]
+            parts += bool(grasps)
+            if parts >= b.plan_parts:
+                break
+        seen_any |= bool(options)
+        found = _reachable(wc, cfg, view, options)
+        if found is not None:
+            return found
+    raise EpisodeFailed(Failure.UNREACHABLE if seen_any else Failure.NOTHING_GRASPABLE)
 
 
-def cup_of(wc_cfg) -> CupGeometry:
+def cup_openings(wc_cfg, wide: float) -> tuple[float | None, ...]:
+    """The fingers' openings (m) a suction pick is planned with, in order: none on the suction tool; on the hybrid
+    hand ``wide`` (open: high above the cup's rim) then closed round the cup (``cup_opening``: nearer the axis, but
+    lower), for a part the open fingers would reach a wall from."""
+    return (None,) if wc_cfg.hand == "suction" else (wide, cup_opening(wc_cfg))
+
+
+def cup_of(wc_cfg, opening: float | None = None) -> CupGeometry:
     """The cup of the workcell settings ``wc_cfg`` as the planner models it (cup frame): the suction tool's
     (``sim.suction``; the wrist may come the bellows' whole stroke nearer) or the hybrid hand's extended cup
-    (``sim.hybrid``: the open fingers around it, the wrist coming as near as the pick presses, ``CUP_PRESS``)."""
+    (``sim.hybrid``: the fingers ``opening`` (m) apart, ``finger_boxes``; the wrist coming as near as the pick
+    presses, ``CUP_PRESS``)."""
     s = wc_cfg.suction
     if wc_cfg.hand == "suction":
         return CupGeometry(radius=s.diameter / 2, seal_tol=s.seal_tolerance, body_radius=s.diameter / 2,
                            body_length=-PALM_Z, stroke=s.stroke,
                            wrist=(PALM_BOX, camera_box(wc_cfg.hand_camera.mount_pos)))
     stem, _ = hybrid_cylinders(wc_cfg)
-    lo, hi = camera_box(wc_cfg.hand_camera.mount_pos)
-    dz = rim_offset(wc_cfg)
-    boxes = hybrid_boxes(wc_cfg)[2:] + [((lo[0], lo[1], lo[2] - dz), (hi[0], hi[1], hi[2] - dz))]
+    dz = np.array([0.0, 0.0, rim_offset(wc_cfg)])
+    moved = [(tuple(np.subtract(lo, dz)), tuple(np.subtract(hi, dz)))
+             for lo, hi in (camera_box(wc_cfg.hand_camera.mount_pos), *finger_boxes(wc_cfg, opening))]
     return CupGeometry(radius=s.diameter / 2, seal_tol=s.seal_tolerance, body_radius=s.diameter / 2,
-                       body_length=-stem.z0, stroke=CUP_PRESS * s.stroke, wrist=tuple(boxes))
+                       body_length=-stem.z0, stroke=CUP_PRESS * s.stroke,
+                       wrist=tuple(hybrid_boxes(wc_cfg)[2:] + moved))
+
+
+@functools.lru_cache(maxsize=4)
+def cup_opening(wc_cfg) -> float:
+    """The hybrid hand's fingers' opening (m, between their tips; ``controller.finger_angle_for_opening``) in a
+    suction pick: the least, in millimetre steps, at which their collision meshes keep ``hybrid.cup_room`` (m) from
+    the extended cup and its stem (closed further, the fingertips curl in onto the stem)."""
+    robot = robot_workcell(wc_cfg)
+    m, d = robot.model, mujoco.MjData(robot.model)
+    d.qpos[m.joint(f"jaco_arm/jaco_hand/{EXTEND_JOINT}").qposadr[0]] = wc_cfg.hybrid.extension
+    fingers = np.flatnonzero((finger_geoms(m) > 0) & (m.geom_contype > 0))
+    cup = np.flatnonzero([m.body(b).name.endswith((CARRIAGE_BODY, CUP_BODY)) for b in m.geom_bodyid])
+    mm = round(1000 * wc_cfg.suction.diameter)
+    while True:
+        d.qpos[robot.finger_qadr] = finger_angle_for_opening(wc_cfg, mm / 1000.0)
+        mujoco.mj_kinematics(m, d)
+        if min(mujoco.mj_geomDistance(m, d, int(c), int(f), 0.1, None) for c in cup for f in fingers) \
+                >= wc_cfg.hybrid.cup_room:
+            return mm / 1000.0
+        mm += 1
+
+
+@functools.lru_cache(maxsize=8)
+def finger_boxes(wc_cfg, opening: float, band: float = 0.01) -> tuple[tuple[tuple, tuple], ...]:
+    """The fingers held ``opening`` (m) apart at their tips as boxes (min corner, max corner; m, gripper frame):
+    per finger (either side of the squeeze plane x = 0), the convex hull of its collision meshes' vertices
+    (``controller.open_finger_points``) cut into slices ``band`` (m) high from the tips up, each slice's bounds, the
+    top one up out of reach. The hull holds the finger, so the boxes do."""
+    pts, out = open_finger_points(wc_cfg, round(1000 * opening)), []
+    for side in (pts[pts[:, 0] > 0], pts[pts[:, 0] < 0]):
+        hull = ConvexHull(side)
+        v = side[hull.vertices]
+        a, b = (side[[e for e in {tuple(sorted(p)) for t in hull.simplices for p in
+                                   ((t[0], t[1]), (t[1], t[2]), (t[0], t[2]))}]].transpose(1, 0, 2))
+        lowest, z = float(v[:, 2].min()), float(v[:, 2].max())
+        while z > lowest:
+            cuts = [a + ((c - a[:, 2]) / (b[:, 2] - a[:, 2] + 1e-300))[:, None] * (b - a)
+                    for c in (z - band, z)]
+            cuts = [p[(p[:, 2] >= z - band - 1e-9) & (p[:, 2] <= z + 1e-9) & (np.minimum(a[:, 2], b[:, 2]) <= p[:, 2])
+                      & (np.maximum(a[:, 2], b[:, 2]) >= p[:, 2])] for p in cuts]
+            inside = np.concatenate([v[(v[:, 2] >= z - band) & (v[:, 2] <= z)], *cuts])
+            top = z - band <= lowest
+            out.append(((*inside[:, :2].min(0), -1.0 if top else z - band), (*inside[:, :2].max(0), z)))
+            z -= band
+    return tuple(out)
 
 
 def _pad_overlap(T: np.ndarray, width: float, own: np.ndarray, hand: Hand) -> tuple[float, float]:
