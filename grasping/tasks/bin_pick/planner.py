@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterable
 
 import mujoco
 import numpy as np
@@ -171,28 +171,45 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
     view = view or HeapView(wc, cfg, ests, T_world_cam, heap)
     area, poses, tops = view.area, view.poses, view.tops
     cam, hand = camera_box(wc.cfg.hand_camera.mount_pos), hand_of(wc.cfg)
+
+    def passes():  # one per clearance, strictest first
+        for clearance in b.part_clearance:
+            plan_cfg = dataclasses.replace(g_cfg, min_pinch_height=area.floor + g_cfg.min_pinch_height,
+                                           finger_margin=b.finger_margin, clearance_min=clearance,
+                                           score=dataclasses.replace(g_cfg.score, turn=b.turn_weight))
+            yield functools.partial(ranked, clearance, plan_cfg)
+
+    def ranked(clearance: float, plan_cfg, j: int) -> list[tuple[float, Grasp]]:
+        own, others, wall = view.around(j)
+        clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
+            not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
+        fit = _Fit(own.data, others, clearance, lambda g: clear_of_walls(g, b.shift_clearance), b, hand)
+        grasps = [g for g0 in plan_grasps(view.part(j), poses[j], others, plan_cfg, yaw_now,
+                                          yaw_stable=holds_firmly(cfg), hand=hand)
+                  for g in ([g0] if clear_of_walls(g0) else
+                            fit.shifted(g0) or fit.tilted(g0, wc.cfg, area.floor, g_cfg.score.tilt))
+                  if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
+                  and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
+                  ][:g_cfg.grasps_per_block]
+        return [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), g)
+                for g in grasps]
+
+    return _first_reachable(wc, cfg, view, passes())
+
+
+def _first_reachable(wc: Workcell, cfg: TrialConfig, view: HeapView,
+                     passes: Iterable[Callable[[int], list[tuple[float, object]]]]) -> tuple:
+    """Per pass (a function giving an estimate's grasps with their ranks), strictest first: the ranked grasps of the
+    first ``plan_parts`` parts that have some, highest first, and the best of them the arm reaches (``_reachable``);
+    ``EpisodeFailed``: "unreachable" when some pass had grasps, none reachable, else "nothing graspable"."""
     seen_any = False
-    for clearance in b.part_clearance:
-        plan_cfg = dataclasses.replace(g_cfg, min_pinch_height=area.floor + g_cfg.min_pinch_height,
-                                       finger_margin=b.finger_margin, clearance_min=clearance,
-                                       score=dataclasses.replace(g_cfg.score, turn=b.turn_weight))
+    for grasps_of in passes:
         options, parts = [], 0
         for j in view.highest_first():
-            own, others, wall = view.around(j)
-            clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
-                not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
-            fit = _Fit(own.data, others, clearance, lambda g: clear_of_walls(g, b.shift_clearance), b, hand)
-            grasps = [g for g0 in plan_grasps(view.part(j), poses[j], others, plan_cfg, yaw_now,
-                                              yaw_stable=holds_firmly(cfg), hand=hand)
-                      for g in ([g0] if clear_of_walls(g0) else
-                                fit.shifted(g0) or fit.tilted(g0, wc.cfg, area.floor, g_cfg.score.tilt))
-                      if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
-                      and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
-                      ][:g_cfg.grasps_per_block]
-            options += [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor),
-                         j, g) for g in grasps]
+            grasps = grasps_of(j)
+            options += [(rank, j, g) for rank, g in grasps]
             parts += bool(grasps)
-            if parts >= b.plan_parts:
+            if parts >= cfg.bin_pick.plan_parts:
                 break
         seen_any |= bool(options)
         found = _reachable(wc, cfg, view, options)
@@ -235,24 +252,17 @@ def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam
     b, g_cfg = cfg.bin_pick, cfg.grasp
     view = view or HeapView(wc, cfg, ests, T_world_cam, heap)
     T_cup_gripper = invert(T_gripper_cup(wc.cfg)) if wc.cfg.hand == "hybrid" else np.eye(4)
-    seen_any = False
-    for opening in cup_openings(wc.cfg, g_cfg.max_width + b.finger_margin):
-        cup, options, parts = cup_of(wc.cfg, opening), [], 0
-        for j in view.highest_first():
-            _, others, wall = view.around(j)
-            grasps = [dataclasses.replace(g, T_world_gripper=g.T_world_gripper @ T_cup_gripper, opening=opening)
-                      for g in plan_suction(view.part(j), view.poses[j],
-                                            CupSurroundings(others, wall, view.area.floor, yaw_now), cup, b)]
-            grasps = [g for g in grasps if not _tried_axis(g.T_world_gripper, failed, b, 2)][:g_cfg.grasps_per_block]
-            options += [(g.score + g_cfg.detection_weight * ests[j].score, j, g) for g in grasps]
-            parts += bool(grasps)
-            if parts >= b.plan_parts:
-                break
-        seen_any |= bool(options)
-        found = _reachable(wc, cfg, view, options)
-        if found is not None:
-            return found
-    raise EpisodeFailed(Failure.UNREACHABLE if seen_any else Failure.NOTHING_GRASPABLE)
+
+    def ranked(cup: CupGeometry, opening: float | None, j: int) -> list[tuple[float, SuctionGrasp]]:
+        _, others, wall = view.around(j)
+        grasps = [dataclasses.replace(g, T_world_gripper=g.T_world_gripper @ T_cup_gripper, opening=opening)
+                  for g in plan_suction(view.part(j), view.poses[j],
+                                        CupSurroundings(others, wall, view.area.floor, yaw_now), cup, b)]
+        grasps = [g for g in grasps if not _tried_axis(g.T_world_gripper, failed, b, 2)][:g_cfg.grasps_per_block]
+        return [(g.score + g_cfg.detection_weight * ests[j].score, g) for g in grasps]
+
+    return _first_reachable(wc, cfg, view, (functools.partial(ranked, cup_of(wc.cfg, o), o)
+                                            for o in cup_openings(wc.cfg, g_cfg.max_width + b.finger_margin)))
 
 
 def cup_openings(wc_cfg, wide: float) -> tuple[float | None, ...]:
