@@ -144,12 +144,12 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
 
 def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt, vacuum: Vacuum) -> None:
     """Pick ``plan``'s part with the suction cup (the hybrid hand's out, its fingers at the grasp's ``opening``):
-    come down above the grasp, approach along its axis, press the cup
-    on by ``CUP_PRESS`` of its stroke, switch the vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal
-    on the part's true surface), wait for the vacuum to build, lift clear of the walls with the hold model watching
-    every control period ("seal lost"), and hand the part to ``dest`` (the out-box or the tray), which has the
-    vacuum switched off; marks ``att.grasped``; "two parts lifted" after the drop when another part came up with
-    it."""
+    come down above the grasp, approach along its axis, press the cup on by ``CUP_PRESS`` of its stroke, switch the
+    vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal on the part's true surface), wait for the
+    vacuum to build, draw a part lying near a wall off it (``CUP_BACKOFF``), lift clear of the walls with the hold
+    model watching every control period ("seal lost"), and hand the part to ``dest`` (the out-box or the tray),
+    which has the vacuum switched off; marks ``att.grasped``; "two parts lifted" after the drop when another part
+    came up with it."""
     ctl, cfg, k, wc = ep.ctl, ep.cfg, plan.k, ep.wc
     g_cfg, b, s = cfg.grasp, cfg.bin_pick, wc.cfg.suction
     watch = _watch(ep, area, k)
