@@ -17,7 +17,7 @@ from posegrasp.grasping.tasks.bin_pick.planner import choose_cup, off_the_walls
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
 from test_bin_pick import CAT, _alone, _inner_bounds, _oracle_episode, _cfg
-from tests.helpers import run_cli
+from tests.helpers import refused, run_cli
 
 
 def _cup_pick(ep, ests, T_world_cam) -> Attempt:
@@ -115,3 +115,12 @@ def test_a_part_near_a_wall_is_drawn_off_it():
     assert np.allclose(off_the_walls(part, T, tote, 0.006), (0.004, -0.006, 0.0))
     T[:2, 3] = 0.5 * (lo[:2] + hi[:2])
     assert not off_the_walls(part, T, tote, 0.006).any()
+
+
+def test_a_cup_room_no_finger_opening_keeps_is_refused(tmp_path, capsys):
+    cfg = tmp_path / "room.toml"
+    cfg.write_text("[scene.workcell.hybrid]\ncup_room = 0.05\n")
+    out = tmp_path / "run"
+    refused(capsys, ["trials", "--config", cfg, "--task", "bin-pick", "--hand", "hybrid", "--episodes", "1", "--out",
+                     out], "cup_room = 0.05 m")
+    assert not out.exists()

@@ -32,9 +32,11 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from posegrasp.catalog import PartType, catalog_by_id
+from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, invert, transform_points
 from posegrasp.grasping.config import TrialConfig, holds_firmly
-from posegrasp.grasping.controller import finger_angle_for_opening, finger_geoms, open_finger_points, robot_workcell
+from posegrasp.grasping.controller import (_opening_table, finger_angle_for_opening, finger_geoms, open_finger_points,
+                                           robot_workcell)
 from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
 from posegrasp.grasping.hand import CONTACT_BAND, ON_PLANE_TOL, Hand, camera_box, hand_of
 from posegrasp.grasping.perception import Estimate
@@ -224,7 +226,8 @@ def off_the_walls(block: PartType, T_world_obj: np.ndarray, tote: Tote, distance
     v = transform_points(T_world_obj, block.vertices)
     lo, hi = tote.inner_bounds()
     move = np.zeros(3)
-    move[:2] = np.maximum(0.0, lo[:2] + distance - v[:, :2].min(0)) - np.maximum(0.0, v[:, :2].max(0) - hi[:2] + distance)
+    move[:2] = (np.maximum(0.0, lo[:2] + distance - v[:, :2].min(0))
+                - np.maximum(0.0, v[:, :2].max(0) - hi[:2] + distance))
     return move
 
 
@@ -301,14 +304,15 @@ def cup_opening(wc_cfg) -> float:
     d.qpos[m.joint(f"jaco_arm/jaco_hand/{EXTEND_JOINT}").qposadr[0]] = wc_cfg.hybrid.extension
     fingers = np.flatnonzero((finger_geoms(m) > 0) & (m.geom_contype > 0))
     cup = np.flatnonzero([m.body(b).name.endswith((CARRIAGE_BODY, CUP_BODY)) for b in m.geom_bodyid])
-    mm = round(1000 * wc_cfg.suction.diameter)
-    while True:
+    widest = round(1000 * float(_opening_table(wc_cfg)[1].max()))  # the fingers wide open
+    for mm in range(round(1000 * wc_cfg.suction.diameter), widest + 1):
         d.qpos[robot.finger_qadr] = finger_angle_for_opening(wc_cfg, mm / 1000.0)
         mujoco.mj_kinematics(m, d)
         if min(mujoco.mj_geomDistance(m, d, int(c), int(f), 0.1, None) for c in cup for f in fingers) \
                 >= wc_cfg.hybrid.cup_room:
             return mm / 1000.0
-        mm += 1
+    raise ConfigError(f"hybrid.cup_room = {wc_cfg.hybrid.cup_room!r} m: even wide open the fingers come nearer the "
+                      "cup than that; use less")
 
 
 @functools.lru_cache(maxsize=8)

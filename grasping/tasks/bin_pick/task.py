@@ -53,7 +53,8 @@ class BinPickTask(Task):
 
     def check(self, cfg: TrialConfig) -> None:
         """A one-line UserError for a scene that is no heap, a part count the tote cannot hold, a part too big
-        for the hand or a tote the hand cannot reach."""
+        for the hand, a tote the hand cannot reach or a hybrid hand whose fingers cannot keep ``cup_room`` from
+        its cup."""
         b = cfg.bin_pick
         if b.scene not in CLUTTER_KINDS:
             raise ConfigError(f"task bin-pick needs scene bin or pile, not {b.scene!r} (--scene, bin_pick.scene)")
@@ -66,6 +67,10 @@ class BinPickTask(Task):
             raise UserError(f"part(s) {too_big} are wider than the hand opens ({cfg.grasp.max_width} m, "
                             "grasp.max_width) every way: choose other scene.block_types or --objects")
         check_clutter(cfg.scene.workcell, b.scene, b.clutter, types, hi)
+        if cfg.scene.workcell.hand == "hybrid":  # the fingers' opening round the cup exists
+            from posegrasp.grasping.tasks.bin_pick.planner import cup_opening
+
+            cup_opening(cfg.scene.workcell)
         if b.place == "tray":
             from posegrasp.grasping.tasks.bin_pick.scene import tray_of
             from posegrasp.grasping.tasks.bin_pick.tray import check_tray
