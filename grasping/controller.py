@@ -183,7 +183,7 @@ class ArmController:
             if until is not None and until():
                 self.target = T_ref
                 return True
-        self.target = T_goal
+        self.target = T_goal.copy()  # the controller's own: a caller's later change to T_goal does not move it
         return self.wait_reached(T_goal, max(budget * c.dt, c.settle_timeout))
 
     def wait_reached(self, T_goal: np.ndarray, timeout: float) -> bool:
