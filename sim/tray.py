@@ -4,6 +4,9 @@ vertical, tray frame) and the part type it takes, as a kitting tray or a machine
 Composed as its own ``dm_control.mjcf`` model and attached to the workcell at the tray's centre, so its geoms are
 named ``tray/plate`` and ``tray/slot_0`` ... (flat, drawn marks on the plate, which nothing collides with). The tray
 frame is the world frame moved to the plate's centre on the table: slot ``(x, y)`` in metres, ``yaw_deg`` about +z.
+With ``second_look`` the model also holds ``tray/part_camera``: an RGB-D camera on the table beside the plate looking
+straight up (its OpenCV frame is the tray frame moved to ``look_camera_xy``: x along world x, z up), with a light
+beside it, that sees a held part from below before it is set down (real cells do this).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 
 TRAY = "tray"  #: model name of the tray: the prefix of its geoms' names in a workcell
+PART_CAMERA = "part_camera"  #: the upward camera of the second look (``tray/part_camera`` in a workcell)
 
 
 @settings
@@ -59,11 +63,21 @@ class TrayConfig:
     #: The slots (``[[bin_pick.tray.slots]]`` tables): ``type`` (a part type's name), ``xy`` (m, the part's model
     #: origin over the plate, tray frame), ``yaw_deg`` (its model frame's turn about the vertical).
     slots: tuple[Slot, ...] = _grid(DEFAULT_KIT, 4, (0.085, 0.085))
+    #: A second look at each held part, from below, before it is set down: the part is set down as that look sees
+    #: it held (``grasping.tasks.bin_pick.tray``), not as the look into the tote saw it at the pick.
+    second_look: bool = False
+    #: Position (m, tray frame) on the table of the second look's upward camera (off the plate).
+    look_camera_xy: tuple[float, float] = field(default=(0.23, -0.16), metadata=within(-2.0, 2.0))
+    #: The held part's estimated centre this far (m) above the upward camera at the second look.
+    look_height: float = field(default=0.2, metadata=within(0.08, 1.0))
 
     def __post_init__(self) -> None:
         if not self.slots:
             raise ConfigError("bin_pick.tray.slots is empty: give the tray one slot per part ([[bin_pick.tray.slots]])")
         half = 0.5 * np.asarray(self.size)
+        if self.second_look and np.all(np.abs(self.look_camera_xy) < half):
+            raise ConfigError(f"bin_pick.tray.look_camera_xy {list(self.look_camera_xy)} lies on the plate: move the "
+                              "camera off it (tray frame, m)")
         for i, s in enumerate(self.slots):
             if np.any(np.abs(s.xy) > half):
                 raise ConfigError(f"bin_pick.tray.slots[{i}] at {list(s.xy)} lies off the {self.size[0]:g} x "
@@ -119,6 +133,13 @@ class Tray:
                                pos=(*s.xy, c.thickness + 0.0002), rgba=(0.3, 0.3, 0.3, 1),
                                quat=(np.cos(np.radians(0.5 * s.yaw_deg)), 0, 0, np.sin(np.radians(0.5 * s.yaw_deg))),
                                contype=0, conaffinity=0, group=1)
+        if c.second_look:  # OpenCV frame = tray frame at the camera (z up); MuJoCo's camera looks along its -z
+            x, y = c.look_camera_xy
+            root.worldbody.add("camera", name=PART_CAMERA, pos=(x, y, 0.02), quat=(0.0, 1.0, 0.0, 0.0))
+            root.worldbody.add("geom", name="part_camera_housing", type="box", size=(0.03, 0.02, 0.01),
+                               pos=(x, y, 0.01), rgba=(0.12, 0.12, 0.14, 1), contype=0, conaffinity=0, group=1)
+            root.worldbody.add("light", name="part_light", pos=(x + 0.05, y, 0.03), dir=(0.0, 0.0, 1.0),
+                               diffuse=(0.6, 0.6, 0.6), castshadow=False, cutoff=50)
         return root
 
     def add_to(self, root: mjcf.RootElement) -> None:

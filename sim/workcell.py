@@ -265,6 +265,7 @@ class Workcell:
         self.gripper_site = m.site(f"jaco_arm/jaco_hand/{GRIPPER_SITE}").id
         self.camera_ids = {HAND_CAMERA: m.camera(f"jaco_arm/jaco_hand/{HAND_CAMERA}").id,
                            OVERVIEW_CAMERA: m.camera(OVERVIEW_CAMERA).id}
+        self.camera_ids |= {m.camera(i).name: i for i in range(m.ncam) if i not in self.camera_ids.values()}
         self.block_body = np.array([m.body(f"block_{k}").id for k in range(1, len(self.blocks) + 1)], dtype=int)
         self.block_qadr = np.array([m.joint(f"block_{k}_joint").qposadr[0] for k in range(1, len(self.blocks) + 1)],
                                    dtype=int)

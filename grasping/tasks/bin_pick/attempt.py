@@ -235,6 +235,7 @@ class _Emptying:
             err, att.failure = self.tray.judge(target, wc.blocks[target - 1].block)
             att.place_error = err.to_json() if err is not None else None
             att.slot = self.tray.placing.slot if self.tray.placing is not None else None
+            att.in_hand = self.tray.placing.in_hand if self.tray.placing is not None else None
         if att.failure is None and target not in gone:
             att.failure = Failure.DROP if target in self.left else Failure.MISPLACED
         if att.failure is None and [k for k in thrown if k != target]:

@@ -31,12 +31,13 @@ class Attempt:
     sim_time: float = 0.0  # simulated seconds the attempt took
     slot: int | None = None  # tray: the slot (0-based) the target was set down in
     place_error: dict | None = None  # tray: the target at rest against its slot (``tray.PlaceError``: m, deg)
+    in_hand: dict | None = None  # tray's second look: whether it saw the part, its change to the held pose (m, deg)
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
         if self.failure is not None:
             d["failure"] = Failure(self.failure).value
-        for key in ("slot", "place_error"):  # the tray's: an out-box record has neither
+        for key in ("slot", "place_error", "in_hand"):  # the tray's: an out-box record has none
             if d[key] is None:
                 del d[key]
         return d

@@ -10,7 +10,10 @@ was picked with stays up), turned about the vertical by the slot's yaw::
 
 The hand sets it down holding it as the estimate at the pick says it holds it: the gripper's release pose is
 ``T_goal T_gripper_obj^-1`` with ``T_gripper_obj = T_world_gripper^-1 T_world_obj`` at the grasp, the goal taken
-over the part's symmetries ``T_goal S`` as the one the wrist turns least to. The verdict (the simulator's truth) on
+over the part's symmetries ``T_goal S`` as the one the wrist turns least to. With the tray's ``second_look`` the hand
+first holds the part over the tray's upward camera (``sim.tray``) and the provider estimates it there:
+``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the
+part's symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one the pick's stands. The verdict (the simulator's truth) on
 the part at rest, modulo its symmetries (``PlaceError``): its face within ``face_tol_deg`` of the planned one (else
 "wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else "misplaced", as for a part of another type
 than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
@@ -28,14 +31,16 @@ from scipy.spatial import ConvexHull
 from posegrasp.catalog import PartType, catalog_by_id
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import make_T, transform_points
+from posegrasp.grasping.perception import PerceptionError
 from posegrasp.grasping.record import Failure
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.planner import CUP_SETTLE_SPEED, CUP_SETTLE_TIME
 from posegrasp.grasping.upright import match, symmetries
-from posegrasp.sim.config import WorkcellConfig
-from posegrasp.sim.tray import TRAY, Tray
+from posegrasp.sim.camera import CameraRenderer, Frame
+from posegrasp.sim.config import CameraConfig, WorkcellConfig
+from posegrasp.sim.tray import PART_CAMERA, TRAY, Tray
 from posegrasp.sim.workcell import Workcell
 
 if TYPE_CHECKING:
@@ -45,6 +50,11 @@ if TYPE_CHECKING:
 DOWN = np.array([0.0, 0.0, -1.0])
 #: The hand stops this far (m) above its release pose, where the arm's settled offset is measured and taken out.
 NEAR = 0.008
+#: The second look's estimate is taken when it lies within this distance (m) and angle (deg) of where the pick's
+#: estimate puts the held part: a part shifts a few millimetres in closing fingers, not more.
+LOOK_GATE = (0.02, 20.0)
+#: Seeds of the second looks: ``Episode.seed_for(LOOK_SEEDS + attempt)``, apart from the looks into the tote.
+LOOK_SEEDS = 1_000_000
 
 
 @functools.lru_cache(maxsize=64)
@@ -153,6 +163,7 @@ class Placing:
     slot: int
     T_goal: np.ndarray
     n: np.ndarray
+    in_hand: dict | None = None  # the second look's change to the held pose: shift (m), turn (deg); None: no look
 
 
 class TrayPlace:
@@ -181,23 +192,25 @@ class TrayPlace:
                      if not f and s.type == type_name), None)
 
     def deliver(self, plan: Plan, T_lift: np.ndarray, T_hold: np.ndarray, let_go: Callable[[], None]) -> None:
-        """Carry the part held at gripper pose ``T_hold`` (at the grasp) from ``T_lift`` over its slot, set it down
-        there at the goal pose (the hand stops early where the part touches the plate or another part) and let go
-        (``let_go``: the tool's release), then raise the hand; the slot counts as filled once the part is let go
-        over it."""
+        """Carry the part held at gripper pose ``T_hold`` (at the grasp) from ``T_lift`` over its slot (by the
+        second look, if the tray has one), set it down there at the goal pose (the hand stops early where the part
+        touches the plate or another part) and let go (``let_go``: the tool's release), then raise the hand; the slot
+        counts as filled once the part is let go over it."""
         ep, b = self.ep, self.ep.cfg.bin_pick
         ctl, g_cfg, block = ep.ctl, ep.cfg.grasp, plan.est_block or plan.block
         slot = self.free(block.name)
         if slot is None:  # the planner only goes for parts with a free slot
             raise EpisodeFailed(Failure.NO_SLOT)
         xy, yaw = self.tray.slot_pose(slot)
-        n = rest_face(block, plan.T_world_obj[:3, :3])
-        T_obj_gripper = np.linalg.inv(plan.T_world_obj) @ T_hold
+        T_obj_gripper, in_hand = np.linalg.inv(plan.T_world_obj) @ T_hold, None
+        if self.tray.cfg.second_look:
+            T_obj_gripper, in_hand = self._second_look(block, T_obj_gripper, T_lift)
+        n = rest_face(block, (T_hold @ np.linalg.inv(T_obj_gripper))[:3, :3])
         goals = goal_pose(block, n, xy, yaw, self.top_z)[None] @ np.linalg.inv(symmetries(block))
         releases = goals @ T_obj_gripper
         i, _, _ = match(releases, T_lift[None])  # the goal the wrist turns least to
         T_goal, T_release = goals[i], releases[i].copy()
-        self.placing = Placing(slot, T_goal, n)
+        self.placing = Placing(slot, T_goal, n, in_hand)
         T_release[2, 3] += b.place_gap
         T_above = T_release.copy()
         T_above[2, 3] = max(T_lift[2, 3], T_release[2, 3] + g_cfg.pregrasp_height)
@@ -225,6 +238,60 @@ class TrayPlace:
         T_up[2, 3] += g_cfg.pregrasp_height
         ctl.move(T_up)
         ep.log.stop("place", ctl, add=True)
+
+    def _second_look(self, block: PartType, T_obj_gripper: np.ndarray, T_lift: np.ndarray
+                     ) -> tuple[np.ndarray, dict]:
+        """Hold the part (held as ``T_obj_gripper`` says) over the upward camera, its estimated centre the tray's
+        ``look_height`` above it, the hand turned as at ``T_lift``; capture and ask the provider. Returns the held
+        pose ``T_obj_gripper`` the look sees (the one given where it sees none within ``LOOK_GATE``) and the change
+        (shift m, turn deg; ``seen``: whether the look's estimate was taken)."""
+        ep, cfg = self.ep, self.tray.cfg
+        ctl, wc = ep.ctl, ep.wc
+        T_world_cam = wc.camera_pose(self.camera)
+        centre = 0.5 * (block.vertices.min(0) + block.vertices.max(0))
+        T_show = T_lift.copy()
+        held = T_show[:3, :3] @ np.linalg.inv(T_obj_gripper)[:3, :] @ np.append(centre, 1.0)  # centre - gripper
+        T_show[:3, 3] = T_world_cam[:3, 3] + (0.0, 0.0, cfg.look_height) - held
+        ctl.move(T_show, speed=ep.cfg.grasp.carry_speed)
+        ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)
+        ep.log.stop("look in hand", ctl, add=True)
+        frame = self._capture()
+        a = len(ep.rec.attempts)
+        try:
+            ests = ep.perceive(frame, ep.seed_for(LOOK_SEEDS + a), LOOK_SEEDS + a)
+        except PerceptionError:
+            ests = []
+        T_world_gripper = wc.gripper_pose()
+        T_expect = T_world_gripper @ np.linalg.inv(T_obj_gripper)
+        best = None
+        for e in ests:
+            if e.obj_id != block.obj_id:
+                continue
+            copies = T_world_cam @ e.T_cam_obj @ symmetries(block)
+            i, _, angle = match(copies, T_expect[None])
+            shift = float(np.linalg.norm(copies[i][:3, 3] - T_expect[:3, 3]))
+            if shift <= LOOK_GATE[0] and np.degrees(angle) <= LOOK_GATE[1] and (best is None or shift < best[0]):
+                best = (shift, float(np.degrees(angle)), copies[i])
+        if best is None:
+            return T_obj_gripper, {"seen": False}
+        return np.linalg.inv(best[2]) @ T_world_gripper, {"seen": True, "shift": best[0], "turn_deg": best[1]}
+
+    @property
+    def camera(self) -> str:
+        """The upward camera's name in the workcell."""
+        return f"{TRAY}/{PART_CAMERA}"
+
+    def _capture(self) -> Frame:
+        """RGB-D, mask and poses of the upward camera now (the hand camera's image size, the model's field of view,
+        depth from 5 cm)."""
+        wc = self.ep.wc
+        c = wc.cfg.hand_camera
+        fovy = float(wc.model.cam_fovy[wc.camera_ids[self.camera]])
+        cam = CameraRenderer(wc, self.camera, CameraConfig(c.width, c.height, fovy, near=0.05, far=1.0), wc.cfg.render)
+        try:
+            return cam.capture(images=True)
+        finally:
+            cam.close()
 
     def _touches(self, k: int) -> bool:
         """Does part ``k`` touch the plate or another part?"""
@@ -272,24 +339,37 @@ def check_tray(cfg: TrialConfig, tray: Tray) -> None:
     if bad:
         raise ConfigError(f"the hand cannot reach tray slot(s) {bad} from above (tray centred at "
                           f"{[round(c, 3) for c in tray.center]}): move them, or the tray with bin_pick.tray.offset")
+    c = tray.cfg
+    look = np.asarray(tray.center) + c.look_camera_xy
+    if c.second_look and not reaches(cfg.scene.workcell, (*look, c.look_height + REACH_HEIGHT)):
+        raise ConfigError(f"the hand cannot hold a part {c.look_height:g} m over the second look's camera at "
+                          f"{[round(float(v), 3) for v in look]} (world): move bin_pick.tray.look_camera_xy nearer "
+                          "the arm or lower bin_pick.tray.look_height")
 
 
 @functools.lru_cache(maxsize=8)
 def unreached_slots(workcell: WorkcellConfig, tray: Tray) -> list[int]:
     """The slots (0-based) whose point ``REACH_HEIGHT`` above the plate the gripper, pointing down, reaches at none
     of ``REACH_YAWS``."""
-    wc = Workcell(workcell)
+    return [i for i in range(len(tray.cfg.slots))
+            if not reaches(workcell, (*tray.slot_pose(i)[0], tray.top_z + REACH_HEIGHT))]
+
+
+@functools.lru_cache(maxsize=2)
+def _arm(workcell: WorkcellConfig) -> Workcell:
+    """A bare workcell of these settings, for reach checks by IK."""
+    return Workcell(workcell)
+
+
+@functools.lru_cache(maxsize=64)
+def reaches(workcell: WorkcellConfig, point: tuple[float, float, float]) -> bool:
+    """Does the gripper, pointing down, reach the world ``point`` (m) at one of ``REACH_YAWS``?"""
+    wc = _arm(workcell)
     down = np.diag([1.0, -1.0, -1.0])
-    bad = []
-    for i in range(len(tray.cfg.slots)):
-        xy, _ = tray.slot_pose(i)
-        for yaw in np.radians(REACH_YAWS):
-            c, s = np.cos(yaw), np.sin(yaw)
-            T = make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ down,
-                       (xy[0], xy[1], tray.top_z + REACH_HEIGHT))
-            _, dp, dr = wc.solve_gripper_ik(T, wc.look_q)
-            if dp <= REACH_TOL[0] and dr <= REACH_TOL[1]:
-                break
-        else:
-            bad.append(i)
-    return bad
+    for yaw in np.radians(REACH_YAWS):
+        c, s = np.cos(yaw), np.sin(yaw)
+        T = make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ down, point)
+        _, dp, dr = wc.solve_gripper_ik(T, wc.look_q)
+        if dp <= REACH_TOL[0] and dr <= REACH_TOL[1]:
+            return True
+    return False
