@@ -52,26 +52,20 @@ class Grasp:
 
 
 def squeeze_axes(block: PartType, all_axes: bool = False) -> list[int]:
-    """Object axes (0, 1, 2) the fingers may squeeze along: those with faces to pinch on both sides, and of these
-    all with ``all_axes``, else not these two.
+    """Object axes (0, 1, 2) the fingers may squeeze along: all three with ``all_axes``, else not these two.
 
-    Faces to pinch: some of the surface faces each way along the axis within ``ANTIPODAL_CONE_DEG`` (a
-    triangular prism squeezed across its sloped sides, whose normals lie 30 deg off the axis, is wedged out of
-    the pads as it is lifted). The axis of a continuous symmetry (a lying cylinder squeezed on its end discs slips out of the 3-finger hand
+    The axis of a continuous symmetry (a lying cylinder squeezed on its end discs slips out of the 3-finger hand
     in simulation) and an axis whose two faces are one flat face and one broken one (< 50 % flat, e.g. the
     studs of a brick: the 3-finger hand's fingertips catch single studs). The 2-finger hand's pads, centred and
     facing each other, hold both (``Hand.all_axes``).
     """
+    if all_axes:
+        return [0, 1, 2]
     V, tri = block.vertices, block.vertices[block.faces]
     lo, hi = V.min(0), V.max(0)
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    cos_cone = np.cos(np.deg2rad(ANTIPODAL_CONE_DEG))
-    pinched = [s for s in range(3) if all(area[sign * _face_normals(block)[:, s] >= cos_cone].sum() > 0.0
-                                           for sign in (1.0, -1.0))]
-    if all_axes:
-        return pinched
     axes = []
-    for s in pinched:
+    for s in range(3):
         if any(abs(axis[s]) > 0.99 for axis, _ in block.symmetries_continuous):
             continue
         u, v = (i for i in range(3) if i != s)
