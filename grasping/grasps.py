@@ -247,11 +247,22 @@ def surface_points(block: PartType, n: int = 1500) -> np.ndarray:
 
 
 def _box_distance(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Signed distance (m) of points (N, 3) to an axis-aligned box: negative inside."""
+    """Signed distance (m) of points (N, 3) to an axis-aligned box: negative inside. Per coordinate column (a
+    reduction along the rows' 3 values costs numpy 4x as much; the sums are the same, in the same order)."""
     d = np.maximum(lo - p, p - hi)
-    outside = np.linalg.norm(np.maximum(d, 0.0), axis=1)
-    inside = np.minimum(d.max(1), 0.0)
-    return outside + inside
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    ox, oy, oz = np.maximum(x, 0.0), np.maximum(y, 0.0), np.maximum(z, 0.0)
+    return np.sqrt(ox * ox + oy * oy + oz * oz) + np.minimum(np.maximum(np.maximum(x, y), z), 0.0)
+
+
+def near_boxes(p: np.ndarray, boxes: list, reach: float) -> np.ndarray:
+    """Bool (...,): which points ``p`` (..., 3) lie within ``reach`` (m), plus 1 um for rounding, of the box that
+    bounds all ``boxes`` (min corner, max corner) along each axis; the others are farther than ``reach`` from every
+    box, so a clearance test up to ``reach`` need not measure them."""
+    lo = np.min([b[0] for b in boxes], axis=0) - reach - 1e-6
+    hi = np.max([b[1] for b in boxes], axis=0) + reach + 1e-6
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    return (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]) & (z >= lo[2]) & (z <= hi[2])
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:

@@ -45,7 +45,8 @@ import numpy as np
 from posegrasp.catalog import PartType
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import transform_points
-from posegrasp.grasping.grasps import _box_distance, _face_normals, _surface_samples, _wrap, surface_points
+from posegrasp.grasping.grasps import (_box_distance, _face_normals, _surface_samples, _wrap, near_boxes,
+                                       surface_points)
 from posegrasp.grasping.hand import PALM, Box, camera_box
 from posegrasp.sim.config import CameraConfig
 
@@ -294,7 +295,7 @@ def _turned(T: np.ndarray, deg: float) -> np.ndarray:
 def _cylinder_distance(local: np.ndarray, cup: CupGeometry) -> np.ndarray:
     """Signed distance (m; negative inside) of gripper-frame points (..., 3) to the cup's body: the cylinder of
     ``body_radius`` about z from the rim (z = 0) up to z = -``body_length``."""
-    radial = np.linalg.norm(local[..., :2], axis=-1) - cup.body_radius
+    radial = np.sqrt(local[..., 0] * local[..., 0] + local[..., 1] * local[..., 1]) - cup.body_radius
     axial = np.maximum(-cup.body_length - local[..., 2], local[..., 2])
     return np.hypot(np.maximum(radial, 0.0), np.maximum(axial, 0.0)) + np.minimum(np.maximum(radial, axial), 0.0)
 
@@ -305,12 +306,17 @@ def _nearest(T: np.ndarray, pts: np.ndarray, cup: CupGeometry, body: bool) -> np
     out = np.full(len(T), _CLEAR)
     if not len(pts):
         return out
+    boxes = cup.boxes()
     for a in range(0, len(T), _CHUNK):
         Tc = T[a:a + _CHUNK]
         local = (pts[None] - Tc[:, None, :3, 3]) @ Tc[:, :3, :3]
-        d = [_cylinder_distance(local, cup)] if body else [
-            _box_distance(local.reshape(-1, 3), lo, hi).reshape(len(Tc), -1) for lo, hi in cup.boxes()]
-        out[a:a + _CHUNK] = np.minimum(np.min([x.min(1) for x in d], axis=0), _CLEAR)
+        if body:
+            d = _cylinder_distance(local, cup)
+        else:  # only the points near the boxes can come within _CLEAR
+            near = near_boxes(local, boxes, _CLEAR)
+            d = np.full(near.shape, np.inf)
+            d[near] = np.min([_box_distance(local[near], lo, hi) for lo, hi in boxes], axis=0, initial=np.inf)
+        out[a:a + _CHUNK] = np.minimum(d.min(1), _CLEAR)
     return out
 
 

@@ -216,6 +216,22 @@ def test_far_points_are_left_out_of_the_clearance_check_alone(cat, monkeypatch):
     assert found >= 2
 
 
+def test_the_wrist_clearance_measures_only_near_points_and_gets_every_distance():
+    """``_nearest`` skips the points farther than its cap from the wrist boxes' bounds: the same distances (to the
+    last bit) as the distance of every point to every box, capped."""
+    import posegrasp.grasping.suction_grasps as sg
+
+    rng = np.random.default_rng(5)
+    T = np.stack([make_T(axis_angle_R(rng.normal(size=3), rng.uniform(0, 3)), rng.uniform(-0.05, 0.05, 3))
+                  for _ in range(150)])
+    pts = rng.normal(scale=0.4, size=(300, 3))
+    full = np.array([min(_box_distance((pts - t[:3, 3]) @ t[:3, :3], lo, hi).min() for lo, hi in CUP.boxes())
+                     for t in T])
+    got = sg._nearest(T, pts, CUP, body=False)
+    assert np.array_equal(got, np.minimum(full, sg._CLEAR))
+    assert 0 < np.count_nonzero(full < sg._CLEAR) < len(T)  # some poses near a point, some clear of all
+
+
 def _mesh_part(mesh, name: str):
     """A ``PartType`` of a trimesh solid (m), centred on its bounding box: any imported shape."""
     from posegrasp.catalog import PartType

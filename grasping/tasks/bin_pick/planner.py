@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
@@ -37,7 +38,7 @@ from posegrasp.geometry import axis_angle_R, invert, transform_points
 from posegrasp.grasping.config import TrialConfig, holds_firmly
 from posegrasp.grasping.controller import (_opening_table, finger_angle_for_opening, finger_geoms, open_finger_points,
                                            robot_workcell)
-from posegrasp.grasping.grasps import Grasp, _box_distance, plan_grasps, surface_points
+from posegrasp.grasping.grasps import Grasp, _box_distance, near_boxes, plan_grasps, surface_points
 from posegrasp.grasping.hand import CONTACT_BAND, ON_PLANE_TOL, Hand, camera_box, hand_of
 from posegrasp.grasping.perception import Estimate
 from posegrasp.grasping.record import Failure
@@ -101,7 +102,9 @@ def _clear_of(grasp: Grasp, pts: np.ndarray, boxes: list, clearance: float) -> b
         return True
     T = grasp.T_world_gripper
     local = (pts - T[:3, 3]) @ T[:3, :3]
-    return all(_box_distance(local, np.asarray(lo), np.asarray(hi)).min() >= clearance for lo, hi in boxes)
+    local = local[near_boxes(local, [(np.asarray(lo), np.asarray(hi)) for lo, hi in boxes], clearance)]
+    return all(_box_distance(local, np.asarray(lo), np.asarray(hi)).min(initial=np.inf) >= clearance
+               for lo, hi in boxes)
 
 
 def pregrasp_height(cfg: TrialConfig, area: Area, T_grasp: np.ndarray) -> float:
@@ -186,13 +189,13 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
         clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
             not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
         fit = _Fit(own.data, others, clearance, lambda g: clear_of_walls(g, b.shift_clearance), b, hand)
-        grasps = [g for g0 in plan_grasps(view.part(j), poses[j], others, plan_cfg, yaw_now,
-                                          yaw_stable=holds_firmly(cfg), hand=hand)
-                  for g in ([g0] if clear_of_walls(g0) else
-                            fit.shifted(g0) or fit.tilted(g0, wc.cfg, area.floor, g_cfg.score.tilt))
-                  if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
-                  and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
-                  ][:g_cfg.grasps_per_block]
+        grasps = list(itertools.islice((  # the first grasps_per_block, the later ones never moved or checked
+            g for g0 in plan_grasps(view.part(j), poses[j], others, plan_cfg, yaw_now, yaw_stable=holds_firmly(cfg),
+                                    hand=hand)
+            for g in ([g0] if clear_of_walls(g0) else
+                      fit.shifted(g0) or fit.tilted(g0, wc.cfg, area.floor, g_cfg.score.tilt))
+            if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
+            and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)), g_cfg.grasps_per_block))
         return [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), g)
                 for g in grasps]
 
