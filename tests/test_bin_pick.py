@@ -16,7 +16,7 @@ from posegrasp.catalog import load_catalog
 from posegrasp.config import from_dict
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
-from posegrasp.grasping.tasks.bin_pick.attempt import _look, empty_tote, tally
+from posegrasp.grasping.tasks.bin_pick.attempt import _look, _same_view, empty_tote, tally
 from posegrasp.grasping.tasks.bin_pick.pick import OutBox, _Contacts, _stopped_near, pick_and_drop
 from posegrasp.grasping.tasks.bin_pick.planner import _clear_of, choose_part
 from posegrasp.grasping.calibration import load_hand_eye
@@ -419,3 +419,20 @@ def test_one_number_is_a_one_value_part_clearance_and_a_fixed_pair_still_needs_t
     with pytest.raises(ConfigError, match="expected a list"):
         from_dict(ClutterConfig, {"parts": 12})
 
+
+
+def test_a_look_from_a_camera_settled_a_little_elsewhere_sees_the_same_tote():
+    """The robot stops when it sees what it found nothing graspable in: judged on the estimates in the world (the
+    camera's pose as the robot knows it), so an arm settled 0.3 mm and 0.02 deg apart does not cost another look."""
+    parts = [make_T(axis_angle_R(np.array([0.3, 0.2, 1.0]), 0.4 * k), (0.45 + 0.03 * k, 0.01 * k, 0.02))
+             for k in range(3)]
+    cams = [make_T(np.diag([1.0, -1.0, -1.0]), (0.45, 0.0, 0.5)),
+            make_T(axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(0.02)) @ np.diag([1.0, -1.0, -1.0]),
+                   (0.4503, 0.0, 0.5))]
+    seen = [[(k + 1, C @ (np.linalg.inv(C) @ T)) for k, T in enumerate(parts)] for C in cams]
+    assert _same_view(seen[1], seen[0])
+    in_camera = [[(k + 1, np.linalg.inv(C) @ T) for k, T in enumerate(parts)] for C in cams]
+    assert not _same_view(in_camera[1], in_camera[0])  # the camera frame's poses differ
+    moved = [(i, T.copy()) for i, T in seen[0]]
+    moved[1][1][0, 3] += 0.001
+    assert not _same_view(moved, seen[0]) and not _same_view(seen[0][:2], seen[0])

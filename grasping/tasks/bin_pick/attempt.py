@@ -139,7 +139,8 @@ class _Emptying:
         self.lost: list[int] = []
         self.failed: list[np.ndarray] = []  # grasp poses that failed: not tried again
         self.in_a_row = 0
-        self.stuck: list[Estimate] | None = None  # what the robot saw when it last found nothing graspable
+        self.seen: list[tuple[int, np.ndarray]] = []  # the last look's estimates in the tote: (obj_id, T_world_obj)
+        self.stuck: list[tuple[int, np.ndarray]] | None = None  # ``seen`` when it last found nothing graspable
         self.end = Failure.PARTS_LEFT
         self.ests: list[Estimate] = []
         self.tool: Tool = tool_of(ep, self.dest)
@@ -172,7 +173,7 @@ class _Emptying:
         self._tally(att)
         self._finish(att, t0)
         self.in_a_row = 0 if att.outcome == "success" else self.in_a_row + 1
-        self.stuck = self.ests if att.failure == Failure.NOTHING_GRASPABLE else None
+        self.stuck = self.seen if att.failure == Failure.NOTHING_GRASPABLE else None
         return True
 
     def _pick(self, att: Attempt, frame: Frame) -> bool:
@@ -192,7 +193,8 @@ class _Emptying:
         att.detected = len(ests)
         heap = heap_points(depth_points(frame, T_world_cam, b.depth_stride), self.area, b)
         ep.log.stop("perceive", ep.ctl, add=True)
-        if self.stuck is not None and _same_view(ests, self.stuck):  # it would find no grasp again: no attempt
+        self.seen = [(e.obj_id, T_world_cam @ e.T_cam_obj) for e in ests]
+        if self.stuck is not None and _same_view(self.seen, self.stuck):  # it would find no grasp again: no attempt
             self.end = Failure.NOTHING_GRASPABLE
             return False
         if not ests:
@@ -245,10 +247,11 @@ class _Emptying:
         _finish(self.rec, att, self.ep.ctl.sim_time - t0, self.n, self.left + self.lost, self.ep.cfg.scoring)
 
 
-def _same_view(ests: list[Estimate], before: list[Estimate], tol: float = 1e-6) -> bool:
-    """Are ``ests`` the estimates ``before`` (same objects, poses within ``tol``): the robot sees what it saw?"""
-    return len(ests) == len(before) and all(
-        a.obj_id == b.obj_id and np.allclose(a.T_cam_obj, b.T_cam_obj, atol=tol) for a, b in zip(ests, before))
+def _same_view(seen: list[tuple[int, np.ndarray]], before: list[tuple[int, np.ndarray]], tol: float = 1e-6) -> bool:
+    """Are the estimates ``seen`` ((obj_id, T_world_obj) each) those ``before`` (same objects, world poses within
+    ``tol``): the robot sees what it saw, though the arm settled a little differently at this look?"""
+    return len(seen) == len(before) and all(
+        i == j and np.allclose(a, b, atol=tol) for (i, a), (j, b) in zip(seen, before))
 
 
 def _finish(rec: BinPickRecord, att: Attempt, sim_time: float, n: int, not_removed: list[int],
