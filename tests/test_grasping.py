@@ -53,6 +53,21 @@ def test_straight_segment_within_joint_speed_limits(arm):
     assert np.max(speed) > 0.5  # and the move is not needlessly slow
 
 
+def test_a_hand_held_off_its_goal_by_the_posture_term_is_brought_on(arm, monkeypatch):
+    """A posture pull 3x the default holds the hand 5.8 mm short of this goal; the integral action of
+    ``wait_reached`` brings it within the tolerance."""
+    import posegrasp.grasping.controller as C
+
+    goal = make_T(DOWN, (0.55, -0.15, 0.08))
+    reached = []
+    for gain in (0.0, C.REACH_GAIN):
+        monkeypatch.setattr(C, "REACH_GAIN", gain)
+        arm.reset(arm.look_q)
+        ctl = ArmController(arm, ControlConfig(posture_cost=0.03), arm.look_q)
+        reached.append(ctl.move(goal))
+    assert reached == [False, True]
+
+
 def test_table_collision_avoidance_stops_the_fingers(arm):
     ctl = ArmController(arm, ControlConfig(), arm.look_q)
     assert ctl.move(make_T(DOWN, (0.45, 0.0, 0.06)))
