@@ -194,8 +194,8 @@ class ArmController:
         """Keep tracking ``T_goal`` until within tolerance (True) or ``timeout`` simulated seconds (False). Where the
         hand has stopped just short of it (slower than ``STILL_SPEED``, within ``REACH_BAND`` tolerances) past half
         the timeout, the tracked position moves on by ``REACH_GAIN`` of what is missing each period (an integral
-        action: in some arm poses the IK's posture term holds the hand a few millimetres off; a hand stopped by the
-        table or a part, farther off, is not pushed on)."""
+        action: in some arm poses the IK's posture term, which pulls toward the look pose, holds the hand a few
+        millimetres off; a hand stopped by the table or a part, farther off, is not pushed on)."""
         c = self.cfg
         n = int(np.ceil(timeout / c.dt)) + 1
         T_ref, p = T_goal, self.wc.gripper_pose()[:3, 3]

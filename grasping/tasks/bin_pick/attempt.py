@@ -247,9 +247,11 @@ class _Emptying:
         _finish(self.rec, att, self.ep.ctl.sim_time - t0, self.n, self.left + self.lost, self.ep.cfg.scoring)
 
 
-def _same_view(seen: list[tuple[int, np.ndarray]], before: list[tuple[int, np.ndarray]], tol: float = 1e-6) -> bool:
+def _same_view(seen: list[tuple[int, np.ndarray]], before: list[tuple[int, np.ndarray]], tol: float = 1e-4
+               ) -> bool:
     """Are the estimates ``seen`` ((obj_id, T_world_obj) each) those ``before`` (same objects, world poses within
-    ``tol``): the robot sees what it saw, though the arm settled a little differently at this look?"""
+    ``tol``: 0.1 mm, rotation entries 1e-4): the robot sees what it saw, though the arm settled a little differently
+    at this look (``look_tol``, 0.01 rad a joint, turns the hand-eye calibration's error by a few micrometres)?"""
     return len(seen) == len(before) and all(
         i == j and np.allclose(a, b, atol=tol) for (i, a), (j, b) in zip(seen, before))
 
