@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -135,6 +136,13 @@ def test_the_cup_sets_parts_down_in_their_slots(tmp_path):
     assert max(a["place_error"]["te"] for a in down) < 0.001, [a["place_error"] for a in down]
     t = json.loads((tmp_path / "a" / SUMMARY).read_text())["bin_pick"]["tray"]
     assert t == s["bin_pick"]["tray"] and t["set_down"] >= len(down) and t["placed"]["success"] >= len(ok)
+
+
+def test_the_shipped_tray_look_example_turns_the_second_look_on():
+    from posegrasp.grasping.config import load_trial_config
+
+    cfg = load_trial_config(Path(__file__).parents[1] / "examples" / "bin" / "tray_look.toml")
+    assert cfg.bin_pick.tray.second_look and not TrialConfig().bin_pick.tray.second_look
 
 
 @pytest.mark.slow
