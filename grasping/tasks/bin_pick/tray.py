@@ -13,10 +13,10 @@ The hand sets it down holding it as the estimate at the pick says it holds it: t
 over the part's symmetries ``T_goal S`` as the one the wrist turns least to. With the tray's ``second_look`` the hand
 first holds the part over the tray's upward camera (``sim.tray``) and the provider estimates it there:
 ``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the
-part's symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one the pick's stands. The verdict (the simulator's truth) on
-the part at rest, modulo its symmetries (``PlaceError``): its face within ``face_tol_deg`` of the planned one (else
-"wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else "misplaced", as for a part of another type
-than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
+part's symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one the pick's stands. The
+verdict (the simulator's truth) on the part at rest, modulo its symmetries (``PlaceError``): its face within
+``face_tol_deg`` of the planned one (else "wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else
+"misplaced", as for a part of another type than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
 """
 
 from __future__ import annotations
@@ -263,11 +263,11 @@ class TrayPlace:
             ests = []
         T_world_gripper = wc.gripper_pose()
         T_expect = T_world_gripper @ np.linalg.inv(T_obj_gripper)
-        best = None
+        best, syms = None, symmetries(block)
         for e in ests:
             if e.obj_id != block.obj_id:
                 continue
-            copies = T_world_cam @ e.T_cam_obj @ symmetries(block)
+            copies = T_world_cam @ e.T_cam_obj @ syms
             i, _, angle = match(copies, T_expect[None])
             shift = float(np.linalg.norm(copies[i][:3, 3] - T_expect[:3, 3]))
             if shift <= LOOK_GATE[0] and np.degrees(angle) <= LOOK_GATE[1] and (best is None or shift < best[0]):
