@@ -2,7 +2,7 @@
 
 Any BOP method run offline on a campaign's captures (``--export-captures``, ``grasping.captures``) gives a results
 CSV (``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm); this provider replays it: for the capture
-``(scene_id, im_id)`` = (episode, ``PICK_LOOK`` or ``BASE_LOOK``) it returns that frame's rows as estimates
+``(scene_id, im_id)`` = (episode, one of its task's ``looks``) it returns that frame's rows as estimates
 (``T_cam_obj`` in metres), in file order; a frame without rows is a frame where nothing was detected.
 
 The file is checked when the campaign starts (``read_rows``, ``check_rows``), a one-line DatasetError naming the line
@@ -11,7 +11,7 @@ det +1, within 1e-3), a translation less than ``MIN_Z_MM`` in front of the camer
 or behind the camera) or farther than ``grasping.perception.MAX_TRANSLATION_M``, an obj_id not in the object set,
 an exact duplicate (same scene_id, im_id and obj_id and the very same R and t as an earlier row; several rows of
 one object in one image are otherwise allowed: BOP images may hold several instances), and a row for a frame no
-episode of the campaign captures (scene_id >= the episodes, or im_id 1 outside the stack task).
+episode of the campaign captures (scene_id >= the episodes, or an im_id not among the task's looks).
 """
 
 from __future__ import annotations
@@ -69,12 +69,23 @@ def check_rows(provider: object, episodes: int, task: str, ims: tuple[int, ...])
     episodes of the task named ``task`` captures (its looks ``ims``; any other provider: nothing to check)."""
     if not isinstance(provider, BopCsvProvider):
         return
-    named = " or ".join(map(str, ims)) if len(ims) <= 3 else f"{ims[0]}-{ims[-1]}"
+    named = " or ".join(_runs(ims))
     for n, r in enumerate(provider.rows(), start=2):
         if r.scene_id >= episodes or r.im_id not in ims:
             raise DatasetError(f"{provider.path} line {n}: scene_id {r.scene_id}, im_id {r.im_id} is no frame of this "
                                f"campaign (scene_id = episode, 0-{episodes - 1}; im_id {named} in "
                                f"the {task} task); replay the file with the --episodes and --task it was exported with")
+
+
+def _runs(ims: tuple[int, ...]) -> list[str]:
+    """``ims`` (ascending) as runs of consecutive ids: ``(0, 1, 2, 7, 8)`` -> ``["0-2", "7", "8"]``."""
+    out: list[list[int]] = []
+    for i in ims:
+        if out and i == out[-1][1] + 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return [r for a, b in out for r in ([f"{a}-{b}"] if b > a + 1 else map(str, range(a, b + 1)))]
 
 
 def _stamp(path: str) -> tuple[int, int]:

@@ -1,7 +1,9 @@
 """The frames a campaign's robot perceives, as a BOP test split: ``posegrasp trials --export-captures DIR``.
 
 Scene ``i`` of split ``test`` is episode ``i``; its image ``PICK_LOOK`` (0) is the look at the pick area and, in the
-stack task, image ``BASE_LOOK`` (1) the look at the base on the pad. An image holds exactly what a provider sees
+stack task, image ``BASE_LOOK`` (1) the look at the base on the pad; in bin picking image ``a`` is attempt ``a``'s
+look into the tote and ``HELD_LOOK + a`` (1000 + a) the tray's second look at the part it holds, from the tray's
+upward camera (its own K and pose in ``scene_camera.json``). An image holds exactly what a provider sees
 (``grasping.perception.observation``): the colour image (png), the depth in the hand camera's 0.1 mm steps
 (``DEPTH_SCALE``; the png's depth_scale) and K, with the ground truth (``scene_gt.json``, amodal and visible masks,
 ``scene_gt_info.json``) and the camera's world pose (``cam_R_w2c``, ``cam_t_w2c`` in ``scene_camera.json``); the
@@ -42,7 +44,8 @@ from posegrasp.lock import folder_lock
 from posegrasp.outputs import Record
 from posegrasp.progress import progress as progress_bar
 from posegrasp.sim.camera import Frame, intrinsics
-from posegrasp.sim.workcell import HAND_CAMERA, Workcell
+from posegrasp.sim.config import CameraConfig
+from posegrasp.sim.workcell import Workcell
 
 SPLIT = "test"
 SETTINGS_FILE = "captures.json"
@@ -56,9 +59,8 @@ class _Recorder:
     def __init__(self) -> None:
         self.scene = SceneWriter(DEPTH_SCALE, "png")
 
-    def __call__(self, wc: Workcell, frame: Frame, im_id: int) -> None:
-        c = wc.cfg.hand_camera
-        labels = LabelRenderer(wc, HAND_CAMERA, c, msaa=0)
+    def __call__(self, wc: Workcell, frame: Frame, im_id: int, camera: str, c: CameraConfig) -> None:
+        labels = LabelRenderer(wc, camera, c, msaa=0)
         try:
             amodal, boxes, beyond = labels.amodal(frame.T_cam_obj)
         finally:

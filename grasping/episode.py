@@ -36,6 +36,7 @@ from posegrasp.grasping.targets import (Plan, _look_q, blame, drive_to_look, gri
                                         look_down_q, match_block as _match, pose_errors, reachable)
 from posegrasp.grasping.tasks.base import EpisodeFailed, Goal, Pickable, SteadyConfig, Task
 from posegrasp.sim.camera import CameraRenderer, Frame
+from posegrasp.sim.config import CameraConfig
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell
 
 _EPS = 1e-9  # slack for sums of control periods and capped distances compared with their thresholds
@@ -206,11 +207,15 @@ def capture_look(wc: Workcell) -> Frame:
     return frame
 
 
-def run_episode(job: EpisodeJob, on_capture: Callable[[Workcell, Frame, int], None] | None = None,
+#: What sees every capture an episode makes for perception: (workcell, frame, im_id, camera name, its settings).
+CaptureHook = Callable[[Workcell, Frame, int, str, CameraConfig], None]
+
+
+def run_episode(job: EpisodeJob, on_capture: CaptureHook | None = None,
                 on_step: Callable[[Workcell], None] | None = None) -> tuple[EpisodeRecord, EpisodeTimings]:
     """Run one episode; returns its record (deterministic) and the wall-clock and CPU timings of its phases
-    (which vary run to run). ``on_capture(workcell, frame, im_id)`` sees every frame the hand camera captures for
-    perception, as it is taken (``grasping.captures``); ``on_step(workcell)`` runs after every physics step once
+    (which vary run to run). ``on_capture`` (``CaptureHook``) sees every frame captured for perception, as it is
+    taken (``grasping.captures``); ``on_step(workcell)`` runs after every physics step once
     the scene has settled (the report's films; it must not change the physics state). With ``job.captures_only``
     the episode stops after its last capture and its record judges nothing."""
     cfg = job.cfg
@@ -228,8 +233,8 @@ def run_episode(job: EpisodeJob, on_capture: Callable[[Workcell, Frame, int], No
         try:
             job.task.run(ep)
         finally:
-            if ep.camera is not None:
-                ep.camera.close()
+            for cam in ep.cameras.values():
+                cam.close()
     except EpisodeFailed as f:
         rec.failure = f.reason
     except PerceptionError as e:
@@ -263,8 +268,8 @@ class Episode:
     log: _Log
     percept_seed: int  # the pick look's perception seed
     place_offset: np.ndarray  # the place point's offset (m) from the pad's centre
-    on_capture: Callable[[Workcell, Frame, int], None] | None = None  # gets each capture and its im_id
-    camera: CameraRenderer | None = None  # the hand camera's renderer, made at the first capture (stack has two)
+    on_capture: CaptureHook | None = None  # gets each capture, its im_id and its camera
+    cameras: dict[str, CameraRenderer] = field(default_factory=dict)  # renderers by camera, made at their first capture
 
     @property
     def cfg(self) -> TrialConfig:
@@ -295,14 +300,17 @@ class Episode:
         q = look_down_q(self.wc.cfg, (float(xy[0]), float(xy[1])), height, setting)
         return drive_to_look(self.wc, self.cfg.control, q)
 
-    def capture(self, im_id: int, images: bool = False) -> Frame:
-        """The hand camera's frame at the arm's current pose, capture ``im_id`` of the episode (shown to
-        ``on_capture``); with its RGB-D when the capture hook or the provider needs it, or ``images``."""
-        if self.camera is None:
-            self.camera = CameraRenderer(self.wc, HAND_CAMERA, self.wc.cfg.hand_camera, self.wc.cfg.render)
-        frame = self.camera.capture(images=images or _needs_images(self))
+    def capture(self, im_id: int, images: bool = False, camera: str = HAND_CAMERA, c: CameraConfig | None = None
+                ) -> Frame:
+        """The frame of ``camera`` (settings ``c``; default the hand camera and its settings) now, capture ``im_id``
+        of the episode (shown to ``on_capture``); with its RGB-D when the capture hook or the provider needs it, or
+        ``images``."""
+        c = c or self.wc.cfg.hand_camera
+        if camera not in self.cameras:
+            self.cameras[camera] = CameraRenderer(self.wc, camera, c, self.wc.cfg.render)
+        frame = self.cameras[camera].capture(images=images or _needs_images(self))
         if self.on_capture is not None:
-            self.on_capture(self.wc, frame, im_id)
+            self.on_capture(self.wc, frame, im_id, camera, c)
         return frame
 
     def perceive(self, frame: Frame, seed: int, im_id: int) -> list[Estimate]:

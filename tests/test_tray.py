@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 
 from helpers import refused, run_cli
+from posegrasp import bop
+from posegrasp.bop.check import check_dataset
+from posegrasp.bop.results import PoseResult, write_results_csv
 from posegrasp.catalog import load_catalog
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, make_T
@@ -19,6 +22,7 @@ from posegrasp.grasping.record import Failure
 from posegrasp.grasping.runfolder import EPISODES, SUMMARY
 from posegrasp.grasping.tasks import with_set
 from posegrasp.grasping.tasks.bin_pick import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.config import HELD_LOOK
 from posegrasp.grasping.tasks.bin_pick.scene import tray_of
 from posegrasp.grasping.tasks.bin_pick.tray import (check_tray, goal_pose, place_error, rest_face, rest_normals,
                                                     verdict)
@@ -149,7 +153,8 @@ def test_the_shipped_tray_look_example_turns_the_second_look_on():
 def test_the_second_look_sets_finger_picks_down_as_it_sees_them_held(tmp_path):
     """Closing fingers shift a part millimetres along the pads: the upward camera's look at the held part (the
     oracle here) finds the shift, and the part is set down within a millimetre or so of its slot; without the look
-    the same episodes set parts down further off."""
+    the same episodes set parts down further off. The looks at held parts are exported (image ``HELD_LOOK`` +
+    attempt) and a results file's rows for them reach the replayed looks."""
     slots = (Slot("brick_2x2", (-0.05, 0.0), 30.0), Slot("cylinder", (0.05, 0.0), -20.0))
     cfg = _tray_cfg(slots)
     cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, workcell=dataclasses.replace(
@@ -158,7 +163,8 @@ def test_the_second_look_sets_finger_picks_down_as_it_sees_them_held(tmp_path):
     for look in (False, True):
         c = dataclasses.replace(cfg, bin_pick=dataclasses.replace(
             cfg.bin_pick, tray=dataclasses.replace(cfg.bin_pick.tray, second_look=look)))
-        run_trials(tmp_path / str(look), 2, 3, "oracle", 1, c, display=Display(progress=False))
+        run_trials(tmp_path / str(look), 2, 3, "oracle", 1, c, display=Display(progress=False),
+                   export=tmp_path / "export" if look else None)
         down[look] = [a for line in (tmp_path / str(look) / EPISODES).read_text().splitlines()
                       for a in json.loads(line)["attempts"] if a.get("failure") != "wrong face up" and "place_error" in a]
     assert len(down[True]) >= 3 and all(a["in_hand"]["seen"] for a in down[True])
@@ -166,3 +172,18 @@ def test_the_second_look_sets_finger_picks_down_as_it_sees_them_held(tmp_path):
     assert max(a["in_hand"]["shift"] for a in down[True]) > 0.001  # the fingers did shift the parts ...
     assert max(a["place_error"]["te"] for a in down[True]) < 0.0015  # ... the look took it out ...
     assert max(a["place_error"]["te"] for a in down[False]) > 0.002  # ... which the pick's estimate did not
+
+    held = {(e["episode"], HELD_LOOK + a["attempt"]) for line in (tmp_path / "True" / EPISODES).read_text().splitlines()
+            for e in [json.loads(line)] for a in e["attempts"] if "in_hand" in a}
+    report = check_dataset(tmp_path / "export")
+    assert report.ok, report.problems[:3]
+    images = list(bop.iter_scene_images(tmp_path / "export", "test"))
+    assert held <= {(im.scene_id, im.im_id) for im in images}
+    # a results file of the export's visible truths, the held looks' rows included, replayed: the looks see the parts
+    rows = [PoseResult(im.scene_id, im.im_id, g.obj_id, 1.0, g.T_cam_obj) for im in images for g in im.instances
+            if g.info.px_count_visib >= 150]
+    csv = write_results_csv(tmp_path / "truth.csv", rows)
+    run_trials(tmp_path / "replay", 2, 3, f"bop-csv:{csv}", 1, c, display=Display(progress=False))
+    replayed = [a for line in (tmp_path / "replay" / EPISODES).read_text().splitlines()
+                for a in json.loads(line)["attempts"] if "in_hand" in a]
+    assert len(replayed) >= 3 and all(a["in_hand"]["seen"] for a in replayed)

@@ -83,7 +83,7 @@ def replay_episode(job: EpisodeJob, rec: EpisodeRecord, keep: frozenset[int], se
     frames: dict[int, Frame] = {}
     film = _Film(max(FILM_PERIOD_S, rec.sim_time / FILM_FRAMES))
 
-    def kept(wc: Workcell, frame: Frame, im_id: int) -> None:
+    def kept(wc: Workcell, frame: Frame, im_id: int, *_) -> None:
         if im_id in keep:
             frames[im_id] = frame
 

@@ -30,7 +30,7 @@ from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, outbox_of, tr
 from posegrasp.grasping.tasks.bin_pick.tray import TrayPlace
 from posegrasp.sim.camera import Frame
 from posegrasp.sim.clutter import park
-from posegrasp.sim.workcell import Workcell, wrap_angle
+from posegrasp.sim.workcell import HAND_CAMERA, Workcell, wrap_angle
 
 if TYPE_CHECKING:
     from posegrasp.grasping.episode import Episode
@@ -39,7 +39,8 @@ if TYPE_CHECKING:
 def visible_fraction(ep: Episode, frame: Frame, k: int) -> float | None:
     """Part ``k``'s visible share at the capture ``frame``: its pixels in the frame's instance mask over those of
     its unoccluded silhouette (the part drawn alone, as datagen's ``visib_fract``); None when it is out of view."""
-    m, r = ep.wc.model, ep.camera.renderer
+    cam = ep.cameras[HAND_CAMERA]
+    m, r = ep.wc.model, cam.renderer
     geoms = np.flatnonzero((ep.wc.geom_instance[:-1] == k) & (m.geom_group == 1))
     saved = m.geom_group[geoms].copy()
     option = mujoco.MjvOption()
@@ -49,7 +50,7 @@ def visible_fraction(ep: Episode, frame: Frame, k: int) -> float | None:
     try:
         r.disable_depth_rendering()
         r.enable_segmentation_rendering()
-        r.update_scene(ep.wc.data, camera=ep.camera.cam_id, scene_option=option)
+        r.update_scene(ep.wc.data, camera=cam.cam_id, scene_option=option)
         seg = r.render()
         r.disable_segmentation_rendering()
     finally:

@@ -15,6 +15,9 @@ BIN_PICK = "bin-pick"
 
 #: Where picked parts go (``--place``): dropped into the out-box, or set down in the tray's slots at their poses.
 PLACES = ("out-box", "tray")
+#: The tray's second look at the part held in attempt ``a`` is capture ``HELD_LOOK + a`` of its episode (its look
+#: into the tote is capture ``a``).
+HELD_LOOK = 1000
 
 
 @settings

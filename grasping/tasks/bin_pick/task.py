@@ -13,7 +13,7 @@ from posegrasp.errors import ConfigError, UserError
 from posegrasp.grasping.tables import print_failures
 from posegrasp.grasping.tasks.base import Graspable, Task, task_types
 from posegrasp.grasping.tasks.bin_pick import metrics
-from posegrasp.grasping.tasks.bin_pick.config import BIN_PICK
+from posegrasp.grasping.tasks.bin_pick.config import BIN_PICK, HELD_LOOK
 from posegrasp.grasping.tasks.bin_pick.record import BinPickRecord
 from posegrasp.grasping.tasks.bin_pick.scene import bin_scene
 from posegrasp.sim.clutter import CLUTTER_KINDS, ClutterConfig, check_clutter
@@ -25,15 +25,17 @@ if TYPE_CHECKING:
     from posegrasp.grasping.episode import Episode
     from posegrasp.grasping.report.run import TrialRun
 
-#: The ``im_id`` of every capture a bin-picking episode may take: one per attempt, at most twice the most parts.
+#: The ``im_id`` of every look into the tote a bin-picking episode may take: one per attempt, at most twice the most
+#: parts; and of the second looks at held parts (a tray's ``second_look``), ``HELD_LOOK`` + the attempt.
 BIN_LOOKS = tuple(range(2 * int(ClutterConfig.__dataclass_fields__["max_parts"].metadata["range"][1])))
+HELD_LOOKS = tuple(HELD_LOOK + a for a in BIN_LOOKS)
 
 
 class BinPickTask(Task):
     """Empty a tote (or a pile) into the out-box, attempt after attempt (a ``Task``; the module docstring)."""
 
     name = BIN_PICK
-    looks = BIN_LOOKS
+    looks = BIN_LOOKS + HELD_LOOKS
     record_type = BinPickRecord
     suction = True
     fixed_looks = BIN_LOOKS[:1]  # the first look only: the later ones follow the picks

@@ -35,10 +35,9 @@ from posegrasp.grasping.perception import PerceptionError
 from posegrasp.grasping.record import Failure
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
-from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.config import HELD_LOOK, BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.planner import CUP_SETTLE_SPEED, CUP_SETTLE_TIME
 from posegrasp.grasping.upright import match, symmetries
-from posegrasp.sim.camera import CameraRenderer, Frame
 from posegrasp.sim.config import CameraConfig, WorkcellConfig
 from posegrasp.sim.tray import PART_CAMERA, TRAY, Tray
 from posegrasp.sim.workcell import Workcell
@@ -255,10 +254,12 @@ class TrayPlace:
         ctl.move(T_show, speed=ep.cfg.grasp.carry_speed)
         ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)
         ep.log.stop("look in hand", ctl, add=True)
-        frame = self._capture()
         a = len(ep.rec.attempts)
+        fovy = float(wc.model.cam_fovy[wc.camera_ids[self.camera]])
+        c = wc.cfg.hand_camera  # its image size, the model's field of view, depth from 5 cm
+        frame = ep.capture(HELD_LOOK + a, True, self.camera, CameraConfig(c.width, c.height, fovy, near=0.05, far=1.0))
         try:
-            ests = ep.perceive(frame, ep.seed_for(LOOK_SEEDS + a), LOOK_SEEDS + a)
+            ests = ep.perceive(frame, ep.seed_for(LOOK_SEEDS + a), HELD_LOOK + a)
         except PerceptionError:
             ests = []
         T_world_gripper = wc.gripper_pose()
@@ -280,18 +281,6 @@ class TrayPlace:
     def camera(self) -> str:
         """The upward camera's name in the workcell."""
         return f"{TRAY}/{PART_CAMERA}"
-
-    def _capture(self) -> Frame:
-        """RGB-D, mask and poses of the upward camera now (the hand camera's image size, the model's field of view,
-        depth from 5 cm)."""
-        wc = self.ep.wc
-        c = wc.cfg.hand_camera
-        fovy = float(wc.model.cam_fovy[wc.camera_ids[self.camera]])
-        cam = CameraRenderer(wc, self.camera, CameraConfig(c.width, c.height, fovy, near=0.05, far=1.0), wc.cfg.render)
-        try:
-            return cam.capture(images=True)
-        finally:
-            cam.close()
 
     def _touches(self, k: int) -> bool:
         """Does part ``k`` touch the plate or another part?"""
