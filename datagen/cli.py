@@ -94,5 +94,5 @@ def run_datagen(args: argparse.Namespace) -> int:
         print(f"wrote {s['generated_images']} images in {s['generated_scenes']} scenes in {s['seconds']:.1f} s "
               f"({fps:.1f} frames/s) -> {out}/{args.split}")
     print(f"dataset: {s['images']} images, {s['instances']} instances; viewpoints: {v['candidates']} drawn, "
-          f"{v['out_of_reach']} out of reach, {v['unreachable']} failed IK, {v['blocked']} not reached")
+          f"{v['out_of_reach']} out of reach, {v['unreachable']} failed IK, {v['blocked']} blocked by the scene")
     return 0

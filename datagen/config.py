@@ -51,12 +51,6 @@ class ViewConfig:
     ik_iters: int = field(default=60, metadata=within(1, 10_000))
     #: IK attempts (random starts) per view.
     attempts_per_view: int = field(default=4, metadata=within(1, 1000))
-    #: Gain (1/s) of the joint drive to a view.
-    drive_gain: float = 10.0
-    #: The arm has reached a view when every joint is within this (rad).
-    drive_tol: float = 0.005
-    #: Simulated time (s) allowed to reach a view.
-    drive_timeout: float = 6.0
 
     def __post_init__(self) -> None:
         check_pairs(self, "distance", "elevation_deg", "azimuth_deg")

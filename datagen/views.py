@@ -1,5 +1,6 @@
-"""Viewpoints the robot can really see from: camera poses sampled on a spherical cap over the clutter,
-solved with IK and reached by driving the arm through its actuators. Unreachable ones are counted, not used.
+"""Viewpoints the robot can really see from: camera poses sampled on a spherical cap over the clutter, solved with
+IK, the arm set there (``Workcell.place_arm``: the scene is at rest, so the way there is not simulated) unless it
+would touch the scene. Unreachable ones are counted, not used.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from posegrasp.sim.workcell import Workcell
 @dataclass
 class ViewStats:
     """Counts for one scene: candidate poses drawn, rejected as out of reach (no IK), IK residual too large,
-    arm did not get there (blocked or timed out), and views captured."""
+    blocked (the arm or hand would touch the scene there), and views captured."""
 
     candidates: int = 0
     out_of_reach: int = 0
@@ -67,11 +68,11 @@ def tour(poses: list[np.ndarray], start: np.ndarray, rot_weight: float = 0.15) -
 
 
 def visit_views(wc: Workcell, cfg: ViewConfig, n: int, rng: np.random.Generator, stats: ViewStats) -> Iterator[np.ndarray]:
-    """Drive the arm to up to ``n`` reachable viewpoints, yielding the target ``T_world_cam`` once there.
+    """Set the arm at up to ``n`` reachable viewpoints, yielding the target ``T_world_cam`` once there.
 
     Candidates come in batches of as many as are still missing (at most ``n * attempts_per_view`` in all),
-    each visited completely in nearest-neighbour order (short arm moves) with IK started from the previous
-    view's solution. The pose actually reached is read from the simulation by the caller.
+    each visited completely in nearest-neighbour order with IK started from the previous view's solution (nearby
+    solutions, as short arm moves would give). The pose actually reached is read from the simulation by the caller.
     """
     shoulder = shoulder_position(wc)
     q, here = wc.look_q, wc.look_camera_pose()
@@ -90,7 +91,7 @@ def visit_views(wc: Workcell, cfg: ViewConfig, n: int, rng: np.random.Generator,
             if dp > cfg.max_pos_residual or dr > max_rot:
                 stats.unreachable += 1
                 continue
-            if not wc.drive_arm(qs, tol=cfg.drive_tol, timeout=cfg.drive_timeout, gain=cfg.drive_gain):
+            if not wc.place_arm(qs):
                 stats.blocked += 1
                 continue
             q, here = qs, T

@@ -398,6 +398,29 @@ class Workcell:
         """
         return self.data.qfrc_bias[self.arm_dadr] / self.model.actuator_gainprm[self.arm_act, 0]
 
+    def place_arm(self, q: np.ndarray) -> bool:
+        """Set the arm at joint angles ``q`` (rad), at rest and held there (its actuators cancel gravity), without
+        simulating the way there; False, and the arm left where it was, where the arm or hand would then touch
+        anything but themselves."""
+        d, saved = self.data, self.data.qpos[self.arm_qadr].copy()
+        d.qpos[self.arm_qadr], d.qvel[self.arm_dadr] = q, 0.0
+        mujoco.mj_forward(self.model, d)
+        if self._robot_touches():
+            d.qpos[self.arm_qadr] = saved
+            mujoco.mj_forward(self.model, d)
+            return False
+        self.command_arm(self.gravity_feedforward())
+        return True
+
+    def _robot_touches(self) -> bool:
+        """Does a geom of the arm or hand penetrate a geom that is not theirs (contacts of the last forward pass)?"""
+        m, d = self.model, self.data
+        root = m.body_rootid[self.model.site_bodyid[self.gripper_site]]
+        robot = m.body_rootid[m.geom_bodyid] == root
+        con = d.contact[:d.ncon]
+        mine = robot[con.geom1] != robot[con.geom2]
+        return bool(np.any(con.dist[mine] < 0.0))
+
     def drive_arm(self, q_target: np.ndarray, tol: float = 2e-3, timeout: float = 10.0, gain: float = 4.0,
                   control_dt: float = 0.02) -> bool:
         """Drive the arm to joint angles ``q_target`` through its actuators (P control on the joint error).

@@ -150,6 +150,22 @@ def test_arm_reaches_look_pose_with_actuators(look_frame):
     assert wc.data.time > 0.5
 
 
+def test_the_arm_is_set_at_a_view_unless_it_would_touch_the_scene():
+    """``place_arm``: the arm set at the look pose's joint angles exactly, no time simulated; joint angles that put
+    the hand camera into a block are refused and leave the arm where it was."""
+    wc = make_scene(3, 5).workcell
+    t, q0 = wc.data.time, wc.arm_q
+    assert wc.place_arm(wc.look_q)
+    assert np.array_equal(wc.arm_q, wc.look_q) and wc.data.time == t
+    assert np.linalg.norm(wc.camera_pose()[:3, 3] - wc.look_camera_pose()[:3, 3]) < 1e-3
+    into = wc.look_camera_pose()
+    into[:3, 3] = wc.block_poses()[0][:3, 3]
+    q, dp, _ = wc.solve_camera_ik(into)
+    assert dp < 0.01
+    assert not wc.place_arm(q)
+    assert np.array_equal(wc.arm_q, wc.look_q) and not np.array_equal(wc.arm_q, q0)
+
+
 def test_hand_camera_sees_whole_pick_area(look_frame):
     frame, scene = look_frame
     a = scene.cfg.workcell.pick_area
