@@ -6,6 +6,7 @@ from dataclasses import field
 
 from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
+from posegrasp.perception.held import HeldFitConfig
 from posegrasp.sim.clutter import ClutterConfig
 from posegrasp.sim.tote import ToteConfig
 from posegrasp.sim.tray import TrayConfig
@@ -41,6 +42,8 @@ class BinPickConfig:
     place: str = "out-box"
     #: The tray of ``place = "tray"``, on the place area.
     tray: TrayConfig = field(default_factory=TrayConfig)
+    #: Tray, second look: the fit of the part's believed pose in the hand to the look's depth image (``look_fit``).
+    held_fit: HeldFitConfig = field(default_factory=HeldFitConfig)
     #: Tray: a part is placed when its model frame lies within this distance (m, xy) of its slot's ...
     pos_tol: float = field(default=0.003, metadata=within(0.0, 0.1))
     #: ... its turn about the vertical within this (deg) of the slot's, both modulo its symmetries ...

@@ -13,7 +13,9 @@ The hand sets it down holding it as the estimate at the pick says it holds it: t
 over the part's symmetries ``T_goal S`` as the one the wrist turns least to. With the tray's ``second_look`` the hand
 first holds the part over the tray's upward camera (``sim.tray``) and the provider estimates it there:
 ``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the
-part's symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one the pick's stands. The
+part's symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one (and with ``look_fit``) the
+pose the pick's estimate gives the part, fitted to the look's depth image (``perception.held``), within the gate;
+else the pick's stands. The
 verdict (the simulator's truth) on the part at rest, modulo its symmetries (``PlaceError``): its face within
 ``face_tol_deg`` of the planned one (else "wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else
 "misplaced", as for a part of another type than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
@@ -28,16 +30,17 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from posegrasp.catalog import PartType, catalog_by_id
+from posegrasp.catalog import PartType, catalog_by_id, set_root
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import make_T, transform_points
-from posegrasp.grasping.perception import PerceptionError
+from posegrasp.grasping.perception import PerceptionError, observation
 from posegrasp.grasping.record import Failure
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import HELD_LOOK, BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.planner import CUP_SETTLE_SPEED, CUP_SETTLE_TIME
 from posegrasp.grasping.upright import match, symmetries
+from posegrasp.perception.held import HeldFit, HeldFitConfig
 from posegrasp.sim.config import CameraConfig, WorkcellConfig
 from posegrasp.sim.tray import PART_CAMERA, TRAY, Tray
 from posegrasp.sim.workcell import Workcell
@@ -264,18 +267,27 @@ class TrayPlace:
             ests = []
         T_world_gripper = wc.gripper_pose()
         T_expect = T_world_gripper @ np.linalg.inv(T_obj_gripper)
-        best, syms = None, symmetries(block)
-        for e in ests:
-            if e.obj_id != block.obj_id:
-                continue
-            copies = T_world_cam @ e.T_cam_obj @ syms
+        syms = symmetries(block)
+
+        def near(T_cam_obj: np.ndarray) -> tuple[float, float, np.ndarray] | None:
+            """The pose's copy (over the symmetries) nearest where the pick put the part, within the gate: (shift m,
+            turn deg, T_world_obj); None beyond it."""
+            copies = T_world_cam @ T_cam_obj @ syms
             i, _, angle = match(copies, T_expect[None])
-            shift = float(np.linalg.norm(copies[i][:3, 3] - T_expect[:3, 3]))
-            if shift <= LOOK_GATE[0] and np.degrees(angle) <= LOOK_GATE[1] and (best is None or shift < best[0]):
-                best = (shift, float(np.degrees(angle)), copies[i])
+            shift, turn = float(np.linalg.norm(copies[i][:3, 3] - T_expect[:3, 3])), float(np.degrees(angle))
+            return (shift, turn, copies[i]) if shift <= LOOK_GATE[0] and turn <= LOOK_GATE[1] else None
+
+        best = min((n for e in ests if e.obj_id == block.obj_id and (n := near(e.T_cam_obj)) is not None),
+                   key=lambda n: n[0], default=None)
+        fitted = best is None and cfg.look_fit
+        if fitted:
+            T_cam_fit = _held_fit(wc.cfg.objects, ep.cfg.bin_pick.held_fit)(block.obj_id, np.linalg.inv(T_world_cam) @ T_expect,
+                                                  observation(frame).depth, frame.K, ep.seed_for(LOOK_SEEDS + a))
+            best = None if T_cam_fit is None else near(T_cam_fit)
         if best is None:
             return T_obj_gripper, {"seen": False}
-        return np.linalg.inv(best[2]) @ T_world_gripper, {"seen": True, "shift": best[0], "turn_deg": best[1]}
+        seen = {"seen": True, "shift": best[0], "turn_deg": best[1]} | ({"fitted": True} if fitted else {})
+        return np.linalg.inv(best[2]) @ T_world_gripper, seen
 
     @property
     def camera(self) -> str:
@@ -311,6 +323,12 @@ class TrayPlace:
 #: Reach check: the pinch point this high (m) over each slot's plate, the gripper pointing straight down at one of
 #: these yaws (deg), within the IK's position (m) and rotation (rad) tolerances.
 REACH_HEIGHT, REACH_YAWS, REACH_TOL = 0.03, tuple(range(0, 180, 30)), (0.004, 0.02)
+
+
+@functools.lru_cache(maxsize=2)
+def _held_fit(objects: str, cfg: HeldFitConfig) -> HeldFit:
+    """The in-hand fit (settings ``cfg``) of the object set ``objects``'s models, one per worker process."""
+    return HeldFit(set_root(objects), cfg)
 
 
 def check_tray(cfg: TrialConfig, tray: Tray) -> None:
