@@ -67,7 +67,7 @@ class TrayConfig:
     #: it held (``grasping.tasks.bin_pick.tray``), not as the look into the tote saw it at the pick.
     second_look: bool = False
     #: Where the provider's estimates at the second look hold none near where the pick put the part, the part's pose
-    #: in the hand is fitted to the look's depth image from there (``perception.held``: ICP against its model).
+    #: in the hand is shifted onto the look's depth image from there (``perception.held``: ICP against its model).
     look_fit: bool = True
     #: Position (m, tray frame) on the table of the second look's upward camera (off the plate).
     look_camera_xy: tuple[float, float] = field(default=(0.23, -0.16), metadata=within(-2.0, 2.0))

@@ -42,7 +42,7 @@ class BinPickConfig:
     place: str = "out-box"
     #: The tray of ``place = "tray"``, on the place area.
     tray: TrayConfig = field(default_factory=TrayConfig)
-    #: Tray, second look: the fit of the part's believed pose in the hand to the look's depth image (``look_fit``).
+    #: Tray, second look: the shift of the part's believed pose in the hand onto the look's depth (``look_fit``).
     held_fit: HeldFitConfig = field(default_factory=HeldFitConfig)
     #: Tray: a part is placed when its model frame lies within this distance (m, xy) of its slot's ...
     pos_tol: float = field(default=0.003, metadata=within(0.0, 0.1))

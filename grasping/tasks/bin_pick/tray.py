@@ -14,7 +14,7 @@ over the part's symmetries ``T_goal S`` as the one the wrist turns least to. Wit
 first holds the part over the tray's upward camera (``sim.tray``) and the provider estimates it there:
 ``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the
 part's symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one (and with ``look_fit``) the
-pose the pick's estimate gives the part, fitted to the look's depth image (``perception.held``), within the gate;
+pose the pick's estimate gives the part, shifted onto the look's depth image (``perception.held``), within the gate;
 else the pick's stands. The
 verdict (the simulator's truth) on the part at rest, modulo its symmetries (``PlaceError``): its face within
 ``face_tol_deg`` of the planned one (else "wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else
