@@ -101,9 +101,8 @@ def bin_frame(seed: int, blocks: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
     from posegrasp.sim.workcell import HAND_CAMERA
 
     cfg = with_set(TrialConfig(task="bin-pick"))
-    b = cfg.bin_pick
-    cfg = dataclasses.replace(cfg, bin_pick=dataclasses.replace(b, clutter=dataclasses.replace(b.clutter,
-                                                                                                parts=(blocks, blocks))))
+    clutter = dataclasses.replace(cfg.bin_pick.clutter, parts=(blocks, blocks))
+    cfg = dataclasses.replace(cfg, bin_pick=dataclasses.replace(cfg.bin_pick, clutter=clutter))
     wc = bin_scene(cfg, seed, blocks)
     wc.drive_arm(look_down_q(wc.cfg, area_of(wc, cfg.bin_pick).tote.center, wc.cfg.look_height, "look_height"))
     cam = CameraRenderer(wc, HAND_CAMERA, wc.cfg.hand_camera)

@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from posegrasp import bop
 from posegrasp.bop import models as bop_models
 from posegrasp.config import settings, within
 from posegrasp.perception.crop import backproject
@@ -50,7 +49,6 @@ class HeldFit:
     def __init__(self, models: str | Path, cfg: HeldFitConfig | None = None):
         self.root = Path(models)
         self.cfg = cfg or HeldFitConfig()
-        self.infos = bop.load_models_info(self.root)
         self._models: dict[int, tuple[np.ndarray, cKDTree]] = {}
 
     def model(self, obj_id: int) -> tuple[np.ndarray, cKDTree]:

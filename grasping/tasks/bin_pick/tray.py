@@ -15,10 +15,10 @@ first holds the part over the tray's upward camera (``sim.tray``) and the provid
 ``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the
 part's symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one (and with ``look_fit``) the
 pose the pick's estimate gives the part, shifted onto the look's depth image (``perception.held``), within the gate;
-else the pick's stands. The
-verdict (the simulator's truth) on the part at rest, modulo its symmetries (``PlaceError``): its face within
-``face_tol_deg`` of the planned one (else "wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else
-"misplaced", as for a part of another type than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
+else the pick's stands. The verdict (the simulator's truth) on the part at rest, modulo its symmetries
+(``PlaceError``): its face within ``face_tol_deg`` of the planned one (else "wrong face up"), its origin within
+``pos_tol`` (xy) of the slot (else "misplaced", as for a part of another type than the slot's), its yaw within
+``yaw_tol_deg`` (else "misaligned").
 """
 
 from __future__ import annotations
@@ -281,8 +281,9 @@ class TrayPlace:
                    key=lambda n: n[0], default=None)
         fitted = best is None and cfg.look_fit
         if fitted:
-            T_cam_fit = _held_fit(wc.cfg.objects, ep.cfg.bin_pick.held_fit)(block.obj_id, np.linalg.inv(T_world_cam) @ T_expect,
-                                                  observation(frame).depth, frame.K, ep.seed_for(LOOK_SEEDS + a))
+            fit = _held_fit(wc.cfg.objects, ep.cfg.bin_pick.held_fit)
+            T_cam_fit = fit(block.obj_id, np.linalg.inv(T_world_cam) @ T_expect, observation(frame).depth, frame.K,
+                            ep.seed_for(LOOK_SEEDS + a))
             best = None if T_cam_fit is None else near(T_cam_fit)
         if best is None:
             return T_obj_gripper, {"seen": False}
