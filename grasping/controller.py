@@ -27,6 +27,9 @@ _SITE = f"jaco_arm/jaco_hand/{GRIPPER_SITE}"
 #: position tolerance (held off, not blocked), the tracked position moves on by ``REACH_GAIN`` of what it lacks each
 #: control period.
 STILL_SPEED, REACH_BAND, REACH_GAIN = 0.005, 2.0, 0.1
+#: A locked grip (``ArmController.lock_grip``): rad/s of finger command per rad a finger is off its locked angle;
+#: the share of its squeeze a finger keeps at least.
+GRIP_GAIN, GRIP_KEEP = 8.0, 0.5
 #: Robot bodies kept away from the table by the collision-avoidance limit (the base links never reach it).
 _GUARDED_BODIES = ("b_4", "b_5", "b_6", "jaco_hand/hand", "jaco_hand/b_finger_1", "jaco_hand/b_finger_tip_1",
                    "jaco_hand/b_finger_2", "jaco_hand/b_finger_tip_2", "jaco_hand/b_finger_3",
@@ -93,6 +96,7 @@ class ArmController:
         self.finger_cmd = np.zeros(len(wc.finger_numbers))  # finger velocity commands (rad/s), + closes
         self.finger_target: float | None = None  # pre-shape angle (rad) held by P control, or None
         self.finger_limit: float | None = None  # speed limit (rad/s) of that P control (default finger_speed)
+        self.grip_hold: np.ndarray | None = None  # finger angles (rad) a locked grip holds (``lock_grip``)
         m = wc.model
         self.robot_geom = np.array([m.body(m.geom_bodyid[i]).name.startswith("jaco_arm/") for i in range(m.ngeom)])
         self.table_geom = m.geom("table").id
@@ -154,6 +158,9 @@ class ArmController:
             err = self.finger_target - wc.data.qpos[wc.finger_qadr]
             lim = self.finger_limit or self.cfg.finger_speed
             wc.data.ctrl[wc.finger_act] = np.clip(8.0 * err, -lim, lim)
+        elif self.grip_hold is not None:
+            back = GRIP_GAIN * (self.grip_hold - wc.data.qpos[wc.finger_qadr])
+            wc.data.ctrl[wc.finger_act] = self.finger_cmd + np.maximum(back, -GRIP_KEEP * self.finger_cmd)
         else:
             wc.data.ctrl[wc.finger_act] = self.finger_cmd
         wc.step(self.nsub)
@@ -232,6 +239,17 @@ class ArmController:
         """Move the fingers to (and hold them at) the angle leaving ``opening`` (m) between the fingertips."""
         self.finger_target = finger_angle_for_opening(self.wc.cfg, opening)
         self.finger_limit = speed
+        self.grip_hold = None
+
+    def lock_grip(self) -> None:
+        """Hold a squeezing grip at the fingers' present angles until they next open or close.
+
+        Equal squeezing torques on fingers that touch a part at unequal lever arms push it, slowly, toward the
+        weaker finger: a lying cylinder crept 7 mm along the pinch axis in the 3 s between the tray's second look
+        and its set-down. Locked, each finger's velocity command is its squeeze ``c`` plus
+        ``max(GRIP_GAIN (q_lock - q), -GRIP_KEEP c)``: the finger the creep closes eases off (to no less than
+        half its squeeze) until the two push alike."""
+        self.grip_hold = self.wc.data.qpos[self.wc.finger_qadr].copy()
 
     def close(self, k: int, timeout: float = 1.5, wait_all: int = 0) -> bool:
         """Close the fingers on block ``k``: True once finger 1 and finger 2 or 3 have touched it for 3
@@ -240,7 +258,7 @@ class ArmController:
         close up to that many periods longer, until all the hand's fingers touch (or they stall): on the 3-finger
         hand, finger 1 against finger 3 alone, 2.5 cm apart along the gripper y axis, is a couple that turns the
         block in the hand."""
-        self.finger_target = None
+        self.finger_target, self.grip_hold = None, None
         self.finger_cmd = np.full(len(self.wc.finger_numbers), self.cfg.finger_speed)
         mine = self.wc.finger_numbers - 1
         held = still = 0

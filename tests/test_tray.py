@@ -18,17 +18,19 @@ from posegrasp.catalog import load_catalog
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, make_T
 from posegrasp.grasping.config import TrialConfig
+from posegrasp.grasping.controller import ArmController
 from posegrasp.grasping.record import Failure
 from posegrasp.grasping.runfolder import EPISODES, SUMMARY
 from posegrasp.grasping.tasks import with_set
 from posegrasp.grasping.tasks.bin_pick import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.config import HELD_LOOK
 from posegrasp.grasping.tasks.bin_pick.scene import tray_of
-from posegrasp.grasping.tasks.bin_pick.tray import (check_tray, goal_pose, place_error, rest_face, rest_normals,
-                                                    verdict)
+from posegrasp.grasping.tasks.bin_pick.tray import (check_tray, goal_copies, goal_pose, place_error, release_choice,
+                                                    rest_face, rest_normals, verdict)
 from posegrasp.grasping.trials import Display, run_trials
 from posegrasp.sim.clutter import ClutterConfig
 from posegrasp.sim.tray import Slot, TrayConfig
+from posegrasp.sim.workcell import Workcell
 
 CAT = load_catalog()
 Z = np.array([0.0, 0.0, 1.0])
@@ -44,15 +46,31 @@ def _turned(T: np.ndarray, deg: float, dx: float = 0.0) -> np.ndarray:
 
 def test_a_part_rests_on_the_face_nearest_down_at_its_slots_pose():
     brick = CAT["brick_2x4"]
-    normals = rest_normals(brick)  # a box rests on any of its six faces (and on the studs' slopes)
+    normals = rest_normals(brick)  # a box rests on any of its six faces, not on its studs' slopes (it tips over)
     assert all(np.any(np.all(np.isclose(normals, v), axis=1)) for v in np.vstack([np.eye(3), -np.eye(3)]))
+    assert len(normals) == 6 and len(rest_normals(CAT["l_block"])) == 5  # nor an L on a leg's end
+    assert len(rest_normals(CAT["cylinder"])) > 2  # a lying cylinder rolls from side to side
     R = axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(170.0))  # studs nearly down
-    n = rest_face(brick, R)
+    n = rest_face(brick, R.T @ np.array([0.0, 0.0, -1.0]))
     np.testing.assert_allclose(n, [0.0, 0.0, 1.0], atol=1e-6)  # it rests on its studs' face, as it was picked
     T = goal_pose(brick, n, np.array([0.1, 0.4]), np.radians(30.0), 0.006)
     np.testing.assert_allclose(T[:3, :3] @ n, [0.0, 0.0, -1.0], atol=1e-9)
     assert (T[:3, :3] @ brick.vertices.T)[2].min() + T[2, 3] == pytest.approx(0.006)
     np.testing.assert_allclose(T[:2, 3], [0.1, 0.4])
+
+
+def test_each_copy_of_the_goal_is_judged_by_the_face_down_in_it():
+    """The hand sets a part down at whichever symmetric copy of its goal the arm reaches best: a cube's copy turned a
+    quarter about a horizontal axis is the same pose, with another of its faces named down."""
+    for name in ("cube", "triangular_prism", "cylinder"):
+        n = rest_normals(CAT[name])[0]
+        goals, normals = goal_copies(CAT[name], n, np.array([0.1, 0.45]), 0.3, 0.006)
+        np.testing.assert_allclose(np.einsum("kij,kj->ki", goals[:, :3, :3], normals), [[0.0, 0.0, -1.0]] * len(goals),
+                                   atol=1e-9)
+        assert all(verdict(place_error(CAT[name], g, g, m), True, B) is None for g, m in zip(goals, normals))
+    n = np.array([0.0, 0.0, -1.0])
+    goals, _ = goal_copies(CAT["cube"], n, np.array([0.1, 0.45]), 0.3, 0.006)
+    assert max(place_error(CAT["cube"], g, g, n).tilt_deg for g in goals) > 80.0  # judged by the first copy's face
 
 
 @pytest.mark.parametrize("dx, deg, reason", [(0.005, 0.0, Failure.MISPLACED), (0.0, 5.0, Failure.MISALIGNED),
@@ -187,3 +205,41 @@ def test_the_second_look_sets_finger_picks_down_as_it_sees_them_held(tmp_path):
     replayed = [a for line in (tmp_path / "replay" / EPISODES).read_text().splitlines()
                 for a in json.loads(line)["attempts"] if "in_hand" in a]
     assert len(replayed) >= 3 and all(a["in_hand"]["seen"] for a in replayed)
+
+
+@pytest.mark.slow
+def test_a_locked_grip_keeps_the_part_where_the_look_saw_it(tmp_path, monkeypatch):
+    """Equal finger torques at unequal lever arms push a pinched part along the pads after the second look: the
+    arch of this episode came down 4.5 mm off its slot with the grip unlocked; locked, within 2 mm."""
+    slots = (Slot("cylinder", (-0.05, 0.0), 30.0), Slot("arch", (0.05, 0.0), -20.0))
+    cfg = _tray_cfg(slots)
+    cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, workcell=dataclasses.replace(
+        cfg.scene.workcell, hand="2-finger")), bin_pick=dataclasses.replace(
+        cfg.bin_pick, tray=dataclasses.replace(cfg.bin_pick.tray, second_look=True)))
+
+    def first_set_down(out: Path) -> dict:
+        run_trials(out, 1, 6, "oracle", 1, cfg, display=Display(progress=False))
+        return json.loads((out / EPISODES).read_text().splitlines()[0])["attempts"][0]
+
+    locked = first_set_down(tmp_path / "locked")
+    monkeypatch.setattr(ArmController, "lock_grip", lambda self: None)
+    unlocked = first_set_down(tmp_path / "unlocked")
+    assert locked["target"]["type"] == unlocked["target"]["type"] == "arch" and locked["in_hand"]["seen"]
+    assert unlocked["failure"] == "misplaced" and unlocked["place_error"]["te"] > 0.004
+    assert locked["outcome"] == "success" and locked["place_error"]["te"] < 0.002
+
+
+def test_the_release_is_the_least_turn_the_arm_reaches():
+    cfg = _tray_cfg((Slot("cube", (0.0, 0.0)),))
+    wc = Workcell(cfg.scene.workcell)
+    down = make_T(np.diag([1.0, -1.0, -1.0]), (0.45, 0.25, 0.05))  # the gripper pointing down over the place area
+
+    def moved(T: np.ndarray, axis: tuple[float, float, float], deg: float, dx: float = 0.0) -> np.ndarray:
+        return make_T(axis_angle_R(np.array(axis), np.radians(deg)) @ T[:3, :3], T[:3, 3] + (dx, 0.0, 0.0))
+
+    turned, far = moved(down, (0, 0, 1), 90.0), moved(down, (0, 0, 1), 0.0, 2.0)  # far: out of the arm's reach
+    assert release_choice(wc, cfg.grasp, np.stack([turned, down]), down, 0.05) == 1
+    assert release_choice(wc, cfg.grasp, np.stack([turned, far]), down, 0.05) == 0
+    assert release_choice(wc, cfg.grasp, np.stack([moved(turned, (0, 0, 1), 0.0, 2.0), far]), down, 0.05) == 1
+    side = moved(down, (0, 1, 0), 80.0)  # the tool on its side is no choice, however little the wrist turns
+    assert release_choice(wc, cfg.grasp, np.stack([side, turned]), side, 0.05) == 1

@@ -2,23 +2,24 @@
 slot's pose, and judged there.
 
 The goal pose of a part (world, model frame): resting on the plate on the face whose outward normal ``n`` (object
-frame, a face of its convex hull that it can stand on) lay nearest straight down at the pick (the face up that it
-was picked with stays up), turned about the vertical by the slot's yaw::
+frame, a face of its convex hull that it can stand on) lies nearest the tool's approach direction as it holds the
+part (the face the tool came down on stays up, and the tool is set down nearest upright), turned about the vertical
+by the slot's yaw::
 
     R_goal = Rz(yaw_slot) R_n,    R_n n = -z  (the least rotation that does it),
     p_goal = (x_slot, y_slot, z_plate - min_v (R_goal v)_z).
 
-The hand sets it down holding it as the estimate at the pick says it holds it: the gripper's release pose is
-``T_goal T_gripper_obj^-1`` with ``T_gripper_obj = T_world_gripper^-1 T_world_obj`` at the grasp, the goal taken
-over the part's symmetries ``T_goal S`` as the one the wrist turns least to. With the tray's ``second_look`` the hand
-first holds the part over the tray's upward camera (``sim.tray``) and the provider estimates it there:
-``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the
-part's symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one (and with ``look_fit``) the
-pose the pick's estimate gives the part, shifted onto the look's depth image (``perception.held``), within the gate;
-else the pick's stands. The verdict (the simulator's truth) on the part at rest, modulo its symmetries
-(``PlaceError``): its face within ``face_tol_deg`` of the planned one (else "wrong face up"), its origin within
-``pos_tol`` (xy) of the slot (else "misplaced", as for a part of another type than the slot's), its yaw within
-``yaw_tol_deg`` (else "misaligned").
+The hand sets it down holding it as the estimate at the pick says it holds it: the gripper's release pose is ``T_goal
+T_gripper_obj^-1`` with ``T_gripper_obj = T_world_gripper^-1 T_world_obj`` at the grasp, the goal taken over the part's
+symmetries ``T_goal S`` as the one the wrist turns least to among those the arm reaches. The fingers' grip is locked
+from the lift on (``ArmController.lock_grip``), so the part does not creep in them. With the tray's ``second_look`` the
+hand first holds the part over the tray's upward camera (``sim.tray``) and the provider estimates it there:
+``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the part's
+symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one (and with ``look_fit``) the pose the
+pick's estimate gives the part, shifted onto the look's depth image (``perception.held``), within the gate; else the
+pick's stands. The verdict (the simulator's truth) on the part at rest, modulo its symmetries (``PlaceError``): its face
+within ``face_tol_deg`` of the planned one (else "wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else
+"misplaced", as for a part of another type than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from posegrasp.errors import ConfigError
 from posegrasp.geometry import make_T, transform_points
 from posegrasp.grasping.perception import PerceptionError, observation
 from posegrasp.grasping.record import Failure
-from posegrasp.grasping.targets import Plan
+from posegrasp.grasping.targets import Plan, reach_q
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import HELD_LOOK, BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.planner import CUP_SETTLE_SPEED, CUP_SETTLE_TIME
@@ -46,7 +47,7 @@ from posegrasp.sim.tray import PART_CAMERA, TRAY, Tray
 from posegrasp.sim.workcell import Workcell
 
 if TYPE_CHECKING:
-    from posegrasp.grasping.config import TrialConfig
+    from posegrasp.grasping.config import GraspConfig, TrialConfig
     from posegrasp.grasping.episode import Episode
 
 DOWN = np.array([0.0, 0.0, -1.0])
@@ -59,19 +60,29 @@ LOOK_GATE = (0.02, 20.0)
 LOOK_SEEDS = 1_000_000
 
 
+#: A part rests stably on a face that tipping over one of its edges takes this much (deg) to: ``atan(d / h)``, the
+#: centre of mass ``h`` (m) above the face and its foot ``d`` inside the nearest edge (a brick's studs' slope: 6.6).
+MIN_TIP_DEG = 10.0
+
+
 @functools.lru_cache(maxsize=64)
 def rest_normals(block: PartType) -> np.ndarray:
-    """(F, 3) outward unit normals (object frame) of the convex hull's faces the part can rest on: its centre of
-    mass (``centre_of_mass``) projects inside the face."""
+    """(F, 3) outward unit normals (object frame) of the convex hull's faces the part rests on stably: tipping it
+    over takes ``MIN_TIP_DEG`` or more, or the face runs along a continuous symmetry axis (a lying cylinder's sides
+    roll into one another)."""
     v = np.asarray(block.vertices, float)
     hull = ConvexHull(v)
     com = centre_of_mass(block)
+    axes = [np.asarray(a, float) for a, _ in block.symmetries_continuous]
     out: list[np.ndarray] = []
     for eq in np.unique(np.round(hull.equations, 6), axis=0):
         n, d = eq[:3] / np.linalg.norm(eq[:3]), eq[3]
         on = v[np.abs(v @ n + d) < 1e-6]  # the face's vertices
-        foot = com - (com @ n + d) * n  # the centre of mass dropped onto the face's plane
-        if len(on) >= 3 and _inside(foot, on, n):
+        if len(on) < 3:
+            continue
+        h = -(com @ n + d)  # the centre of mass's height above the face
+        inside = _edge_distance(com + h * n, on, n)
+        if inside > 1e-4 and (any(abs(n @ a) < 1e-6 for a in axes) or np.degrees(np.arctan2(inside, h)) >= MIN_TIP_DEG):
             out.append(n)
     return np.array(out)
 
@@ -84,14 +95,13 @@ def centre_of_mass(block: PartType) -> np.ndarray:
     return (vol[:, None] * (a + b + c) / 4.0).sum(axis=0) / vol.sum()
 
 
-def _inside(p: np.ndarray, pts: np.ndarray, n: np.ndarray, margin: float = 1e-4) -> bool:
-    """Does ``p`` lie inside the convex polygon of the coplanar ``pts`` (normal ``n``), ``margin`` (m) in?"""
+def _edge_distance(p: np.ndarray, pts: np.ndarray, n: np.ndarray) -> float:
+    """How far (m) ``p`` lies inside the convex polygon of the coplanar ``pts`` (normal ``n``); negative: outside."""
     u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
     u /= np.linalg.norm(u)
     w = np.cross(n, u)
-    q = np.stack([pts @ u, pts @ w], axis=1)
-    hull = ConvexHull(q)
-    return bool(np.all(hull.equations[:, :2] @ np.array([p @ u, p @ w]) + hull.equations[:, 2] <= -margin))
+    hull = ConvexHull(np.stack([pts @ u, pts @ w], axis=1))
+    return float(-np.max(hull.equations[:, :2] @ np.array([p @ u, p @ w]) + hull.equations[:, 2]))
 
 
 def align_down(n: np.ndarray) -> np.ndarray:
@@ -105,10 +115,10 @@ def align_down(n: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * K + (1 - c) * K @ K
 
 
-def rest_face(block: PartType, R_world_obj: np.ndarray) -> np.ndarray:
-    """The rest face's outward normal (object frame) nearest straight down for a part turned ``R_world_obj``."""
+def rest_face(block: PartType, down: np.ndarray) -> np.ndarray:
+    """The rest face's outward normal (object frame) nearest the object-frame direction ``down``."""
     normals = rest_normals(block)
-    return normals[int(np.argmax(normals @ (R_world_obj.T @ DOWN)))]
+    return normals[int(np.argmax(normals @ down))]
 
 
 def goal_pose(block: PartType, n: np.ndarray, xy: np.ndarray, yaw: float, z_plate: float) -> np.ndarray:
@@ -118,6 +128,26 @@ def goal_pose(block: PartType, n: np.ndarray, xy: np.ndarray, yaw: float, z_plat
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ align_down(n)
     z = z_plate - float((block.vertices @ R.T)[:, 2].min())
     return make_T(R, (xy[0], xy[1], z))
+
+
+def goal_copies(block: PartType, n: np.ndarray, xy: np.ndarray, yaw: float, z_plate: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The goal pose (``goal_pose``) as (K, 4, 4) copies ``T_goal S^-1`` over the part's symmetries ``S`` (one
+    physical pose), with (K, 3) the rest face's normal in each copy's model frame, ``R_S n`` (the face down in it)."""
+    syms = symmetries(block)
+    return goal_pose(block, n, xy, yaw, z_plate)[None] @ np.linalg.inv(syms), syms[:, :3, :3] @ n
+
+
+def release_choice(wc: Workcell, g_cfg: GraspConfig, releases: np.ndarray, T_lift: np.ndarray, above: float) -> int:
+    """Index of the release pose (world gripper, (N, 4, 4): one per symmetric copy of the goal) to set a part down
+    from. The copies place the part alike but hold it from different sides: of those whose tool points down the
+    most (a cube's turned about the vertical; not an L's flipped onto its other leg, whose tool would lie on its
+    side), the one the wrist turns least to from ``T_lift`` among those the arm's IK reaches, with the pose ``above``
+    (m) over it (``targets.reach_q``); the least turn of them where it reaches none."""
+    down = -releases[:, 2, 2]  # cosine of the tool's approach axis with straight down
+    turn = np.einsum("ji,nji->n", T_lift[:3, :3], releases[:, :3, :3])  # trace(R_lift^T R): larger, less turn
+    order = [int(i) for i in np.argsort(-turn, kind="stable") if down[i] > down.max() - 1e-3]
+    return next((i for i in order if reach_q(wc, g_cfg, releases[i], above) is not None), order[0])
 
 
 @dataclass(frozen=True)
@@ -205,14 +235,14 @@ class TrayPlace:
             raise EpisodeFailed(Failure.NO_SLOT)
         xy, yaw = self.tray.slot_pose(slot)
         T_obj_gripper, in_hand = np.linalg.inv(plan.T_world_obj) @ T_hold, None
+        ctl.lock_grip()  # the part is set down as held now (or as the look sees it): it must not creep after
         if self.tray.cfg.second_look:
             T_obj_gripper, in_hand = self._second_look(block, T_obj_gripper, T_lift)
-        n = rest_face(block, (T_hold @ np.linalg.inv(T_obj_gripper))[:3, :3])
-        goals = goal_pose(block, n, xy, yaw, self.top_z)[None] @ np.linalg.inv(symmetries(block))
-        releases = goals @ T_obj_gripper
-        i, _, _ = match(releases, T_lift[None])  # the goal the wrist turns least to
-        T_goal, T_release = goals[i], releases[i].copy()
-        self.placing = Placing(slot, T_goal, n, in_hand)
+        n = rest_face(block, T_obj_gripper[:3, 2])  # the face the tool came down on stays up
+        goals, normals = goal_copies(block, n, xy, yaw, self.top_z)
+        i = release_choice(ep.wc, g_cfg, goals @ T_obj_gripper, T_lift, b.place_gap + g_cfg.pregrasp_height)
+        T_goal, T_release = goals[i], goals[i] @ T_obj_gripper
+        self.placing = Placing(slot, T_goal, normals[i], in_hand)
         T_release[2, 3] += b.place_gap
         T_above = T_release.copy()
         T_above[2, 3] = max(T_lift[2, 3], T_release[2, 3] + g_cfg.pregrasp_height)
