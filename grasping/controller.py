@@ -245,8 +245,8 @@ class ArmController:
         """Hold a squeezing grip at the fingers' present angles until they next open or close.
 
         Equal squeezing torques on fingers that touch a part at unequal lever arms push it, slowly, toward the
-        weaker finger: a lying cylinder crept 7 mm along the pinch axis in the 3 s between the tray's second look
-        and its set-down. Locked, each finger's velocity command is its squeeze ``c`` plus
+        weaker finger: a lying cylinder crept 7 mm along the pinch axis between the tray's second look and its
+        set-down. Locked, each finger's velocity command is its squeeze ``c`` plus
         ``max(GRIP_GAIN (q_lock - q), -GRIP_KEEP c)``: the finger the creep closes eases off (to no less than
         half its squeeze) until the two push alike."""
         self.grip_hold = self.wc.data.qpos[self.wc.finger_qadr].copy()
