@@ -23,8 +23,7 @@ from posegrasp.config import settings, within
 from posegrasp.errors import DatasetError
 from posegrasp.perception.classifier import ClassifierConfig
 from posegrasp.perception.crop_cache import fingerprint, read_crop_cache, write_crop_cache
-from posegrasp.perception.inputs import (normalize_cls_input, normalize_rgb, prepare_cls_input, prepare_pose_input,
-                                         segment_components)
+from posegrasp.perception.inputs import normalize_cls_input, normalize_rgb, prepare_cls_input, prepare_pose_input
 from posegrasp.perception.plane import fit_support_plane
 from posegrasp.perception.pose_net import PoseNetConfig
 
@@ -93,11 +92,30 @@ def label_map(rec: bop.ImageRecord, shape: tuple[int, int], num_classes: int | N
     return lab
 
 
+def seam_map(parts: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels of a part that touch (8-connected) a pixel of another part, from a part map (H, W)
+    (0 background, k > 0 the k-th part)."""
+    disc = np.ones((3, 3), dtype=np.uint8)
+    ids = parts.astype(np.float32)  # exact for ids below 2^24
+    above = cv2.dilate(ids, disc) > ids  # a neighbour of a higher id
+    below = cv2.erode(np.where(parts > 0, ids, np.float32(np.inf)), disc) < ids  # of a lower id, not background
+    return (parts > 0) & (above | below)
+
+
+def part_map(rec: bop.ImageRecord, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) int64 map of the visible masks: 0 background, k + 1 on the part with ground-truth index k."""
+    parts = np.zeros(shape, dtype=np.int64)
+    for inst in rec.instances:
+        parts[rec.load_mask(inst.gt_index)] = inst.gt_index + 1
+    return parts
+
+
 class SegDataset(Dataset):
-    """Segmentation samples: ``{"image": (3, H, W) float32, "label": (H, W) int64}`` at input_size."""
+    """Segmentation samples: ``{"image": (3, H, W) float32, "label": (H, W) int64}`` at input_size, and with
+    ``seams`` ``"seam"`` (H, W) bool: ``seam_map`` of the visible parts at input_size."""
 
     def __init__(self, root: str | Path, split: str, input_size: tuple[int, int], num_classes: int,
-                 cfg: DataConfig | None = None, augment: bool = False, seed: int = 0):
+                 cfg: DataConfig | None = None, augment: bool = False, seed: int = 0, seams: bool = False):
         self.root, self.split = Path(root), split
         self.records = load_records(root, split)
         self.input_size = tuple(input_size)
@@ -105,6 +123,7 @@ class SegDataset(Dataset):
         self.cfg = cfg or DataConfig()
         self.augment = augment and self.cfg.augment
         self.seed = seed
+        self.seams = seams
 
     def __len__(self) -> int:
         return len(self.records)
@@ -114,17 +133,22 @@ class SegDataset(Dataset):
         rec = self.records[index]
         rgb = rec.load_rgb()
         lab = label_map(rec, rgb.shape[:2], self.num_classes)
+        maps = [lab] + ([part_map(rec, rgb.shape[:2])] if self.seams else [])
         h, w = self.input_size
         if rgb.shape[:2] != (h, w):
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_LINEAR)
-            lab = cv2.resize(lab.astype(np.int32), (w, h), interpolation=cv2.INTER_NEAREST).astype(np.int64)
+            maps = [cv2.resize(m.astype(np.int32), (w, h), interpolation=cv2.INTER_NEAREST).astype(np.int64)
+                    for m in maps]
         if self.augment and key is not None:
             rng = _rng(self.seed, index, key)
             rgb = color_jitter(rgb, rng, self.cfg.color_jitter, self.cfg.hue_jitter)
             if rng.random() < 0.5:  # horizontal flip is label-preserving for segmentation
-                rgb, lab = rgb[:, ::-1], lab[:, ::-1]
-        return {"image": torch.from_numpy(normalize_rgb(np.ascontiguousarray(rgb))),
-                "label": torch.from_numpy(np.ascontiguousarray(lab))}
+                rgb, maps = rgb[:, ::-1], [m[:, ::-1] for m in maps]
+        out = {"image": torch.from_numpy(normalize_rgb(np.ascontiguousarray(rgb))),
+               "label": torch.from_numpy(np.ascontiguousarray(maps[0]))}
+        if self.seams:
+            out["seam"] = torch.from_numpy(seam_map(maps[1]))
+        return out
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         return self.get(index)
@@ -158,11 +182,11 @@ def usable(inst: bop.GTInstance, cfg: DataConfig) -> bool:
 @dataclass(frozen=True)
 class CropSource:
     """Where a ``ClsDataset``'s crops come from besides the annotated instances, and where they are kept:
-    ``segmenter`` (RGB (H, W, 3) uint8 -> class map (H, W), e.g. a trained seg net; None: the annotated instances
-    only), ``segmenter_id`` naming it in the cache (e.g. a hash of its weights), ``cache`` (a ``.npy`` path, or None)
-    and whether a progress bar shows their computation."""
+    ``segmenter`` (RGB (H, W, 3) uint8 -> the parts it finds, (class, mask (H, W) bool) each, e.g. a trained seg net's
+    ``Segmenter.parts``; None: the annotated instances only), ``segmenter_id`` naming it in the cache (e.g. a hash of
+    its weights), ``cache`` (a ``.npy`` path, or None) and whether a progress bar shows their computation."""
 
-    segmenter: Callable[[np.ndarray], np.ndarray] | None = None
+    segmenter: Callable[[np.ndarray], list[tuple[int, np.ndarray]]] | None = None
     segmenter_id: str = ""
     cache: str | Path | None = None
     progress: bool = False
@@ -173,8 +197,8 @@ class ClsDataset(Dataset):
     the settings of ``model`` (``perception.inputs.prepare_cls_input``).
 
     One sample per annotated visible instance (its ground-truth mask) and, when ``source.segmenter`` is given
-    (a function RGB -> class map, e.g. a trained segmentation net), one per connected segment of the
-    predicted class map labelled with the ground-truth object covering most of it: the classifier then
+    (a function RGB -> parts, e.g. a trained segmentation net's), one per part of at least ``min_points`` pixels
+    labelled with the ground-truth object covering most of it: the classifier then
     learns on the fragments it will see at run time. Segments mostly on background are skipped, unless 0
     ("not a block") is in ``obj_ids``: then those with at most ``BACKGROUND_MAX_FG`` of their pixels on
     objects are its samples. ``height_range`` > 0: crops with the height channel, above each image's supporting
@@ -227,8 +251,10 @@ class ClsDataset(Dataset):
                      if inst.obj_id in self.obj_ids and usable(inst, self.cfg)]
             if source.segmenter is not None:
                 gt = label_map(rec, rgb.shape[:2])
-                for _, m in segment_components(source.segmenter(rgb), self.cfg.min_points):
+                for _, m in source.segmenter(rgb):
                     g = gt[m]
+                    if g.size < self.cfg.min_points:
+                        continue
                     major = int(np.bincount(g).argmax())
                     if major in self.obj_ids and (major > 0 or (g > 0).mean() <= self.BACKGROUND_MAX_FG):
                         masks.append((major, m))

@@ -39,7 +39,7 @@ from posegrasp.perception.crop import backproject, mask_bbox, padded_box
 from posegrasp.perception.ensemble import ClassifierEnsemble
 from posegrasp.perception.depth_fit import DepthFitConfig, ObjectModel, fit_poses
 from posegrasp.perception.guided import GuidedConfig, snap_labels
-from posegrasp.perception.inputs import prepare_pose_input, segment_components
+from posegrasp.perception.inputs import prepare_pose_input, seam_components, segment_components
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from posegrasp.perception.refiner import refine
 from posegrasp.perception.runtime import for_inference, with_one_blas_thread
@@ -265,6 +265,21 @@ class Estimator:
                 new[m], conf[m] = c
         return new, conf
 
+    def _classify_parts(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[tuple[int, np.ndarray]],
+                        labels: np.ndarray, plane: np.ndarray | None
+                        ) -> tuple[list[tuple[int, np.ndarray]], np.ndarray, np.ndarray]:
+        """``classify`` for parts (class, mask (H, W) bool) already cut apart: each re-typed by the instance
+        classifier (a part it calls "not a block" dropped; one without a crop keeps its type at confidence 0).
+        Returns the parts, the class map (H, W) with their new types and the per-pixel confidence (H, W) float32."""
+        labels, conf, out = labels.copy(), np.zeros(labels.shape, dtype=np.float32), []
+        for (c, m), typed in zip(parts, self._classify_masks(rgb, depth, K, [m for _, m in parts], plane)):
+            if typed is not None:
+                c = typed[0]
+                labels[m], conf[m] = typed
+            if c:
+                out.append((c, m))
+        return out, labels, conf
+
     def _classify_masks(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
                         plane: np.ndarray | None) -> list[tuple[int, float] | None]:
         """The ensemble's (obj_id, probability) of each mask; plane: for the height channel (fitted here when None)."""
@@ -277,17 +292,24 @@ class Estimator:
         """Detect and estimate every known object in an RGB-D frame (depth in metres, 0 = invalid)."""
         rgb, depth, K = _check_inputs(rgb, depth, K)
         t0 = time.perf_counter()
-        labels, prob = self.segment(rgb)
+        labels, prob, seams = self.segmenter.run(rgb)
         plane = None
         if self.support_plane:  # segmented pixels lying on the table become background
             labels, plane = clear_plane(labels, depth, K, self.seed, self.plane_cfg)
         t1 = time.perf_counter()
         conf, t_cls = None, 0.0
+        if seams is not None:  # parts cut apart along the seams, then typed one by one
+            parts = seam_components(labels, seams, self.min_valid_points)
+            if self.classifier is not None:
+                parts, labels, conf = self._classify_parts(rgb, depth, K, parts, labels, plane)
+        else:
+            if self.classifier is not None:
+                labels, conf = self.classify(rgb, depth, K, labels, plane)
+            parts = segment_components(labels, self.min_valid_points)
         if self.classifier is not None:
-            labels, conf = self.classify(rgb, depth, K, labels, plane)
             t_cls = time.perf_counter() - t1
         masks, scores = [], []
-        for obj_id, m in segment_components(labels, self.min_valid_points):
+        for obj_id, m in parts:
             if obj_id not in self.obj_ids or obj_id >= prob.shape[-1]:
                 continue
             masks.append((obj_id, m))

@@ -43,7 +43,7 @@ class PlaneConfig:
     #: Width (px at 640 px image width) of the band around the objects' pixels that finds the plane they rest on.
     rest_band: int = field(default=10, metadata=within(0, 10000))
     #: Share of the drawn points the plane the objects rest on must hold, else the dominant plane stays.
-    rest_min_share: float = field(default=0.03, metadata=within(0, 1))
+    rest_min_share: float = field(default=0.01, metadata=within(0, 1))
 
 
 def plane_distance(plane: np.ndarray, depth: np.ndarray, K: np.ndarray, pixels: np.ndarray) -> np.ndarray:

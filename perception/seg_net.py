@@ -14,6 +14,11 @@ every encoder input through its own conv to 64 channels, the previous decoder in
 keeping its channels, all concatenated and fused by a 3x3 conv. Then two x2 upsampling layers
 (bilinear + conv) back to full resolution and a 1x1 conv to ``num_classes`` logits (class 0 is
 background, class k the object with BOP obj_id k). Every channel count is scaled by ``width``.
+
+With ``seams``, a second 1x1 conv on the same features gives a seam logit per pixel: whether the pixel belongs to a
+part and touches (8-connected) a pixel of another part. The class map cut along the seams falls apart into one
+component per part, also where touching parts are of one type (``inputs.seam_components``): the contour-aware
+instance segmentation of DCAN (Chen et al. 2016) on the paper's decoder.
 """
 
 from __future__ import annotations
@@ -50,6 +55,8 @@ class SegNetConfig:
     up_channels: tuple[int, int] = field(default=(64, 32), metadata=within(1, 4096))
     #: Batch normalisation after the convs.
     batch_norm: bool = True
+    #: Also predict seams between touching parts (one more 1x1 conv), which split a class map into instances.
+    seams: bool = False
 
     def scaled(self, c: int) -> int:
         """Channel count ``c`` at this width (at least 4)."""
@@ -153,16 +160,25 @@ class SegNet(nn.Module):
         self.up1 = UpBlock(m3, u1, bn)  # 1/2
         self.up2 = UpBlock(u1, u2, bn)  # 1/1
         self.classifier = nn.Conv2d(u2, cfg.num_classes, 1)
+        self.seam = nn.Conv2d(u2, 1, 1) if cfg.seams else None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Logits (B, num_classes, H, W); apply softmax for probabilities."""
+        return self.classifier(self.features(x))
+
+    def forward_seams(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Class logits (B, num_classes, H, W) and seam logits (B, H, W) (None without ``cfg.seams``)."""
+        d = self.features(x)
+        return self.classifier(d), None if self.seam is None else self.seam(d)[:, 0]
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """The decoder's full-resolution features (B, u2, H, W) of images (B, 3, H, W)."""
         s, b = self.encoder(x)
         d = self.mffm1([s[4]], b, tuple(s[4].shape[-2:]))  # (B, m1, H/16, W/16)
         d = self.mffm2([s[3], s[4]], d, tuple(s[3].shape[-2:]))  # (B, m2, H/8, W/8)
         d = self.mffm3([s[2], s[3], s[4]], d, tuple(s[2].shape[-2:]))  # (B, m3, H/4, W/4)
         d = self.up1(d, tuple(s[1].shape[-2:]))  # (B, u1, H/2, W/2)
-        d = self.up2(d, tuple(s[0].shape[-2:]))  # (B, u2, H, W)
-        return self.classifier(d)
+        return self.up2(d, tuple(s[0].shape[-2:]))  # (B, u2, H, W)
 
 
 def seg_loss(logits: torch.Tensor, labels: torch.Tensor, background_weight: float = 1.0) -> torch.Tensor:
@@ -176,6 +192,17 @@ def seg_loss(logits: torch.Tensor, labels: torch.Tensor, background_weight: floa
         weight = torch.ones(logits.shape[1], dtype=logits.dtype, device=logits.device)
         weight[0] = background_weight
     return F.cross_entropy(logits, labels, weight=weight)
+
+
+def seam_loss(logits: torch.Tensor, seams: torch.Tensor, labels: torch.Tensor, pos_weight: float) -> torch.Tensor:
+    """Binary cross-entropy of the seam logits (B, H, W) against the seam targets (B, H, W) bool on the parts' pixels
+    (labels (B, H, W) > 0) only: off the parts the class map already says there is no part. Seams are a few per cent
+    of those pixels: ``pos_weight`` scales their terms."""
+    on = labels > 0
+    if not bool(on.any()):
+        return logits.sum() * 0.0
+    w = torch.tensor(pos_weight, dtype=logits.dtype, device=logits.device)
+    return F.binary_cross_entropy_with_logits(logits[on], seams[on].to(logits.dtype), pos_weight=w)
 
 
 def build_seg_net(cfg: SegNetConfig) -> SegNet:

@@ -11,7 +11,7 @@ import torch
 
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.guided import argmax_planes
-from posegrasp.perception.inputs import normalize_rgb
+from posegrasp.perception.inputs import normalize_rgb, seam_components, segment_components
 from posegrasp.perception.runtime import for_inference
 from posegrasp.perception.seg_net import SegNetConfig
 
@@ -28,24 +28,40 @@ class Segmenter:
         model, cfg, _ = ckpt_mod.load_model(Path(ckpt), "seg")
         return cls(model, cfg)
 
-    @torch.no_grad()
     def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Class map (H, W) int64 (0 background, else obj_id) and class probabilities (H, W, C)
         float32: softmax at the net's input size, bilinearly resized to the image (OpenCV, channels
         last, which is ~5x faster on a CPU than arg-maxing upsampled logits in torch); the class map is their
         arg-max (``upsampled_argmax``)."""
+        labels, prob, _ = self.run(rgb)
+        return labels, prob
+
+    def parts(self, rgb: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """The parts of an RGB image, (class, mask (H, W) bool) each: the class map's connected components, cut apart
+        along the seams where the net has a seam head (``inputs.seam_components``)."""
+        labels, _, seams = self.run(rgb)
+        return segment_components(labels, 1) if seams is None else seam_components(labels, seams, 1)
+
+    @torch.no_grad()
+    def run(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """As ``__call__``, and the seams (H, W) bool of a net with a seam head (seam probability above 1/2,
+        bilinearly resized to the image; ``seg_net``), else None."""
         h, w = rgb.shape[:2]
         ih, iw = self.cfg.input_size
         x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
-        logits = self.model(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
+        logits, seam_logits = self.model.forward_seams(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
+        seams = None
+        if seam_logits is not None:  # logit > 0: probability above 1/2
+            s = seam_logits[0].numpy()
+            seams = (s if (h, w) == (ih, iw) else cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR)) > 0
         small = torch.softmax(logits[0], dim=0)  # (C, ih, iw)
         prob = np.ascontiguousarray(small.permute(1, 2, 0).numpy())  # (ih, iw, C)
         if (h, w) == (ih, iw):
-            return argmax_planes(small.numpy()).astype(np.int64), prob
+            return argmax_planes(small.numpy()).astype(np.int64), prob, seams
         prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)  # (h, w, C)
         if prob.ndim == 2:  # OpenCV drops a single channel axis
             prob = prob[..., None]
-        return upsampled_argmax(small.numpy(), prob), prob
+        return upsampled_argmax(small.numpy(), prob), prob, seams
 
 
 def upsampled_argmax(small: np.ndarray, prob: np.ndarray) -> np.ndarray:

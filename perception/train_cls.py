@@ -85,14 +85,11 @@ class ClsTraining(StageTraining):
 
     def prepare(self, progress: bool) -> None:
         cfg, m, run, data = self.cfg, self.model_cfg, self.run, self.data
-        segmenter: Callable[[np.ndarray], np.ndarray] | None = None
+        segmenter: Callable[[np.ndarray], list[tuple[int, np.ndarray]]] | None = None
         seg_id = ""
         if self.has_seg:
-            seg = Segmenter.load(run.out / "seg")
+            segmenter = Segmenter.load(run.out / "seg").parts
             seg_id = hashlib.sha256((run.out / "seg" / "model.safetensors").read_bytes()).hexdigest()
-
-            def segmenter(rgb: np.ndarray) -> np.ndarray:
-                return seg(rgb)[0]
 
         def dataset(split: str, augment: bool) -> ClsDataset:  # crops cached in the run: a resume starts at once
             source = CropSource(segmenter, seg_id, run.out / "cache" / f"cls_crops_{split}.npy", progress)

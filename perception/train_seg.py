@@ -19,7 +19,7 @@ from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.data import DataConfig, SegDataset, collate
 from posegrasp.perception.metrics import confusion_matrix, segmentation_scores
-from posegrasp.perception.seg_net import SegNetConfig, build_seg_net, seg_loss
+from posegrasp.perception.seg_net import SegNetConfig, build_seg_net, seam_loss, seg_loss
 from posegrasp.perception.training import (StageConfig, StageTraining, batch_stream, build_model, set_lr,
                                            split_exists, train_split, training_device)
 
@@ -52,6 +52,10 @@ class SegTrainConfig(StageConfig):
     optimizer: str = "sgd"
     #: Cross-entropy weight of the background class (objects 1).
     background_weight: float = field(default=1.0, metadata=within(0, 1000))
+    #: With ``model.seams``: the seam loss's weight beside the class loss ...
+    seam_weight: float = field(default=1.0, metadata=within(0, 1000))
+    #: ... and the weight of a seam pixel's term against a part's inner pixel's (``seg_net.seam_loss``).
+    seam_pos_weight: float = field(default=3.0, metadata=within(0, 1000))
     #: Steps between evaluations on the validation split.
     eval_every: int = field(default=2000, metadata=within(0, 100000000))
     #: Validation images per evaluation.
@@ -79,7 +83,7 @@ class SegTraining(StageTraining):
     """Per-pixel cross-entropy on the training images at the net's input size; mPA / mIoU on ``val_split``."""
 
     name, config, fine_tunes = "seg", SegTrainConfig, True
-    columns = ["step", "time_s", "loss", "pixel_acc", "lr", "val_mPA", "val_mIoU"]
+    columns = ["step", "time_s", "loss", "pixel_acc", "seam_loss", "lr", "val_mPA", "val_mIoU"]
 
     def build(self) -> None:
         cfg = self.cfg
@@ -96,7 +100,7 @@ class SegTraining(StageTraining):
     def prepare(self, progress: bool) -> None:
         cfg, data, m = self.cfg, self.data, self.model_cfg
         self.ds = SegDataset(data, train_split(data, cfg.train_split), m.input_size, m.num_classes, cfg.data,
-                             augment=True, seed=cfg.seed)
+                             augment=True, seed=cfg.seed, seams=m.seams)
         self.val = (SegDataset(data, cfg.val_split, m.input_size, m.num_classes, cfg.data)
                     if split_exists(data, cfg.val_split) else None)
         self.batches = batch_stream(self.ds.get, collate, len(self.ds), cfg.batch_size, cfg.seed,
@@ -106,13 +110,18 @@ class SegTraining(StageTraining):
         cfg = self.cfg
         self.model.train()
         batch = {k: v.to(self.device, non_blocking=True) for k, v in next(self.batches).items()}
-        logits = self.model(batch["image"])  # (B, C, H, W)
+        logits, seams = self.model.forward_seams(batch["image"])  # (B, C, H, W), (B, H, W) or None
         loss = seg_loss(logits, batch["label"], cfg.background_weight)
+        out = {}
+        if seams is not None:
+            s_loss = seam_loss(seams, batch["seam"], batch["label"], cfg.seam_pos_weight)
+            loss = loss + cfg.seam_weight * s_loss
+            out["seam_loss"] = float(s_loss.detach())
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
         acc = (logits.argmax(1) == batch["label"]).float().mean()
-        return {"loss": float(loss.detach()), "pixel_acc": float(acc)}
+        return {"loss": float(loss.detach()), "pixel_acc": float(acc), **out}
 
     def after_step(self, step: int, values: dict[str, float]) -> dict[str, Any]:
         cfg = self.cfg

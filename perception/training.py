@@ -438,14 +438,18 @@ def init_checkpoint(src: Path, stage: str) -> Path:
 
 def init_from(model: torch.nn.Module, model_cfg: Any, src: Path, stage: str) -> None:
     """Load the weights of the ``stage`` checkpoint at ``src`` (or ``src/stage``) into ``model``. A seg net may have
-    been trained at another input size (it is fully convolutional: fine-tuning adapts it to the new one)."""
+    been trained at another input size (it is fully convolutional: fine-tuning adapts it to the new one), and may lack
+the seam head the run's net has (that head then starts from its random initialisation)."""
     ckpt = init_checkpoint(src, stage)
     if not ckpt_mod.exists(ckpt):
         raise WeightsError(f"init weights {src} hold no {stage} checkpoint: name a run or its {stage}/ folder")
     src_model, src_cfg, _ = ckpt_mod.load_model(ckpt, stage)
+    state = src_model.state_dict()
     if stage == "seg":
-        src_cfg = dataclasses.replace(src_cfg, input_size=model_cfg.input_size)
+        if model_cfg.seams and not src_cfg.seams:  # a seam head added to a net without one starts fresh
+            state.update({k: v for k, v in model.state_dict().items() if k.startswith("seam.")})
+        src_cfg = dataclasses.replace(src_cfg, input_size=model_cfg.input_size, seams=model_cfg.seams)
     if src_cfg != model_cfg:
         raise WeightsError(f"init weights {ckpt} were trained with another {stage} model config than this run's: "
                            f"use the same [{stage}.model] settings and dataset objects")
-    model.load_state_dict(src_model.state_dict())
+    model.load_state_dict(state)

@@ -9,6 +9,7 @@ import torch
 
 from posegrasp.perception.classifier import ClassifierConfig
 from posegrasp.perception.data import ClsDataset, CropSource, DataConfig, PoseDataset, SegDataset, collate
+from posegrasp.perception.inputs import segment_components
 from posegrasp.perception.metrics import nearest_distances
 from posegrasp.perception.pose_net import PoseNetConfig
 
@@ -83,11 +84,11 @@ def test_cls_samples_from_gt_and_from_segments(tiny_bop):
     from posegrasp.perception.data import label_map, load_records
 
     gt_only = ClsDataset(tiny_bop, "train", _cls([1, 2, 3]),
-                         source=CropSource(segmenter=lambda rgb: np.zeros(rgb.shape[:2], int)))
+                         source=CropSource(segmenter=lambda rgb: []))
     by_rgb = {r.load_rgb().tobytes(): r for r in load_records(tiny_bop, "train")}
 
-    def perfect(rgb):  # a segmenter that returns the ground truth
-        return label_map(by_rgb[rgb.tobytes()], rgb.shape[:2])
+    def perfect(rgb):  # a segmenter that returns the ground truth's segments
+        return segment_components(label_map(by_rgb[rgb.tobytes()], rgb.shape[:2]), 1)
 
     both = ClsDataset(tiny_bop, "train", _cls([1, 2, 3]), augment=True, seed=1, source=CropSource(perfect))
     assert len(gt_only) >= 20 and len(both) > len(gt_only)
@@ -134,7 +135,7 @@ def ground_truth_segmenter(root, calls):
 
     def seg(rgb):
         calls.append(1)
-        return label_map(by_rgb[rgb.tobytes()], rgb.shape[:2])
+        return segment_components(label_map(by_rgb[rgb.tobytes()], rgb.shape[:2]), 1)
     return seg
 
 
@@ -158,7 +159,7 @@ def test_cls_background_samples_are_segments_mostly_off_the_objects(tiny_bop):
                     lab[y:y + 10, x:x + 10], taken[y:y + 10, x:x + 10] = min(free), True
                     placed.append(lo)
                     break
-        return lab
+        return segment_components(lab, 1)
 
     plain = ClsDataset(tiny_bop, "train", _cls([1, 2, 3]), source=CropSource(with_blobs))
     n_off = placed.count(10)

@@ -173,3 +173,29 @@ def test_classifier_with_the_height_channel_and_an_ensemble(tiny_bop, tiny_run, 
     (run / "cls_plain" / "config.json").write_text(json.dumps(meta))
     with pytest.raises(UserError, match="cls_plain differs from .* crop settings"):
         Estimator(run)
+
+
+def test_a_seg_net_with_a_seam_head_cuts_its_segments_along_the_seams(tiny_bop, tiny_run, tmp_path):
+    """The tiny run's seg net made to call every pixel object 1, with a seam head: seams seen nowhere, the estimator
+    finds what the net without the head finds (one part: the whole frame); seen everywhere, no part is left."""
+    from posegrasp.perception import checkpoint
+    from posegrasp.perception.seg_net import build_seg_net
+
+    rec, rgb, depth, K = _frame(tiny_bop)
+    trained, cfg, _ = checkpoint.load_model(tiny_run / "seg", "seg")
+    found = {}
+    for seams in (None, -1e4, 1e4):
+        net_cfg = dataclasses.replace(cfg, seams=seams is not None)
+        net = build_seg_net(net_cfg)
+        net.load_state_dict({**net.state_dict(), **trained.state_dict()})
+        with torch.no_grad():
+            net.classifier.weight.zero_()
+            net.classifier.bias.copy_(torch.tensor([0.0, 10.0, 0.0, 0.0]))
+            if seams is not None:
+                net.seam.bias.fill_(seams)
+        run = tmp_path / str(seams)
+        shutil.copytree(tiny_run / "pose", run / "pose")
+        checkpoint.save(run / "seg", "seg", net, net_cfg, None, {"step": 0})
+        found[seams] = [(d.obj_id, d.mask.tobytes()) for d in
+                        Estimator(run, EstimatorConfig(classify=False))(rgb, depth, K).detections]
+    assert len(found[None]) == 1 and found[-1e4] == found[None] and found[1e4] == []

@@ -4,7 +4,8 @@ import cv2
 import numpy as np
 
 from posegrasp.perception.classifier import ClassifierConfig
-from posegrasp.perception.inputs import prepare_cls_input, segment_components
+from posegrasp.perception.data import seam_map
+from posegrasp.perception.inputs import prepare_cls_input, seam_components, segment_components
 from posegrasp.perception.plane import fit_support_plane
 
 #: 64 px crops of 0.16 m, relative depths within 0.05 m; with the height channel up to 0.08 m.
@@ -44,6 +45,26 @@ def test_segment_components_are_each_classes_instances_in_raster_order():
     assert [c for c, _ in found] == [c for c, _ in expected] == [2, 2, 3, 3, 5, 5]
     assert all((a == b).all() for (_, a), (_, b) in zip(found, expected))
     assert [c for c, _ in segment_components(labels, 17)] == [2, 5, 5]  # the island, the 16-px region, the pixel: out
+
+
+def test_seams_cut_touching_parts_of_one_type_apart():
+    """Two blocks of one type side by side are one component of the class map; the seam between them (the pixels of
+    each next to the other) cuts them apart, and each part grows back over its side of the seam."""
+    parts = np.zeros((40, 60), np.int64)
+    parts[5:25, 5:20] = 1
+    parts[5:25, 20:40] = 2  # touching the first along column 19 | 20
+    parts[30:35, 45:50] = 3  # apart from both: no seam
+    seams = seam_map(parts)
+    assert set(np.argwhere(seams)[:, 1]) == {19, 20} and seams.sum() == 2 * 20
+    labels = np.where(parts > 0, 4, 0)  # one type: the class map merges the two blocks
+    assert len(segment_components(labels, 10)) == 2
+    found = seam_components(labels, seams, 10)
+    assert [c for c, _ in found] == [4, 4, 4]
+    for (_, m), k in zip(found, (1, 2, 3)):
+        assert (m == (parts == k)).all()
+    wide = seams | np.roll(seams, 1, axis=1) | np.roll(seams, -1, axis=1)  # a wider seam takes more passes
+    assert [int(m.sum()) for _, m in seam_components(labels, wide, 10, passes=1)] == [280, 380, 25]
+    assert all((m == (parts == k)).all() for (_, m), k in zip(seam_components(labels, wide, 10), (1, 2, 3)))
 
 
 def test_cls_crop_has_a_fixed_metric_size():

@@ -89,6 +89,21 @@ def test_objects_in_a_tote_rest_on_its_floor_not_on_the_table():
     np.testing.assert_array_equal(fit_support_plane(table_only, K, objects=block), fit_support_plane(table_only, K))
 
 
+def test_parts_filling_a_tote_rest_on_its_floor_seen_in_the_gaps():
+    """A full tote: its floor, 1 cm above the table, shows only in the gaps between the parts (under 3 % of the view),
+    its walls around them. The parts rest on that floor, not on the table."""
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), 0.5)  # the table, 0.5 m below the camera looking straight down
+    tote = (abs(u - 160) < 90) & (abs(v - 120) < 60)
+    gaps = tote & ((u - 71) % 20 == 0)  # 1 px of floor every 20 px
+    parts = tote & ~gaps
+    depth[gaps], depth[parts] = 0.49, 0.46
+    for k in range(1, 6):  # the walls' inner faces seen aslant, 3 to 6 cm high
+        depth[(abs(u - 160) < 90 + k) & (abs(v - 120) < 60 + k) & (depth == 0.5)] = 0.47 - 0.006 * (k - 1)
+    assert 0.01 < gaps.mean() < 0.02
+    np.testing.assert_allclose(fit_support_plane(depth, K, objects=parts), [0.0, 0.0, -1.0, 0.49], atol=1e-6)
+
+
 def test_a_block_lying_on_another_does_not_float():
     """Two 4 cm cubes stacked on the table 0.5 m below the camera: the upper one's pose pays the floating term when
     it is alone in the frame, not beside the cube it lies on (whose seen points support it); the lower one's score

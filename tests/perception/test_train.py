@@ -163,6 +163,13 @@ def test_seg_fine_tunes_from_init_weights(tiny_bop, tiny_run, tiny_configs, tmp_
     small = dataclasses.replace(seg, init=str(tiny_run), model=dataclasses.replace(seg.model, input_size=(h - 32, w)))
     train_seg(tiny_bop, tmp_path / "small", small, steps=1, progress=False)
     assert checkpoint.read_config(tmp_path / "small" / "seg")["model"]["input_size"] == [h - 32, w]
+    # a seam head added to a net without one: the rest of the net carried over (lr 0: unchanged), the head trained
+    seams = dataclasses.replace(seg, init=str(tiny_run), lr=0.0, model=dataclasses.replace(seg.model, seams=True))
+    train_seg(tiny_bop, tmp_path / "seams", seams, steps=1, progress=False)
+    net, base = (checkpoint.load_model(r / "seg", "seg")[0] for r in (tmp_path / "seams", tiny_run))
+    assert net.seam is not None and base.seam is None
+    assert torch.equal(net.classifier.weight, base.classifier.weight)
+    assert "seam_loss" in (tmp_path / "seams" / "seg_metrics.csv").read_text().splitlines()[0]
     wide = dataclasses.replace(seg, init=str(tiny_run), model=dataclasses.replace(seg.model, width=0.25))
     with pytest.raises(UserError, match="another seg model config"):
         train_seg(tiny_bop, tmp_path / "bad", wide, steps=1, progress=False)
