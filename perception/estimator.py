@@ -78,6 +78,8 @@ class EstimatorConfig:
     support_plane: bool = True
     #: With ``models``: a mask's part its fitted model leaves unexplained becomes a detection of its own.
     split: SplitConfig = field(default_factory=SplitConfig)
+    #: With a seg net that has a seam head: pixels of a higher seam probability cut the parts apart.
+    seam_threshold: float = field(default=0.25, metadata=within(0, 1))
     #: Once the poses are fitted, the masks' outlines are snapped to the colour image's edges.
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     #: Depth points per object for the pose net; unset: 250 with ``models``, else as in the net's training.
@@ -154,6 +156,7 @@ class Estimator:
         self.support_plane, self.plane_cfg = cfg.support_plane, PlaneConfig()
         self.split_cfg = cfg.split
         self.guided_cfg = cfg.guided
+        self.seam_threshold = cfg.seam_threshold
         self.objects: dict[int, ObjectModel] = {}  # by obj_id; empty without ``models``
         if cfg.models is not None:
             self._load_models(cfg.models)
@@ -299,7 +302,7 @@ class Estimator:
         t1 = time.perf_counter()
         conf, t_cls = None, 0.0
         if seams is not None:  # parts cut apart along the seams, then typed one by one
-            parts = seam_components(labels, seams, self.min_valid_points)
+            parts = seam_components(labels, seams > self.seam_threshold, self.min_valid_points)
             if self.classifier is not None:
                 parts, labels, conf = self._classify_parts(rgb, depth, K, parts, labels, plane)
         else:

@@ -36,24 +36,25 @@ class Segmenter:
         labels, prob, _ = self.run(rgb)
         return labels, prob
 
-    def parts(self, rgb: np.ndarray) -> list[tuple[int, np.ndarray]]:
-        """The parts of an RGB image, (class, mask (H, W) bool) each: the class map's connected components, cut apart
-        along the seams where the net has a seam head (``inputs.seam_components``)."""
+    def parts(self, rgb: np.ndarray, seam_threshold: float = 0.25) -> list[tuple[int, np.ndarray]]:
+        """The parts of an RGB image, (class, mask (H, W) bool) each: the class map's connected components, or where the
+        net has a seam head its foreground cut apart along the pixels of seam probability above ``seam_threshold``
+        (``inputs.seam_components``)."""
         labels, _, seams = self.run(rgb)
-        return segment_components(labels, 1) if seams is None else seam_components(labels, seams, 1)
+        return segment_components(labels, 1) if seams is None else seam_components(labels, seams > seam_threshold, 1)
 
     @torch.no_grad()
     def run(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """As ``__call__``, and the seams (H, W) bool of a net with a seam head (seam probability above 1/2,
-        bilinearly resized to the image; ``seg_net``), else None."""
+        """As ``__call__``, and for a net with a seam head the seam probabilities (H, W) float32 (``seg_net``; bilinearly
+        resized to the image), else None."""
         h, w = rgb.shape[:2]
         ih, iw = self.cfg.input_size
         x = rgb if (h, w) == (ih, iw) else cv2.resize(rgb, (iw, ih), interpolation=cv2.INTER_LINEAR)
         logits, seam_logits = self.model.forward_seams(torch.from_numpy(normalize_rgb(x))[None])  # (1, C, ih, iw)
         seams = None
-        if seam_logits is not None:  # logit > 0: probability above 1/2
-            s = seam_logits[0].numpy()
-            seams = (s if (h, w) == (ih, iw) else cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR)) > 0
+        if seam_logits is not None:
+            s = torch.sigmoid(seam_logits[0]).numpy()
+            seams = s if (h, w) == (ih, iw) else cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR)
         small = torch.softmax(logits[0], dim=0)  # (C, ih, iw)
         prob = np.ascontiguousarray(small.permute(1, 2, 0).numpy())  # (ih, iw, C)
         if (h, w) == (ih, iw):

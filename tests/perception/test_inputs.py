@@ -62,6 +62,10 @@ def test_seams_cut_touching_parts_of_one_type_apart():
     assert [c for c, _ in found] == [4, 4, 4]
     for (_, m), k in zip(found, (1, 2, 3)):
         assert (m == (parts == k)).all()
+    labels[10:14, 8:12] = 5  # a patch of another class: the part is still one, of its pixels' most common class
+    assert [(c, (m == (parts == k)).all()) for (c, m), k in zip(seam_components(labels, seams, 10), (1, 2, 3))] == \
+        [(4, True)] * 3
+    labels[labels == 5] = 4
     wide = seams | np.roll(seams, 1, axis=1) | np.roll(seams, -1, axis=1)  # a wider seam takes more passes
     assert [int(m.sum()) for _, m in seam_components(labels, wide, 10, passes=1)] == [280, 380, 25]
     assert all((m == (parts == k)).all() for (_, m), k in zip(seam_components(labels, wide, 10), (1, 2, 3)))
