@@ -16,7 +16,7 @@ keeping its channels, all concatenated and fused by a 3x3 conv. Then two x2 upsa
 background, class k the object with BOP obj_id k). Every channel count is scaled by ``width``.
 
 With ``seams``, a second 1x1 conv on the same features gives a seam logit per pixel: whether the pixel belongs to a
-part and touches (8-connected) a pixel of another part. The class map cut along the seams falls apart into one
+part and touches (8-connected) a pixel of another part. The foreground cut along the seams falls apart into one
 component per part, also where touching parts are of one type (``inputs.seam_components``): the contour-aware
 instance segmentation of DCAN (Chen et al. 2016) on the paper's decoder.
 """
@@ -55,7 +55,7 @@ class SegNetConfig:
     up_channels: tuple[int, int] = field(default=(64, 32), metadata=within(1, 4096))
     #: Batch normalisation after the convs.
     batch_norm: bool = True
-    #: Also predict seams between touching parts (one more 1x1 conv), which split a class map into instances.
+    #: Also predict seams between touching parts (one more 1x1 conv), which split the foreground into parts.
     seams: bool = False
 
     def scaled(self, c: int) -> int:
