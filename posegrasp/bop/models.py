@@ -45,10 +45,15 @@ def load_model(root_or_file: str | Path, obj_id: int | None = None):
 
 def sample_model_points(mesh, n: int, seed: int = 0) -> np.ndarray:
     """n points (m) uniformly on the surface of a trimesh model, reproducible from ``seed``."""
+    return sample_model_surface(mesh, n, seed)[0]
+
+
+def sample_model_surface(mesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``sample_model_points``' n points (m) and the outward unit normals (n, 3) of the faces they lie on."""
     import trimesh
 
-    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    return np.asarray(pts, dtype=np.float64)
+    pts, face = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(pts, dtype=np.float64), np.asarray(mesh.face_normals, dtype=np.float64)[face]
 
 
 def resample_for_eval(mesh, max_edge: float):
