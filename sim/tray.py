@@ -66,8 +66,10 @@ class TrayConfig:
     #: A second look at each held part, from below, before it is set down: the part is set down as that look sees
     #: it held (``grasping.tasks.bin_pick.tray``), not as the look into the tote saw it at the pick.
     second_look: bool = False
-    #: Where the provider's estimates at the second look hold none near where the pick put the part, the part's pose
-    #: in the hand is shifted onto the look's depth image from there (``perception.held``: ICP against its model).
+    #: The provider's estimates at the second look give the held pose: the one nearest where the pick put the part.
+    look_provider: bool = True
+    #: Where they hold none near (or ``look_provider`` is false), the part's pose in the hand is shifted onto the
+    #: look's depth image from there (``perception.held``: ICP against its model).
     look_fit: bool = True
     #: Position (m, tray frame) on the table of the second look's upward camera (off the plate).
     look_camera_xy: tuple[float, float] = field(default=(0.23, -0.16), metadata=within(-2.0, 2.0))
@@ -77,6 +79,9 @@ class TrayConfig:
     def __post_init__(self) -> None:
         if not self.slots:
             raise ConfigError("bin_pick.tray.slots is empty: give the tray one slot per part ([[bin_pick.tray.slots]])")
+        if not (self.look_provider or self.look_fit):
+            raise ConfigError("bin_pick.tray: look_provider and look_fit are both false, so the second look sees "
+                              "nothing: set one true")
         half = 0.5 * np.asarray(self.size)
         if self.second_look and np.all(np.abs(self.look_camera_xy) < half):
             raise ConfigError(f"bin_pick.tray.look_camera_xy {list(self.look_camera_xy)} lies on the plate: move the "

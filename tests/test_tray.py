@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import refused, run_cli
+from helpers import refused
 from posegrasp import bop
 from posegrasp.bop.check import check_dataset
 from posegrasp.bop.results import PoseResult, write_results_csv
@@ -120,6 +120,8 @@ def test_the_layout_refuses_overlapping_slots_too_few_slots_and_slots_out_of_rea
         TrayConfig(slots=(Slot("cube", (0.5, 0.0)),))
     with pytest.raises(ConfigError, match="look_camera_xy .* lies on the plate"):
         TrayConfig(second_look=True, look_camera_xy=(0.1, 0.0))
+    with pytest.raises(ConfigError, match="look_provider and look_fit are both false"):
+        TrayConfig(look_provider=False, look_fit=False)
     cfg = dataclasses.replace(cfg, bin_pick=dataclasses.replace(
         cfg.bin_pick, tray=TrayConfig(second_look=True, look_camera_xy=(1.5, 0.0), slots=(Slot("cube", (0.0, 0.0)),))))
     with pytest.raises(ConfigError, match="cannot hold a part 0.2 m over the second look's camera"):
@@ -170,28 +172,32 @@ def test_the_shipped_tray_look_example_turns_the_second_look_on():
 @pytest.mark.slow
 def test_the_second_look_sets_finger_picks_down_as_it_sees_them_held(tmp_path):
     """Closing fingers shift a part millimetres along the pads: the upward camera's look at the held part (the
-    oracle here) finds the shift, and the part is set down within a millimetre or so of its slot; without the look
-    the same episodes set parts down further off. The looks at held parts are exported (image ``HELD_LOOK`` +
+    oracle here) finds the shift, and the part is set down within a millimetre or so of its slot, as it is by the fit
+    of the pick's pose to the look's depth (``look_provider = false``); without the look the same episodes set parts down
+    further off. The looks at held parts are exported (image ``HELD_LOOK`` +
     attempt) and a results file's rows for them reach the replayed looks."""
     slots = (Slot("brick_2x2", (-0.05, 0.0), 30.0), Slot("cylinder", (0.05, 0.0), -20.0))
     cfg = _tray_cfg(slots)
     cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, workcell=dataclasses.replace(
         cfg.scene.workcell, hand="2-finger")))
     down = {}
-    for look in (False, True):
+    for name, look, provider in (("off", False, True), ("fit", True, False), ("look", True, True)):
         c = dataclasses.replace(cfg, bin_pick=dataclasses.replace(
-            cfg.bin_pick, tray=dataclasses.replace(cfg.bin_pick.tray, second_look=look)))
-        run_trials(tmp_path / str(look), 2, 3, "oracle", 1, c, display=Display(progress=False),
-                   export=tmp_path / "export" if look else None)
-        down[look] = [a for line in (tmp_path / str(look) / EPISODES).read_text().splitlines()
+            cfg.bin_pick, tray=dataclasses.replace(cfg.bin_pick.tray, second_look=look, look_provider=provider)))
+        run_trials(tmp_path / name, 2, 3, "oracle", 1, c, display=Display(progress=False),
+                   export=tmp_path / "export" if name == "look" else None)
+        down[name] = [a for line in (tmp_path / name / EPISODES).read_text().splitlines()
                       for a in json.loads(line)["attempts"] if a.get("failure") != "wrong face up" and "place_error" in a]
-    assert len(down[True]) >= 3 and all(a["in_hand"]["seen"] for a in down[True])
-    assert not any("in_hand" in a for a in down[False])
-    assert max(a["in_hand"]["shift"] for a in down[True]) > 0.001  # the fingers did shift the parts ...
-    assert max(a["place_error"]["te"] for a in down[True]) < 0.0015  # ... the look took it out ...
-    assert max(a["place_error"]["te"] for a in down[False]) > 0.002  # ... which the pick's estimate did not
+    assert len(down["look"]) >= 3 and all(a["in_hand"]["seen"] and "fitted" not in a["in_hand"] for a in down["look"])
+    assert not any("in_hand" in a for a in down["off"])
+    assert max(a["in_hand"]["shift"] for a in down["look"]) > 0.001  # the fingers did shift the parts ...
+    assert max(a["place_error"]["te"] for a in down["look"]) < 0.0015  # ... the look took it out ...
+    assert max(a["place_error"]["te"] for a in down["off"]) > 0.002  # ... which the pick's estimate did not
+    # ... and so does the fit of the pick's pose to the look's depth, without the provider
+    assert len(down["fit"]) >= 3 and all(a["in_hand"].get("fitted") for a in down["fit"])
+    assert max(a["place_error"]["te"] for a in down["fit"]) < 0.0015
 
-    held = {(e["episode"], HELD_LOOK + a["attempt"]) for line in (tmp_path / "True" / EPISODES).read_text().splitlines()
+    held = {(e["episode"], HELD_LOOK + a["attempt"]) for line in (tmp_path / "look" / EPISODES).read_text().splitlines()
             for e in [json.loads(line)] for a in e["attempts"] if "in_hand" in a}
     report = check_dataset(tmp_path / "export")
     assert report.ok, report.problems[:3]

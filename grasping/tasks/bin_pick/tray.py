@@ -15,9 +15,9 @@ symmetries ``T_goal S`` as the one the wrist turns least to among those the arm 
 from the lift on (``ArmController.lock_grip``), so the part does not creep in them. With the tray's ``second_look`` the
 hand first holds the part over the tray's upward camera (``sim.tray``) and the provider estimates it there:
 ``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the part's
-symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one (and with ``look_fit``) the pose the
-pick's estimate gives the part, shifted onto the look's depth image (``perception.held``), within the gate; else the
-pick's stands. The verdict (the simulator's truth) on the part at rest, modulo its symmetries (``PlaceError``): its face
+symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one, or without asking the provider
+(``look_provider`` false), and with ``look_fit``, the pose the pick's estimate gives the part, shifted onto the look's
+depth image (``perception.held``), within the gate; else the pick's stands. The verdict (the simulator's truth) on the part at rest, modulo its symmetries (``PlaceError``): its face
 within ``face_tol_deg`` of the planned one (else "wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else
 "misplaced", as for a part of another type than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
 """
@@ -291,10 +291,12 @@ class TrayPlace:
         fovy = float(wc.model.cam_fovy[wc.camera_ids[self.camera]])
         c = wc.cfg.hand_camera  # its image size, the model's field of view, depth from 5 cm
         frame = ep.capture(HELD_LOOK + a, True, self.camera, CameraConfig(c.width, c.height, fovy, near=0.05, far=1.0))
-        try:
-            ests = ep.perceive(frame, ep.seed_for(LOOK_SEEDS + a), HELD_LOOK + a)
-        except PerceptionError:
-            ests = []
+        ests = []
+        if cfg.look_provider:
+            try:
+                ests = ep.perceive(frame, ep.seed_for(LOOK_SEEDS + a), HELD_LOOK + a)
+            except PerceptionError:
+                pass
         T_world_gripper = wc.gripper_pose()
         T_expect = T_world_gripper @ np.linalg.inv(T_obj_gripper)
         syms = symmetries(block)
