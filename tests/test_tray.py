@@ -162,11 +162,15 @@ def test_the_cup_sets_parts_down_in_their_slots(tmp_path):
     assert t == s["bin_pick"]["tray"] and t["set_down"] >= len(down) and t["placed"]["success"] >= len(ok)
 
 
-def test_the_shipped_tray_look_example_turns_the_second_look_on():
+def test_the_shipped_bin_examples_load_the_second_look_and_the_small_cup():
     from posegrasp.grasping.config import load_trial_config
 
-    cfg = load_trial_config(Path(__file__).parents[1] / "examples" / "bin" / "tray_look.toml")
+    examples = Path(__file__).parents[1] / "examples" / "bin"
+    cfg = load_trial_config(examples / "tray_look.toml")
     assert cfg.bin_pick.tray.second_look and not TrialConfig().bin_pick.tray.second_look
+    cup = load_trial_config(examples / "hybrid_cup15.toml").scene.workcell
+    assert cup.suction.diameter == 0.015 < TrialConfig().scene.workcell.suction.diameter
+    dataclasses.replace(cup, hand="hybrid")  # the cup fits between the hybrid hand's fingers
 
 
 @pytest.mark.slow
