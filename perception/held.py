@@ -1,8 +1,9 @@
 """A held part's position from a look at it in the hand: the pose it is believed held in, shifted onto the depth image.
 
 Closing fingers shift a part by millimetres, so the pose the pick's estimate gives it in the hand is a good start.
-The observed points kept are those within ``start_reach`` of the model placed there (its seen faces; the fingers and
-the arm beyond are left out). Each step pairs points both ways within a reach that shrinks from ``start_reach`` to
+The observed points kept are those within ``start_reach`` of the model placed there (its seen faces; the arm beyond
+is left out), less those within ``self_filter`` of the hand's own surface where the caller gives it (the fingers
+beside the part: a cell knows its hand's pose and meshes). Each step pairs points both ways within a reach that shrinks from ``start_reach`` to
 ``reach``: each observed point p with its nearest model point, and each model point facing the camera with its
 nearest observed point (so a face seen from below is pulled back over the points seen, not only onto their plane),
 and shifts the model by the pairs' mean difference, its turn R kept::
@@ -37,6 +38,9 @@ class HeldFitConfig:
     start_reach: float = field(default=0.012, metadata=within(1e-4, 0.1))
     #: ... and shrinks by 10 % a step down to this (m).
     reach: float = field(default=0.006, metadata=within(1e-4, 0.1))
+    #: Observed points this near (m) the hand's own surface (the caller's ``exclude``: the fingers beside the part)
+    #: are left out.
+    self_filter: float = field(default=0.004, metadata=within(0.0, 0.05))
     #: ICP steps.
     iterations: int = field(default=120, metadata=within(1, 1000))
     #: Observed points fitted (a seeded random subset) ...
@@ -65,17 +69,20 @@ class HeldFit:
             self._models[obj_id] = pts, normals, cKDTree(pts)
         return self._models[obj_id]
 
-    def __call__(self, obj_id: int, T_cam_obj: np.ndarray, depth: np.ndarray, K: np.ndarray, seed: int = 0
-                 ) -> np.ndarray | None:
+    def __call__(self, obj_id: int, T_cam_obj: np.ndarray, depth: np.ndarray, K: np.ndarray, seed: int = 0,
+                 exclude: np.ndarray | None = None) -> np.ndarray | None:
         """Object ``obj_id`` believed at ``T_cam_obj`` (4, 4), shifted onto the depth image (H, W) (m, 0: none) seen
         through K (3, 3): T_cam_obj with the fitted translation, or None where fewer than ``min_points`` points lie
-        near it or pair with it (``seed`` draws the points fitted)."""
+        near it or pair with it (``seed`` draws the points fitted). ``exclude``: (M, 3) camera-frame points (m) on
+        the hand; observed points within ``self_filter`` of them are not the part's."""
         c = self.cfg
         pts, normals, tree = self.model(obj_id)
         R, t = T_cam_obj[:3, :3], T_cam_obj[:3, 3].copy()
         H, W = depth.shape
         P = backproject(depth, K, (0, H, 0, W), np.flatnonzero(depth > 0))
         P = P[tree.query((P - t) @ R, distance_upper_bound=c.start_reach)[0] < c.start_reach]
+        if exclude is not None and len(exclude) and len(P) and c.self_filter > 0:
+            P = P[cKDTree(exclude).query(P, distance_upper_bound=c.self_filter)[0] >= c.self_filter]
         if len(P) < c.min_points:
             return None
         if len(P) > c.max_points:

@@ -32,3 +32,24 @@ def test_a_believed_position_millimetres_off_is_shifted_onto_the_part_seen(obj_i
     assert np.linalg.norm(fit(obj_id, T0, depth, K)[:3, 3] - T_true[:3, 3]) < 0.0015
     T0[:3, 3] += (0.1, 0.0, 0.0)
     assert fit(obj_id, T0, depth, K) is None
+
+
+def test_points_on_the_hand_beside_the_part_are_left_out():
+    """A finger's pad beside the cube, in the look's depth, pulls the fit 3.7 mm toward it; given the hand's own
+    points (``exclude``), the fit leaves them out and lands where it lands on the cube alone."""
+    root = set_root("")
+    T_true = make_T(np.eye(3), (0.0, 0.0, 0.2))
+    depth = DepthRenderer({1: bop_models.load_model(root, 1)})(1, T_true, K, 480, 640)
+    u = np.arange(640)
+    x = (u - K[0, 2]) * 0.2 / K[0, 0]  # camera x (m) of each column at the cube's bottom face's depth
+    rows = slice(int(K[1, 2] - 40), int(K[1, 2] + 40))
+    finger = np.zeros_like(depth)
+    finger[rows, (x > 0.0235) & (x < 0.0335)] = 0.2  # a pad beside the cube, level with its centre
+    seen = np.where(finger > 0, finger, depth)
+    v, c = np.nonzero(finger)
+    hand = np.stack([(c - K[0, 2]) * finger[v, c] / K[0, 0], (v - K[1, 2]) * finger[v, c] / K[1, 1], finger[v, c]], 1)
+    T0 = T_true.copy()
+    T0[:3, 3] += (0.003, 0.0, 0.0)  # believed 3 mm toward the finger
+    alone = HeldFit(root)(1, T0, depth, K)
+    err = [np.linalg.norm(HeldFit(root)(1, T0, seen, K, exclude=e)[:3, 3] - alone[:3, 3]) for e in (None, hand)]
+    assert err[0] > 0.002 and err[1] < 0.0001

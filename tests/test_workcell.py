@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from posegrasp.geometry import invert, rotation_angle
+from posegrasp.geometry import invert, rotation_angle, transform_points
 from posegrasp.sim.camera import CameraRenderer, Frame
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import SceneConfig, make_scene
-from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA
+from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA, Workcell
 
 
 def capture_at_look(seed: int, n_blocks: int = 5, width: int = 640, height: int = 480) -> tuple[Frame, object]:
@@ -178,7 +178,6 @@ def test_hand_camera_sees_whole_pick_area(look_frame):
 
 
 def test_camera_mount_matches_config():
-    from posegrasp.sim.workcell import Workcell
     from posegrasp.sim.camera import rpy_deg_to_R
 
     cfg = WorkcellConfig()
@@ -206,3 +205,19 @@ def test_unplaced_blocks_touch_nothing():
     touching = {int(g) for c in wc.data.contact[:wc.data.ncon] for g in (c.geom1, c.geom2)}
     assert not touching & block_geoms
     assert np.all(wc.block_poses()[:, 0, 3] == 0.0) and len({float(y) for y in wc.block_poses()[:, 1, 3]}) == 8
+
+
+def test_the_hand_points_lie_on_the_hand_and_move_with_it():
+    """``robot_surface.hand_points``: in the gripper frame the same points wherever the arm is (the fingers still),
+    around the pinch point (the open fingers either side of it along the squeeze axis, nothing beyond the hand's
+    25 cm); in the world they moved with the arm."""
+    from posegrasp.sim.robot_surface import hand_points
+
+    wc = Workcell(WorkcellConfig(hand="2-finger"))
+    before, T_before = hand_points(wc), wc.gripper_pose()
+    assert wc.place_arm(wc.look_q)
+    after, T_after = hand_points(wc), wc.gripper_pose()
+    local = [transform_points(np.linalg.inv(T), p) for T, p in ((T_before, before), (T_after, after))]
+    assert np.allclose(local[0], local[1], atol=1e-6) and not np.allclose(before, after, atol=1e-3)
+    assert local[0][:, 0].min() < -0.03 and local[0][:, 0].max() > 0.03  # the fingers either side of the pinch
+    assert np.linalg.norm(local[0], axis=1).max() < 0.25
