@@ -3,10 +3,10 @@
 Closing fingers shift a part by millimetres, so the pose the pick's estimate gives it in the hand is a good start.
 The observed points kept are those within ``start_reach`` of the model placed there (its seen faces; the arm beyond
 is left out), less those within ``self_filter`` of the hand's own surface where the caller gives it (the fingers
-beside the part: a cell knows its hand's pose and meshes). Each step pairs points both ways within a reach that shrinks from ``start_reach`` to
-``reach``: each observed point p with its nearest model point, and each model point facing the camera with its
-nearest observed point (so a face seen from below is pulled back over the points seen, not only onto their plane),
-and shifts the model by the pairs' mean difference, its turn R kept::
+beside the part: a cell knows its hand's pose and meshes). Each step pairs points both ways within a reach that
+shrinks from ``start_reach`` to ``reach``: each observed point p with its nearest model point, and each model point
+facing the camera with its nearest observed point (so a face seen from below is pulled back over the points seen,
+not only onto their plane), and shifts the model by the pairs' mean difference, its turn R kept::
 
     t_{k+1} = t_k + mean_i ( b_i - a_i )      (pairs a_i -> b_i: model point -> observed point, camera frame)
 

@@ -192,7 +192,8 @@ def test_the_second_look_sets_finger_picks_down_as_it_sees_them_held(tmp_path):
                    export=tmp_path / "export" if name == "look" else None)
         down[name] = [a for line in (tmp_path / name / EPISODES).read_text().splitlines()
                       for a in json.loads(line)["attempts"] if a.get("failure") != "wrong face up" and "place_error" in a]
-    assert len(down["look"]) >= 3 and all(a["in_hand"]["seen"] and "fitted" not in a["in_hand"] for a in down["look"])
+    assert len(down["look"]) >= 3
+    assert all(a["in_hand"]["seen"] and "fitted" not in a["in_hand"] for a in down["look"])
     assert not any("in_hand" in a for a in down["off"])
     assert max(a["in_hand"]["shift"] for a in down["look"]) > 0.001  # the fingers did shift the parts ...
     assert max(a["place_error"]["te"] for a in down["look"]) < 0.0015  # ... the look took it out ...
