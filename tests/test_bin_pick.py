@@ -321,6 +321,16 @@ def test_an_episode_ends_when_no_part_it_sees_has_a_grasp():
     assert [a.failure for a in ep.rec.attempts] == [Failure.NOTHING_GRASPABLE] and ep.rec.removed == 0
 
 
+def test_an_episode_ends_when_the_arm_reaches_no_grasp_of_what_it_sees():
+    cfg = _cfg(1)
+    cfg = dataclasses.replace(cfg, grasp=dataclasses.replace(cfg.grasp, reach_tol=1e-12))  # no IK solution is close
+    ep = _episode(cfg, ["cube"], [_flat("cube", (0.45, 0.0))])
+    with pytest.raises(EpisodeFailed) as e:
+        empty_tote(ep)
+    assert e.value.reason == Failure.UNREACHABLE  # the same plan again would fail again: one attempt, not three
+    assert [a.failure for a in ep.rec.attempts] == [Failure.UNREACHABLE] and ep.rec.removed == 0
+
+
 @pytest.mark.slow
 def test_a_short_oracle_campaign_is_deterministic_and_clears_most_parts(tmp_path):
     cfg = _cfg(4)

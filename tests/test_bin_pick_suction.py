@@ -13,7 +13,10 @@ from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.grasps import Grasp
 from posegrasp.grasping.suction_grasps import SuctionGrasp
 from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid, OutBox
-from posegrasp.grasping.tasks.bin_pick.planner import choose_cup, off_the_walls
+from posegrasp.geometry import make_T
+from posegrasp.grasping.targets import reach_q
+from posegrasp.grasping.tasks.bin_pick.planner import (HeapView, _reachable, approach_end, choose_cup, off_the_walls,
+                                                       pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
 from test_bin_pick import CAT, _alone, _inner_bounds, _oracle_episode, _cfg
@@ -124,3 +127,22 @@ def test_a_cup_room_no_finger_opening_keeps_is_refused(tmp_path, capsys):
     refused(capsys, ["trials", "--config", cfg, "--task", "bin-pick", "--hand", "hybrid", "--episodes", "1", "--out",
                      out], "cup_room = 0.05 m")
     assert not out.exists()
+
+
+def test_a_cup_grasp_is_reachable_only_where_its_approach_starts_within_reach():
+    """A cup tilted 36 deg at the tote's far side: the pre-grasp above the grasp is in reach, the one above where the
+    cup's approach along its axis starts (``approach_end``, 2 cm back: nearer the far side) is not, and that one is
+    the pose the arm goes to, so the planner finds no reachable grasp."""
+    cfg = _cfg(1, hand="hybrid")
+    wc = bin_workcell(cfg, [])
+    area = area_of(wc, cfg.bin_pick)
+    z = np.array([-0.55, 0.2, -0.81]) / np.linalg.norm([-0.55, 0.2, -0.81])
+    x = np.array([0.0, 1.0, 0.0]) - z[1] * z
+    x /= np.linalg.norm(x)
+    T = make_T(np.stack([x, np.cross(z, x), z], 1), (0.538, -0.023, 0.065))
+    g = SuctionGrasp(T, 0.001, 0.004, 0.0, 0.01, 36.0, 0.0, 1.0, 0.095)
+    assert reach_q(wc, cfg.grasp, T, pregrasp_height(cfg, area, T)) is not None
+    assert np.allclose(approach_end(g)[:3, 3], T[:3, 3] - 0.02 * z)
+    start = approach_end(g)
+    assert reach_q(wc, cfg.grasp, start, pregrasp_height(cfg, area, start)) is None
+    assert _reachable(wc, cfg, HeapView(wc, cfg, [], np.eye(4), np.zeros((0, 3))), [(1.0, 0, g)]) is None

@@ -102,9 +102,10 @@ def tally(wc: Workcell, area: Area, dest: Destination, parts: list[int]) -> tupl
 
 def empty_tote(ep: Episode) -> None:
     """The bin-picking episode: attempts until the robot sees nothing left, ``max_failures`` failed in a row or
-    ``attempts_per_part`` per part, or when it sees again what it saw when it found nothing graspable (no attempt
-    is recorded for that look: it would find no grasp again); fills in ``ep.rec`` (a ``BinPickRecord``). Raises
-    ``EpisodeFailed`` with the episode's end reason unless every part went into the out-box."""
+    ``attempts_per_part`` per part, or when it sees again what it saw when it found nothing graspable or nothing
+    the arm reaches (no attempt is recorded for that look: it would find no grasp to try again); fills in
+    ``ep.rec`` (a ``BinPickRecord``). Raises ``EpisodeFailed`` with the episode's end reason unless every part went
+    into the out-box."""
     run = _Emptying(ep)
     ep.rec.place = ep.cfg.bin_pick.place
     _look(ep, run.area)
@@ -141,7 +142,8 @@ class _Emptying:
         self.failed: list[np.ndarray] = []  # grasp poses that failed: not tried again
         self.in_a_row = 0
         self.seen: list[tuple[int, np.ndarray]] = []  # the last look's estimates in the tote: (obj_id, T_world_obj)
-        self.stuck: list[tuple[int, np.ndarray]] | None = None  # ``seen`` when it last found nothing graspable
+        self.stuck: list[tuple[int, np.ndarray]] | None = None  # ``seen`` when it last found no grasp to try
+        self.stuck_why = Failure.NOTHING_GRASPABLE  # and why: nothing graspable, or nothing the arm reaches
         self.end = Failure.PARTS_LEFT
         self.ests: list[Estimate] = []
         self.tool: Tool = tool_of(ep, self.dest)
@@ -174,7 +176,8 @@ class _Emptying:
         self._tally(att)
         self._finish(att, t0)
         self.in_a_row = 0 if att.outcome == "success" else self.in_a_row + 1
-        self.stuck = self.seen if att.failure == Failure.NOTHING_GRASPABLE else None
+        self.stuck = self.seen if att.failure in (Failure.NOTHING_GRASPABLE, Failure.UNREACHABLE) else None
+        self.stuck_why = att.failure if self.stuck is not None else self.stuck_why
         return True
 
     def _pick(self, att: Attempt, frame: Frame) -> bool:
@@ -196,7 +199,7 @@ class _Emptying:
         ep.log.stop("perceive", ep.ctl, add=True)
         self.seen = [(e.obj_id, T_world_cam @ e.T_cam_obj) for e in ests]
         if self.stuck is not None and _same_view(self.seen, self.stuck):  # it would find no grasp again: no attempt
-            self.end = Failure.NOTHING_GRASPABLE
+            self.end = self.stuck_why
             return False
         if not ests:
             if len(heap) < 10:  # nothing seen, nothing above the floor: the robot believes the tote empty

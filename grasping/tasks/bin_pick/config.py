@@ -65,16 +65,19 @@ class BinPickConfig:
     #: The fingers open this much wider than the part they grasp (m; ``grasp.finger_margin`` on the table).
     finger_margin: float = field(default=0.01, metadata=within(0.0, 0.1))
     #: The open hand keeps this distance (m) from the other parts' estimated surfaces and the depth image's points
-    #: (negative: it may push into the heap that far); from the walls it keeps ``grasp.clearance_min``. Tried in
+    #: (negative: it may push into the heap that far); from the walls it keeps ``wall_clearance``. Tried in
     #: order: the next, looser value only when no part has a grasp (or none reachable) at the one before.
     part_clearance: tuple[float, ...] = field(default=(-0.008, -0.015), metadata=within(-0.05, 0.1))
+    #: The open fingers, the camera and the arm keep this far (m) from the tote's walls at a grasp (more than the
+    #: arm's position tolerance, ``control.pos_tol``: it arrives a few millimetres off, a fingertip on a wall).
+    wall_clearance: float = field(default=0.0065, metadata=within(0.0, 0.05))
     #: A grasp whose open fingers would touch a wall is tried again with the hand moved this far (m) along the
     #: gripper y axis (nearest first), the part sitting off-centre in the hand ...
     wall_shifts: tuple[float, ...] = (-0.024, -0.02, -0.016, -0.012, -0.008, -0.004, 0.004, 0.008, 0.012, 0.016, 0.02,
                                       0.024)
     #: ... while its contact faces still meet finger 1's pad and finger 2's or 3's this far (m) along y ...
     shift_contact: float = field(default=0.016, metadata=within(0.0, 0.05))
-    #: ... and the fingers and the camera keep this far (m) from the walls (more than ``grasp.clearance_min``:
+    #: ... and the fingers and the camera keep this far (m) from the walls (more than ``wall_clearance``:
     #: neighbours push the descending fingers sideways, and off-centre they are nearer a wall).
     shift_clearance: float = field(default=0.008, metadata=within(0.0, 0.05))
     #: A grasp that no shift clears of the walls is tried again with the hand turned about its pinch point by the

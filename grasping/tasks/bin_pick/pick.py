@@ -24,9 +24,9 @@ from posegrasp.grasping.suction_grasps import SuctionGrasp
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
-from posegrasp.grasping.tasks.bin_pick.planner import (CUP_APPROACH, CUP_BACKOFF, CUP_BACKOFF_RISE, CUP_PRESS,
-                                                       CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME, HYBRID_TIE,
-                                                       HeapView, choose_cup, choose_part, off_the_walls,
+from posegrasp.grasping.tasks.bin_pick.planner import (CUP_BACKOFF, CUP_BACKOFF_RISE, CUP_PRESS, CUP_PRESS_SPEED,
+                                                       CUP_SETTLE_SPEED, CUP_SETTLE_TIME, HYBRID_TIE, HeapView,
+                                                       approach_end, choose_cup, choose_part, off_the_walls,
                                                        pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import Area
@@ -159,8 +159,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
         ctl.preshape(plan.grasp.opening)
     T_grasp = plan.grasp.T_world_gripper
     z = T_grasp[:3, 2]
-    T_near, T_press = T_grasp.copy(), T_grasp.copy()
-    T_near[:3, 3] -= CUP_APPROACH * z
+    T_near, T_press = approach_end(plan.grasp), T_grasp.copy()
     T_press[:3, 3] += CUP_PRESS * s.stroke * z
     T_pre = T_near.copy()
     T_pre[2, 3] += pregrasp_height(cfg, area, T_near)

@@ -4,7 +4,7 @@ The planner sees the parts only through the provider's estimates and the hand ca
 the world with the calibrated mount (``Episode.T_world_cam``); the tote's and the out-box's geometry is the
 workcell's, known. A grasp (``grasping.grasps.plan_grasps``, top-down) must keep the open fingers' meshes
 (``controller.open_finger_points``, open ``finger_margin`` wider than the part) and the camera's box
-(``hand.camera_box``) ``grasp.clearance_min`` from the tote's inner wall faces and rims, the open hand's boxes
+(``hand.camera_box``) ``wall_clearance`` from the tote's inner wall faces and rims, the open hand's boxes
 (``grasping.hand.Hand.boxes``) ``part_clearance`` (negative: the fingers may push into the heap that far) from
 the other estimates' surfaces and the depth image's points above the floor (less those on the target's estimated
 surface: they are the target); the open fingers must not land on the target's own estimated surface either (an
@@ -186,7 +186,7 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
 
     def ranked(clearance: float, plan_cfg, j: int) -> list[tuple[float, Grasp]]:
         own, others, wall = view.around(j)
-        clear_of_walls = lambda g, c=g_cfg.clearance_min: _clear_of(g, wall, [cam], c) and (  # noqa: E731
+        clear_of_walls = lambda g, c=b.wall_clearance: _clear_of(g, wall, [cam], c) and (  # noqa: E731
             not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
         fit = _Fit(own.data, others, clearance, lambda g: clear_of_walls(g, b.shift_clearance), b, hand)
         grasps = list(itertools.islice((  # the first grasps_per_block, the later ones never moved or checked
@@ -234,14 +234,25 @@ def off_the_walls(block: PartType, T_world_obj: np.ndarray, tote: Tote, distance
     return move
 
 
+def approach_end(grasp: Grasp | SuctionGrasp) -> np.ndarray:
+    """The gripper's pose (world) where a pick's straight descent from its pre-grasp ends: the grasp, or for the cup
+    ``CUP_APPROACH`` back along its axis (the cup comes on from there)."""
+    T = grasp.T_world_gripper.copy()
+    if isinstance(grasp, SuctionGrasp):
+        T[:3, 3] -= CUP_APPROACH * T[:3, 2]
+    return T
+
+
 def _reachable(wc: Workcell, cfg: TrialConfig, view: HeapView, options: list) -> tuple | None:
-    """The best of ``options`` ((rank, estimate index, grasp), any order) whose pre-grasp and grasp the arm
-    reaches clear of the tote's walls, as (index, grasp, levelled pose); None if none of the ``ik_checks`` best."""
+    """The best of ``options`` ((rank, estimate index, grasp), any order) whose pre-grasp and the end of its
+    descent (``approach_end``: the poses the arm goes to) the arm reaches clear of the tote's walls, as (index,
+    grasp, levelled pose); None if none of the ``ik_checks`` best."""
     g_cfg, area = cfg.grasp, view.area
     options.sort(key=lambda o: -o[0])
     for _, j, g in options[:g_cfg.ik_checks]:
-        qs = reach_q(wc, g_cfg, g.T_world_gripper, pregrasp_height(cfg, area, g.T_world_gripper))
-        if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, g_cfg.clearance_min)):
+        T = approach_end(g)
+        qs = reach_q(wc, g_cfg, T, pregrasp_height(cfg, area, T))
+        if qs is not None and (not area.walls or arm_clear(wc.cfg, area.tote, *qs, cfg.bin_pick.wall_clearance)):
             return j, g, view.poses[j]
     return None
 
