@@ -81,15 +81,17 @@ def load_records(root: str | Path, split: str) -> list[bop.ImageRecord]:
     return recs
 
 
-def label_map(rec: bop.ImageRecord, shape: tuple[int, int], num_classes: int | None = None) -> np.ndarray:
-    """(H, W) int64 class map from the visible masks: 0 background, obj_id on each object."""
-    lab = np.zeros(shape, dtype=np.int64)
+def label_map(rec: bop.ImageRecord, shape: tuple[int, int], num_classes: int | None = None,
+              parts: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) int64 class map from the visible masks: 0 background, obj_id on each object; from ``parts``
+    (``part_map``'s, each mask read once) when given."""
+    ids = np.zeros(len(rec.instances) + 1, dtype=np.int64)
     for inst in rec.instances:
         if num_classes is not None and inst.obj_id >= num_classes:
             raise DatasetError(f"object id {inst.obj_id} in {rec.scene_dir} does not fit a model with "
                                f"{num_classes} classes")
-        lab[rec.load_mask(inst.gt_index)] = inst.obj_id
-    return lab
+        ids[inst.gt_index + 1] = inst.obj_id
+    return ids[part_map(rec, shape) if parts is None else parts]
 
 
 def seam_map(parts: np.ndarray) -> np.ndarray:
@@ -132,8 +134,8 @@ class SegDataset(Dataset):
         """Sample ``index``; ``key`` seeds the augmentation (None: no augmentation)."""
         rec = self.records[index]
         rgb = rec.load_rgb()
-        lab = label_map(rec, rgb.shape[:2], self.num_classes)
-        maps = [lab] + ([part_map(rec, rgb.shape[:2])] if self.seams else [])
+        parts = part_map(rec, rgb.shape[:2])
+        maps = [label_map(rec, rgb.shape[:2], self.num_classes, parts)] + ([parts] if self.seams else [])
         h, w = self.input_size
         if rgb.shape[:2] != (h, w):
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_LINEAR)
