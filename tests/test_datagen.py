@@ -118,6 +118,7 @@ def test_check_compares_depth_inside_the_visible_outline(dataset, tmp_path):
     nearer(inner)
     assert any(f"gt {inst.gt_index} (obj {inst.obj_id})" in p for p in check_dataset(root, opts=opts).problems)
 
+
 def test_clean_depth_lies_on_models(dataset):
     checked = 0
     meshes = {}
