@@ -230,6 +230,21 @@ class ArmController:
                 return True
         return False
 
+    def null_offset(self, T: np.ndarray, speed: float, timeout: float, rounds: int = 2,
+                    until: Callable[[], bool] | None = None) -> np.ndarray:
+        """Settle at ``T`` (``settle(speed, timeout)``) and move the tracked target on by what the measured
+        position lacks along world x and y, ``rounds`` times or until ``until()``; the xy shift (2,) (m, world)
+        made. The arm settles a millimetre or two off its target, much the same nearby: a move that follows (a
+        press, a set-down) takes the shift too."""
+        off = np.zeros(2)
+        for _ in range(rounds):
+            self.settle(speed, timeout)
+            if until is not None and until():
+                break
+            off += T[:2, 3] - self.wc.gripper_pose()[:2, 3]
+            self.target[:2, 3] = T[:2, 3] + off
+        return off
+
     def hold(self, duration: float) -> None:
         """Track the current target for ``duration`` simulated seconds."""
         for _ in range(int(np.ceil(duration / self.cfg.dt))):

@@ -64,6 +64,9 @@ _TURNS_DEG = (0.0, 90.0, -90.0, 180.0)  # the wrist turns tried about the approa
 _CLEAR = 0.02  # the clearance (m) a grasp records when nothing comes closer
 _SAME = (0.003, np.cos(np.radians(10.0)))  # a grasp this close (m) and this parallel to a better one is dropped
 _CHUNK = 64  # candidates per block of the clearance checks (memory)
+#: ``seen_seals``: the sectors of the rim's ring that must each show the face in the depth image.
+SEEN_SECTORS = 8
+RING = 0.6  # ... of the ring this share of the rim's radius and wider
 _EPS = 1e-9  # barycentric slack: a ray through a shared edge meets both triangles
 
 
@@ -120,13 +123,15 @@ class CupSpots:
 class CupSurroundings:
     """What a suction grasp on one part must clear (world, m): ``others``, the other parts' points (their
     estimates' surfaces, the depth image's points off the target: ``bin_pick.planner.choose_part``'s ``around``),
-    ``walls``, the walls' points (empty on a pile), the ``floor``'s height, and the wrist's yaw now (rad,
-    ``grasps.plan_grasps``' ``yaw_now``)."""
+    ``walls``, the walls' points (empty on a pile), the ``floor``'s height, the wrist's yaw now (rad,
+    ``grasps.plan_grasps``' ``yaw_now``) and, for the check of the seal on what the camera sees (``seen_seals``),
+    the depth image's points in the heap's area, the floor's and the target's own among them (None: no such check)."""
 
     others: np.ndarray
     walls: np.ndarray
     floor: float
     yaw_now: float
+    seen: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -320,6 +325,40 @@ def _nearest(T: np.ndarray, pts: np.ndarray, cup: CupGeometry, body: bool) -> np
     return out
 
 
+def seen_seals(T: np.ndarray, seen: np.ndarray, radius: float, tol: float, sectors: int = SEEN_SECTORS
+               ) -> np.ndarray:
+    """(K,) does the depth image agree that a cup at each pose ``T`` (K, 4, 4; world, origin at the rim's centre on
+    the estimated face, z into the part) seals, the seal test of Dex-Net 3.0 made on the observed points ``seen``
+    (P, 3; world, m) rather than on the estimated model? With h a point's depth below the rim's plane (along z) and
+    rho its distance from the axis::
+
+        every one of ``sectors`` equal sectors of the rim's ring, 0.6 radius <= rho <= radius, holds points, and
+        in each 3 in 4 of them lie within ``tol`` of the rim's plane (the face there: not past its edge, no gap)
+        no point with rho <= radius has h < -tol                          (nothing rises into the cup)
+
+    An estimate a few millimetres off puts the planned rim across the true face's edge, or over a neighbour, where
+    the model says it seals."""
+    out = np.zeros(len(T), bool)
+    if not len(seen):
+        return out
+    for a in range(0, len(T), _CHUNK):
+        Tc = T[a:a + _CHUNK]
+        local = (seen[None] - Tc[:, None, :3, 3]) @ Tc[:, :3, :3]  # (k, P, 3)
+        rho = np.hypot(local[..., 0], local[..., 1])
+        h = local[..., 2]
+        inside = rho <= radius
+        ok = ~np.any(inside & (h < -tol), axis=1)
+        ring = inside & (rho >= RING * radius)
+        sector = np.minimum((np.arctan2(local[..., 1], local[..., 0]) + np.pi) / (2 * np.pi) * sectors,
+                            sectors - 1).astype(int)
+        for k in np.flatnonzero(ok):
+            sk, on = sector[k][ring[k]], np.abs(h[k][ring[k]]) <= tol
+            ok[k] = bool(np.all(np.bincount(sk[on], minlength=sectors) >= 0.75 * np.bincount(sk, minlength=sectors))
+                         and len(np.unique(sk)) == sectors)
+        out[a:a + _CHUNK] = ok
+    return out
+
+
 def _lowest_corner(T: np.ndarray, cup: CupGeometry) -> np.ndarray:
     """(K,) the height (m, world) of the wrist boxes' lowest corner with the tool at each pose ``T`` (K, 4, 4)."""
     corners = np.array([[x, y, z] for lo, hi in cup.boxes() for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
@@ -357,7 +396,7 @@ def _within_reach(around: CupSurroundings, points: np.ndarray, normals: np.ndarr
     centre = points[:, :2].mean(0)
     reach = float((np.linalg.norm(points[:, :2] - centre, axis=1) + up * s + rho).max())
     keep = lambda q: q[(q[:, 2] >= low.min()) & (np.linalg.norm(q[:, :2] - centre, axis=1) <= reach)]  # noqa: E731
-    return CupSurroundings(keep(around.others), keep(around.walls), around.floor, around.yaw_now)
+    return CupSurroundings(keep(around.others), keep(around.walls), around.floor, around.yaw_now, around.seen)
 
 
 def plan_suction(part: PartType, T_world_obj: np.ndarray, around: CupSurroundings, cup: CupGeometry,
@@ -390,6 +429,10 @@ def plan_suction(part: PartType, T_world_obj: np.ndarray, around: CupSurrounding
         T[hit], found[hit], clearance[hit] = Tt[ok], True, np.minimum(clearance[hit], c[ok])
         turn[hit] = np.abs(_wrap(np.arctan2(Tt[ok, 1, 0], Tt[ok, 0, 0]) - around.yaw_now))
     idx, T, turn, clearance = idx[found], T[found], turn[found], clearance[found]
+    if around.seen is not None and b.suction_seen_tol > 0:  # the seal as the camera sees it
+        near = around.seen[np.linalg.norm(around.seen - T_world_obj[:3, 3], axis=1) <= part.diameter + cup.radius]
+        ok = seen_seals(T, near, cup.radius, b.suction_seen_tol)
+        idx, T, turn, clearance = idx[ok], T[ok], turn[ok], clearance[ok]
     top = float(transform_points(T_world_obj, part.vertices)[:, 2].max())
     score = (b.suction_margin_weight * (spots.seal_margin[idx] + spots.edge_margin[idx])
              - b.suction_com_weight * spots.com_distance[idx] - b.suction_tilt_weight * tilt[idx]

@@ -68,6 +68,20 @@ def test_a_hand_held_off_its_goal_by_the_posture_term_is_brought_on(arm, monkeyp
     assert reached == [False, True]
 
 
+def test_null_offset_takes_up_what_the_arm_lacks_at_a_goal(arm):
+    """The arm stops millimetres off a goal it counts as reached (within ``pos_tol``); ``null_offset`` moves the
+    tracked target on until the hand is on it, and says by how much."""
+    arm.reset(arm.look_q)
+    ctl = ArmController(arm, ControlConfig(posture_cost=0.03), arm.look_q)
+    goal = make_T(DOWN, (0.55, -0.15, 0.08))
+    assert ctl.move(goal)
+    before = np.linalg.norm(arm.gripper_pose()[:2, 3] - goal[:2, 3])
+    off = ctl.null_offset(goal, 0.005, 1.0)
+    after = np.linalg.norm(arm.gripper_pose()[:2, 3] - goal[:2, 3])
+    assert before > 0.002 and after < 0.25 * before, (before, after)
+    assert np.allclose(ctl.target[:2, 3], goal[:2, 3] + off) and np.linalg.norm(off) > 0.5 * before
+
+
 def test_table_collision_avoidance_stops_the_fingers(arm):
     ctl = ArmController(arm, ControlConfig(), arm.look_q)
     assert ctl.move(make_T(DOWN, (0.45, 0.0, 0.06)))

@@ -253,3 +253,37 @@ def test_a_curved_part_seals_where_it_is_flat_enough_across_the_rim():
     flush = dataclasses.replace(B, suction_min_edge_margin=0.0)  # a curved cap has no edge margin to spare
     grasps = plan_suction(big, make_T(np.eye(3), (0.5, 0.0, 0.06)), _open(), CUP, flush)
     assert grasps and grasps[0].tilt_deg < 5.0  # the ball's top first: least tilt, centre of mass under the cup
+
+
+def _grid(x0: float, x1: float, y0: float, y1: float, z: float, step: float = 0.0015) -> np.ndarray:
+    """Depth-image-like points (world, m) every ``step`` over a level patch at height ``z``."""
+    x, y = np.meshgrid(np.arange(x0, x1, step), np.arange(y0, y1, step))
+    return np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], 1)
+
+
+def test_the_depth_image_confirms_a_seal_only_on_a_face_that_is_there(cat):
+    from posegrasp.grasping.suction_grasps import seen_seals
+
+    cube = cat["cube"]
+    T = _on_floor(cube, xy=(0.5, 0.0))  # its top face, 40 mm across, at z = 40 mm; the floor round it
+    floor = _grid(0.44, 0.56, -0.06, 0.06, 0.0)
+    seen = np.concatenate([floor[np.abs(floor[:, :2] - [0.5, 0.0]).max(1) > 0.02], _grid(0.48, 0.52, -0.02, 0.02, 0.04)])
+    grasps = plan_suction(cube, T, _open(), CUP, B)
+    poses = np.stack([g.T_world_gripper for g in grasps])
+    assert seen_seals(poses, seen, CUP.radius, 0.003).all()  # the estimate is right: every grasp confirmed
+    off = poses.copy()
+    off[:, 0, 3] += 0.015  # the estimate 15 mm off: a rim that then reaches past the face's edge, over the floor
+    past = off[:, 0, 3] + CUP.radius > 0.52 + 0.002
+    assert past.any() and not seen_seals(off[past], seen, CUP.radius, 0.003).any()
+    stud = np.concatenate([seen, [[0.5, 0.0, 0.046]]])  # something rises into the cup over the face's centre
+    centre = poses[:1]
+    assert not seen_seals(centre, stud, CUP.radius, 0.003)[0]
+    half = seen[seen[:, 0] < 0.5]  # nothing seen on one side of the rim: no seal confirmed
+    assert not seen_seals(centre, half, CUP.radius, 0.003)[0]
+    assert not seen_seals(centre, NOTHING, CUP.radius, 0.003)[0]
+    # in the planner: with what the camera sees, the 15 mm-off estimate keeps no grasp; without it, all of them
+    T_off = T.copy()
+    T_off[0, 3] += 0.015
+    looks = dataclasses.replace(_open(), seen=seen)
+    assert plan_suction(cube, T_off, looks, CUP, B) == [] and len(plan_suction(cube, T_off, _open(), CUP, B)) > 0
+    assert len(plan_suction(cube, T, looks, CUP, B)) == len(grasps)

@@ -212,7 +212,7 @@ class _Emptying:
                 raise EpisodeFailed(Failure.NO_SLOT)
         try:
             j, self.grasp, T_est = self.tool.choose(wc, cfg, ests, T_world_cam, heap, gripper_yaw(ep.ctl.target),
-                                                    self.failed)
+                                                    self.failed, frame=frame)
         finally:
             ep.log.stop("plan", ep.ctl, add=True)
         k = match_block(wc, T_est)

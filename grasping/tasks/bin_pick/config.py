@@ -120,6 +120,9 @@ class BinPickConfig:
     #: Suction: a spot is taken only where the cup seals slid this far (m) any way (``edge_margin``: 0, 2, 4 or
     #: 6 mm): the arm sets the cup down a millimetre or two off its target.
     suction_min_edge_margin: float = field(default=0.002, metadata=within(0.0, 0.006))
+    #: Suction: the depth image's points under the cup's rim must lie within this distance (m) of the face it is
+    #: planned on, none rising into the cup (``suction_grasps.seen_seals``; 0: the estimate's model alone decides).
+    suction_seen_tol: float = field(default=0.003, metadata=within(0.0, 0.05))
     #: Suction score: plus this per metre (1/m) of seal margin and of edge margin (how far the cup may slide off).
     suction_margin_weight: float = field(default=100.0, metadata=within(0.0, 1e4))
     #: Suction score: minus this per metre (1/m) from the part's centre of mass to the cup's axis (moment arm).

@@ -38,6 +38,7 @@ from posegrasp.sim.workcell import Workcell
 if TYPE_CHECKING:
     from posegrasp.grasping.config import TrialConfig
     from posegrasp.grasping.episode import Episode
+    from posegrasp.sim.camera import Frame
 
 
 
@@ -144,7 +145,8 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
 
 def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt, vacuum: Vacuum) -> None:
     """Pick ``plan``'s part with the suction cup (the hybrid hand's out, its fingers at the grasp's ``opening``):
-    come down above the grasp, approach along its axis, press the cup on by ``CUP_PRESS`` of its stroke, switch the
+    come down above the grasp, approach along its axis, take up the arm's offset (``ArmController.null_offset``: on a
+    25 mm face a 20 mm cup has 2.5 mm to spare), press the cup on by ``CUP_PRESS`` of its stroke, switch the
     vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal on the part's true surface), wait for the
     vacuum to build, draw a part lying near a wall off it (``CUP_BACKOFF``), lift clear of the walls with the hold
     model watching every control period ("seal lost"), and hand the part to ``dest`` (the out-box or the tray),
@@ -175,7 +177,8 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
             raise EpisodeFailed(watch.blocked())
         watch.approach = z
         ctl.hold(max(0.0, out_at - ctl.sim_time))
-        ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)  # the arm sways a few mm after its descent: still, then press
+        # the arm sways after its descent and stops a few mm off: still, the offset taken up, then press
+        T_press[:2, 3] += ctl.null_offset(T_near, CUP_SETTLE_SPEED, CUP_SETTLE_TIME)
         ctl.move(T_press, speed=CUP_PRESS_SPEED)
         if watch.floor:
             raise EpisodeFailed(Failure.COLLISION)
@@ -267,7 +270,8 @@ class Tool(Protocol):
     how it picks and drops it, what the record says of its grasp, and how it lets go after a failed pick."""
 
     def choose(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
-               heap: np.ndarray, yaw_now: float, failed: list[np.ndarray]) -> tuple[int, object, np.ndarray]: ...
+               heap: np.ndarray, yaw_now: float, failed: list[np.ndarray], frame: Frame | None = None
+               ) -> tuple[int, object, np.ndarray]: ...
 
     def pick(self, ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None: ...
 
@@ -279,8 +283,12 @@ class Tool(Protocol):
 class Fingers:
     """A fingered hand (``planner.choose_part``, ``pick_and_drop``)."""
 
-    choose = staticmethod(choose_part)
     pick = staticmethod(pick_and_drop)
+
+    @staticmethod
+    def choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
+               yaw_now: float, failed: list[np.ndarray], frame: Frame | None = None) -> tuple[int, Grasp, np.ndarray]:
+        return choose_part(wc, cfg, ests, T_world_cam, heap, yaw_now, failed)
 
     @staticmethod
     def target(k: int, block: PartType, class_ok: bool, g: Grasp) -> Target:
@@ -295,11 +303,16 @@ class Fingers:
 class Cup:
     """The suction tool (``planner.choose_cup``, ``pick_with_cup``) and its vacuum."""
 
-    choose = staticmethod(choose_cup)
-
     def __init__(self, ep: Episode):
         self.vacuum = Vacuum(ep.wc)
         self.diameter = ep.wc.cfg.suction.diameter
+
+    @staticmethod
+    def choose(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray, heap: np.ndarray,
+               yaw_now: float, failed: list[np.ndarray], frame: Frame | None = None
+               ) -> tuple[int, SuctionGrasp, np.ndarray]:
+        return choose_cup(wc, cfg, ests, T_world_cam, heap, yaw_now, failed,
+                          HeapView(wc, cfg, ests, T_world_cam, heap, frame))
 
     def pick(self, ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None:
         pick_with_cup(ep, plan, area, dest, att, self.vacuum)
@@ -325,9 +338,10 @@ class Hybrid:
         self.cup_first = cup_first
 
     def choose(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
-               heap: np.ndarray, yaw_now: float, failed: list[np.ndarray]) -> tuple[int, object, np.ndarray]:
+               heap: np.ndarray, yaw_now: float, failed: list[np.ndarray], frame: Frame | None = None
+               ) -> tuple[int, object, np.ndarray]:
         found, why = [], []
-        view = HeapView(wc, cfg, ests, T_world_cam, heap)  # one view of the heap for both planners
+        view = HeapView(wc, cfg, ests, T_world_cam, heap, frame)  # one view of the heap for both planners
         for bonus, choose in ((HYBRID_TIE, choose_cup), (0.0, choose_part)):
             if found and self.cup_first:
                 break

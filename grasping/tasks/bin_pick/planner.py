@@ -80,6 +80,13 @@ def depth_points(frame: Frame, T_world_cam: np.ndarray, stride: int) -> np.ndarr
     return transform_points(T_world_cam, np.stack([x, y, z], 1))
 
 
+def seen_points(frame: Frame, T_world_cam: np.ndarray, area: Area, b: BinPickConfig) -> np.ndarray:
+    """(N, 3) world points (m) of every ``depth_stride // 2``-th depth pixel in the area, the floor's too: what the
+    check of a suction grasp's seal on the depth image looks at (``suction_grasps.seen_seals``)."""
+    pts = depth_points(frame, T_world_cam, max(1, b.depth_stride // 2))
+    return pts[area.holds(pts, 0.002) & (pts[:, 2] < area.top + 0.2)]
+
+
 def heap_points(pts: np.ndarray, area: Area, b: BinPickConfig) -> np.ndarray:
     """The depth points ``pts`` on the heap: in the area (clear of the walls by ``wall_band``), above the floor by
     ``floor_band``, below the hand camera's look."""
@@ -129,14 +136,16 @@ def _tried_axis(T: np.ndarray, failed: list[np.ndarray], b: BinPickConfig, axis:
 
 class HeapView:
     """The heap as the planner sees it at one look: the estimates levelled (``poses``, world), their tops' heights,
-    their surface points, the tote's wall points, the camera's box and, per part, what a grasp on it must clear
-    (``around``)."""
+    their surface points, the tote's wall points, the camera's box, per part what a grasp on it must clear
+    (``around``) and, given the look's ``frame``, the depth points a suction grasp's seal is checked on (``seen``:
+    ``seen_points``; None without it)."""
 
     def __init__(self, wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam: np.ndarray,
-                 heap: np.ndarray):
+                 heap: np.ndarray, frame: Frame | None = None):
         b, g_cfg = cfg.bin_pick, cfg.grasp
         self.ests, self.b, self.heap = ests, b, heap
         self.area = area_of(wc, b)
+        self.seen = seen_points(frame, T_world_cam, self.area, b) if frame is not None else None
         self.cat = cat = catalog_by_id(wc.cfg.objects)
         self.poses = [level(cat[e.obj_id], T_world_cam @ e.T_cam_obj, cfg, self.area.floor) for e in ests]
         self.tops = [float(transform_points(T, cat[e.obj_id].vertices)[:, 2].max()) for e, T in zip(ests, self.poses)]
@@ -265,7 +274,8 @@ def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam
     and its levelled ``T_world_obj``; the best grasps of ``plan_parts`` parts, highest first, compete and the first
     the arm reaches is taken; none within ``retry_distance`` of a grasp that ``failed`` before (with its approach
     within ``retry_angle_deg``). The grasp's pose is the gripper's (the hybrid hand's cup lies ``rim_offset`` below
-    it). ``EpisodeFailed`` as ``choose_part``."""
+    it); given a ``view`` with the look's frame, only grasps whose seal its depth image confirms
+    (``suction_seen_tol``). ``EpisodeFailed`` as ``choose_part``."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
     view = view or HeapView(wc, cfg, ests, T_world_cam, heap)
     T_cup_gripper = invert(T_gripper_cup(wc.cfg)) if wc.cfg.hand == "hybrid" else np.eye(4)
@@ -274,7 +284,7 @@ def choose_cup(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_cam
         _, others, wall = view.around(j)
         grasps = [dataclasses.replace(g, T_world_gripper=g.T_world_gripper @ T_cup_gripper, opening=opening)
                   for g in plan_suction(view.part(j), view.poses[j],
-                                        CupSurroundings(others, wall, view.area.floor, yaw_now), cup, b)]
+                                        CupSurroundings(others, wall, view.area.floor, yaw_now, view.seen), cup, b)]
         grasps = [g for g in grasps if not _tried_axis(g.T_world_gripper, failed, b, 2)][:g_cfg.grasps_per_block]
         return [(g.score + g_cfg.detection_weight * ests[j].score, g) for g in grasps]
 

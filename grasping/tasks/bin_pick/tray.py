@@ -254,13 +254,7 @@ class TrayPlace:
         T_near = T_release.copy()
         T_near[2, 3] += NEAR
         ctl.move(T_near, speed=g_cfg.approach_speed, until=touches)
-        off = np.zeros(2)
-        for _ in range(2):  # the arm settles a millimetre or two off its target: move the target by what is off
-            ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)
-            if touches():
-                break
-            off += T_near[:2, 3] - ep.wc.gripper_pose()[:2, 3]
-            ctl.target[:2, 3] = T_near[:2, 3] + off
+        off = ctl.null_offset(T_near, CUP_SETTLE_SPEED, CUP_SETTLE_TIME, until=touches)
         T_down = T_release.copy()
         T_down[:2, 3] += off
         ctl.move(T_down, speed=g_cfg.approach_speed, until=touches)
