@@ -66,7 +66,8 @@ _SAME = (0.003, np.cos(np.radians(10.0)))  # a grasp this close (m) and this par
 _CHUNK = 64  # candidates per block of the clearance checks (memory)
 #: ``seen_seals``: the sectors of the rim's ring that must each show the face in the depth image.
 SEEN_SECTORS = 8
-RING = 0.6  # ... of the ring this share of the rim's radius and wider
+#: ``seen_seals``: the rim's ring reaches in to this share of the rim's radius.
+RING = 0.6
 _EPS = 1e-9  # barycentric slack: a ray through a shared edge meets both triangles
 
 
@@ -332,7 +333,7 @@ def seen_seals(T: np.ndarray, seen: np.ndarray, radius: float, tol: float, secto
     (P, 3; world, m) rather than on the estimated model? With h a point's depth below the rim's plane (along z) and
     rho its distance from the axis::
 
-        every one of ``sectors`` equal sectors of the rim's ring, 0.6 radius <= rho <= radius, holds points, and
+        every one of ``sectors`` equal sectors of the rim's ring, RING radius <= rho <= radius, holds points, and
         in each 3 in 4 of them lie within ``tol`` of the rim's plane (the face there: not past its edge, no gap)
         no point with rho <= radius has h < -tol                          (nothing rises into the cup)
 
@@ -353,8 +354,8 @@ def seen_seals(T: np.ndarray, seen: np.ndarray, radius: float, tol: float, secto
                             sectors - 1).astype(int)
         for k in np.flatnonzero(ok):
             sk, on = sector[k][ring[k]], np.abs(h[k][ring[k]]) <= tol
-            ok[k] = bool(np.all(np.bincount(sk[on], minlength=sectors) >= 0.75 * np.bincount(sk, minlength=sectors))
-                         and len(np.unique(sk)) == sectors)
+            held = np.bincount(sk, minlength=sectors)
+            ok[k] = bool(np.all(held > 0) and np.all(np.bincount(sk[on], minlength=sectors) >= 0.75 * held))
         out[a:a + _CHUNK] = ok
     return out
 
