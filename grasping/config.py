@@ -75,7 +75,7 @@ class GraspScoreConfig:
     """Weights of the grasp score that ranks a block's feasible grasps (higher is better)::
 
         score = support * s - tilt * tilt_deg - off_centre * d - turn * yaw_turn - width * w
-                + clearance * min(c, clearance_cap)
+                + clearance * min(c, clearance_cap) [- unopposed]
 
     ``s``: the share of the contact window on the two contact planes (0-0.5), ``d``: the pinch point's
     horizontal distance (m) from the block's centre, ``w``: the span (m) across the fingers, ``c``: the open
@@ -97,6 +97,10 @@ class GraspScoreConfig:
     clearance_cap: float = 0.02
     #: Score taken off a block's grasps that are not yaw-stable when some are (the tasks that hold firmly).
     unstable: float = 1.0
+    #: Score taken off a grasp whose contact faces do not oppose within twice the friction cone (a prism pinched on
+    #: its slopes slips out of one in three): a last resort, for a part with no other grasp (a prism's end caps
+    #: against a wall).
+    unopposed: float = 2.0
     #: Pinch height choice: flat-contact share less this per metre (1/m) of distance from the block centre's height.
     pinch_height: float = 5.0
 

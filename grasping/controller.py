@@ -20,7 +20,7 @@ from posegrasp.errors import SimulationError
 from posegrasp.grasping.config import ControlConfig
 from posegrasp.geometry import make_T, rotation_angle
 from posegrasp.sim.config import WorkcellConfig
-from posegrasp.sim.workcell import GRIPPER_SITE, Workcell
+from posegrasp.sim.workcell import GRIPPER_SITE, Workcell, wrap_angle
 
 _SITE = f"jaco_arm/jaco_hand/{GRIPPER_SITE}"
 #: ``wait_reached``: a hand slower than this (m/s) has stopped; where it lacks less than ``REACH_BAND`` times the
@@ -77,9 +77,10 @@ class ArmController:
         self.task = mink.FrameTask(_SITE, "site", position_cost=1.0, orientation_cost=cfg.orientation_cost,
                                    gain=cfg.frame_gain, lm_damping=1e-3)
         self.posture = mink.PostureTask(m, cost=cfg.posture_cost)
-        qp = self.q.copy()
-        qp[self.r_arm_q] = q_posture
-        self.posture.set_target(qp)
+        self.free = m.jnt_limited[[m.joint(n).id for n in robot.arm_joint_names]] == 0  # the arm's endless joints
+        self.q_posture = self.q.copy()  # the look pose's arm angles, the model's own for the rest
+        self.q_posture[self.r_arm_q] = q_posture
+        self.pose_toward(None)
         guarded = [m.geom(i).name for i in range(m.ngeom)
                    if m.geom_contype[i] and any(m.body(m.geom_bodyid[i]).name == f"jaco_arm/{b}"
                                                 for b in _GUARDED_BODIES)]
@@ -168,13 +169,25 @@ class ArmController:
         if self.monitor is not None:
             self.monitor()
 
-    def move(self, T_goal: np.ndarray, speed: float | None = None, until: Callable[[], bool] | None = None) -> bool:
+    def pose_toward(self, q: np.ndarray | None) -> None:
+        """Point the IK's posture term at the arm joint angles ``q`` (rad), or with None back at the look pose's."""
+        qp = self.q_posture.copy()
+        if q is not None:
+            qp[self.r_arm_q] = q
+        self.posture.set_target(qp)
+
+    def move(self, T_goal: np.ndarray, speed: float | None = None, until: Callable[[], bool] | None = None,
+             reposture: bool = False) -> bool:
         """Move the gripper along a straight segment from the current target to ``T_goal``.
 
         The reference follows a smooth (cubic) time law with peak speed ``speed`` (m/s, default from the
         config) and waits whenever the measured pose lags it by more than ``max_lag`` (joint speed limits),
         so the hand stays on the line. True once the pose is within tolerance, False on timeout. If
         ``until()`` becomes true first, the hand stops where the reference is and the move returns True.
+        With ``reposture``, a hand held off ``T_goal`` (a tilted goal far from the look pose, whose joint angles
+        the posture term pulls the arm toward: 7 mm off at 38 deg) gets ``settle_timeout`` more with the posture
+        term pointed at the IK's joint angles for ``T_goal`` from where the arm is, each endless joint's within half a
+        turn of where it is (``pose_toward``; the caller points it back).
         """
         c = self.cfg
         T0 = self.target
@@ -195,7 +208,16 @@ class ArmController:
                 self.target = T_ref
                 return True
         self.target = T_goal.copy()  # the controller's own: a caller's later change to T_goal does not move it
-        return self.wait_reached(T_goal, max(budget * c.dt, c.settle_timeout))
+        if self.wait_reached(T_goal, max(budget * c.dt, c.settle_timeout)):
+            return True
+        if not reposture:
+            return False
+        now = self.wc.arm_q
+        q, dp, _ = robot_workcell(self.wc.cfg).solve_gripper_ik(T_goal, now)
+        if dp >= c.pos_tol:
+            return False
+        self.pose_toward(np.where(self.free, now + wrap_angle(q - now), q))  # an endless joint not wound a turn
+        return self.wait_reached(T_goal, c.settle_timeout)
 
     def wait_reached(self, T_goal: np.ndarray, timeout: float) -> bool:
         """Keep tracking ``T_goal`` until within tolerance (True) or ``timeout`` simulated seconds (False). Where the

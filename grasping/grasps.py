@@ -246,6 +246,13 @@ def surface_points(block: PartType, n: int = 1500) -> np.ndarray:
     return np.concatenate([sample_surface(block, n, seed=0), block.vertices])
 
 
+@functools.lru_cache(maxsize=32)
+def surface_normals(block: PartType, n: int = 1500) -> np.ndarray:
+    """Outward unit normals (object frame) of ``surface_points(block, n)``: each sample's triangle's, zero at
+    the vertices appended after them (a vertex has no one normal)."""
+    return np.concatenate([_face_normals(block)[_surface_samples(block, n, 0)[1]], np.zeros_like(block.vertices)])
+
+
 def _box_distance(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Signed distance (m) of points (N, 3) to an axis-aligned box: negative inside. Per coordinate column (a
     reduction along the rows' 3 values costs numpy 4x as much; the sums are the same, in the same order)."""
@@ -292,6 +299,7 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
         order = np.argsort(tilt, kind="stable")
         C, spans, tilt = C[order], spans[order], tilt[order]
     pts = transform_points(T_world_obj, surface_points(block))
+    normals = surface_normals(block) @ T_world_obj[:3, :3].T
     centre = T_world_obj[:3, 3]
     reach = cfg.max_width / 2 + (0.0 if faces_fit(block) else _COLUMN_MARGIN)
     grasps: list[Grasp] = []
@@ -306,7 +314,8 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
             if key in seen:
                 continue
             seen.add(key)
-            g = _evaluate(x, Tc[:2, 3], float(tl), _Where(pts, centre, neighbours, cfg, yaw_now, yaw_stable, reach, hand))
+            where = _Where(pts, normals, centre, neighbours, cfg, yaw_now, yaw_stable, reach, hand)
+            g = _evaluate(x, Tc[:2, 3], float(tl), where)
             if g is not None and not abs(g.width - span) > _SPAN_TOL:  # a mesh candidate pinches its own pair
                 grasps.append(g)
     if any(g.stable for g in grasps):
@@ -316,11 +325,13 @@ def plan_grasps(block: PartType, T_world_obj: np.ndarray, neighbours: np.ndarray
 
 @dataclass(frozen=True)
 class _Where:
-    """What a grasp is checked against: the part's estimated surface points ``pts`` and centre, the neighbours'
-    points (world, m), the planner's settings, the wrist's yaw now (rad), whether the hold must be yaw-stable, the
-    reach (m) along the squeeze axis within which the span is measured (None: half the widest opening), the hand."""
+    """What a grasp is checked against: the part's estimated surface points ``pts``, their outward ``normals``
+    (zero where none) and its centre, the neighbours' points (world, m), the planner's settings, the wrist's yaw now
+    (rad), whether the hold must be yaw-stable, the reach (m) along the squeeze axis within which the span is
+    measured (None: half the widest opening), the hand."""
 
     pts: np.ndarray
+    normals: np.ndarray
     centre: np.ndarray
     neighbours: np.ndarray
     cfg: GraspConfig
@@ -360,6 +371,8 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, where: _Where) -
     if best is None:
         return None
     _, support, z_pinch, lo, hi = best
+    band = column & (h > z_pinch + CONTACT_BAND[0]) & (h < z_pinch + CONTACT_BAND[1])
+    opposed = _opposed(where.normals[band & (px < lo + ON_PLANE_TOL)], where.normals[band & (px > hi - ON_PLANE_TOL)])
     hand_y, stable = hand.hand_y, True
     if yaw_stable and hand.paired:  # the contact face's y span at the pinch height, shifted by hand_y, covers both
         on_face = np.abs(px - lo) < ON_PLANE_TOL
@@ -386,8 +399,18 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, where: _Where) -
     turn = abs(float(_wrap(np.arctan2(x[1], x[0]) - yaw_now)))
     w = cfg.score
     score = (-w.tilt * tilt - w.off_centre * off_centre + w.clearance * min(clearance, w.clearance_cap)
-             - w.turn * turn - w.width * width + w.support * support)
+             - w.turn * turn - w.width * width + w.support * support - (0.0 if opposed else w.unopposed))
     return Grasp(T, width, clearance, tilt, float(support), float(score), stable)
+
+
+def _opposed(n_lo: np.ndarray, n_hi: np.ndarray) -> bool:
+    """Do the two contact regions oppose each other: some outward normal of each (rows of ``n_lo``, ``n_hi``; zero
+    rows, vertices, count for nothing) within twice ``ANTIPODAL_CONE_DEG`` of antiparallel, so that a line between
+    the contacts lies within both friction cones? Parallel faces at any tilt and edges do; a prism's two 60 deg
+    slopes do not (each pad's edge presses a face turned 30 deg from it: the squeeze drives the prism down and out
+    of the fingers; its end caps hold), and such a grasp scores ``GraspScoreConfig.unopposed`` less."""
+    a, b = n_lo[np.any(n_lo != 0.0, axis=1)], n_hi[np.any(n_hi != 0.0, axis=1)]
+    return not len(a) or not len(b) or float((-a @ b.T).max()) >= np.cos(np.deg2rad(2.0 * ANTIPODAL_CONE_DEG))
 
 
 def _face_span(on: np.ndarray, py: np.ndarray, h: np.ndarray, z_pinch: float) -> tuple[float, float] | None:

@@ -3,6 +3,7 @@ parts (``grasping.grasps``, ``objects.examples``, docs/objects.md)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -14,6 +15,8 @@ from posegrasp.catalog import load_catalog
 from posegrasp.cli import main
 from posegrasp.geometry import axis_angle_R, make_T
 from posegrasp.grasping.config import GraspConfig, TrialConfig
+from posegrasp.grasping.hand import hand_of
+from posegrasp.sim.config import WorkcellConfig
 from posegrasp.grasping.tasks import with_set
 from posegrasp.grasping.grasps import (ANTIPODAL_CONE_DEG, antipodal_pairs, faces_fit, object_candidates,
                                        plan_grasps)
@@ -78,6 +81,34 @@ def test_mesh_candidates_where_the_box_faces_miss(parts):
     T = make_T(np.eye(3), (0.45, 0.0, 0.012))  # lying as in its file
     grasps = plan_grasps(turned, T, np.zeros((0, 3)), GraspConfig(), yaw_now=0.0)
     assert grasps and {round(g.width, 3) for g in grasps} <= {0.026, 0.04}  # true spans, not the box's
+
+
+def test_a_pinch_on_faces_that_do_not_oppose_is_a_last_resort():
+    """A prism lying on a face: a pinch on its 60 deg slopes (normals 60 deg apart) scores ``unopposed`` less than
+    without the penalty, one on its parallel end caps the same, so the caps come first. The parallel faces of a
+    tilted cube still oppose."""
+    cat, cfg, kg2 = load_catalog(), GraspConfig(), hand_of(WorkcellConfig(hand="hybrid"))
+    prism = cat["triangular_prism"]
+    T = make_T(np.eye(3), (0.3, 0.0, -float(prism.vertices[:, 2].min())))
+
+    def plan(c: GraspConfig, block=prism, T=T) -> dict:
+        grasps = plan_grasps(block, T, np.zeros((0, 3)), c, yaw_now=np.pi / 2, hand=kg2)  # the wrist along y
+        return {np.round(g.T_world_gripper, 6).tobytes(): g for g in grasps}
+
+    across_y = lambda g: abs(g.T_world_gripper[1, 0]) > 0.99  # noqa: E731
+    penalised, free = plan(cfg), plan(GraspConfig(score=dataclasses.replace(cfg.score, unopposed=0.0)))
+    assert penalised.keys() == free.keys()
+    gap = {k: free[k].score - g.score for k, g in penalised.items()}
+    slopes = [k for k, g in penalised.items() if across_y(g)]
+    caps = [k for k, g in penalised.items() if abs(g.T_world_gripper[0, 0]) > 0.99]
+    assert slopes and caps and np.allclose([penalised[k].width for k in caps], 0.05)
+    assert np.allclose([gap[k] for k in slopes], cfg.score.unopposed) and np.allclose([gap[k] for k in caps], 0.0)
+    assert abs(max(penalised.values(), key=lambda g: g.score).T_world_gripper[0, 0]) > 0.99
+    tilted = make_T(axis_angle_R(np.array([0.0, 1.0, 0.0]), np.radians(25.0)), (0.3, 0.0, 0.04))
+    cube = plan(cfg, cat["cube"], tilted)
+    assert cube and cube.keys() == plan(GraspConfig(score=dataclasses.replace(cfg.score, unopposed=0.0)),
+                                        cat["cube"], tilted).keys()
+    assert all(g.score > -cfg.score.unopposed for g in cube.values())
 
 
 @pytest.mark.slow

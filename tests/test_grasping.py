@@ -82,6 +82,25 @@ def test_null_offset_takes_up_what_the_arm_lacks_at_a_goal(arm):
     assert np.allclose(ctl.target[:2, 3], goal[:2, 3] + off) and np.linalg.norm(off) > 0.5 * before
 
 
+def test_reposture_reaches_a_tilted_goal_the_posture_term_holds_off():
+    """A goal tilted 38 deg far from the look pose: the posture term holds the hand millimetres off it (the move
+    times out); with ``reposture`` it points the posture at the goal's IK angles and gets there; ``pose_toward(None)``
+    points it back at the look pose."""
+    wc = Workcell(WorkcellConfig(hand="hybrid"))
+    goal = make_T(axis_angle_R(np.array([0.0, -1.0, 0.0]), np.radians(38.0)) @ DOWN, (0.45, 0.15, 0.16))
+    runs = []
+    for reposture in (False, True):
+        wc.reset(wc.look_q)
+        ctl = ArmController(wc, ControlConfig(), wc.look_q)
+        look = ctl.posture.target_q.copy()
+        runs.append((ctl.move(goal, reposture=reposture), ctl.pose_error(goal)[0]))
+    assert runs[0][0] is False and 0.004 < runs[0][1] < 0.01, runs  # held off, not blocked
+    assert runs[1][0] is True and runs[1][1] < 0.004, runs
+    assert not np.allclose(ctl.posture.target_q, look)
+    ctl.pose_toward(None)
+    assert np.array_equal(ctl.posture.target_q, look)
+
+
 def test_table_collision_avoidance_stops_the_fingers(arm):
     ctl = ArmController(arm, ControlConfig(), arm.look_q)
     assert ctl.move(make_T(DOWN, (0.45, 0.0, 0.06)))

@@ -105,7 +105,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
     ctl.preshape(opening)
     ctl.monitor = watch
     try:
-        if not ctl.move(T_pre):
+        if not ctl.move(T_pre, reposture=True):
             raise EpisodeFailed(Failure.TIMEOUT)
         watch.approach = T_grasp[:3, 2]
         if not ctl.move(T_grasp, speed=g_cfg.approach_speed):
@@ -115,6 +115,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
         if not ctl.close(k, wait_all=cfg.firm_hold.finger_wait if holds_firmly(cfg) else 0):
             raise EpisodeFailed(Failure.COLLISION if watch.floor else Failure.SLIP)
         ep.log.stop("pick", ctl, add=True)
+        ctl.pose_toward(None)  # the lift and the carry as ever
         start = _bottoms(ep.wc)
         T_hold = ep.wc.gripper_pose()
         bottom_est, _ = plan.height_range()
@@ -141,6 +142,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
             raise EpisodeFailed(Failure.DOUBLE_PICK)
     finally:
         ctl.monitor = None
+        ctl.pose_toward(None)
 
 
 def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt, vacuum: Vacuum) -> None:
@@ -173,7 +175,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
 
     ctl.monitor = watch
     try:
-        if not ctl.move(T_pre) or not ctl.move(T_near, speed=g_cfg.approach_speed):
+        if not ctl.move(T_pre, reposture=True) or not ctl.move(T_near, speed=g_cfg.approach_speed, reposture=True):
             raise EpisodeFailed(watch.blocked())
         watch.approach = z
         ctl.hold(max(0.0, out_at - ctl.sim_time))
@@ -186,6 +188,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
             raise EpisodeFailed(Failure.NO_SEAL)
         ctl.hold(seal_time(s))
         ep.log.stop("pick", ctl, add=True)
+        ctl.pose_toward(None)  # the lift and the carry as ever
         start = _bottoms(wc)
         T_hold = wc.gripper_pose()
         off = off_the_walls(plan.est_block or plan.block, plan.T_world_obj, area.tote, CUP_BACKOFF) \
@@ -219,6 +222,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
             raise EpisodeFailed(Failure.DOUBLE_PICK)
     finally:
         ctl.monitor = None
+        ctl.pose_toward(None)
 
 
 class Destination(Protocol):
