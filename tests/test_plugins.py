@@ -99,7 +99,7 @@ def make(args):
 
 #: What each BAD episode records as its perception error.
 BAD_WORDS = ["raised RuntimeError: model file missing", "returned dict, not a list of Estimate", "NaN",
-             "not orthonormal", "millimetres?", "obj_id 99 is not in the object set", "did not answer within 1 s",
+             "not orthonormal", "millimetres?", "obj_id 99 is not in the object set", "did not answer within 5 s",
              "is a tuple, not an Estimate", "shape (3, 4)", "score inf is not finite"]
 
 
@@ -135,7 +135,7 @@ def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, 
 @pytest.mark.slow
 def test_bad_providers_fail_their_episodes_not_the_campaign(tmp_path):
     (tmp_path / "bad.py").write_text(BAD)
-    cfg = dataclasses.replace(CFG, perception_timeout_s=1.0)
+    cfg = dataclasses.replace(CFG, perception_timeout_s=5.0)  # the hung call costs it; the rest answer in it under load
     t0 = time.perf_counter()
     summary = run_trials(tmp_path / "run", len(BAD_WORDS), 0, f"py:{tmp_path / 'bad.py'}:make", 2, cfg,
                          Display(_quiet(), False))
