@@ -98,7 +98,7 @@ class GraspScoreConfig:
     #: Score taken off a block's grasps that are not yaw-stable when some are (the tasks that hold firmly).
     unstable: float = 1.0
     #: Score taken off a grasp whose contact faces do not oppose within twice the friction cone (a prism pinched on
-    #: its slopes slips out of one in three): a last resort, for a part with no other grasp (a prism's end caps
+    #: its slopes slips out of two in five): a last resort, for a part with no other grasp (a prism's end caps
     #: against a wall).
     unopposed: float = 2.0
     #: Pinch height choice: flat-contact share less this per metre (1/m) of distance from the block centre's height.
