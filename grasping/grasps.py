@@ -367,11 +367,10 @@ def _evaluate(x: np.ndarray, entry_xy: np.ndarray, tilt: float, where: _Where) -
         support = min((px[band] < lo + ON_PLANE_TOL).sum(), (px[band] > hi - ON_PLANE_TOL).sum()) / band.sum()
         merit = support - cfg.score.pinch_height * abs(z_pinch - centre[2])  # near the centre's height: less torque
         if best is None or merit > best[0]:
-            best = (merit, support, z_pinch, lo, hi)
+            best = (merit, support, z_pinch, lo, hi, band)
     if best is None:
         return None
-    _, support, z_pinch, lo, hi = best
-    band = column & (h > z_pinch + CONTACT_BAND[0]) & (h < z_pinch + CONTACT_BAND[1])
+    _, support, z_pinch, lo, hi, band = best
     opposed = _opposed(where.normals[band & (px < lo + ON_PLANE_TOL)], where.normals[band & (px > hi - ON_PLANE_TOL)])
     hand_y, stable = hand.hand_y, True
     if yaw_stable and hand.paired:  # the contact face's y span at the pinch height, shifted by hand_y, covers both
