@@ -267,10 +267,13 @@ class ArmController:
             self.target[:2, 3] = T[:2, 3] + off
         return off
 
-    def hold(self, duration: float) -> None:
-        """Track the current target for ``duration`` simulated seconds."""
+    def hold(self, duration: float, until: Callable[[], bool] | None = None) -> None:
+        """Track the current target for ``duration`` simulated seconds, or until ``until()`` (asked after each
+        control period) is true."""
         for _ in range(int(np.ceil(duration / self.cfg.dt))):
             self._period(self.target)
+            if until is not None and until():
+                return
 
     def preshape(self, opening: float, speed: float | None = None) -> None:
         """Move the fingers to (and hold them at) the angle leaving ``opening`` (m) between the fingertips."""

@@ -354,6 +354,13 @@ class Vacuum:
             self.wc.data.eq_active[self.welds[self.part - 1]] = 0
         self.part, self.reason = 0, "vacuum off"
 
+    def touches(self, k: int) -> bool:
+        """Does the cup touch part ``k`` (1-based; contacts of the last physics step)?"""
+        d = self.wc.data
+        g = d.contact.geom[:d.ncon]
+        body = self.wc.model.geom_bodyid[g[:, ::-1]] == self.wc.block_body[k - 1]
+        return bool(np.any(np.isin(g, self.cup_geoms) & body))
+
     def load(self) -> tuple[np.ndarray, np.ndarray]:
         """The cup's force (N) and torque (N m, about the rim centre) on the held part in the cup frame, from the
         last physics step: its weld's constraint force and its contacts with the cup (zero holding nothing)."""

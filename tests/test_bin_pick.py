@@ -412,6 +412,8 @@ def test_bad_bin_pick_input_is_one_line_and_writes_nothing(capsys, tmp_path, arg
     ("[bin_pick]\npart_clearance = [0.0, 0.5]\n", [], "bin_pick.part_clearance = (0.0, 0.5) is out of range"),
     ("[bin_pick]\nwall_tilts_deg = [60.0]\n", [], "bin_pick.wall_tilts_deg must be angles"),
     ("[scene.workcell]\nhand = \"kg3\"\n", [], "scene.workcell.hand 'kg3' is not a hand"),
+    ("[bin_pick]\noutbox_offset = [0.0, 0.2]\n", [], "puts the out-box on the bin's area (overlap 30.0 mm)"),
+    ("[bin_pick]\noutbox_offset = [0.0, 0.24]\n", ["--scene", "pile"], "on the pile's area (overlap 30.0 mm)"),
 ])
 def test_parts_too_big_for_the_hand_too_many_for_the_tote_or_bad_clearances_are_refused(capsys, tmp_path, toml, args,
                                                                                       message):

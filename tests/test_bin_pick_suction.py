@@ -35,9 +35,19 @@ def test_a_cube_flat_in_a_corner_is_picked_by_the_cup():
     lo, hi = _inner_bounds()
     half = 0.5 * float(np.ptp(CAT["cube"].vertices[:, :2], 0).max())
     ep, ests, T_world_cam = _alone("cube", hi[:2] - half - 0.003, "suction")  # 3 mm from the +x and the +y wall
+    holds, hold = [], ep.ctl.hold
+
+    def timed(duration, until=None):
+        t0 = ep.ctl.sim_time
+        hold(duration, until)
+        holds.append((until is not None, ep.ctl.sim_time - t0))
+
+    ep.ctl.hold = timed
     att = _cup_pick(ep, ests, T_world_cam)
     assert att.grasped and att.failure is None
     assert ep.wc.block_poses()[0][2, 3] < 0.1  # let go over the out-box: it fell
+    (waited,) = [t for until, t in holds if until]
+    assert waited < 0.5 * ep.cfg.grasp.release_time, holds  # once it has left the cup, not the full release time
 
 
 def test_a_studs_up_brick_gives_the_cup_nothing_to_seal_on():

@@ -152,7 +152,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
     vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal on the part's true surface), wait for the
     vacuum to build, draw a part lying near a wall off it (``CUP_BACKOFF``), lift clear of the walls with the hold
     model watching every control period ("seal lost"), and hand the part to ``dest`` (the out-box or the tray),
-    which has the vacuum switched off; marks ``att.grasped``; "two parts lifted" after the drop when another part
+    which has the vacuum switched off (over the out-box the arm goes on once the part has left the cup); marks ``att.grasped``; "two parts lifted" after the drop when another part
     came up with it."""
     ctl, cfg, k, wc = ep.ctl, ep.cfg, plan.k, ep.wc
     g_cfg, b, s = cfg.grasp, cfg.bin_pick, wc.cfg.suction
@@ -215,7 +215,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
             vacuum.off()
             if wc.cfg.hand == "hybrid":
                 extend(wc, False)  # in again while the part falls and the arm goes back to the look
-            ctl.hold(g_cfg.release_time)
+            ctl.hold(g_cfg.release_time, None if dest.keeps_pose else _left(vacuum, k))
 
         dest.deliver(plan, T_lift, T_hold, let_go)
         if bool(np.any(rose > b.double_rise)):
@@ -380,6 +380,19 @@ def tool_of(ep: Episode, dest: Destination) -> Tool:
     """The tool of the episode's workcell (``WorkcellConfig.hand``) for the destination ``dest``."""
     hand = ep.wc.cfg.hand
     return Cup(ep) if hand == "suction" else Hybrid(ep, dest.keeps_pose) if hand == "hybrid" else Fingers()
+
+
+def _left(vacuum: Vacuum, k: int, periods: int = 2) -> Callable[[], bool]:
+    """``until`` of the hold after the vacuum lets go of part ``k`` over the out-box: true once the part has not
+    touched the cup for ``periods`` control periods in a row (it falls free; a cell's vacuum sensor says so)."""
+    free = 0
+
+    def left() -> bool:
+        nonlocal free
+        free = 0 if vacuum.touches(k) else free + 1
+        return free >= periods
+
+    return left
 
 
 def _stopped_near(T: np.ndarray, T_grasp: np.ndarray, b: BinPickConfig) -> bool:

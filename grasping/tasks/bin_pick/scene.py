@@ -1,5 +1,5 @@
 """Bin picking's scene: a settled heap of parts in the tote (``bin``) or on the table (``pile``) with the out-box
-on the place area, and the heap's area as the planner and the verdicts see it (``Area``, ``wall_points``)."""
+beside it, and the heap's area as the planner and the verdicts see it (``Area``, ``wall_points``)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import numpy as np
 from dm_control import mjcf
 
 from posegrasp.catalog import PartType, catalog_by_id
+from posegrasp.errors import ConfigError
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.sim.clutter import build_clutter_scene, clutter_workcell, tote_of
 from posegrasp.sim.config import WorkcellConfig
@@ -27,8 +28,20 @@ OUTBOX = "outbox"
 
 
 def outbox_of(workcell: WorkcellConfig, cfg: BinPickConfig) -> Tote:
-    """The out-box of ``cfg``, centred on the workcell's place area."""
-    return Tote(cfg.outbox, tuple(float(c) for c in workcell.place_area.center))
+    """The out-box of ``cfg``, its centre ``outbox_offset`` from the heap's (the workcell's pick area)."""
+    return Tote(cfg.outbox, tuple(float(c) for c in np.add(workcell.pick_area.center, cfg.outbox_offset)))
+
+
+def check_outbox(workcell: WorkcellConfig, cfg: BinPickConfig) -> None:
+    """A one-line ConfigError where the out-box, walls included, overlaps the heap's area: the tote with its walls,
+    or a pile's footprint grown by ``pile_margin``."""
+    heap, box = tote_of(workcell, cfg.clutter), outbox_of(workcell, cfg)
+    grow = heap.cfg.thickness if cfg.scene == "bin" else cfg.clutter.pile_margin
+    (a, b), (c, d) = heap.inner_bounds(), box.inner_bounds()
+    gap = np.maximum(c[:2] - box.cfg.thickness - b[:2] - grow, a[:2] - grow - d[:2] - box.cfg.thickness)
+    if np.all(gap < -1e-9):  # touching is no overlap
+        raise ConfigError(f"bin_pick.outbox_offset = {list(cfg.outbox_offset)} m puts the out-box on the "
+                          f"{cfg.scene}'s area (overlap {1000 * -float(gap.max()):.1f} mm): move it farther away")
 
 
 def tray_of(workcell: WorkcellConfig, cfg: BinPickConfig) -> Tray:

@@ -15,7 +15,7 @@ from posegrasp.grasping.tasks.base import Graspable, Task, task_types
 from posegrasp.grasping.tasks.bin_pick import metrics
 from posegrasp.grasping.tasks.bin_pick.config import BIN_PICK, HELD_LOOK
 from posegrasp.grasping.tasks.bin_pick.record import BinPickRecord
-from posegrasp.grasping.tasks.bin_pick.scene import bin_scene
+from posegrasp.grasping.tasks.bin_pick.scene import bin_scene, check_outbox, tray_of
 from posegrasp.sim.clutter import CLUTTER_KINDS, ClutterConfig, check_clutter
 from posegrasp.sim.workcell import Workcell
 
@@ -55,8 +55,8 @@ class BinPickTask(Task):
 
     def check(self, cfg: TrialConfig) -> None:
         """A one-line UserError for a scene that is no heap, a part count the tote cannot hold, a part too big
-        for the hand, a tote the hand cannot reach or a hybrid hand whose fingers cannot keep ``cup_room`` from
-        its cup."""
+        for the hand, a tote the hand cannot reach, a hybrid hand whose fingers cannot keep ``cup_room`` from
+        its cup, a tray it cannot use or an out-box on the heap."""
         b = cfg.bin_pick
         if b.scene not in CLUTTER_KINDS:
             raise ConfigError(f"task bin-pick needs scene bin or pile, not {b.scene!r} (--scene, bin_pick.scene)")
@@ -74,10 +74,11 @@ class BinPickTask(Task):
 
             cup_opening(cfg.scene.workcell)
         if b.place == "tray":
-            from posegrasp.grasping.tasks.bin_pick.scene import tray_of
             from posegrasp.grasping.tasks.bin_pick.tray import check_tray
 
             check_tray(cfg, tray_of(cfg.scene.workcell, b))
+        else:
+            check_outbox(cfg.scene.workcell, b)
 
     def scene(self, cfg: TrialConfig, seed: int, n_blocks: int, graspable: Graspable) -> Workcell:
         return bin_scene(cfg, seed, n_blocks)
