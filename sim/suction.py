@@ -354,12 +354,15 @@ class Vacuum:
             self.wc.data.eq_active[self.welds[self.part - 1]] = 0
         self.part, self.reason = 0, "vacuum off"
 
-    def touches(self, k: int) -> bool:
-        """Does the cup touch part ``k`` (1-based; contacts of the last physics step)?"""
+    def _on_cup(self, k: int) -> np.ndarray:
+        """(ncon, 2) bool, per contact of the last physics step and side: a cup geom against part ``k`` (1-based)."""
         d = self.wc.data
         g = d.contact.geom[:d.ncon]
-        body = self.wc.model.geom_bodyid[g[:, ::-1]] == self.wc.block_body[k - 1]
-        return bool(np.any(np.isin(g, self.cup_geoms) & body))
+        return np.isin(g, self.cup_geoms) & (self.wc.model.geom_bodyid[g[:, ::-1]] == self.wc.block_body[k - 1])
+
+    def touches(self, k: int) -> bool:
+        """Does the cup touch part ``k`` (1-based; contacts of the last physics step)?"""
+        return bool(self._on_cup(k).any())
 
     def load(self) -> tuple[np.ndarray, np.ndarray]:
         """The cup's force (N) and torque (N m, about the rim centre) on the held part in the cup frame, from the
@@ -370,9 +373,7 @@ class Vacuum:
         body, n = self.wc.block_body[k - 1], d.nefc
         rows = (d.efc_type[:n] == mujoco.mjtConstraint.mjCNSTR_EQUALITY) & (d.efc_id[:n] == self.welds[k - 1])
         if d.ncon:
-            g = d.contact.geom[:d.ncon]
-            on_cup = np.isin(g, self.cup_geoms) & (m.geom_bodyid[g[:, ::-1]] == body)
-            pair = np.flatnonzero(on_cup.any(axis=1))
+            pair = np.flatnonzero(self._on_cup(k).any(axis=1))
             rows |= np.isin(d.efc_type[:n], _CONTACT_ROWS) & np.isin(d.efc_id[:n], pair)
         qfrc = np.zeros(m.nv)
         mujoco.mj_mulJacTVec(m, d, qfrc, np.where(rows, d.efc_force[:n], 0.0))

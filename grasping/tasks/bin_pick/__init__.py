@@ -10,10 +10,10 @@ part (that look is no attempt), after ``max_failures`` failed attempts in a row,
 record (``record.BinPickRecord``) says how many parts went into the out-box.
 
 Its scene: ``sim.clutter``'s heap of parts (``ClutterConfig.parts``, drawn per episode) settled in the tote or on
-the table, and the out-box (a tote of its own, ``outbox``) beside it (``outbox_offset``). Its summary (``metrics``): percent
-cleared per episode (mean, t 95 % interval), attempt success (Wilson 95 %), grasp success (the attempts that went
-for a part: VGN's grasp success rate, where a look that finds no grasp is no grasp), picks per simulated hour, attempt
-failures by reason, success by part type and by the target's visible fraction.
+the table, and the out-box (a tote of its own, ``outbox``) beside it (``outbox_offset``). Its summary
+(``metrics``): percent cleared per episode (mean, t 95 % interval), attempt success (Wilson 95 %), grasp success
+(the attempts that went for a part: VGN's grasp success rate, where a look that finds no grasp is no grasp), picks
+per simulated hour, attempt failures by reason, success by part type and by the target's visible fraction.
 
 The package: ``config.py`` its settings, ``scene.py`` the heap, the tote and the out-box, ``planner.py`` the part
 choice and the grasp's fit between walls and neighbours, ``attempt.py`` the attempt loop and its verdicts,

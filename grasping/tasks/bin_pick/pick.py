@@ -152,8 +152,8 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
     vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal on the part's true surface), wait for the
     vacuum to build, draw a part lying near a wall off it (``CUP_BACKOFF``), lift clear of the walls with the hold
     model watching every control period ("seal lost"), and hand the part to ``dest`` (the out-box or the tray),
-    which has the vacuum switched off (over the out-box the arm goes on once the part has left the cup); marks ``att.grasped``; "two parts lifted" after the drop when another part
-    came up with it."""
+    which has the vacuum switched off (over the out-box the arm goes on once the part has left the cup); marks
+    ``att.grasped``; "two parts lifted" after the drop when another part came up with it."""
     ctl, cfg, k, wc = ep.ctl, ep.cfg, plan.k, ep.wc
     g_cfg, b, s = cfg.grasp, cfg.bin_pick, wc.cfg.suction
     watch = _watch(ep, area, k)
