@@ -346,16 +346,28 @@ class ArmController:
         often bear on a low block's top edges, slide off instead of dragging the block along."""
         self.preshape(opening, self.cfg.release_speed)
         T0, n = self.target, int(np.ceil(timeout / self.cfg.dt))
-        free = 0
+        free = for_periods(lambda: not self.finger_contacts(k).any())
         for i in range(n):
             T = T0.copy()
             T[:3, 3] += min(1.0, 2 * (i + 1) / n) * push * T0[:3, 2]
             self.target = T
             self._period(T)
-            free = free + 1 if not self.finger_contacts(k).any() else 0
-            if free >= 2:
+            if free():
                 return True
         return False
+
+
+def for_periods(cond: Callable[[], bool], periods: int = 2) -> Callable[[], bool]:
+    """A check asked once per control period: true once ``cond()`` has held ``periods`` periods in a row (a part
+    off the fingers or the cup for that long has let go of them)."""
+    run = 0
+
+    def check() -> bool:
+        nonlocal run
+        run = run + 1 if cond() else 0
+        return run >= periods
+
+    return check
 
 
 @functools.lru_cache(maxsize=4)

@@ -17,6 +17,7 @@ import numpy as np
 from posegrasp.catalog import PartType
 from posegrasp.geometry import axis_angle_R, transform_points
 from posegrasp.grasping.config import holds_firmly
+from posegrasp.grasping.controller import for_periods
 from posegrasp.grasping.grasps import Grasp
 from posegrasp.grasping.perception import Estimate
 from posegrasp.grasping.record import Failure, Target
@@ -215,7 +216,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
             vacuum.off()
             if wc.cfg.hand == "hybrid":
                 extend(wc, False)  # in again while the part falls and the arm goes back to the look
-            ctl.hold(g_cfg.release_time, None if dest.keeps_pose else _left(vacuum, k))
+            ctl.hold(g_cfg.release_time, None if dest.keeps_pose else for_periods(lambda: not vacuum.touches(k)))
 
         dest.deliver(plan, T_lift, T_hold, let_go)
         if bool(np.any(rose > b.double_rise)):
@@ -380,19 +381,6 @@ def tool_of(ep: Episode, dest: Destination) -> Tool:
     """The tool of the episode's workcell (``WorkcellConfig.hand``) for the destination ``dest``."""
     hand = ep.wc.cfg.hand
     return Cup(ep) if hand == "suction" else Hybrid(ep, dest.keeps_pose) if hand == "hybrid" else Fingers()
-
-
-def _left(vacuum: Vacuum, k: int, periods: int = 2) -> Callable[[], bool]:
-    """``until`` of the hold after the vacuum lets go of part ``k`` over the out-box: true once the part has not
-    touched the cup for ``periods`` control periods in a row (it falls free; a cell's vacuum sensor says so)."""
-    free = 0
-
-    def left() -> bool:
-        nonlocal free
-        free = 0 if vacuum.touches(k) else free + 1
-        return free >= periods
-
-    return left
 
 
 def _stopped_near(T: np.ndarray, T_grasp: np.ndarray, b: BinPickConfig) -> bool:
