@@ -29,7 +29,7 @@ from posegrasp.io import write_json
 from posegrasp.outputs import mark_json
 from posegrasp.sim.camera import CameraRenderer
 from posegrasp.sim.config import WorkcellConfig
-from posegrasp.sim.workcell import HAND_CAMERA, Workcell, build_mjcf, compile_mjcf
+from posegrasp.sim.workcell import HAND_CAMERA, Workcell, build_mjcf, compile_workcell
 
 
 @settings
@@ -94,7 +94,7 @@ class BoardWorkcell(Workcell):
         body = root.worldbody.add("body", name="charuco_board", pos=(*board.center, 0.0005))
         body.add("geom", name="charuco_board", type="box", size=(bw / 2, bh / 2, 0.0005), material=mat,
                  contype=0, conaffinity=0)
-        self.mjcf_root, self.model = root, compile_mjcf(root)
+        self.mjcf_root, self.model = root, compile_workcell(root, cfg, 0)
         self.data = mujoco.MjData(self.model)
         self.reset()
         self.board = board

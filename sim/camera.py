@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from posegrasp.geometry import axis_angle_R, invert
+from posegrasp.geometry import R_to_quat, axis_angle_R, invert
 from posegrasp import gl
 from posegrasp.sim.config import CameraConfig, RenderConfig
 
@@ -109,3 +109,13 @@ class CameraRenderer:
         obj_ids = np.array([b.block.obj_id for b in self.wc.blocks], dtype=int)
         rgb, depth = (self.rgb(), self.depth()) if images else (None, None)
         return Frame(rgb, depth, self.mask(), self.K.copy(), T_world_cam, T_cam_obj, obj_ids)
+
+
+def add_mjcf_camera(parent, name: str, T_parent_cv: np.ndarray, cam: CameraConfig) -> None:
+    """Add to the MJCF body ``parent`` a MuJoCo camera ``name`` (and a site at it, for IK) whose OpenCV frame sits at
+    ``T_parent_cv`` (m), with ``cam``'s field of view and resolution."""
+    T_parent_mj = T_parent_cv @ T_CV_MJ
+    quat = R_to_quat(T_parent_mj[:3, :3])
+    parent.add("camera", name=name, pos=T_parent_mj[:3, 3], quat=quat, fovy=cam.fovy_deg,
+               resolution=(cam.width, cam.height))
+    parent.add("site", name=name, pos=T_parent_mj[:3, 3], quat=quat, size=(0.005,), group=4)

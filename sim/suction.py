@@ -57,7 +57,7 @@ BELLOWS_STIFFNESS, BELLOWS_DAMPING, CUP_MASS, STEM_MASS = 300.0, 5.0, 0.015, 0.0
 #: Volume (m^3) of the hose and valve the pump evacuates with the cup (40 cm of 4 mm hose).
 HOSE_VOLUME = 5e-6
 #: The welds' constraint softness (MuJoCo ``solref``, ``solimp``).
-WELD_SOLREF, WELD_SOLIMP = (0.02, 1.0), (0.9, 0.95, 0.001)
+WELD_SOLREF, WELD_SOLIMP = (0.02, 1.0), (0.9, 0.95, 0.001, 0.5, 2.0)
 GRAVITY = np.array([0.0, 0.0, -9.81])
 _RUBBER, _STEEL = (0.12, 0.13, 0.16, 1.0), (0.62, 0.63, 0.66, 1.0)
 _HAND_CONTACT = dict(contype=3, conaffinity=2)  # as the Jaco hand's geoms: touch the parts, table and tote
@@ -145,10 +145,12 @@ def add_cup(parent: mjcf.Element, T_parent_rim: np.ndarray, stem: ToolCylinder, 
     return body
 
 
-def add_welds(root: mjcf.RootElement, cup: mjcf.Element, n_parts: int) -> None:
-    """One weld per part ``block_k`` (k = 1..n_parts) to the cup's body, switched off until a seal."""
+def add_welds(spec: mujoco.MjSpec, cup: str, n_parts: int) -> None:
+    """One weld per part ``block_k`` (k = 1..n_parts) to the cup's body (its name ``cup``), switched off until a
+    seal; the relative pose is taken at compile time (a zero quaternion in the weld's data), as MJCF's default."""
     for k in range(1, n_parts + 1):
-        root.equality.add("weld", name=weld_name(k), body1=cup, body2=f"block_{k}", active="false",
+        spec.add_equality(type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY, name=weld_name(k),
+                          name1=cup, name2=f"block_{k}", active=False, data=[0.0] * 10 + [1.0, 0.0],
                           solref=WELD_SOLREF, solimp=WELD_SOLIMP)
 
 

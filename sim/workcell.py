@@ -1,8 +1,10 @@
-"""The MuJoCo workcell: table, Jaco2 arm with its hand (``HANDS``), a hand camera, pick and place areas, blocks.
+"""The MuJoCo workcell: table, Jaco2 arm with its hand (``sim.robot``), a hand camera, pick and place areas, blocks.
 
-The model is composed with ``dm_control.mjcf`` from dm-control's ``JacoArm`` and ``JacoHand`` entities
-(which add the arm's velocity actuators) and compiled with ``mujoco.MjModel`` directly: dm-control's own
-``mjcf.Physics`` bindings do not load under MuJoCo 4. World frame: the arm base on the table top, z up.
+The world (table, lights, cameras, blocks and a scene's extras: a tote, textures) is composed with
+``dm_control.mjcf`` (``build_mjcf``); the robot (``sim.robot``) is composed the same way once per process and kept
+as a parsed ``mujoco.MjSpec``, attached to each world at compile time (``compile_workcell``): the same model as one
+MJCF of both. dm-control's own ``mjcf.Physics`` bindings do not load under MuJoCo 4. World frame: the arm base on
+the table top, z up.
 """
 
 from __future__ import annotations
@@ -14,22 +16,19 @@ from typing import Callable, Sequence
 import mujoco
 import numpy as np
 from dm_control import mjcf
-from dm_control.entities.manipulators.kinova import JacoArm, JacoHand
 
 from posegrasp.catalog import PartType
 from posegrasp.errors import ConfigError
-from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T, quat_to_R
-from posegrasp.sim.camera import T_CV_MJ, rpy_deg_to_R
-from posegrasp.sim.config import HANDS, WorkcellConfig
-from posegrasp.sim.hybrid import add_slide
+from posegrasp.geometry import R_to_quat, invert, look_at_R, make_T
+from posegrasp.sim.camera import T_CV_MJ, add_mjcf_camera
+from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.ik import ArmIK
-from posegrasp.sim.suction import add_tool, add_welds
+from posegrasp.sim.robot import GRIPPER_SITE, HAND_CAMERA, ROBOT_MOUNT, ROBOT_PREFIX, robot_spec
+from posegrasp.sim.suction import add_welds
 
 ARM_JOINTS = tuple(f"joint_{i}" for i in range(1, 7))
 FINGER_JOINTS = ("finger_1", "finger_2", "finger_3")
-HAND_CAMERA = "hand_camera"
 OVERVIEW_CAMERA = "overview"
-GRIPPER_SITE = "pinchsite"
 
 #: Contact groups: blocks, table and pad collide with everything; visual meshes with nothing.
 _COLLIDE = dict(contype=1, conaffinity=1)
@@ -46,11 +45,16 @@ class BlockInstance:
     rgba: tuple[float, float, float, float]
 
 
-def _element_T(elem) -> np.ndarray:
-    """Pose of an MJCF element in its parent body from its ``pos`` and ``quat`` (identity when unset)."""
-    pos = np.zeros(3) if elem.pos is None else np.asarray(elem.pos, dtype=float)
-    quat = np.array([1.0, 0, 0, 0]) if elem.quat is None else np.asarray(elem.quat, dtype=float)
-    return make_T(quat_to_R(quat), pos)
+def mesh_file(vertices: np.ndarray, faces: np.ndarray | None = None,
+              texcoord: np.ndarray | None = None) -> mjcf.Asset:
+    """A mesh as MuJoCo's binary ``.msh`` file in memory: vertices (N, 3) m, faces (F, 3) vertex indices (none: the
+    convex hull of the vertices), texture coordinates (N, 2). MuJoCo reads the same float32 values as from the XML
+    attributes, without the text a model of many vertices takes to write and parse."""
+    v = np.asarray(vertices, np.float32).reshape(-1, 3)
+    f = np.zeros((0, 3), np.int32) if faces is None else np.asarray(faces, np.int32).reshape(-1, 3)
+    uv = np.zeros((0, 2), np.float32) if texcoord is None else np.asarray(texcoord, np.float32).reshape(-1, 2)
+    head = np.array([len(v), 0, len(uv), len(f)], np.int32)
+    return mjcf.Asset(head.tobytes() + v.tobytes() + uv.tobytes() + f.tobytes(), ".msh")
 
 
 def _add_surface(root: mjcf.RootElement, body, k: int, surface) -> None:
@@ -58,8 +62,8 @@ def _add_surface(root: mjcf.RootElement, body, k: int, surface) -> None:
     tex = root.asset.add("texture", name=f"block_{k}_texture", type="2d", file=mjcf.Asset(surface.png(), ".png"))
     mat = root.asset.add("material", name=f"block_{k}_material", texture=tex, rgba=(1.0, 1.0, 1.0, 1.0))
     uv = np.column_stack([surface.uv[:, 0], 1.0 - surface.uv[:, 1]])  # MuJoCo's v runs down the image
-    mesh = root.asset.add("mesh", name=f"block_{k}_surface", vertex=surface.vertices.ravel(),
-                          face=surface.faces.ravel(), texcoord=uv.ravel(), inertia="shell")
+    mesh = root.asset.add("mesh", name=f"block_{k}_surface", file=mesh_file(surface.vertices, surface.faces, uv),
+                          inertia="shell")
     body.add("geom", name=f"block_{k}_visual", type="mesh", mesh=mesh, material=mat, mass=0, **_VISUAL)
 
 
@@ -108,7 +112,7 @@ def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance, timestep: fl
     those of a thin part with stiffer, harder contacts (``contact_timeconst``, ``FINGER_SOLIMP``) that rule its
     contacts with the table and the hand (``solmix``)."""
     b = inst.block
-    mesh = root.asset.add("mesh", name=f"block_{k}_mesh", vertex=b.vertices.ravel(), face=b.faces.ravel())
+    mesh = root.asset.add("mesh", name=f"block_{k}_mesh", file=mesh_file(b.vertices, b.faces))
     # parked apart, off the table, until placed: blocks compiled on top of each other and the arm overflow
     # the constraint solver's memory at the first forward pass (a scene of large hulls needed 1470 contacts)
     body = root.worldbody.add("body", name=f"block_{k}", pos=(0.0, PARKING_Y + PARKING_GAP * k, 0.5))
@@ -126,23 +130,15 @@ def _add_block(root: mjcf.RootElement, k: int, inst: BlockInstance, timestep: fl
                   friction=(0.9, 0.01, 0.002), condim=6, pos=prim.get("pos", (0, 0, 0)),
                   quat=prim.get("quat", (1, 0, 0, 0)), **_COLLIDE, **stiff)
         if prim["type"] == "mesh":
-            hull = root.asset.add("mesh", name=f"block_{k}_hull{j}", vertex=np.ravel(prim["vertices"]))
+            hull = root.asset.add("mesh", name=f"block_{k}_hull{j}", file=mesh_file(prim["vertices"]))
             body.add("geom", type="mesh", mesh=hull, **kw)
         else:
             body.add("geom", type=prim["type"], size=prim["size"], **kw)
 
 
-def _add_camera(parent, name: str, T_parent_cv: np.ndarray, cam) -> None:
-    """A MuJoCo camera (and a site at it, for IK) whose OpenCV frame sits at ``T_parent_cv``."""
-    T_parent_mj = T_parent_cv @ T_CV_MJ
-    quat = R_to_quat(T_parent_mj[:3, :3])
-    parent.add("camera", name=name, pos=T_parent_mj[:3, 3], quat=quat, fovy=cam.fovy_deg,
-               resolution=(cam.width, cam.height))
-    parent.add("site", name=name, pos=T_parent_mj[:3, 3], quat=quat, size=(0.005,), group=4)
-
-
 def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjcf.RootElement:
-    """Compose the workcell model: table, pad, lights, overview camera, the arm with hand and camera, blocks."""
+    """Compose the workcell's world: table, pad, lights, overview camera, blocks, and the body ``ROBOT_MOUNT`` where
+    ``compile_workcell`` attaches the robot (``robot_mjcf``). Extras (a tote, textures) go on this root."""
     root = mjcf.RootElement(model="posegrasp_workcell")
     root.option.timestep = cfg.timestep
     root.compiler.angle = "radian"
@@ -168,34 +164,28 @@ def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjc
     wb.add("light", name="fill", pos=(-0.2, 0.6, 1.2), dir=(0.4, -0.4, -1), diffuse=(0.3, 0.3, 0.3),
            castshadow=False)
     T_world_over = make_T(look_at_R(np.subtract(cfg.overview_target, cfg.overview_pos)), cfg.overview_pos)
-    _add_camera(wb, OVERVIEW_CAMERA, T_world_over, cfg.overview_camera)
-
-    arm, hand = JacoArm(), JacoHand()
-    hand_body = hand.mjcf_model.find("body", "hand")
-    T_hand_gripper = _element_T(hand.mjcf_model.find("site", GRIPPER_SITE))
-    c = cfg.hand_camera
-    T_gripper_cam = make_T(rpy_deg_to_R(c.mount_rpy_deg), c.mount_pos)
-    _add_camera(hand_body, HAND_CAMERA, T_hand_gripper @ T_gripper_cam, c)
-    T_hand_cam = T_hand_gripper @ T_gripper_cam
-    hand_body.add("geom", name="camera_housing", type="box", size=(0.02, 0.011, 0.012),
-                  pos=T_hand_cam[:3, 3] - 0.014 * T_hand_cam[:3, 2], quat=R_to_quat(T_hand_cam[:3, :3]),
-                  rgba=(0.12, 0.12, 0.14, 1), mass=0.05, contype=2, conaffinity=0, group=1)
-    if cfg.hand not in HANDS:
-        raise ConfigError(f"workcell hand {cfg.hand!r} is not a hand; choose one of: {', '.join(HANDS)}")
-    cup = None
-    if cfg.hand in ("2-finger", "hybrid"):
-        _two_fingers(hand.mjcf_model, T_hand_gripper)
-    if cfg.hand == "hybrid":
-        cup = add_slide(hand.mjcf_model, T_hand_gripper, cfg)
-    elif cfg.hand == "suction":
-        cup = add_tool(hand.mjcf_model, T_hand_gripper, cfg.suction)
-    arm.attach(hand)
-    root.attach(arm.mjcf_model)
+    add_mjcf_camera(wb, OVERVIEW_CAMERA, T_world_over, cfg.overview_camera)
+    wb.add("body", name=ROBOT_MOUNT)
     for k, inst in enumerate(blocks, start=1):
         _add_block(root, k, inst, cfg.timestep)
-    if cup is not None:
-        add_welds(root, cup, len(blocks))
     return root
+
+
+def compile_workcell(root: mjcf.RootElement, cfg: WorkcellConfig, n_parts: int) -> mujoco.MjModel:
+    """Compile the world ``root`` (``build_mjcf``, with its extras) with the robot of ``cfg`` attached at
+    ``ROBOT_MOUNT`` and, with a cup, a weld per part (``suction.add_welds``). The robot is composed and parsed once
+    per process (``sim.robot.robot_spec``) and its spec copied: the same model as one MJCF of both, in a fraction of the
+    time dm-control takes to build and write the arm."""
+    robot, robot_assets, cup = robot_spec(cfg)
+    assets = root.get_assets()
+    spec = mujoco.MjSpec.from_string(root.to_xml_string(), assets)
+    spec.assets, child = {**assets, **robot_assets}, robot.copy()
+    child.assets = robot_assets
+    spec.option.disableflags |= robot.option.disableflags  # dm-control's arm turns native convex collision off
+    spec.attach(child, frame=spec.body(ROBOT_MOUNT).add_frame(), prefix=ROBOT_PREFIX)
+    if cup is not None:
+        add_welds(spec, cup, n_parts)
+    return spec.compile()
 
 
 def finger_joints(hand: str) -> tuple[str, ...]:
@@ -203,35 +193,6 @@ def finger_joints(hand: str) -> tuple[str, ...]:
     if hand == "suction":
         return ()
     return FINGER_JOINTS if hand == "3-finger" else ("finger_1", "finger_3")
-
-
-def _two_fingers(hand: mjcf.RootElement, T_hand_gripper: np.ndarray) -> None:
-    """Make dm-control's 3-finger hand the 2-finger one: finger 2 (its body, actuator and contact exclusion) goes;
-    finger 1 turns about its knuckle until its hinge axis is the gripper's -y (unsplayed: the 3-finger hand's hinges
-    lean 11-12 deg off the y axis) and moves onto the gripper's xz plane, and finger 3 becomes its copy turned half
-    a turn about the gripper z axis through the pinch point: two 23 mm wide fingers facing each other across the
-    squeeze axis x, centred on the pinch point."""
-    f2 = hand.find("body", "b_finger_2")
-    for ex in hand.contact.exclude:
-        if ex.body2 is f2:
-            ex.remove()
-    hand.find("actuator", "finger_2").remove()
-    f2.remove()
-    f1, f3 = hand.find("body", "b_finger_1"), hand.find("body", "b_finger_3")
-    G = invert(T_hand_gripper) @ _element_T(f1)  # finger 1 in the gripper frame; its hinge axis is its z
-    v, c = np.cross(G[:3, 2], (0.0, -1.0, 0.0)), -float(G[1, 2])  # the least turn taking the hinge onto -y:
-    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])  # I + [v]x + [v]x^2 / (1 + c)
-    G[:3, :3] = (np.eye(3) + K + K @ K / (1.0 + c)) @ G[:3, :3]
-    G[1, 3] = 0.0
-    T1 = T_hand_gripper @ G
-    half_turn = T_hand_gripper @ make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3)) @ invert(T_hand_gripper)
-    for body, T in ((f1, T1), (f3, half_turn @ T1)):
-        body.pos, body.quat = T[:3, 3], R_to_quat(T[:3, :3])
-
-
-def compile_mjcf(root: mjcf.RootElement) -> mujoco.MjModel:
-    """Compile a composed MJCF root to an ``MjModel`` (assets passed in memory)."""
-    return mujoco.MjModel.from_xml_string(root.to_xml_string(), assets=root.get_assets())
 
 
 class Workcell:
@@ -248,7 +209,7 @@ class Workcell:
         self.mjcf_root = build_mjcf(cfg, self.blocks)
         if extras is not None:
             extras(self.mjcf_root)
-        self.model = compile_mjcf(self.mjcf_root)
+        self.model = compile_workcell(self.mjcf_root, cfg, len(self.blocks))
         self.data = mujoco.MjData(self.model)
         #: Called with the workcell after every ``step`` (None: nothing); it must not change the physics state.
         self.on_step: Callable[[Workcell], None] | None = None

@@ -18,7 +18,8 @@ from posegrasp.sim import hybrid as H
 from posegrasp.sim import suction as S
 from posegrasp.sim.camera import CameraRenderer
 from posegrasp.sim.config import FINGERTIP_REACH, HYBRID_RETRACTED_Z, HybridConfig, WorkcellConfig, workcell_record
-from posegrasp.sim.workcell import HAND_CAMERA, BlockInstance, Workcell, build_mjcf, finger_joints
+from posegrasp.sim.robot import robot_mjcf
+from posegrasp.sim.workcell import HAND_CAMERA, BlockInstance, Workcell, finger_joints
 from tests.test_suction import DOWN, DT, on_table, track
 
 PARTS = load_catalog()
@@ -83,11 +84,11 @@ def suction_pick(cfg: WorkcellConfig = HYBRID) -> tuple[Workcell, S.Vacuum, S.Se
 
 # -- the model ----------------------------------------------------------------------------------------------------
 def test_the_2_finger_hand_plus_the_cup_and_nothing_else():
-    root, two = build_mjcf(HYBRID, [BlockInstance(PARTS["cube"], (1, 0, 0, 1))]), WorkcellConfig(hand="2-finger")
+    (root, cup), two = robot_mjcf(HYBRID), WorkcellConfig(hand="2-finger")
+    assert cup == f"jaco_arm/jaco_hand/{S.CUP_BODY}"
     for kind, name in (("body", H.CARRIAGE_BODY), ("actuator", H.EXTEND_ACTUATOR), ("contact", H.BORE_EXCLUDE)):
-        root.find(kind, f"jaco_arm/jaco_hand/{name}").remove()
-    root.find("equality", S.weld_name(1)).remove()
-    assert root.to_xml_string() == build_mjcf(two, [BlockInstance(PARTS["cube"], (1, 0, 0, 1))]).to_xml_string()
+        root.find(kind, f"jaco_hand/{name}").remove()
+    assert root.to_xml_string() == robot_mjcf(two)[0].to_xml_string() and robot_mjcf(two)[1] is None
     wc = cell()
     assert finger_joints("hybrid") == finger_joints("2-finger") and wc.model.nu == 9 and wc.model.neq == 1
     np.testing.assert_allclose(wc.T_gripper_cam(), Workcell(two).T_gripper_cam(), atol=1e-12)  # one calibration
@@ -99,9 +100,8 @@ def test_the_2_finger_hand_plus_the_cup_and_nothing_else():
 def test_other_hands_ignore_the_slide_settings():
     other = HybridConfig(extension=0.1, extension_speed=0.5)
     for hand in ("3-finger", "2-finger", "suction"):
-        a = build_mjcf(WorkcellConfig(hand=hand), [BlockInstance(PARTS["arch"], (1, 0, 0, 1))]).to_xml_string()
-        b = build_mjcf(WorkcellConfig(hand=hand, hybrid=other), [BlockInstance(PARTS["arch"], (1, 0, 0, 1))])
-        assert a == b.to_xml_string() and "carriage" not in a
+        a = robot_mjcf(WorkcellConfig(hand=hand))[0].to_xml_string()
+        assert a == robot_mjcf(WorkcellConfig(hand=hand, hybrid=other))[0].to_xml_string() and "carriage" not in a
         assert "hybrid" not in workcell_record({"hand": hand, "suction": {}, "hybrid": {}})
     assert set(workcell_record({"hand": "hybrid", "suction": {}, "hybrid": {}})) == {"hand", "suction", "hybrid"}
     assert H.rim_offset(WorkcellConfig(hand="suction")) == 0.0
