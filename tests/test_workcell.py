@@ -9,11 +9,14 @@ import numpy as np
 import pytest
 import trimesh
 
+from posegrasp.catalog import load_catalog
 from posegrasp.geometry import invert, rotation_angle, transform_points
 from posegrasp.sim.camera import CameraRenderer, Frame
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import SceneConfig, make_scene
-from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA, Workcell
+from posegrasp.sim.robot import ROBOT_MOUNT, robot_mjcf
+from posegrasp.sim.suction import WELD_SOLIMP, WELD_SOLREF, weld_name
+from posegrasp.sim.workcell import HAND_CAMERA, OVERVIEW_CAMERA, BlockInstance, Workcell, _add_block, build_mjcf
 
 
 def capture_at_look(seed: int, n_blocks: int = 5, width: int = 640, height: int = 480) -> tuple[Frame, object]:
@@ -221,3 +224,27 @@ def test_the_hand_points_lie_on_the_hand_and_move_with_it():
     assert np.allclose(local[0], local[1], atol=1e-6) and not np.allclose(before, after, atol=1e-3)
     assert local[0][:, 0].min() < -0.03 and local[0][:, 0].max() > 0.03  # the fingers either side of the pinch
     assert np.linalg.norm(local[0], axis=1).max() < 0.25
+
+
+@pytest.mark.parametrize("hand", ["3-finger", "suction", "hybrid"])
+def test_the_robot_attached_as_a_spec_is_the_model_of_one_mjcf(hand: str) -> None:
+    """``compile_workcell`` attaches the once-parsed robot to each world: the compiled model must equal that of one
+    dm-control MJCF holding the world, the robot, the parts and the cup's welds (every array but the names)."""
+    cfg = WorkcellConfig(hand=hand)
+    parts = load_catalog()
+    blocks = [BlockInstance(parts[n], (0.2, 0.4, 0.6, 1.0)) for n in ("cube", "arch", "triangular_prism")]
+    wc = Workcell(cfg, blocks)
+    root = build_mjcf(cfg)
+    root.find("body", ROBOT_MOUNT).remove()
+    robot, cup = robot_mjcf(cfg)
+    root.attach(robot)
+    for k, inst in enumerate(blocks, start=1):
+        _add_block(root, k, inst, cfg.timestep)
+        if cup is not None:
+            root.equality.add("weld", name=weld_name(k), body1=cup, body2=f"block_{k}", active="false",
+                              solref=WELD_SOLREF, solimp=WELD_SOLIMP)
+    one = mujoco.MjModel.from_xml_string(root.to_xml_string(), root.get_assets())
+    arrays = [a for a in dir(one) if isinstance(getattr(one, a), np.ndarray) and not a.startswith("_")
+              and "name" not in a and "path" not in a]
+    assert [a for a in arrays if not np.array_equal(getattr(one, a), getattr(wc.model, a), equal_nan=True)] == []
+    assert one.opt.disableflags == wc.model.opt.disableflags and one.opt.timestep == wc.model.opt.timestep
