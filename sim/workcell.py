@@ -174,12 +174,12 @@ def build_mjcf(cfg: WorkcellConfig, blocks: Sequence[BlockInstance] = ()) -> mjc
 def compile_workcell(root: mjcf.RootElement, cfg: WorkcellConfig, n_parts: int) -> mujoco.MjModel:
     """Compile the world ``root`` (``build_mjcf``, with its extras) with the robot of ``cfg`` attached at
     ``ROBOT_MOUNT`` and, with a cup, a weld per part (``suction.add_welds``). The robot is composed and parsed once
-    per process (``sim.robot.robot_spec``) and its spec copied: the same model as one MJCF of both, in a fraction of the
-    time dm-control takes to build and write the arm."""
+    per process (``sim.robot.robot_spec``) and its spec copied: the same model as one MJCF of both, in a fraction
+    of the time dm-control takes to build and write the arm."""
     robot, robot_assets, cup = robot_spec(cfg)
     assets = root.get_assets()
     spec = mujoco.MjSpec.from_string(root.to_xml_string(), assets)
-    spec.assets, child = {**assets, **robot_assets}, robot.copy()
+    spec.assets, child = assets, robot.copy()  # neither parsing nor copying keeps a spec's mesh files
     child.assets = robot_assets
     spec.option.disableflags |= robot.option.disableflags  # dm-control's arm turns native convex collision off
     spec.attach(child, frame=spec.body(ROBOT_MOUNT).add_frame(), prefix=ROBOT_PREFIX)
