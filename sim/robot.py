@@ -24,7 +24,7 @@ GRIPPER_SITE = "pinchsite"
 ROBOT_MOUNT, ROBOT_PREFIX = "jaco_arm", "jaco_arm/"
 
 
-def element_T(elem) -> np.ndarray:
+def _element_T(elem) -> np.ndarray:
     """Pose of an MJCF element in its parent body from its ``pos`` and ``quat`` (identity when unset)."""
     pos = np.zeros(3) if elem.pos is None else np.asarray(elem.pos, dtype=float)
     quat = np.array([1.0, 0, 0, 0]) if elem.quat is None else np.asarray(elem.quat, dtype=float)
@@ -39,7 +39,7 @@ def robot_mjcf(cfg: WorkcellConfig) -> tuple[mjcf.RootElement, str | None]:
         raise ConfigError(f"workcell hand {cfg.hand!r} is not a hand; choose one of: {', '.join(HANDS)}")
     arm, hand = JacoArm(), JacoHand()
     hand_body = hand.mjcf_model.find("body", "hand")
-    T_hand_gripper = element_T(hand.mjcf_model.find("site", GRIPPER_SITE))
+    T_hand_gripper = _element_T(hand.mjcf_model.find("site", GRIPPER_SITE))
     c = cfg.hand_camera
     T_gripper_cam = make_T(rpy_deg_to_R(c.mount_rpy_deg), c.mount_pos)
     add_mjcf_camera(hand_body, HAND_CAMERA, T_hand_gripper @ T_gripper_cam, c)
@@ -86,7 +86,7 @@ def _two_fingers(hand: mjcf.RootElement, T_hand_gripper: np.ndarray) -> None:
     hand.find("actuator", "finger_2").remove()
     f2.remove()
     f1, f3 = hand.find("body", "b_finger_1"), hand.find("body", "b_finger_3")
-    G = invert(T_hand_gripper) @ element_T(f1)  # finger 1 in the gripper frame; its hinge axis is its z
+    G = invert(T_hand_gripper) @ _element_T(f1)  # finger 1 in the gripper frame; its hinge axis is its z
     v, c = np.cross(G[:3, 2], (0.0, -1.0, 0.0)), -float(G[1, 2])  # the least turn taking the hinge onto -y:
     K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])  # I + [v]x + [v]x^2 / (1 + c)
     G[:3, :3] = (np.eye(3) + K + K @ K / (1.0 + c)) @ G[:3, :3]
