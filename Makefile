@@ -36,12 +36,16 @@ demo: setup sysdeps
 # The fault tests (full disks on a mounted tmpfs, Ctrl-C, the fuzz harness) run in pytest processes of their own,
 # after the rest: their tiny dataset is drawn with pyrender in the test process, whose EGL teardown ends the display
 # MuJoCo renders with there.
-# The Ctrl-C tests signal their commands' process groups: they too get a process of their own.
+# The Ctrl-C tests signal their commands' process groups: they too get processes of their own, a test to a worker.
 # The record-for-record comparison of a model campaign with its replay runs alone, in one process.
 FAULT_TESTS := tests/test_fuzz.py tests/test_full_disk.py
 SIGNAL_TESTS := tests/test_interrupt.py
 ALONE_TESTS := tests/test_captures.py
 XDIST := -n 2 --dist loadfile
+
+# The tests write bytecode caches even where the environment asks for none: without them pytest rewrites every test
+# module's asserts again in each of its processes (5 s of CPU each).
+test test-fast: export PYTHONDONTWRITEBYTECODE :=
 
 # The suites run on two worker processes (pytest-xdist), a test file to a worker so that its fixtures are built
 # once; the session fixtures of many files (the tiny dataset, its trained run) once for both.
@@ -49,7 +53,7 @@ test: setup sysdeps
 	$(BIN)/python -m pytest -q $(XDIST) $(addprefix --ignore=,$(FAULT_TESTS) $(SIGNAL_TESTS) $(ALONE_TESTS))
 	$(BIN)/python -m pytest -q $(ALONE_TESTS)
 	$(BIN)/python -m pytest -q $(XDIST) $(FAULT_TESTS)
-	$(BIN)/python -m pytest -q $(SIGNAL_TESTS)
+	$(BIN)/python -m pytest -q -n 2 --dist load $(SIGNAL_TESTS)
 
 test-fast: setup sysdeps
 	$(BIN)/python -m pytest -q $(XDIST) -m "not slow"

@@ -5,7 +5,7 @@ folder (``run``, and an untouched twin ``run2`` to compare with), an object set 
 with ``--config`` (``cfg``) and a BOP results CSV (``res.csv``). A case (``Case``) mutates one file of it (truncated,
 emptied, binary garbage, a JSON value at any depth replaced by another shape or type, NaN/inf, huge or negative,
 a key deleted, an image of the wrong size, bit depth or channels, a PLY without faces, NaN weights, ...) in a copy of
-the corpus and runs one command that reads that file, in a child process under a time limit (``tests/fuzz_zygote.py``
+the corpus and runs one command that reads that file, in a child process under a time limit (``tests/zygote.py``
 forks it from a process that imported the command line once). The verdict (``judge``):
 
 - exit non-zero: exactly one stderr line and no traceback;
@@ -29,8 +29,6 @@ import math
 import os
 import random
 import shutil
-import subprocess
-import sys
 import threading
 import tomllib
 from concurrent.futures import ThreadPoolExecutor
@@ -38,8 +36,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from zygote import Outcome, Zygote
 
-HERE = Path(__file__).resolve().parent
 
 # -- the corpus ---------------------------------------------------------------------------------------------------
 
@@ -87,7 +85,7 @@ RESULTS_CSV = "scene_id,im_id,obj_id,score,R,t,time\n0,0,1,0.9,1 0 0 0 1 0 0 0 1
 SMALL = ["--workers", "1", "--no-progress"]
 
 
-def build_corpus(root: Path, run: Callable[[list[str], Path], "Outcome"]) -> Path:
+def build_corpus(root: Path, run: Callable[[list[str], Path], Outcome]) -> Path:
     """Write the corpus under ``root``/base (see the module docstring); ``run(argv, cwd)`` runs a command."""
     import trimesh
 
@@ -603,53 +601,15 @@ def draw_cases(base: Path, n: int, seed: int = 0, heavy_share: float = 0.25) -> 
 
 # -- running ------------------------------------------------------------------------------------------------------
 
-@dataclasses.dataclass
-class Outcome:
-    rc: int
-    hung: bool
-    seconds: float
-    stdout: str
-    stderr: str
-
-
-class Zygote:
-    """One fork server (``tests/fuzz_zygote.py``); ``run`` is thread-safe (one command at a time)."""
-
-    def __init__(self) -> None:
-        env = dict(os.environ, MUJOCO_GL="egl", PYOPENGL_PLATFORM="egl", PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen([sys.executable, str(HERE / "fuzz_zygote.py")], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, env=env)
-        assert self.proc.stdout.readline().strip() == "ready"
-        self.lock = threading.Lock()
-
-    def run(self, argv: list[str], cwd: Path, timeout: float) -> Outcome:
-        cwd = cwd.resolve()
-        out, err = cwd / ".fuzz_stdout", cwd / ".fuzz_stderr"
-        with self.lock:
-            req = {"argv": argv, "cwd": str(cwd), "stdout": str(out), "stderr": str(err), "timeout": timeout}
-            self.proc.stdin.write(json.dumps(req) + "\n")
-            self.proc.stdin.flush()
-            ans = json.loads(self.proc.stdout.readline())
-        o = Outcome(ans["rc"], ans["hung"], ans["seconds"], out.read_text(errors="replace"),
-                    err.read_text(errors="replace"))
-        out.unlink()
-        err.unlink()
-        return o
-
-    def close(self) -> None:
-        self.proc.stdin.close()
-        self.proc.wait(timeout=60)
-
-
 def tree_hashes(root: Path) -> dict[str, str]:
-    """Each regular file under ``root`` (but the harness's own) by its relative path: a hash of its bytes (of a file
+    """Each regular file under ``root`` by its relative path: a hash of its bytes (of a file
     over 64 MiB, a sparse one a case made: its size and modification time)."""
     def sign(p: Path) -> str:
         st = p.stat()
         return f"{st.st_size}:{st.st_mtime_ns}" if st.st_size > 64 << 20 else hashlib.sha1(p.read_bytes()).hexdigest()
 
     return {p.relative_to(root).as_posix(): sign(p) for p in sorted(root.rglob("*"))
-            if p.is_file() and not p.name.startswith(".fuzz_")}
+            if p.is_file()}
 
 
 def _link_copy(base: Path, dest: Path) -> None:

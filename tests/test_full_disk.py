@@ -19,7 +19,7 @@ import pytest
 import trimesh
 from faults import (TINY_DATAGEN_TOML, TINY_TRAIN_TOML, SmallDisk, assert_one_line, assert_same_tree,
                     make_tiny_bop)
-from helpers import run_cli
+from helpers import build_once, run_cli
 
 PAGE = 4096
 NO_SPACE_LINE = r"posegrasp: error: no space left on \S+"
@@ -41,38 +41,46 @@ def small_disk(tmp_path: Path):
         subprocess.run(["umount", "-l", str(root)], capture_output=True)
 
 
-@pytest.fixture(scope="module")
-def inputs(tmp_path_factory) -> dict[str, Path]:
-    """Inputs the commands read: a tiny dataset, settings, meshes and an object set."""
-    d = tmp_path_factory.mktemp("inputs")
+def _write_inputs(d: Path) -> None:
     (d / "datagen.toml").write_text(TINY_DATAGEN_TOML)
     (d / "train.toml").write_text(TINY_TRAIN_TOML)
     trimesh.creation.box([0.06, 0.04, 0.02]).export(d / "box.obj")
     trimesh.creation.cylinder(0.015, 0.05, sections=16).export(d / "cyl.stl")
     assert run_cli("objects", "import", str(d / "box.obj"), str(d / "cyl.stl"), "--out", str(d / "set"),
                    "--no-progress").returncode == 0
-    return {"data": make_tiny_bop(d / "bop"), "datagen": d / "datagen.toml", "train": d / "train.toml",
-            "box": d / "box.obj", "cyl": d / "cyl.stl", "set": d / "set"}
+    make_tiny_bop(d / "bop")
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> dict[str, Path]:
+    """Inputs the commands read: a tiny dataset, settings, meshes and an object set (built once for the run's
+    workers)."""
+    d = build_once(tmp_path_factory, "full_disk_inputs", _write_inputs)
+    return {"data": d / "bop", "datagen": d / "datagen.toml", "train": d / "train.toml", "box": d / "box.obj",
+            "cyl": d / "cyl.stl", "set": d / "set"}
 
 
 @pytest.fixture(scope="module")
 def trained(inputs, tmp_path_factory) -> Path:
-    """A run with all four stages trained for 2 steps."""
-    run = tmp_path_factory.mktemp("run")
-    for stage in ("seg", "pose", "refiner", "cls"):
-        r = run_cli("train", stage, "--data", str(inputs["data"]), "--out", str(run), "--config", str(inputs["train"]),
-                    "--steps", "2", "--no-progress")
-        assert r.returncode == 0, r.stderr
-    return run
+    """A run with all four stages trained for 2 steps (built once for the run's workers)."""
+    def train(run: Path) -> None:
+        for stage in ("seg", "pose", "refiner", "cls"):
+            r = run_cli("train", stage, "--data", str(inputs["data"]), "--out", str(run), "--config",
+                        str(inputs["train"]), "--steps", "2", "--no-progress")
+            assert r.returncode == 0, r.stderr
+
+    return build_once(tmp_path_factory, "full_disk_trained", train)
 
 
 @pytest.fixture(scope="module")
 def trial_run(tmp_path_factory) -> Path:
-    """A 2-episode oracle campaign."""
-    out = tmp_path_factory.mktemp("trials") / "run"
-    r = run_cli("trials", "--episodes", "2", "--seed", "0", "--workers", "1", "--out", str(out), "--no-progress")
-    assert r.returncode == 0, r.stderr
-    return out
+    """A 2-episode oracle campaign (built once for the run's workers)."""
+    def campaign(d: Path) -> None:
+        r = run_cli("trials", "--episodes", "2", "--seed", "0", "--workers", "1", "--out", str(d / "run"),
+                    "--no-progress")
+        assert r.returncode == 0, r.stderr
+
+    return build_once(tmp_path_factory, "full_disk_trials", campaign) / "run"
 
 
 @dataclass

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from faults import TINY_DATAGEN_TOML, TINY_TRAIN_TOML, assert_one_line, assert_same_tree, interrupt_when, make_tiny_bop
-from helpers import cli, run_cli
+from helpers import build_once, cli, run_cli
 
 pytestmark = pytest.mark.slow  # each test runs its command three times in child processes
 
@@ -60,11 +60,16 @@ def test_trials(tmp_path):
     interrupted_then_resumed(tmp_path, args, lambda d: lines(d / "out" / "episodes.jsonl") >= 1, RERUN)
 
 
+def _write_tiny(d: Path) -> None:
+    (d / "train.toml").write_text(TINY_TRAIN_TOML)
+    make_tiny_bop(d / "bop")
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> tuple[Path, Path]:
-    d = tmp_path_factory.mktemp("tiny")
-    (d / "train.toml").write_text(TINY_TRAIN_TOML)
-    return make_tiny_bop(d / "bop"), d / "train.toml"
+    """The tiny dataset and the training settings (built once for the run's workers)."""
+    d = build_once(tmp_path_factory, "interrupt_tiny", _write_tiny)
+    return d / "bop", d / "train.toml"
 
 
 def train_args(tiny: tuple[Path, Path], stage: str = "seg", steps: int = 6) -> list[str]:

@@ -119,6 +119,7 @@ def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, 
     calls2.mkdir()
     monkeypatch.chdir(tmp_path)  # a relative file path: recorded absolute, found by the workers
     run_trials(tmp_path / "a", 2, 0, f"py:spy_provider.py:make:{calls1}", 1, CFG, Display(_quiet(), False))
+    assert not (tmp_path / "__pycache__").exists()  # the plug-in file was loaded without writing beside it
     monkeypatch.syspath_prepend(str(tmp_path))  # the same plug-in as an importable module, in two workers
     run_trials(tmp_path / "b", 2, 0, f"py:spy_provider:make:{calls2}", 2, CFG, Display(_quiet(), False))
     a, b = _records(tmp_path / "a"), _records(tmp_path / "b")
@@ -129,7 +130,6 @@ def test_plugin_file_and_module_drive_trials_with_one_and_two_workers(tmp_path, 
         assert {p.name.rsplit("_", 1)[0] for p in calls.glob("*.json")} == {"0_0", "1_0"}
     pids = [{int(p.stem.split("_")[2]) for p in calls.glob("*.json")} for calls in (calls1, calls2)]
     assert os.getpid() not in pids[0] | pids[1]  # the plug-in runs in a process of its own (grasping.plugin_host)
-    assert not (tmp_path / "__pycache__").exists()  # the plug-in file was loaded without writing beside it
 
 
 @pytest.mark.slow

@@ -1,7 +1,9 @@
-"""A fork server for the fuzz harness: imports the ``posegrasp`` command line once, then runs each requested
-command in a forked child process of its own (own session, own cwd, stdout and stderr to files) under a time limit.
+"""A fork server (``tests/zygote.py``): imports the ``posegrasp`` command line once, then runs each requested
+command in a forked child process of its own (own session, cwd and environment, stdout and stderr to files) under a
+time limit.
 
-Requests and answers are JSON lines on stdin and stdout: ``{"argv", "cwd", "stdout", "stderr", "timeout"}`` in,
+Requests and answers are JSON lines on stdin and stdout: ``{"argv", "cwd", "stdout", "stderr", "timeout"}`` and
+optionally ``"env"`` (the child's whole environment) in,
 ``{"rc", "hung", "seconds"}`` out. A child past its limit is killed with its process group (``hung``: true); a
 child killed by a signal answers ``rc`` = minus the signal's number. The child runs the command as
 ``python -m posegrasp.cli`` does: ``main(argv)``'s status is the exit status and an uncaught exception prints its
@@ -10,6 +12,7 @@ traceback, so what a user would see is what the harness sees.
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import signal
@@ -25,8 +28,8 @@ def _preload() -> None:
     from posegrasp import cli
 
     cli.build_parser()
-    for name in ("torch", "mujoco", "trimesh", "PIL.Image", "posegrasp.perception.train_seg",
-                 "posegrasp.perception.train_pose", "posegrasp.perception.train_cls", "posegrasp.perception.evaluate",
+    for name in ("torch", "torch._dynamo", "matplotlib.pyplot", "mujoco", "trimesh", "PIL.Image",
+                 "posegrasp.perception.train_seg", "posegrasp.perception.train_pose", "posegrasp.perception.train_cls", "posegrasp.perception.evaluate",
                  "posegrasp.grasping.trials", "posegrasp.bop.check", "posegrasp.bop.show", "posegrasp.objects.show"):
         try:
             importlib.import_module(name)
@@ -38,6 +41,9 @@ def _child(req: dict) -> None:
     """In the forked child: run the command and exit with its status (never returns)."""
     os.setsid()
     os.chdir(req["cwd"])
+    if "env" in req:
+        os.environ.clear()
+        os.environ.update(req["env"])
     devnull = os.open(os.devnull, os.O_RDONLY)
     os.dup2(devnull, 0)
     for fd, key in ((1, "stdout"), (2, "stderr")):
@@ -95,6 +101,9 @@ def _kill_group(pid: int) -> None:
 
 if __name__ == "__main__":
     _preload()
+    # Out of the collector's reach: a child's exit then skips a full collection of torch's objects (2 s), and its
+    # reference counts leave those pages shared.
+    gc.freeze()
     sys.stdout.write("ready\n")
     sys.stdout.flush()
     _serve()
