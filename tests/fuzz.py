@@ -602,8 +602,8 @@ def draw_cases(base: Path, n: int, seed: int = 0, heavy_share: float = 0.25) -> 
 # -- running ------------------------------------------------------------------------------------------------------
 
 def tree_hashes(root: Path) -> dict[str, str]:
-    """Each regular file under ``root`` by its relative path: a hash of its bytes (of a file
-    over 64 MiB, a sparse one a case made: its size and modification time)."""
+    """Each regular file under ``root`` by its relative path: a hash of its bytes (of a file over 64 MiB, a sparse
+    one a case made: its size and modification time)."""
     def sign(p: Path) -> str:
         st = p.stat()
         return f"{st.st_size}:{st.st_mtime_ns}" if st.st_size > 64 << 20 else hashlib.sha1(p.read_bytes()).hexdigest()

@@ -24,6 +24,8 @@ SERVER = Path(__file__).resolve().parent / "zygote_server.py"
 
 @dataclasses.dataclass
 class Outcome:
+    """A command's exit status, whether it was killed at its time limit, its wall time (s) and its output."""
+
     rc: int
     hung: bool
     seconds: float
