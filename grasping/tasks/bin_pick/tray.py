@@ -228,7 +228,7 @@ class TrayPlace:
     def deliver(self, plan: Plan, T_lift: np.ndarray, T_hold: np.ndarray, let_go: Callable[[], None]) -> None:
         """Carry the part held at gripper pose ``T_hold`` (at the grasp) from ``T_lift`` over its slot (by the
         second look, if the tray has one), set it down there at the goal pose (the hand stops early where the part
-        touches the plate or another part) and let go (``let_go``: the tool's release), then raise the hand; the slot
+        or the hand touches the plate or another part) and let go (``let_go``: the tool's release), then raise the hand; the slot
         counts as filled once the part is let go over it."""
         ep, b = self.ep, self.ep.cfg.bin_pick
         ctl, g_cfg, block = ep.ctl, ep.cfg.grasp, plan.est_block or plan.block
@@ -248,7 +248,7 @@ class TrayPlace:
         T_release[2, 3] += b.place_gap
         T_above = T_release.copy()
         T_above[2, 3] = max(T_lift[2, 3], T_release[2, 3] + g_cfg.pregrasp_height)
-        ctl.move(T_above, speed=g_cfg.carry_speed)
+        ctl.move(T_above, speed=g_cfg.carry_speed, reposture=True)  # a tilted set-down: held off by the posture term
         ctl.settle(CUP_SETTLE_SPEED, CUP_SETTLE_TIME)  # the arm sways after the carry: still, then down
         touches = functools.partial(self._touches, plan.k)
         T_near = T_release.copy()
@@ -325,16 +325,17 @@ class TrayPlace:
         return f"{TRAY}/{PART_CAMERA}"
 
     def _touches(self, k: int) -> bool:
-        """Does part ``k`` touch the plate or another part?"""
+        """Do part ``k`` or the robot touch the plate or another part (a tilted hand's lower fingertip can meet the
+        plate first)?"""
         wc = self.ep.wc
         d = wc.data
         if not d.ncon:
             return False
         g = d.contact.geom[: d.ncon]
         inst = wc.geom_instance[g]
-        other = (g == self.plate) | (inst > 0)
-        return bool(np.any((inst[:, 0] == k) & other[:, 1] & (inst[:, 1] != k))
-                    or np.any((inst[:, 1] == k) & other[:, 0] & (inst[:, 0] != k)))
+        mover = (inst == k) | self.ep.ctl.robot_geom[g]
+        other = ((g == self.plate) | (inst > 0)) & (inst != k)
+        return bool(np.any(mover[:, 0] & other[:, 1]) or np.any(mover[:, 1] & other[:, 0]))
 
     def judge(self, k: int, block: PartType) -> tuple[PlaceError | None, Failure | None]:
         """The target ``k``'s placement, once at rest, against the goal it was set down for: its error and the
