@@ -228,8 +228,8 @@ class TrayPlace:
     def deliver(self, plan: Plan, T_lift: np.ndarray, T_hold: np.ndarray, let_go: Callable[[], None]) -> None:
         """Carry the part held at gripper pose ``T_hold`` (at the grasp) from ``T_lift`` over its slot (by the
         second look, if the tray has one), set it down there at the goal pose (the hand stops early where the part
-        or the hand touches the plate or another part) and let go (``let_go``: the tool's release), then raise the hand; the slot
-        counts as filled once the part is let go over it."""
+        or the hand touches the plate or another part) and let go (``let_go``: the tool's release), then raise the
+        hand; the slot counts as filled once the part is let go over it."""
         ep, b = self.ep, self.ep.cfg.bin_pick
         ctl, g_cfg, block = ep.ctl, ep.cfg.grasp, plan.est_block or plan.block
         slot = self.free(block.name)
