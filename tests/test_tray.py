@@ -25,8 +25,8 @@ from posegrasp.grasping.tasks import with_set
 from posegrasp.grasping.tasks.bin_pick import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.config import HELD_LOOK
 from posegrasp.grasping.tasks.bin_pick.scene import tray_of
-from posegrasp.grasping.tasks.bin_pick.tray import (check_tray, goal_copies, goal_pose, place_error, release_choice,
-                                                    rest_face, rest_normals, verdict)
+from posegrasp.grasping.tasks.bin_pick.tray import (check_tray, goal_copies, goal_pose, hand_below, place_error,
+                                                    release_choice, rest_face, rest_normals, verdict)
 from posegrasp.grasping.trials import Display, run_trials
 from posegrasp.sim.clutter import ClutterConfig
 from posegrasp.sim.tray import Slot, TrayConfig
@@ -255,3 +255,21 @@ def test_the_release_is_the_least_turn_the_arm_reaches():
     assert release_choice(wc, cfg.grasp, np.stack([moved(turned, (0, 0, 1), 0.0, 2.0), far]), down, 0.05) == 1
     side = moved(down, (0, 1, 0), 80.0)  # the tool on its side is no choice, however little the wrist turns
     assert release_choice(wc, cfg.grasp, np.stack([side, turned]), side, 0.05) == 1
+
+
+def test_a_release_whose_hand_reaches_below_the_plate_is_raised_by_that_much():
+    """``hand_below``: the hand's lowest point at a release pose against the plate's top: upright, the open fingers
+    end above the pinch point; tilted 45 deg, the lower one reaches centimetres below it. The tilted pose raised by
+    ``hand_below`` just clears the plate."""
+    wc = Workcell(_tray_cfg((Slot("cube", (0.0, 0.0)),)).scene.workcell)
+
+    def release(deg: float) -> np.ndarray:
+        R = axis_angle_R(np.array([0.0, 1.0, 0.0]), np.radians(deg)) @ np.diag([1.0, -1.0, -1.0])
+        return make_T(R, (0.45, 0.25, 0.05))
+
+    assert hand_below(wc, release(0.0), 0.05) == 0.0
+    T = release(45.0)
+    below = hand_below(wc, T, 0.05)
+    assert below > 0.02, below
+    T[2, 3] += below
+    assert hand_below(wc, T, 0.05) < 1e-9 and hand_below(wc, T, 0.051) > 0.0009

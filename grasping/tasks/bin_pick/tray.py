@@ -11,7 +11,8 @@ by the slot's yaw::
 
 The hand sets it down holding it as the estimate at the pick says it holds it: the gripper's release pose is ``T_goal
 T_gripper_obj^-1`` with ``T_gripper_obj = T_world_gripper^-1 T_world_obj`` at the grasp, the goal taken over the part's
-symmetries ``T_goal S`` as the one the wrist turns least to among those the arm reaches. The fingers' grip is locked
+symmetries ``T_goal S`` as the one the wrist turns least to among those the arm reaches, raised where the hand would
+reach below the plate (``hand_below``). The fingers' grip is locked
 from the lift on (``ArmController.lock_grip``), so the part does not creep in them. With the tray's ``second_look`` the
 hand first holds the part over the tray's upward camera (``sim.tray``) and the provider estimates it there:
 ``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the part's
@@ -152,6 +153,15 @@ def release_choice(wc: Workcell, g_cfg: GraspConfig, releases: np.ndarray, T_lif
     return next((i for i in order if reach_q(wc, g_cfg, releases[i], above) is not None), order[0])
 
 
+def hand_below(wc: Workcell, T_release: np.ndarray, z_plate: float) -> float:
+    """How far (m) the hand, holding the part as it holds it now, would reach below the plate's top ``z_plate`` at
+    the release pose ``T_release`` (world gripper); 0 where it stays above. A pinch tilted in the tote can hold a
+    part with its lower fingertip below the part's bottom: the part is let go that much higher, not pushed into the
+    plate by the finger."""
+    pts = transform_points(np.linalg.inv(wc.gripper_pose()), hand_points(wc))  # gripper frame
+    return max(0.0, z_plate - float(transform_points(T_release, pts)[:, 2].min()))
+
+
 @dataclass(frozen=True)
 class PlaceError:
     """A placed part against its slot's goal, modulo the part's symmetries: xy distance and height difference of
@@ -245,7 +255,7 @@ class TrayPlace:
         i = release_choice(ep.wc, g_cfg, goals @ T_obj_gripper, T_lift, b.place_gap + g_cfg.pregrasp_height)
         T_goal, T_release = goals[i], goals[i] @ T_obj_gripper
         self.placing = Placing(slot, T_goal, normals[i], in_hand)
-        T_release[2, 3] += b.place_gap
+        T_release[2, 3] += b.place_gap + hand_below(ep.wc, T_release, self.top_z)
         T_above = T_release.copy()
         T_above[2, 3] = max(T_lift[2, 3], T_release[2, 3] + g_cfg.pregrasp_height)
         ctl.move(T_above, speed=g_cfg.carry_speed, reposture=True)  # a tilted set-down: held off by the posture term
