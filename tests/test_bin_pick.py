@@ -17,8 +17,9 @@ from posegrasp.config import from_dict
 from posegrasp.errors import ConfigError
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.tasks.bin_pick.attempt import _look, _same_view, empty_tote, tally
-from posegrasp.grasping.tasks.bin_pick.pick import OutBox, _Contacts, _stopped_near, pick_and_drop
-from posegrasp.grasping.tasks.bin_pick.planner import _clear_of, choose_part
+from posegrasp.grasping.tasks.bin_pick.pick import Hybrid, OutBox, _Contacts, _stopped_near, pick_and_drop
+from posegrasp.grasping.tasks.bin_pick.planner import _clear_of, choose_cup, choose_part
+from posegrasp.grasping.tasks.bin_pick.squeeze import Squeeze
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison
 from posegrasp.grasping.config import TrialConfig
@@ -269,6 +270,25 @@ def test_a_brick_on_its_side_along_a_wall_is_pinched_across_its_studs_by_the_2_f
     ep, ests, T_world_cam = _alone("brick_2x2", None, "2-finger", T)
     _, grasp, _ = choose_part(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
     assert abs(grasp.T_world_gripper[0, 0]) > 0.99  # the squeeze along the wall, across the studs
+    assert _picked(ep, grasp)
+    assert not ep.ctl.unexpected_contacts(1)
+
+
+def test_a_brick_on_its_side_turned_against_a_wall_is_squeezed_along_it_by_the_hybrid_hand():
+    """A 2x2 brick on its side (its sides 19 mm high: no face the 20 mm cup seals on), turned 30 deg, a corner 2 mm
+    from the -x wall: no face pair along the wall and no room for a finger across it; the hybrid hand squeezes it
+    along the wall, by two of its edges (the wall keeps it from turning square to the pads), and lifts it."""
+    lo, hi = _inner_bounds()
+    R = axis_angle_R(np.array([0.0, 0.0, 1.0]), np.radians(30.0)) @ axis_angle_R(np.array([0.0, 1.0, 0.0]), -np.pi / 2)
+    v = CAT["brick_2x2"].vertices @ R.T
+    T = make_T(R, (lo[0] + 0.002 - v[:, 0].min(), 0.5 * (lo[1] + hi[1]) - v[:, 1].mean(), 0.011 - v[:, 2].min()))
+    ep, ests, T_world_cam = _alone("brick_2x2", None, "hybrid", T)
+    for choose in (choose_cup, choose_part):
+        with pytest.raises(EpisodeFailed) as e:
+            choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+        assert e.value.reason == Failure.NOTHING_GRASPABLE
+    _, grasp, _ = Hybrid(ep).choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
+    assert isinstance(grasp, Squeeze) and abs(grasp.T_world_gripper[1, 0]) > 0.99  # along the x wall
     assert _picked(ep, grasp)
     assert not ep.ctl.unexpected_contacts(1)
 

@@ -31,6 +31,7 @@ from posegrasp.grasping.tasks.bin_pick.planner import (CUP_BACKOFF, CUP_BACKOFF_
                                                        pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import Area
+from posegrasp.grasping.tasks.bin_pick.squeeze import Squeeze, choose_squeeze
 from posegrasp.sim.hybrid import extend
 from posegrasp.sim.suction import Vacuum, seal_time
 from posegrasp.sim.tote import WALLS, Tote
@@ -109,7 +110,7 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
         if not ctl.move(T_pre, reposture=True):
             raise EpisodeFailed(Failure.TIMEOUT)
         watch.approach = T_grasp[:3, 2]
-        if not ctl.move(T_grasp, speed=g_cfg.approach_speed):
+        if not ctl.move(T_grasp, speed=g_cfg.approach_speed, reposture=isinstance(plan.grasp, Squeeze)):
             if not _stopped_near(ep.wc.gripper_pose(), T_grasp, b) or watch.floor:
                 raise EpisodeFailed(watch.blocked())
             ctl.target = ep.wc.gripper_pose()
@@ -336,7 +337,8 @@ class Hybrid:
     grasp on the higher part wins, the cup where both go for parts within ``HYBRID_TIE`` of each other's height (a
     suction pick neither reaches between neighbours nor needs a wall's room): an ambidextrous policy. With
     ``cup_first`` (a destination that keeps the pose: the tray), the cup wherever it has a grasp: it holds the part
-    as the estimate has it, where closing fingers shift it."""
+    as the estimate has it, where closing fingers shift it. Where neither has a grasp, the fingers squeeze a part
+    turned near a wall along the wall (``squeeze.choose_squeeze``)."""
 
     def __init__(self, ep: Episode, cup_first: bool = False):
         self.cup = Cup(ep)
@@ -357,6 +359,10 @@ class Hybrid:
                 continue
             found.append((view.tops[j] + bonus, j, g, T))
         if not found:
+            try:
+                return choose_squeeze(wc, cfg, ests, view, failed)
+            except EpisodeFailed as e:
+                why.append(e.reason)
             raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)
         _, j, g, T = max(found, key=lambda f: f[0])
         return j, g, T
