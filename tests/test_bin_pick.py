@@ -277,7 +277,8 @@ def test_a_brick_on_its_side_along_a_wall_is_pinched_across_its_studs_by_the_2_f
 def test_a_brick_on_its_side_turned_against_a_wall_is_squeezed_along_it_by_the_hybrid_hand():
     """A 2x2 brick on its side (its sides 19 mm high: no face the 20 mm cup seals on), turned 30 deg, a corner 2 mm
     from the -x wall: no face pair along the wall and no room for a finger across it; the hybrid hand squeezes it
-    along the wall, by two of its edges (the wall keeps it from turning square to the pads), and lifts it."""
+    along the wall, by two of its edges (the wall keeps it from turning square to the pads), and lifts it; with
+    ``wall_squeeze = false``, nothing graspable."""
     lo, hi = _inner_bounds()
     R = axis_angle_R(np.array([0.0, 0.0, 1.0]), np.radians(30.0)) @ axis_angle_R(np.array([0.0, 1.0, 0.0]), -np.pi / 2)
     v = CAT["brick_2x2"].vertices @ R.T
@@ -287,6 +288,9 @@ def test_a_brick_on_its_side_turned_against_a_wall_is_squeezed_along_it_by_the_h
         with pytest.raises(EpisodeFailed) as e:
             choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
         assert e.value.reason == Failure.NOTHING_GRASPABLE
+    off = dataclasses.replace(ep.cfg, bin_pick=dataclasses.replace(ep.cfg.bin_pick, wall_squeeze=False))
+    with pytest.raises(EpisodeFailed):
+        Hybrid(ep).choose(ep.wc, off, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
     _, grasp, _ = Hybrid(ep).choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
     assert isinstance(grasp, Squeeze) and abs(grasp.T_world_gripper[1, 0]) > 0.99  # along the x wall
     assert _picked(ep, grasp)

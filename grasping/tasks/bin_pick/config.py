@@ -89,6 +89,9 @@ class BinPickConfig:
     wall_tilts_deg: tuple[float, ...] = (10.0, 20.0)
     #: ... raised until the open fingers keep this far (m) above the floor.
     tilt_floor_clearance: float = field(default=0.002, metadata=within(0.0, 0.05))
+    #: The hybrid hand squeezes a part turned near a wall along the wall where neither its cup nor its fingers have a
+    #: grasp (``bin_pick/squeeze.py``): more totes emptied, as reliable, a few picks an hour fewer.
+    wall_squeeze: bool = True
     #: A neighbour that stops the hand on its way down to the grasp (a guarded move): the fingers close where the hand
     #: stopped if its pinch point stands at most this far (m) above the grasp ...
     close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))

@@ -338,7 +338,7 @@ class Hybrid:
     suction pick neither reaches between neighbours nor needs a wall's room): an ambidextrous policy. With
     ``cup_first`` (a destination that keeps the pose: the tray), the cup wherever it has a grasp: it holds the part
     as the estimate has it, where closing fingers shift it. Where neither has a grasp, the fingers squeeze a part
-    turned near a wall along the wall (``squeeze.choose_squeeze``)."""
+    turned near a wall along the wall (``squeeze.choose_squeeze``; ``wall_squeeze``)."""
 
     def __init__(self, ep: Episode, cup_first: bool = False):
         self.cup = Cup(ep)
@@ -360,7 +360,8 @@ class Hybrid:
             found.append((view.tops[j] + bonus, j, g, T))
         if not found:
             try:
-                return choose_squeeze(wc, cfg, ests, view, failed)
+                if cfg.bin_pick.wall_squeeze:
+                    return choose_squeeze(wc, cfg, ests, view, failed)
             except EpisodeFailed as e:
                 why.append(e.reason)
             raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)

@@ -22,11 +22,13 @@ squeezed part pushes the hand back toward the wall).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 
 import numpy as np
 
+from posegrasp.catalog import PartType
 from posegrasp.geometry import transform_points
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.controller import open_finger_points
@@ -38,8 +40,8 @@ from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.planner import (HeapView, _clear_of, _fingers_inside, _first_reachable,
                                                         _tried)
 from posegrasp.grasping.tasks.bin_pick.scene import Area
-from posegrasp.catalog import PartType
 from posegrasp.sim.workcell import Workcell
+
 
 @dataclass(frozen=True)
 class Squeeze(Grasp):
@@ -58,7 +60,7 @@ def wall_squeezes(part: PartType, T_world_obj: np.ndarray, area: Area, min_pinch
                   max_width: float) -> list[Squeeze]:
     """Squeezes of ``part`` at its estimated ``T_world_obj`` along each tote wall nearer than ``NEAR_WALL`` (m),
     nearest wall first, both signs of the pinch axis (the module's docstring); none wider than ``max_width`` (m).
-    Poses are the gripper's (world, z straight down, x the pinch axis)."""
+    Poses are the gripper's (world, z straight down, x the pinch axis); ``clearance`` is left for ``wall_room``."""
     v = transform_points(T_world_obj, part.vertices)
     lo, hi = area.tote.inner_bounds()
     gaps = np.array([v[:, 0].min() - lo[0], hi[0] - v[:, 0].max(), v[:, 1].min() - lo[1], hi[1] - v[:, 1].max()])
@@ -75,7 +77,7 @@ def wall_squeezes(part: PartType, T_world_obj: np.ndarray, area: Area, min_pinch
         for a in (along, -along):
             T = np.eye(4)
             T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = a, np.cross((0.0, 0.0, -1.0), a), (0.0, 0.0, -1.0), centre
-            grasps.append(Squeeze(T, width, clearance=float(gaps[w]), tilt_deg=0.0, support=0.0, score=0.0))
+            grasps.append(Squeeze(T, width, clearance=0.0, tilt_deg=0.0, support=0.0, score=0.0))
     return grasps
 
 
@@ -102,11 +104,12 @@ def choose_squeeze(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], view: H
 
     def ranked(j: int) -> list[tuple[float, Grasp]]:
         own, others, wall = view.around(j)
-        return [(b.height_weight * (view.tops[j] - area.floor + wall_room(g, wc.cfg, b.finger_margin, area, cam)), g)
-                for g in wall_squeezes(view.part(j), view.poses[j], area, g_cfg.min_pinch_height, g_cfg.max_width)
-                if not _tried(g, failed, b) and _clear_of(g, wall, [cam], b.wall_clearance)
-                and _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, b.wall_clearance)
-                and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
-                and _clear_of(g, others, [*hand.boxes((g.width + b.finger_margin) / 2), cam], b.part_clearance[-1])]
+        grasps = [dataclasses.replace(g, clearance=wall_room(g, wc.cfg, b.finger_margin, area, cam))
+                  for g in wall_squeezes(view.part(j), view.poses[j], area, g_cfg.min_pinch_height, g_cfg.max_width)
+                  if not _tried(g, failed, b) and _clear_of(g, wall, [cam], b.wall_clearance)
+                  and _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, b.wall_clearance)
+                  and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
+                  and _clear_of(g, others, [*hand.boxes((g.width + b.finger_margin) / 2), cam], b.part_clearance[-1])]
+        return [(b.height_weight * (view.tops[j] - area.floor + g.clearance), g) for g in grasps]
 
     return _first_reachable(wc, cfg, view, [ranked])
