@@ -359,11 +359,11 @@ class Hybrid:
                 continue
             found.append((view.tops[j] + bonus, j, g, T))
         if not found:
-            try:
-                if cfg.bin_pick.wall_squeeze:
+            if cfg.bin_pick.wall_squeeze:
+                try:
                     return choose_squeeze(wc, cfg, ests, view, failed)
-            except EpisodeFailed as e:
-                why.append(e.reason)
+                except EpisodeFailed as e:
+                    why.append(e.reason)
             raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)
         _, j, g, T = max(found, key=lambda f: f[0])
         return j, g, T
