@@ -361,7 +361,7 @@ class Hybrid:
         if not found:
             if cfg.bin_pick.wall_squeeze:
                 try:
-                    return choose_squeeze(wc, cfg, ests, view, failed)
+                    return choose_squeeze(wc, cfg, view, failed)
                 except EpisodeFailed as e:
                     why.append(e.reason)
             raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)

@@ -432,11 +432,17 @@ class _Fit:
         return out
 
 
+def open_fingers(grasp: Grasp, wc_cfg, margin: float) -> np.ndarray:
+    """(N, 3) the fingers' mesh points (world, m) open ``margin`` (m) wider than ``grasp``, at its pose
+    (``controller.open_finger_points``)."""
+    return transform_points(grasp.T_world_gripper, open_finger_points(wc_cfg, round(1000 * (grasp.width + margin))))
+
+
 def _fingers_inside(grasp: Grasp, wc_cfg, margin: float, tote: Tote, clearance: float) -> bool:
     """Do the fingers, open ``margin`` (m) wider than the ``grasp`` (``controller.open_finger_points``, their
     meshes), stay ``clearance`` (m) inside the tote's inner walls wherever they are lower than the walls' top plus
     ``clearance``?"""
-    pts = transform_points(grasp.T_world_gripper, open_finger_points(wc_cfg, round(1000 * (grasp.width + margin))))
+    pts = open_fingers(grasp, wc_cfg, margin)
     lo, hi = tote.inner_bounds()
     low = pts[pts[:, 2] < hi[2] + clearance, :2]
     return bool(np.all((low >= lo[:2] + clearance) & (low <= hi[:2] - clearance)))

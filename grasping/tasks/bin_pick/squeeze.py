@@ -31,14 +31,12 @@ import numpy as np
 from posegrasp.catalog import PartType
 from posegrasp.geometry import transform_points
 from posegrasp.grasping.config import TrialConfig
-from posegrasp.grasping.controller import open_finger_points
 from posegrasp.grasping.grasps import Grasp
 from posegrasp.grasping.hand import camera_box, hand_of
-from posegrasp.grasping.perception import Estimate
 from posegrasp.grasping.record import Failure
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.planner import (HeapView, _clear_of, _fingers_inside, _first_reachable,
-                                                        _tried)
+                                                        _tried, open_fingers)
 from posegrasp.grasping.tasks.bin_pick.scene import Area
 from posegrasp.sim.workcell import Workcell
 
@@ -82,18 +80,18 @@ def wall_squeezes(part: PartType, T_world_obj: np.ndarray, area: Area, min_pinch
 
 
 def wall_room(grasp: Grasp, wc_cfg, margin: float, area: Area, camera: tuple) -> float:
-    """The least distance (m) between the tote's inner walls and the open fingers (``margin`` wider than ``grasp``;
-    their mesh points below the walls' top) or the ``camera`` box's corners."""
+    """The least distance (m) between the tote's inner walls and the open fingers (``planner.open_fingers``; their
+    mesh points below the walls' top) or the ``camera`` box's corners."""
     lo, hi = area.tote.inner_bounds()
-    pts = transform_points(grasp.T_world_gripper, open_finger_points(wc_cfg, round(1000 * (grasp.width + margin))))
+    pts = open_fingers(grasp, wc_cfg, margin)
     corners = transform_points(grasp.T_world_gripper, np.array(list(itertools.product(*zip(*camera)))))
     low = np.concatenate([pts[pts[:, 2] < hi[2], :2], corners[corners[:, 2] < hi[2], :2]])
     return float(np.minimum(low - lo[:2], hi[:2] - low).min(initial=1.0))
 
 
-def choose_squeeze(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], view: HeapView, failed: list[np.ndarray]
+def choose_squeeze(wc: Workcell, cfg: TrialConfig, view: HeapView, failed: list[np.ndarray]
                    ) -> tuple[int, Grasp, np.ndarray]:
-    """The estimate to squeeze along a wall (index), its ``wall_squeezes`` grasp and its levelled ``T_world_obj``:
+    """The estimate of ``view`` to squeeze along a wall (index), its ``wall_squeezes`` grasp and its levelled ``T_world_obj``:
     the highest parts' squeezes whose open hand and camera clear the walls and the other parts, the best the arm
     reaches, none that ``failed`` before; ``EpisodeFailed`` ("nothing graspable", "unreachable") as
     ``planner.choose_part``."""
