@@ -343,3 +343,18 @@ def test_merge_refuses_bad_sources_and_writes_nothing(capsys, copy, tmp_path, ca
     lines = capsys.readouterr().err.strip().splitlines()
     assert rc != 0 and len(lines) == 1 and words in lines[0], lines
     assert snapshot(tmp_path) == before
+
+
+def test_a_pool_of_workers_finds_what_one_process_finds_in_the_same_order(copy):
+    from posegrasp.bop.check import CheckOptions, check_dataset
+
+    for scene in ("train_pbr/000000", "train_pbr/000001"):  # a problem in each scene: a visible pixel count off by one
+        info = json.loads((copy / scene / "scene_gt_info.json").read_text())
+        _first(info)[0]["px_count_visib"] += 1
+        _write(copy / scene / "scene_gt_info.json", info)
+    opts = CheckOptions(model_depth=False)
+    one, pool = (check_dataset(copy, opts=opts, workers=n) for n in (1, 2))
+    assert [p[:16] for p in one.problems] == ["train_pbr/000000"] * 2 + ["train_pbr/000001"] * 2
+    assert pool == one
+    capped = check_dataset(copy, opts=CheckOptions(model_depth=False, max_problems=1), workers=2)
+    assert capped.problems == one.problems[:1] and capped.stopped_early

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+import cv2
 import numpy as np
 
 from posegrasp.bop import images as bop_images, schema as bop_schema
@@ -349,10 +350,10 @@ def write_scene_gt_info(path: str | Path, infos: dict[int, list[GTInfo]]) -> Pat
 
 def _extent(mask: np.ndarray, x0: int = 0, y0: int = 0) -> tuple[int, int, int, int] | None:
     """(x_min, y_min, x_max, y_max) px of a boolean mask's pixels, shifted by (x0, y0); None when empty."""
-    ys, xs = np.nonzero(mask)
-    if ys.size == 0:
+    x, y, w, h = cv2.boundingRect(np.ascontiguousarray(mask, dtype=np.uint8))  # of the non-zero pixels
+    if w == 0:
         return None
-    return int(xs.min()) + x0, int(ys.min()) + y0, int(xs.max()) + x0, int(ys.max()) + y0
+    return x + x0, y + y0, x + w - 1 + x0, y + h - 1 + y0
 
 
 def _box(extents: list[tuple[int, int, int, int] | None]) -> tuple[int, int, int, int]:

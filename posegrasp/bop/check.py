@@ -9,6 +9,7 @@ Every problem is a line naming the file (relative to the dataset root) and what 
 
 from __future__ import annotations
 
+import functools
 import os
 from collections import Counter
 from dataclasses import dataclass, field
@@ -21,9 +22,12 @@ from posegrasp import bop
 from posegrasp.bop import models as bop_models
 from posegrasp.config import settings
 from posegrasp.errors import DatasetError
+from posegrasp.executor import make_executor
 from posegrasp.geometry import invert
 
 HIST_BINS = np.linspace(0.0, 1.0, 11)
+#: Datasets of this many scenes or more are checked by a pool of processes (``check_dataset``'s ``workers``).
+PARALLEL_FROM_SCENES = 8
 #: A translation (mm) shorter than this is taken for one in metres.
 METRES_BELOW_MM = 10.0
 
@@ -45,6 +49,19 @@ class CheckReport:
     visib_fracts: list[float] = field(default_factory=list)
     depth_errors_mm: list[float] = field(default_factory=list)
     stopped_early: bool = False
+    #: Scenes checked, or stopped in, so far (the scenes of ``scenes`` and those whose files did not read).
+    scenes_done: int = 0
+
+    def merge(self, other: "CheckReport", max_problems: int) -> None:
+        """Add ``other``'s findings (of the scenes after this report's), up to ``max_problems`` problems in all."""
+        self.problems.extend(other.problems[:max(max_problems - len(self.problems), 0)])
+        self.scenes += other.scenes
+        self.images += other.images
+        self.instances.update(other.instances)
+        self.visible.update(other.visible)
+        self.visib_fracts.extend(other.visib_fracts)
+        self.depth_errors_mm.extend(other.depth_errors_mm)
+        self.scenes_done += other.scenes_done
 
     @property
     def ok(self) -> bool:
@@ -352,12 +369,32 @@ class _Checker:
                      f"(tolerance {self.opts.depth_tol_mm} mm)")
 
 
+def _scene_report(root: Path, opts: CheckOptions, scene: tuple[str, int]) -> CheckReport:
+    """The report of one scene (split, scene_id) alone: a task of ``check_dataset``'s workers."""
+    c = _Checker(root, opts)
+    c.infos, c.meshes = _models(root, opts)
+    c.scene(*scene, opts.max_images)
+    c.report.scenes_done = 1
+    return c.report
+
+
+@functools.lru_cache(maxsize=1)
+def _models(root: Path, opts: CheckOptions) -> tuple[dict[int, bop.ObjectInfo], dict[int, Any]]:
+    """The models' infos and meshes a scene's check compares with, read once per process (their problems are the
+    dataset-level check's)."""
+    c = _Checker(root, opts)
+    c.models()
+    return c.infos, c.meshes
+
+
 def check_dataset(root: str | Path, split: str | None = None, opts: CheckOptions = CheckOptions(),
-                  progress: bool = False) -> CheckReport:
+                  progress: bool = False, workers: int | None = None) -> CheckReport:
     """Validate the BOP dataset at ``root`` (all splits, or ``split``), as ``opts`` say (what is checked, how many
     images per scene, when the search stops).
 
-    Every file is read as ``train`` and ``eval`` read it; ``progress`` shows a bar over scenes.
+    Every file is read as ``train`` and ``eval`` read it; ``progress`` shows a bar over scenes. The scenes are
+    checked by ``workers`` processes (None: one per core from ``PARALLEL_FROM_SCENES`` scenes on, else this one); the
+    problems and their order do not depend on it.
     """
     from posegrasp.progress import track
 
@@ -380,11 +417,17 @@ def check_dataset(root: str | Path, split: str | None = None, opts: CheckOptions
     if camera is None:
         return c.report
     scenes = [(s, sid) for s in splits for sid in bop.list_scenes(root, s)]
-    for s, sid in track(scenes, "checking scenes", enabled=progress):
-        if c.full:
-            c.report.stopped_early = True
-            break
-        c.scene(s, sid, opts.max_images)
+    n = workers if workers is not None else 1 if len(scenes) < PARALLEL_FROM_SCENES else os.cpu_count() or 1
+    parts: dict[int, CheckReport] = {}
+    with make_executor(min(n, len(scenes)) or 1) as ex:
+        for i, part in track(ex.imap(functools.partial(_scene_report, root, opts), scenes), "checking scenes", len(scenes),
+                             enabled=progress):
+            parts[i] = part
+            while len(c.report.problems) < opts.max_problems and c.report.scenes_done in parts:
+                c.report.merge(parts.pop(c.report.scenes_done), opts.max_problems)
+            if c.full:
+                c.report.stopped_early = c.report.scenes_done < len(scenes)
+                break
     if "test" in splits and not c.full and opts.scoring:
         c.targets("test")
     return c.report
