@@ -369,19 +369,27 @@ class _Checker:
                      f"(tolerance {self.opts.depth_tol_mm} mm)")
 
 
-def _scene_report(root: Path, opts: CheckOptions, scene: tuple[str, int]) -> CheckReport:
-    """The report of one scene (split, scene_id) alone: a task of ``check_dataset``'s workers."""
+def _scene_report(root: Path, opts: CheckOptions, models: tuple, scene: tuple[str, int]) -> CheckReport:
+    """The report of one scene (split, scene_id) alone, ``models`` the folder's ``_models_stamp``: a task of
+    ``check_dataset``'s workers."""
     c = _Checker(root, opts)
-    c.infos, c.meshes = _models(root, opts)
+    c.infos, c.meshes = _models(root, opts, models)
     c.scene(*scene, opts.max_images)
     c.report.scenes_done = 1
     return c.report
 
 
+def _models_stamp(root: Path) -> tuple:
+    """(name, size, mtime) of every file in ``models/``: the key of ``_models``'s cache."""
+    d = bop.models_dir(root)
+    return tuple((p.name, st.st_size, st.st_mtime_ns) for p in sorted(d.iterdir()) if (st := p.stat())) \
+        if d.is_dir() else ()
+
+
 @functools.lru_cache(maxsize=1)
-def _models(root: Path, opts: CheckOptions) -> tuple[dict[int, bop.ObjectInfo], dict[int, Any]]:
-    """The models' infos and meshes a scene's check compares with, read once per process (their problems are the
-    dataset-level check's)."""
+def _models(root: Path, opts: CheckOptions, stamp: tuple) -> tuple[dict[int, bop.ObjectInfo], dict[int, Any]]:
+    """The models' infos and meshes a scene's check compares with, read once per process and state of ``models/``
+    (``stamp``; their problems are the dataset-level check's)."""
     c = _Checker(root, opts)
     c.models()
     return c.infos, c.meshes
@@ -420,8 +428,8 @@ def check_dataset(root: str | Path, split: str | None = None, opts: CheckOptions
     n = workers if workers is not None else 1 if len(scenes) < PARALLEL_FROM_SCENES else os.cpu_count() or 1
     parts: dict[int, CheckReport] = {}
     with make_executor(min(n, len(scenes)) or 1) as ex:
-        for i, part in track(ex.imap(functools.partial(_scene_report, root, opts), scenes), "checking scenes", len(scenes),
-                             enabled=progress):
+        task = functools.partial(_scene_report, root, opts, _models_stamp(root))
+        for i, part in track(ex.imap(task, scenes), "checking scenes", len(scenes), enabled=progress):
             parts[i] = part
             while len(c.report.problems) < opts.max_problems and c.report.scenes_done in parts:
                 c.report.merge(parts.pop(c.report.scenes_done), opts.max_problems)
