@@ -38,7 +38,7 @@ from posegrasp.lock import folder_lock
 from posegrasp.outputs import Record
 from posegrasp.perception import bop19 as B
 from posegrasp.perception import metrics as M
-from posegrasp.perception.data import label_map, load_records
+from posegrasp.perception.data import label_map, load_records, part_map
 from posegrasp.perception.depth_render import DepthRenderer
 from posegrasp.perception.estimator import STAGES, Detection, Estimator, EstimatorConfig
 from posegrasp.perception.guided import GuidedConfig
@@ -203,6 +203,8 @@ class _Tally:
     rows: list[dict[str, Any]] = field(default_factory=list)
     results: list[bop_results.PoseResult] = field(default_factory=list)
     groups: list[B.ObjectErrors] = field(default_factory=list)
+    #: Instance masks (predicted ones only): parts, parts matched, matched whatever the type, detections, matched.
+    inst: np.ndarray = field(default_factory=lambda: np.zeros(5, dtype=np.int64))
 
 
 #: What a method makes of one frame: its detections (each with ``obj_id``, ``T_cam_obj`` 4x4 in metres, camera frame,
@@ -249,12 +251,28 @@ def _tally(method: Method, data: Path, records: list[bop.ImageRecord], infos: di
             tally.times[k].append(v)
         tally.times["total"].append(total)
         tally.rows.extend(_match(rec, gts, dets, pts, infos, gt_masks))
+        if not gt_masks and all(getattr(d, "mask", None) is not None for d in dets):
+            _instances(tally, rec, gts, dets, rgb.shape[:2])
         tally.results.extend(bop_results.PoseResult(rec.scene_id, rec.im_id, d.obj_id, d.score, d.T_cam_obj, total)
                              for d in dets)
         tally.groups.extend(bop19.image(
             depth, K, [B.Truth(g.obj_id, g.T_cam_obj, g.info.visib_fract if g.info else 1.0) for g in rec.instances],
             [B.ScoredPose(d.obj_id, d.score, d.T_cam_obj) for d in dets], targets.get((rec.scene_id, rec.im_id), {})))
     return tally
+
+
+def _instances(tally: _Tally, rec: bop.ImageRecord, gts: list[bop.GTInstance], dets: list[Any],
+               shape: tuple[int, int]) -> None:
+    """Score the detections' masks as instances against the visible parts (``metrics.mask_ious``): the parts ``gts``
+    found (their rows' ``mask_iou``: the best IoU of any detection), the detections that are a part of any."""
+    ious = M.mask_ious(part_map(rec, shape), len(rec.instances), [d.mask for d in dets])  # (D, all parts)
+    same = np.array([[d.obj_id == g.obj_id for g in rec.instances] for d in dets], dtype=bool).reshape(ious.shape)
+    cols = [g.gt_index for g in gts]
+    found, _, found_any = M.instance_scores(ious[:, cols], same[:, cols])
+    tally.inst += (len(gts), found, found_any, len(dets), M.instance_scores(ious, same)[1])
+    best = ious[:, cols].max(axis=0) if len(dets) else np.zeros(len(gts))
+    for row, iou in zip(tally.rows[len(tally.rows) - len(gts):], best):
+        row["mask_iou"] = float(iou)
 
 
 def _estimator_method(weights: str | Path, data: Path, cfg: EvalConfig) -> Method:
@@ -319,6 +337,11 @@ def _score(data: Path, method: Method, out: Path, cfg: EvalConfig, progress: boo
         report["segmentation"] = {"mPA": s["mPA"], "mIoU": s["mIoU"],
                                   "per_class": {str(c): {"PA": _f(s["pa"][c]), "IoU": _f(s["iou"][c])}
                                                 for c in range(nc)}}
+    parts, found, found_any, n_det, n_det_found = (int(x) for x in tally.inst)
+    if parts:
+        report["instances"] = {"iou_above": 0.5, "parts": parts, "detections": n_det,
+                               "recall": 100.0 * found / parts, "recall_any_type": 100.0 * found_any / parts,
+                               "precision": 100.0 * n_det_found / n_det if n_det else float("nan")}
     cols = ["obj_id", "n", "detected", "ADD_AUC", "ADD-S_AUC", "ADD(-S)_AUC", "ADD-S_<2cm", "ADD(-S)_acc_0.1d",
             "mean_ADD", "mean_ADD-S", "median_re_sym_deg", "median_te"]
     scores = B.scores(tally.groups, infos, bop.load_camera(data).width)
@@ -329,7 +352,8 @@ def _score(data: Path, method: Method, out: Path, cfg: EvalConfig, progress: boo
         "per_object.csv": _csv_bytes([{"obj_id": o, **per_object[o]} for o in obj_ids] + [{"obj_id": "all", **overall}],
                                      cols),
         "instances.csv": _csv_bytes(rows, ["scene_id", "im_id", "gt_index", "obj_id", "symmetric", "visib_fract",
-                                           "detected", "score", "add", "adds", "add_or_adds", "re", "re_sym", "te"]),
+                                           "detected", "score", "add", "adds", "add_or_adds", "re", "re_sym", "te",
+                                           "mask_iou"]),
         "curves.png": _curves_png(rows, obj_ids),
         "scores_bop19.json": (pio.dumps_json(pio.jsonable(scores, nan_to_null=True)) + "\n").encode(),
         f"{cfg.method}_{data.resolve().name}-{cfg.split}.csv": bop_results.results_csv(tally.results),
@@ -340,7 +364,8 @@ def _score(data: Path, method: Method, out: Path, cfg: EvalConfig, progress: boo
 #: Keys of eval's reports holding fractions in [0, 1] and percentages in [0, 100] (NaN: nothing to score).
 FRACTION_KEYS = frozenset({"ar", "ar_vsd", "ar_mssd", "ar_mspd"})
 PERCENT_KEYS = frozenset({"detected", "ADD_AUC", "ADD-S_AUC", "ADD(-S)_AUC", "ADD-S_<2cm", "ADD(-S)_acc_0.1d",
-                          "re_sym_<15deg_of_detected", "re_sym_<15deg", "re_sym_AUC_30deg", "mPA", "mIoU", "PA", "IoU"})
+                          "re_sym_<15deg_of_detected", "re_sym_<15deg", "re_sym_AUC_30deg", "mPA", "mIoU", "PA", "IoU",
+                          "recall", "recall_any_type", "precision"})
 
 
 def check_score_ranges(*reports: Any) -> None:

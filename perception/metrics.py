@@ -148,3 +148,27 @@ def segmentation_scores(conf: np.ndarray) -> dict[str, object]:
         "mPA": float(np.nanmean(pa[present]) * 100.0) if present.any() else float("nan"),
         "mIoU": float(np.nanmean(iou) * 100.0) if (union > 0).any() else float("nan"),
     }
+
+
+def mask_ious(parts: np.ndarray, n_parts: int, masks: list[np.ndarray]) -> np.ndarray:
+    """(len(masks), n_parts) IoU of each predicted instance mask (H, W) bool with each ground-truth part of ``parts``
+    (H, W) int (0 none, k the k-th part's visible pixels): |m AND p_k| / |m OR p_k|.
+
+    Visible parts do not overlap, so a mask has IoU > 0.5 with at most one part: at that threshold every match is
+    one to one, as in COCO's and the panoptic quality's instance matching.
+    """
+    sizes = np.bincount(parts.ravel(), minlength=n_parts + 1)[1:].astype(np.float64)
+    out = np.zeros((len(masks), n_parts))
+    for i, m in enumerate(masks):
+        inter = np.bincount(parts[m], minlength=n_parts + 1)[1:].astype(np.float64)
+        union = sizes + float(m.sum()) - inter
+        out[i] = np.divide(inter, union, out=np.zeros(n_parts), where=union > 0)
+    return out
+
+
+def instance_scores(ious: np.ndarray, same_type: np.ndarray, threshold: float = 0.5) -> tuple[int, int, int]:
+    """(ground-truth parts matched, predictions matched, parts matched whatever the type) at IoU > ``threshold``
+    (>= 0.5), from ``mask_ious``'s (P, G) matrix and (P, G) bool ``same_type`` (prediction's type is the part's)."""
+    hit = ious > threshold
+    typed = hit & same_type
+    return int(typed.any(axis=0).sum()), int(typed.any(axis=1).sum()), int(hit.any(axis=0).sum())

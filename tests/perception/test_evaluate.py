@@ -34,6 +34,11 @@ def test_evaluate_writes_reports(tiny_bop, tiny_run, tmp_path):
     on_disk = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert on_disk["overall"]["n"] == rep["overall"]["n"] == 9
     assert 0 <= on_disk["segmentation"]["mIoU"] <= 100
+    inst = on_disk["instances"]
+    assert inst["parts"] == 9 and 0 <= inst["recall"] <= inst["recall_any_type"] <= 100
+    assert (0 <= inst["precision"] <= 100 if inst["detections"] else inst["precision"] is None)
+    assert inst["iou_above"] == 0.5
+    assert "mask_iou" in (tmp_path / "ev" / "instances.csv").read_text().splitlines()[0].split(",")
     assert list(rep["time_per_image_s"]) == ["seg", "cls", "guided", "pose", "refiner", "depth_fit", "split", "total"]
     assert rep["ablation"]["refiner_iterations"] == 2 and rep["ablation"]["classifier"]
     assert rep["time_per_image_s"]["cls"] > 0 and rep["ablation"]["depth_fit"] and rep["ablation"]["plane"]
@@ -54,7 +59,7 @@ def test_evaluate_without_classifier(tiny_bop, tiny_run, tmp_path):
 @pytest.mark.slow
 def test_evaluate_gt_masks_without_the_refiner(tiny_bop, tiny_run, tmp_path):
     rep = evaluate(tiny_bop, tiny_run, tmp_path / "ev", EvalConfig(masks="gt", refiner_iterations=0), progress=False)
-    assert rep["overall"]["detected"] == 100.0 and rep["segmentation"] is None
+    assert rep["overall"]["detected"] == 100.0 and rep["segmentation"] is None and "instances" not in rep
     assert rep["ablation"]["refiner_iterations"] == 0 and rep["time_per_image_s"]["refiner"] == 0.0
     assert rep["time_per_image_s"]["depth_fit"] > 0  # every estimate fitted to the depth image
     assert np.isfinite(rep["overall"]["mean_ADD-S"])

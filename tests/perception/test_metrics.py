@@ -78,3 +78,16 @@ def test_rotation_error_up_to_symmetry():
     assert m.rotation_error_sym_deg(R_e, R_g, [flip_z]) == pytest.approx(0.0, abs=1e-6)
     spun = R_g @ axis_angle_R(np.array([0.0, 0.0, 1.0]), 1.0) @ axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(5))
     assert m.rotation_error_sym_deg(spun, R_g, [], [np.array([0.0, 0.0, 1.0])]) == pytest.approx(5.0, abs=1e-6)
+
+
+def test_instance_masks_match_one_to_one_above_half_iou():
+    parts = np.zeros((4, 6), dtype=np.int64)
+    parts[:, :3], parts[:, 3:] = 1, 2  # two parts of 12 px side by side
+    whole_1 = parts == 1
+    most_2 = np.zeros_like(whole_1)
+    most_2[:3, 3:] = True  # 9 of part 2's 12 px
+    merged = parts > 0  # both parts as one mask: IoU 0.5 with each, no match
+    ious = m.mask_ious(parts, 2, [whole_1, most_2, merged])
+    np.testing.assert_allclose(ious, [[1.0, 0.0], [0.0, 0.75], [0.5, 0.5]])
+    same = np.array([[True, False], [False, False], [True, True]])  # most_2 has part 2's pixels, another type
+    assert m.instance_scores(ious, same) == (1, 1, 2)
