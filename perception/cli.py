@@ -104,6 +104,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--no-guided", action="store_true",
                    help="ablation: class-map outlines not snapped to colour edges (guided filter)")
     e.add_argument("--no-split", action="store_true", help="ablation: merged segments not split by the fitted models")
+    e.add_argument("--no-type-check", action="store_true",
+                   help="ablation: a part's type is the classifier's alone, not checked by fits of its likely types")
     e.add_argument("--max-images", type=positive_int("--max-images"), help="evaluate at most this many images")
     e.add_argument("--threads", type=positive_int("--threads"), help="torch CPU threads (default 2; the grasp "
                    "trials' estimator runs 1, and its scores can differ in the last digits with more)")
@@ -161,7 +163,8 @@ def eval_settings(args: argparse.Namespace) -> EvalConfig:
                     masks="gt" if args.gt_masks else None, refiner_iterations=0 if args.no_refiner else None,
                     classify=False if args.no_cls else None, depth_fit=False if args.no_depth_fit else None,
                     plane=False if args.no_plane else None,
-                    guided=False if args.no_guided else None, split_merged=False if args.no_split else None)
+                    guided=False if args.no_guided else None, split_merged=False if args.no_split else None,
+                    type_check=False if args.no_type_check else None)
 
 
 def print_eval_summary(out: Path, report: dict) -> None:

@@ -44,19 +44,25 @@ class ClassifierEnsemble:
                                "one")
         return cls(models, dataclasses.replace(cfgs[0], height_range=heights[0] if heights else 0.0))
 
-    @torch.no_grad()
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
                  plane: np.ndarray | None) -> list[tuple[int, float] | None]:
-        """(obj_id, probability) of each mask (H, W) bool, in order, all crops as one batch; None where the mask lacks
-        the valid depth for a crop. plane: the supporting plane for the height channel (None: heights 0)."""
+        """(obj_id, probability) of each mask's most probable class (``probabilities``)."""
+        return [None if p is None else (self.cfg.obj_ids[int(p.argmax())], float(p.max()))
+                for p in self.probabilities(rgb, depth, K, masks, plane)]
+
+    @torch.no_grad()
+    def probabilities(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
+                      plane: np.ndarray | None) -> list[np.ndarray | None]:
+        """The members' mean class probabilities (n,) (order ``cfg.obj_ids``) of each mask (H, W) bool, all crops as
+        one batch; None where the mask lacks the valid depth for a crop. plane: the supporting plane for the height
+        channel (None: heights 0)."""
         cfg = self.cfg
         crops = [prepare_cls_input(rgb, depth, K, m, cfg, plane) for m in masks]
         ok = [i for i, x in enumerate(crops) if x is not None]
-        out: list[tuple[int, float] | None] = [None] * len(masks)
+        out: list[np.ndarray | None] = [None] * len(masks)
         if ok:
             x = torch.from_numpy(np.stack([normalize_cls_input(crops[i]) for i in ok]))  # (S, C, size, size)
             prob = torch.stack([torch.softmax(m(x[:, :m.cfg.in_channels]), dim=1) for m in self.models])  # (M, S, n)
-            pmax, k = prob.mean(dim=0).max(dim=1)  # (S,)
-            for i, kk, pp in zip(ok, k.tolist(), pmax.tolist()):
-                out[i] = (cfg.obj_ids[kk], pp)
+            for i, p in zip(ok, prob.mean(dim=0).numpy()):
+                out[i] = p
         return out

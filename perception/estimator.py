@@ -46,6 +46,7 @@ from posegrasp.perception.runtime import for_inference, with_one_blas_thread
 from posegrasp.perception.segmenter import Segmenter
 from posegrasp.perception.split import SplitConfig, unexplained_parts
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
+from posegrasp.perception.type_check import TypeCheckConfig, candidates, choose
 
 #: The pose net's points per object and crop side (px) when its estimates are fitted to the depth image.
 DEPTH_FIT_POSE_INPUT = (250, 48)
@@ -79,7 +80,9 @@ class EstimatorConfig:
     #: With ``models``: a mask's part its fitted model leaves unexplained becomes a detection of its own.
     split: SplitConfig = field(default_factory=SplitConfig)
     #: With a seg net that has a seam head: pixels of a higher seam probability cut the parts apart.
-    seam_threshold: float = field(default=0.25, metadata=within(0, 1))
+    seam_threshold: float = field(default=0.15, metadata=within(0, 1))
+    #: With ``models``, a seam head and the classifier: a part of uncertain type is fitted as each likely type.
+    type_check: TypeCheckConfig = field(default_factory=TypeCheckConfig)
     #: Once the poses are fitted, the masks' outlines are snapped to the colour image's edges.
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     #: Depth points per object for the pose net; unset: 250 with ``models``, else as in the net's training.
@@ -156,6 +159,7 @@ class Estimator:
         self.support_plane, self.plane_cfg = cfg.support_plane, PlaneConfig()
         self.split_cfg = cfg.split
         self.guided_cfg = cfg.guided
+        self.type_check_cfg = cfg.type_check
         self.seam_threshold = cfg.seam_threshold
         self.objects: dict[int, ObjectModel] = {}  # by obj_id; empty without ``models``
         if cfg.models is not None:
@@ -191,14 +195,15 @@ class Estimator:
         carries the very mask array it was given. plane: the supporting plane for the depth fit
         (fitted here when None and ``support_plane`` is on). Returns the detections and the seconds spent on
         stages ``pose``, ``refiner`` and ``depth_fit``."""
-        _, dets, stages = self._estimate(rgb, depth, K, masks, mask_scores, plane)
+        _, dets, stages, _ = self._estimate(rgb, depth, K, masks, mask_scores, plane)
         return dets, stages
 
     @torch.no_grad()
     def _estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
                   mask_scores: list[float] | None, plane: np.ndarray | None
-                  ) -> tuple[list[int], list[Detection], dict[str, float]]:
-        """``estimate``, and first the index in ``masks`` of each detection's mask."""
+                  ) -> tuple[list[int], list[Detection], dict[str, float], list[float] | None]:
+        """``estimate``, and first the index in ``masks`` of each detection's mask, last each detection's depth fit
+        score (m; None without the depth fit)."""
         t0 = time.perf_counter()
         if plane is None and self.support_plane and self.objects and masks:  # the plane the masks' objects rest on
             plane = fit_support_plane(depth, K, self.seed, self.plane_cfg, np.any([m for _, m in masks], axis=0))
@@ -216,7 +221,7 @@ class Estimator:
             items.append(prep)
             kept.append(k)
         if not items:
-            return [], [], {"pose": time.perf_counter() - t0, "refiner": 0.0, "depth_fit": 0.0}
+            return [], [], {"pose": time.perf_counter() - t0, "refiner": 0.0, "depth_fit": 0.0}, None
         img = torch.from_numpy(np.stack([i[0] for i in items]))  # (B, 3, S, S)
         choose = torch.from_numpy(np.stack([i[1] for i in items]))  # (B, N)
         points = torch.from_numpy(np.stack([i[2] for i in items]))  # (B, N, 3)
@@ -227,18 +232,19 @@ class Estimator:
         if self.refiner_iterations > 0 and self.refiner is not None:
             T = refine(self.refiner, T, points, emb, obj, self.refiner_iterations)
             t2 = time.perf_counter()
-        poses = [T[j].double().numpy() for j in range(len(kept))]
+        poses, fit = [T[j].double().numpy() for j in range(len(kept))], None
         if self.objects:
-            poses = self._depth_fit(poses, [masks[k] for k in kept], depth, K, rng, plane)
+            poses, fit = self._depth_fit(poses, [masks[k] for k in kept], depth, K, rng, plane)
         out = [Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, mask=masks[k][1],
                          score=float((1.0 if mask_scores is None else mask_scores[k]) * float(conf[j])))
                for j, (k, T_j) in enumerate(zip(kept, poses))]
-        return kept, out, {"pose": t1 - t0, "refiner": t2 - t1, "depth_fit": time.perf_counter() - t2}
+        return kept, out, {"pose": t1 - t0, "refiner": t2 - t1, "depth_fit": time.perf_counter() - t2}, fit
 
     def _depth_fit(self, poses: list[np.ndarray], masks: list[tuple[int, np.ndarray]], depth: np.ndarray,
-                   K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None) -> list[np.ndarray]:
+                   K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None
+                   ) -> tuple[list[np.ndarray], list[float]]:
         """``perception.depth_fit.fit_poses`` of the estimates (4x4 each) on (up to ``depth_fit.fit.max_points`` of)
-        their masks' valid depth points (obj_id, (H, W) bool each)."""
+        their masks' valid depth points (obj_id, (H, W) bool each): the fitted poses and their scores (m)."""
         max_points = self.depth_fit_cfg.fit.max_points
         observed = []
         for _, m in masks:  # (each mask has valid depth: ``estimate`` keeps no other)
@@ -248,7 +254,8 @@ class Estimator:
                 idx = idx[np.sort(rng.choice(idx.size, max_points, replace=False))]
             observed.append(backproject(depth, K, box, idx))
         models = [self.objects[o] for o, _ in masks]
-        return [T for T, _ in fit_poses(poses, models, observed, depth, K, self.depth_fit_cfg, plane)]
+        fitted = fit_poses(poses, models, observed, depth, K, self.depth_fit_cfg, plane)
+        return [T for T, _ in fitted], [s for _, s in fitted]
 
     @with_one_blas_thread
     @torch.no_grad()
@@ -270,18 +277,24 @@ class Estimator:
 
     def _classify_parts(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[tuple[int, np.ndarray]],
                         labels: np.ndarray, plane: np.ndarray | None
-                        ) -> tuple[list[tuple[int, np.ndarray]], np.ndarray, np.ndarray]:
+                        ) -> tuple[list[tuple[int, np.ndarray]], np.ndarray, np.ndarray, list[list[tuple[int, float]]]]:
         """``classify`` for parts (class, mask (H, W) bool) already cut apart: each re-typed by the instance
         classifier (a part it calls "not a block" dropped; one without a crop keeps its type at confidence 0).
-        Returns the parts, the class map (H, W) with their new types and the per-pixel confidence (H, W) float32."""
-        labels, conf, out = labels.copy(), np.zeros(labels.shape, dtype=np.float32), []
-        for (c, m), typed in zip(parts, self._classify_masks(rgb, depth, K, [m for _, m in parts], plane)):
-            if typed is not None:
-                c = typed[0]
-                labels[m], conf[m] = typed
+        Returns the parts, the class map (H, W) with their new types, the per-pixel confidence (H, W) float32 and
+        each part's candidate types (obj_id, probability) for the type check, its type first."""
+        labels, conf, out, cands = labels.copy(), np.zeros(labels.shape, dtype=np.float32), [], []
+        if self.classifier.cfg.height_range > 0 and plane is None:
+            plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
+        ids = list(self.classifier.cfg.obj_ids)
+        for (c, m), prob in zip(parts, self.classifier.probabilities(rgb, depth, K, [m for _, m in parts], plane)):
+            typed = [(c, 0.0)] if prob is None else candidates(prob, ids, self.type_check_cfg)
+            if prob is not None:
+                c = typed[0][0]
+                labels[m], conf[m] = typed[0]
             if c:
                 out.append((c, m))
-        return out, labels, conf
+                cands.append(typed)
+        return out, labels, conf, cands
 
     def _classify_masks(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
                         plane: np.ndarray | None) -> list[tuple[int, float] | None]:
@@ -300,11 +313,11 @@ class Estimator:
         if self.support_plane:  # segmented pixels lying on the table become background
             labels, plane = clear_plane(labels, depth, K, self.seed, self.plane_cfg)
         t1 = time.perf_counter()
-        conf, t_cls = None, 0.0
+        conf, t_cls, cands = None, 0.0, None
         if seams is not None:  # parts cut apart along the seams, then typed one by one
             parts = seam_components(labels, seams > self.seam_threshold, self.min_valid_points)
             if self.classifier is not None:
-                parts, labels, conf = self._classify_parts(rgb, depth, K, parts, labels, plane)
+                parts, labels, conf, cands = self._classify_parts(rgb, depth, K, parts, labels, plane)
         else:
             if self.classifier is not None:
                 labels, conf = self.classify(rgb, depth, K, labels, plane)
@@ -320,7 +333,10 @@ class Estimator:
             s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
             scores.append(float(s.mean()))
         timings = {"seg": time.perf_counter() - t0 - t_cls, "cls": t_cls}
-        dets, stages = self.estimate(rgb, depth, K, masks, scores, plane)
+        if cands is not None and self.objects and any(len(c) > 1 for c in cands):
+            dets, stages, labels = self.check_types(rgb, depth, K, parts, cands, prob, plane, labels)
+        else:
+            dets, stages = self.estimate(rgb, depth, K, masks, scores, plane)
         t4 = time.perf_counter()
         if self.objects and self.split_cfg.rounds > 0:
             dets, labels = self.split_merged(rgb, depth, K, dets, prob, plane, labels)
@@ -354,6 +370,32 @@ class Estimator:
             out.append(dataclasses.replace(d, mask=mask))
         return out, labels
 
+    def check_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[tuple[int, np.ndarray]],
+                    cands: list[list[tuple[int, float]]], prob: np.ndarray, plane: np.ndarray | None,
+                    labels: np.ndarray) -> tuple[list[Detection], dict[str, float], np.ndarray]:
+        """``perception.type_check``: each part (obj_id, mask (H, W) bool) estimated and fitted as each of its
+        candidate types (obj_id, classifier probability) in one batch, and kept as the best. Returns the detections,
+        the seconds per stage (as ``estimate``) and the class map (H, W) with the parts' chosen types (a copy)."""
+        masks, scores, owner = [], [], []
+        for i, ((_, m), typed) in enumerate(zip(parts, cands)):
+            fg = 1.0 - prob[..., 0][m]
+            for obj_id, p in typed:
+                if obj_id in self.obj_ids and obj_id < prob.shape[-1]:
+                    masks.append((obj_id, m))
+                    scores.append(float((fg * np.float32(p)).mean()))
+                    owner.append(i)
+        kept, fitted, stages, fit = self._estimate(rgb, depth, K, masks, scores, plane)
+        by_part: dict[int, list[int]] = {}
+        for j, k in enumerate(kept):
+            by_part.setdefault(owner[k], []).append(j)
+        labels, dets = labels.copy(), []
+        for i, js in by_part.items():
+            probs = [dict(cands[i])[fitted[j].obj_id] for j in js]
+            d = fitted[js[choose([fit[j] for j in js], probs, self.type_check_cfg)]]
+            labels[parts[i][1]] = d.obj_id
+            dets.append(d)
+        return dets, stages, labels
+
     @with_one_blas_thread
     def split_merged(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection],
                      prob: np.ndarray, plane: np.ndarray | None, labels: np.ndarray
@@ -384,7 +426,7 @@ class Estimator:
                 groups.append((d, len(masks), ps, [o for o, _ in types]))  # the rest's mask at that index, then ps
                 masks += [(d.obj_id, rest)] + [(o, p) for p, (o, _) in zip(ps, types)]
                 scores += [d.score] + [float((1.0 - prob[..., 0][p]).mean()) * pc for p, (_, pc) in zip(ps, types)]
-            kept, fits, _ = self._estimate(rgb, depth, K, masks, scores, plane)
+            kept, fits, _, _ = self._estimate(rgb, depth, K, masks, scores, plane)
             fitted = dict(zip(kept, fits))  # index in masks -> its detection
             labels = labels.copy()
             for d, i, ps, types in groups:

@@ -43,6 +43,7 @@ from posegrasp.perception.depth_render import DepthRenderer
 from posegrasp.perception.estimator import STAGES, Detection, Estimator, EstimatorConfig
 from posegrasp.perception.guided import GuidedConfig
 from posegrasp.perception.split import SplitConfig
+from posegrasp.perception.type_check import TypeCheckConfig
 
 RE_THRESHOLDS = np.linspace(0.0, 30.0, 61)  # degrees
 TE_THRESHOLDS = np.linspace(0.0, 0.05, 51)  # metres
@@ -77,6 +78,8 @@ class EvalConfig:
     guided: bool = True
     #: Split off the parts of a mask its fitted model leaves unexplained; needs `depth_fit` (`--no-split`).
     split_merged: bool = True
+    #: Fit a part of uncertain type as each likely type; needs `depth_fit` (`--no-type-check`).
+    type_check: bool = True
     #: Ground-truth instances less visible are not evaluated (BOP: 0.1).
     min_visib_fract: float = field(default=0.1, metadata=within(0, 1))
     #: Objects with fewer valid-depth pixels in their mask are skipped.
@@ -105,7 +108,8 @@ class EvalConfig:
             min_valid_points=self.min_valid_points, threads=self.threads, seed=self.seed,
             classify=None if self.classify else False, models=models if self.depth_fit else None,
             support_plane=self.plane, split=SplitConfig() if self.split_merged else SplitConfig(rounds=0),
-            guided=GuidedConfig() if self.guided else GuidedConfig(radius=0))
+            guided=GuidedConfig() if self.guided else GuidedConfig(radius=0),
+            type_check=TypeCheckConfig() if self.type_check else TypeCheckConfig(weight=0.0))
 
 
 def _summary(rows: list[dict[str, Any]], diameter: float | None) -> dict[str, float]:
@@ -292,7 +296,8 @@ def _estimator_method(weights: str | Path, data: Path, cfg: EvalConfig) -> Metho
             "ablation": {"pam": pose_cfg.use_pam, "cam": pose_cfg.use_cam, "gfem": pose_cfg.use_gfem,
                          "refiner_iterations": est.refiner_iterations, "masks": cfg.masks,
                          "classifier": est.classifier is not None and cfg.masks == "pred", "depth_fit": cfg.depth_fit,
-                         "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.depth_fit}}
+                         "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.depth_fit,
+                         "type_check": cfg.type_check and cfg.depth_fit}}
     return Method(run, list(est.obj_ids), STAGES, est.seg_cfg.num_classes, head)
 
 

@@ -199,3 +199,27 @@ def test_a_seg_net_with_a_seam_head_cuts_its_segments_along_the_seams(tiny_bop, 
         found[seams] = [(d.obj_id, d.mask.tobytes()) for d in
                         Estimator(run, EstimatorConfig(classify=False))(rgb, depth, K).detections]
     assert len(found[None]) == 1 and found[-1e4] == found[None] and found[1e4] == []
+
+
+@pytest.mark.slow
+def test_the_type_check_corrects_a_classifier_that_is_unsure_and_wrong(tiny_bop, tiny_run):
+    """Each true mask offered as the wrong type at p 0.6 and its own at 0.4: the fits of the two types tell the
+    parts apart (a cylinder against an L or a box), so the check keeps the true types; with the classifier's belief
+    weighed beyond any fit it keeps the wrong ones. The class map follows the chosen types."""
+    from posegrasp.perception.type_check import TypeCheckConfig
+
+    rec, rgb, depth, K = _frame(tiny_bop)
+    parts = [(g.obj_id, rec.load_mask(g.gt_index)) for g in rec.instances]
+    wrong = {1: 2, 2: 3, 3: 2}
+    cands = [[(wrong[o], 0.6), (o, 0.4)] for o, _ in parts]
+    prob = np.zeros((*depth.shape, 4), dtype=np.float32)
+    labels = np.zeros(depth.shape, dtype=np.int64)
+    chosen = {}
+    for weight in (0.001, 1.0):
+        est = Estimator(tiny_run, EstimatorConfig(models=tiny_bop, type_check=TypeCheckConfig(weight=weight)))
+        dets, stages, new = est.check_types(rgb, depth, K, parts, cands, prob, None, labels)
+        assert list(stages) == ["pose", "refiner", "depth_fit"] and len(dets) == len(parts)
+        assert all(np.all(new[d.mask] == d.obj_id) for d in dets) and not labels.any()
+        chosen[weight] = [d.obj_id for d in dets]
+    assert chosen[0.001] == [o for o, _ in parts]
+    assert chosen[1.0] == [wrong[o] for o, _ in parts]
