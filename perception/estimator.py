@@ -46,7 +46,7 @@ from posegrasp.perception.runtime import for_inference, with_one_blas_thread
 from posegrasp.perception.segmenter import Segmenter
 from posegrasp.perception.split import SplitConfig, unexplained_parts
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
-from posegrasp.perception.type_check import TypeCheckConfig, candidates, choose
+from posegrasp.perception.type_check import TypeCheckConfig, best_per_part, candidates
 
 #: The pose net's points per object and crop side (px) when its estimates are fitted to the depth image.
 DEPTH_FIT_POSE_INPUT = (250, 48)
@@ -157,9 +157,7 @@ class Estimator:
         self.seed = cfg.seed
         self.depth_fit_cfg = cfg.depth_fit
         self.support_plane, self.plane_cfg = cfg.support_plane, PlaneConfig()
-        self.split_cfg = cfg.split
-        self.guided_cfg = cfg.guided
-        self.type_check_cfg = cfg.type_check
+        self.split_cfg, self.guided_cfg, self.type_check_cfg = cfg.split, cfg.guided, cfg.type_check
         self.seam_threshold = cfg.seam_threshold
         self.objects: dict[int, ObjectModel] = {}  # by obj_id; empty without ``models``
         if cfg.models is not None:
@@ -209,13 +207,15 @@ class Estimator:
             plane = fit_support_plane(depth, K, self.seed, self.plane_cfg, np.any([m for _, m in masks], axis=0))
         rng = np.random.default_rng(self.seed)
         cfg = self.pose_cfg
-        items, kept = [], []
+        items, kept, preps = [], [], {}  # preps: by mask, for a mask given as several types
         for k, (obj_id, mask) in enumerate(masks):
             box = padded_box(mask, 0)
             if obj_id not in cfg.obj_ids or box is None or \
                     int((mask[box] & (depth[box] > 0)).sum()) < self.min_valid_points:
                 continue
-            prep = prepare_pose_input(rgb, depth, K, mask, self.pose_points, self.pose_crop, rng)
+            if id(mask) not in preps:
+                preps[id(mask)] = prepare_pose_input(rgb, depth, K, mask, self.pose_points, self.pose_crop, rng)
+            prep = preps[id(mask)]
             if prep is None:
                 continue
             items.append(prep)
@@ -246,13 +246,16 @@ class Estimator:
         """``perception.depth_fit.fit_poses`` of the estimates (4x4 each) on (up to ``depth_fit.fit.max_points`` of)
         their masks' valid depth points (obj_id, (H, W) bool each): the fitted poses and their scores (m)."""
         max_points = self.depth_fit_cfg.fit.max_points
-        observed = []
+        seen: dict[int, np.ndarray] = {}  # one mask given as several types: one set of points, one part
         for _, m in masks:  # (each mask has valid depth: ``estimate`` keeps no other)
+            if id(m) in seen:
+                continue
             r0, r1, c0, c1 = box = mask_bbox(m)
             idx = np.flatnonzero(m[r0:r1, c0:c1] & (depth[r0:r1, c0:c1] > 0))  # raster order, as in the image
             if idx.size > max_points:
                 idx = idx[np.sort(rng.choice(idx.size, max_points, replace=False))]
-            observed.append(backproject(depth, K, box, idx))
+            seen[id(m)] = backproject(depth, K, box, idx)
+        observed = [seen[id(m)] for _, m in masks]
         models = [self.objects[o] for o, _ in masks]
         fitted = fit_poses(poses, models, observed, depth, K, self.depth_fit_cfg, plane)
         return [T for T, _ in fitted], [s for _, s in fitted]
@@ -283,9 +286,7 @@ class Estimator:
         Returns the parts, the class map (H, W) with their new types, the per-pixel confidence (H, W) float32 and
         each part's candidate types (obj_id, probability) for the type check, its type first."""
         labels, conf, out, cands = labels.copy(), np.zeros(labels.shape, dtype=np.float32), [], []
-        if self.classifier.cfg.height_range > 0 and plane is None:
-            plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
-        ids = list(self.classifier.cfg.obj_ids)
+        ids, plane = list(self.classifier.cfg.obj_ids), self._cls_plane(depth, K, plane)
         for (c, m), prob in zip(parts, self.classifier.probabilities(rgb, depth, K, [m for _, m in parts], plane)):
             typed = [(c, 0.0)] if prob is None else candidates(prob, ids, self.type_check_cfg)
             if prob is not None:
@@ -299,9 +300,12 @@ class Estimator:
     def _classify_masks(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
                         plane: np.ndarray | None) -> list[tuple[int, float] | None]:
         """The ensemble's (obj_id, probability) of each mask; plane: for the height channel (fitted here when None)."""
-        if self.classifier.cfg.height_range > 0 and plane is None:
-            plane = fit_support_plane(depth, K, self.seed, self.plane_cfg)
-        return self.classifier(rgb, depth, K, masks, plane)
+        return self.classifier(rgb, depth, K, masks, self._cls_plane(depth, K, plane))
+
+    def _cls_plane(self, depth: np.ndarray, K: np.ndarray, plane: np.ndarray | None) -> np.ndarray | None:
+        """The plane for a classifier with the height channel: ``plane``, or fitted here when None."""
+        fit = self.classifier.cfg.height_range > 0 and plane is None
+        return fit_support_plane(depth, K, self.seed, self.plane_cfg) if fit else plane
 
     @with_one_blas_thread
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> EstimateResult:
@@ -376,7 +380,7 @@ class Estimator:
         """``perception.type_check``: each part (obj_id, mask (H, W) bool) estimated and fitted as each of its
         candidate types (obj_id, classifier probability) in one batch, and kept as the best. Returns the detections,
         the seconds per stage (as ``estimate``) and the class map (H, W) with the parts' chosen types (a copy)."""
-        masks, scores, owner = [], [], []
+        masks, scores, owner, probs = [], [], [], []
         for i, ((_, m), typed) in enumerate(zip(parts, cands)):
             fg = 1.0 - prob[..., 0][m]
             for obj_id, p in typed:
@@ -384,16 +388,12 @@ class Estimator:
                     masks.append((obj_id, m))
                     scores.append(float((fg * np.float32(p)).mean()))
                     owner.append(i)
+                    probs.append(p)
         kept, fitted, stages, fit = self._estimate(rgb, depth, K, masks, scores, plane)
-        by_part: dict[int, list[int]] = {}
-        for j, k in enumerate(kept):
-            by_part.setdefault(owner[k], []).append(j)
-        labels, dets = labels.copy(), []
-        for i, js in by_part.items():
-            probs = [dict(cands[i])[fitted[j].obj_id] for j in js]
-            d = fitted[js[choose([fit[j] for j in js], probs, self.type_check_cfg)]]
-            labels[parts[i][1]] = d.obj_id
-            dets.append(d)
+        best = best_per_part([owner[k] for k in kept], fit or [], [probs[k] for k in kept], self.type_check_cfg)
+        dets, labels = [fitted[j] for j in best], labels.copy()
+        for d in dets:
+            labels[d.mask] = d.obj_id
         return dets, stages, labels
 
     @with_one_blas_thread

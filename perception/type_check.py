@@ -48,3 +48,13 @@ def choose(fit_scores: list[float], probs: list[float], cfg: TypeCheckConfig) ->
     ties."""
     cost = np.asarray(fit_scores, dtype=float) - cfg.weight * np.log(np.maximum(probs, 1e-6))
     return int(np.argmin(cost))
+
+
+def best_per_part(parts: list[int], fit_scores: list[float], probs: list[float], cfg: TypeCheckConfig) -> list[int]:
+    """Of fits j, each of part ``parts[j]`` posed as one of its candidate types (fit score ``fit_scores[j]`` (m), the
+    classifier's probability ``probs[j]`` of that type), the index of each part's best (``choose``), in the order the
+    parts first appear."""
+    by_part: dict[int, list[int]] = {}
+    for j, i in enumerate(parts):
+        by_part.setdefault(i, []).append(j)
+    return [js[choose([fit_scores[j] for j in js], [probs[j] for j in js], cfg)] for js in by_part.values()]

@@ -61,13 +61,13 @@ SUPPORT_HEIGHTS = 16
 
 def supports(models: list[ObjectModel], observed: list[np.ndarray], plane: np.ndarray) -> torch.Tensor:
     """(O, 1 + SUPPORT_HEIGHTS) heights (m) above the plane (4,: n . x + d = 0, camera frame) on which each object
-    may rest: 0 (the plane), then the heights of the other objects' observed points (N_o, 3 each, camera frame, m) that
+    may rest: 0 (the plane), then the heights of the other parts' observed points (N_o, 3 each, camera frame, m) that
     lie within the object's bounding radius of its own points' centroid along the plane, as quantiles (0 where there
     are none): a part lying on other parts rests on their seen surfaces, not on the plane."""
     out = np.zeros((len(models), 1 + SUPPORT_HEIGHTS), dtype=np.float32)
     n, d = plane[:3], plane[3]
     for o, (x, p) in enumerate(zip(models, observed)):
-        others = [q for j, q in enumerate(observed) if j != o and len(q)]
+        others = [q for q in observed if q is not p and len(q)]  # (one array given twice: one part, two types)
         if not others or not len(p):
             continue
         q = np.concatenate(others) - np.mean(p, axis=0)

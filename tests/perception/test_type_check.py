@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from posegrasp.errors import ConfigError
-from posegrasp.perception.type_check import TypeCheckConfig, candidates, choose
+from posegrasp.perception.type_check import TypeCheckConfig, best_per_part, candidates, choose
 
 
 def test_candidates_are_the_likely_types_most_probable_first_and_never_not_a_block():
@@ -25,6 +25,10 @@ def test_choose_weighs_the_fit_against_the_classifier():
     assert choose([0.0023, 0.002], [0.6, 0.4], cfg) == 0  # 0.00281 against 0.00292
     assert choose([0.0023, 0.002], [0.6, 0.4], TypeCheckConfig(weight=0.0)) == 1
     assert choose([0.002, 0.002], [0.5, 0.5], cfg) == 0  # ties: the first
+
+    # parts 7 and 3, fitted as two types and one: each part's best, in the order the parts first appear
+    assert best_per_part([7, 3, 7], [0.004, 0.009, 0.002], [0.6, 1.0, 0.4], cfg) == [2, 1]
+    assert best_per_part([7, 3, 7], [0.004, 0.009, 0.002], [0.6, 1.0, 0.4], TypeCheckConfig(weight=1.0)) == [0, 1]
 
 
 def test_settings_are_checked():
