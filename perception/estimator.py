@@ -328,18 +328,18 @@ class Estimator:
             parts = segment_components(labels, self.min_valid_points)
         if self.classifier is not None:
             t_cls = time.perf_counter() - t1
-        masks, scores = [], []
-        for obj_id, m in parts:
-            if obj_id not in self.obj_ids or obj_id >= prob.shape[-1]:
-                continue
-            masks.append((obj_id, m))
-            # foreground probability x the classifier's confidence, or the seg net's class probability
-            s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
-            scores.append(float(s.mean()))
         timings = {"seg": time.perf_counter() - t0 - t_cls, "cls": t_cls}
         if cands is not None and self.objects and any(len(c) > 1 for c in cands):
             dets, stages, labels = self.check_types(rgb, depth, K, parts, cands, prob, plane, labels)
         else:
+            masks, scores = [], []
+            for obj_id, m in parts:
+                if obj_id not in self.obj_ids or obj_id >= prob.shape[-1]:
+                    continue
+                masks.append((obj_id, m))
+                # foreground probability x the classifier's confidence, or the seg net's class probability
+                s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
+                scores.append(float(s.mean()))
             dets, stages = self.estimate(rgb, depth, K, masks, scores, plane)
         t4 = time.perf_counter()
         if self.objects and self.split_cfg.rounds > 0:
