@@ -38,15 +38,17 @@ from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.crop import backproject, mask_bbox, padded_box
 from posegrasp.perception.ensemble import ClassifierEnsemble
 from posegrasp.perception.depth_fit import DepthFitConfig, ObjectModel, fit_poses
+from posegrasp.perception.depth_fit.distance_field import distinct
+from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.guided import GuidedConfig, snap_labels
 from posegrasp.perception.inputs import prepare_pose_input, seam_components, segment_components
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from posegrasp.perception.refiner import refine
 from posegrasp.perception.runtime import for_inference, with_one_blas_thread
 from posegrasp.perception.segmenter import Segmenter
-from posegrasp.perception.split import SplitConfig, unexplained_parts
+from posegrasp.perception.split import SplitConfig, drop_duplicates, same_place, unexplained_parts
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
-from posegrasp.perception.type_check import TypeCheckConfig, best_per_part, candidates
+from posegrasp.perception.type_check import TypeCheckConfig, best_per_part, candidates, cost
 
 #: The pose net's points per object and crop side (px) when its estimates are fitted to the depth image.
 DEPTH_FIT_POSE_INPUT = (250, 48)
@@ -198,10 +200,11 @@ class Estimator:
 
     @torch.no_grad()
     def _estimate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[tuple[int, np.ndarray]],
-                  mask_scores: list[float] | None, plane: np.ndarray | None
+                  mask_scores: list[float] | None, plane: np.ndarray | None, rivals: Rivals | None = None
                   ) -> tuple[list[int], list[Detection], dict[str, float], list[float] | None]:
         """``estimate``, and first the index in ``masks`` of each detection's mask, last each detection's depth fit
-        score (m; None without the depth fit)."""
+        score (m; None without the depth fit). ``rivals`` (of ``masks``: one mask given as several types): the pose net
+        runs once per mask, as its first type, and the depth fit drops the trailing types (score inf)."""
         t0 = time.perf_counter()
         if plane is None and self.support_plane and self.objects and masks:  # the plane the masks' objects rest on
             plane = fit_support_plane(depth, K, self.seed, self.plane_cfg, np.any([m for _, m in masks], axis=0))
@@ -222,26 +225,30 @@ class Estimator:
             kept.append(k)
         if not items:
             return [], [], {"pose": time.perf_counter() - t0, "refiner": 0.0, "depth_fit": 0.0}, None
-        img = torch.from_numpy(np.stack([i[0] for i in items]))  # (B, 3, S, S)
-        choose = torch.from_numpy(np.stack([i[1] for i in items]))  # (B, N)
-        points = torch.from_numpy(np.stack([i[2] for i in items]))  # (B, N, 3)
-        obj = torch.tensor([cfg.index_of(masks[k][0]) for k in kept])  # (B,)
+        # rivals (one mask given as several types: one prep) go through the pose net once, as the first of their types
+        run, rows = distinct(items) if rivals else (list(range(len(items))),) * 2
+        img = torch.from_numpy(np.stack([items[j][0] for j in run]))  # (B, 3, S, S)
+        choose = torch.from_numpy(np.stack([items[j][1] for j in run]))  # (B, N)
+        points = torch.from_numpy(np.stack([items[j][2] for j in run]))  # (B, N, 3)
+        obj = torch.tensor([cfg.index_of(masks[kept[j]][0]) for j in run])  # (B,)
         q, t, conf, best, emb = self.pose.predict(img, points, choose, obj)
-        T = make_transform(quat_to_rotmat(q), points[torch.arange(len(kept)), best] + t)  # (B, 4, 4)
+        T = make_transform(quat_to_rotmat(q), points[torch.arange(len(run)), best] + t)  # (B, 4, 4)
         t1 = t2 = time.perf_counter()
         if self.refiner_iterations > 0 and self.refiner is not None:
             T = refine(self.refiner, T, points, emb, obj, self.refiner_iterations)
             t2 = time.perf_counter()
+        T, conf = T[rows], conf[rows]  # (len(kept), 4, 4), (len(kept),)
         poses, fit = [T[j].double().numpy() for j in range(len(kept))], None
         if self.objects:
-            poses, fit = self._depth_fit(poses, [masks[k] for k in kept], depth, K, rng, plane)
+            poses, fit = self._depth_fit(poses, [masks[k] for k in kept], depth, K, rng, plane,
+                                         None if rivals is None else rivals.take(kept))
         out = [Detection(obj_id=int(masks[k][0]), T_cam_obj=T_j, mask=masks[k][1],
                          score=float((1.0 if mask_scores is None else mask_scores[k]) * float(conf[j])))
                for j, (k, T_j) in enumerate(zip(kept, poses))]
         return kept, out, {"pose": t1 - t0, "refiner": t2 - t1, "depth_fit": time.perf_counter() - t2}, fit
 
     def _depth_fit(self, poses: list[np.ndarray], masks: list[tuple[int, np.ndarray]], depth: np.ndarray,
-                   K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None
+                   K: np.ndarray, rng: np.random.Generator, plane: np.ndarray | None, rivals: Rivals | None = None
                    ) -> tuple[list[np.ndarray], list[float]]:
         """``perception.depth_fit.fit_poses`` of the estimates (4x4 each) on (up to ``depth_fit.fit.max_points`` of)
         their masks' valid depth points (obj_id, (H, W) bool each): the fitted poses and their scores (m)."""
@@ -257,7 +264,7 @@ class Estimator:
             seen[id(m)] = backproject(depth, K, box, idx)
         observed = [seen[id(m)] for _, m in masks]
         models = [self.objects[o] for o, _ in masks]
-        fitted = fit_poses(poses, models, observed, depth, K, self.depth_fit_cfg, plane)
+        fitted = fit_poses(poses, models, observed, depth, K, self.depth_fit_cfg, plane, rivals)
         return [T for T, _ in fitted], [s for _, s in fitted]
 
     @with_one_blas_thread
@@ -389,8 +396,10 @@ class Estimator:
                     scores.append(float((fg * np.float32(p)).mean()))
                     owner.append(i)
                     probs.append(p)
-        kept, fitted, stages, fit = self._estimate(rgb, depth, K, masks, scores, plane)
-        best = best_per_part([owner[k] for k in kept], fit or [], [probs[k] for k in kept], self.type_check_cfg)
+        cfg = self.type_check_cfg
+        rivals = Rivals(owner, [cost(p, cfg) for p in probs], cfg.steps_margin, cfg.turns_margin)
+        kept, fitted, stages, fit = self._estimate(rgb, depth, K, masks, scores, plane, rivals)
+        best = best_per_part([owner[k] for k in kept], fit or [], [probs[k] for k in kept], cfg)
         dets, labels = [fitted[j] for j in best], labels.copy()
         for d in dets:
             labels[d.mask] = d.obj_id
@@ -442,27 +451,16 @@ class Estimator:
         return done + dets, labels
 
     def drop_duplicates(self, dets: list[Detection]) -> list[Detection]:
-        """``dets`` without those fitted where a detection of the same type with a larger mask sits: their centres
-        closer than ``split_cfg.duplicate`` x the block's smallest side, which two blocks cannot be (one block
-        seen as two segments, or split in two)."""
-        if self.split_cfg.duplicate <= 0 or not self.objects:  # (the blocks' sizes come with the models)
-            return dets
-        kept: list[Detection] = []
-        for d in sorted(dets, key=lambda d: -int(d.mask.sum())):
-            side = self.objects[d.obj_id].smallest_side
-            if all(k.obj_id != d.obj_id or np.linalg.norm(k.T_cam_obj[:3, 3] - d.T_cam_obj[:3, 3]) >=
-                   self.split_cfg.duplicate * side for k in kept):
-                kept.append(d)
-        return [d for d in dets if any(d is k for k in kept)]
+        """``perception.split.drop_duplicates`` of ``dets`` (with the blocks' sides from the models)."""
+        sides = {o: x.smallest_side for o, x in self.objects.items()}
+        return drop_duplicates(dets, sides, self.split_cfg.duplicate) if self.objects else dets
 
     def _same_block(self, a: Detection, b: Detection) -> bool:
-        """Whether two fitted detections are one block twice: the same type, and the median distance of ``a``'s
-        model points (placed at its pose) to ``b``'s placed surface below ``split_cfg.same_block``."""
-        if a.obj_id != b.obj_id:
-            return False
-        pts = self.objects[a.obj_id].points @ a.T_cam_obj[:3, :3].T + a.T_cam_obj[:3, 3]  # camera frame
-        dist, _ = self.objects[b.obj_id].surface.tree.query((pts - b.T_cam_obj[:3, 3]) @ b.T_cam_obj[:3, :3])
-        return float(np.median(dist)) < self.split_cfg.same_block
+        """Whether two fitted detections are one block twice: the same type, at poses that place it alike
+        (``perception.split.same_place`` within ``split_cfg.same_block``)."""
+        tol = self.split_cfg.same_block
+        return a.obj_id == b.obj_id and same_place(self.objects[a.obj_id].points, a.T_cam_obj,
+                                                   self.objects[b.obj_id].surface, b.T_cam_obj, tol)
 
     def _part_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[np.ndarray],
                     prob: np.ndarray, plane: np.ndarray | None) -> list[tuple[int, float]]:

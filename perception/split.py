@@ -114,3 +114,26 @@ def unexplained_parts(mask: np.ndarray, explained: np.ndarray, depth: np.ndarray
             parts.append(np.zeros_like(mask))
             parts[-1][box] = comp == i
     return parts
+
+
+def same_place(points: np.ndarray, T_a: np.ndarray, surface: ModelSurface, T_b: np.ndarray, tol: float) -> bool:
+    """Whether a model's points (M, 3) (object frame) placed at T_a (4x4, camera frame) lie, in the median, within
+    ``tol`` (m) of the block's ``surface`` placed at T_b: the two poses put one block in one place."""
+    placed = points @ T_a[:3, :3].T + T_a[:3, 3]  # camera frame
+    dist, _ = surface.tree.query((placed - T_b[:3, 3]) @ T_b[:3, :3])
+    return float(np.median(dist)) < tol
+
+
+def drop_duplicates(dets: list, sides: dict[int, float], duplicate: float) -> list:
+    """``dets`` (each with ``obj_id``, ``T_cam_obj`` (4x4, camera frame, m) and ``mask``) without those fitted where a
+    detection of the same type with a larger mask sits: their centres closer than ``duplicate`` x the block's smallest
+    side (``sides``, m, by obj_id), which two blocks cannot be (one block seen as two segments, or split in two);
+    ``duplicate`` 0 drops none. The order is kept."""
+    if duplicate <= 0:
+        return dets
+    kept: list = []
+    for d in sorted(dets, key=lambda d: -int(d.mask.sum())):
+        if all(k.obj_id != d.obj_id or np.linalg.norm(k.T_cam_obj[:3, 3] - d.T_cam_obj[:3, 3]) >=
+               duplicate * sides[d.obj_id] for k in kept):
+            kept.append(d)
+    return [d for d in dets if any(d is k for k in kept)]

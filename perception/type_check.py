@@ -30,6 +30,11 @@ class TypeCheckConfig:
     min_prob: float = field(default=0.05, metadata=within(0, 1))
     #: At most this many types per part, the most probable first.
     max_types: int = field(default=4, metadata=within(1, 1000))
+    #: After the depth fit's first grid steps, a type whose best ranked fit plus cost trails the part's best by more
+    #: than this (m) is fitted no further (``perception.depth_fit.rivals``; inf: every type fitted to the end).
+    steps_margin: float = field(default=0.001, metadata=within(0, float("inf")))
+    #: Likewise after the depth fit's turns (m).
+    turns_margin: float = field(default=0.0005, metadata=within(0, float("inf")))
 
 
 def candidates(prob: np.ndarray, obj_ids: list[int], cfg: TypeCheckConfig) -> list[tuple[int, float]]:
@@ -43,11 +48,15 @@ def candidates(prob: np.ndarray, obj_ids: list[int], cfg: TypeCheckConfig) -> li
     return [(obj_ids[i], float(prob[i])) for i in picked]
 
 
+def cost(prob: float, cfg: TypeCheckConfig) -> float:
+    """The cost (m) of a type of classifier probability ``prob`` added to its fit score: -weight ln prob."""
+    return -cfg.weight * float(np.log(max(prob, 1e-6)))
+
+
 def choose(fit_scores: list[float], probs: list[float], cfg: TypeCheckConfig) -> int:
     """The index of the best candidate: the lowest ``fit_scores`` (m) less ``weight`` x ln ``probs``; the first on
     ties."""
-    cost = np.asarray(fit_scores, dtype=float) - cfg.weight * np.log(np.maximum(probs, 1e-6))
-    return int(np.argmin(cost))
+    return int(np.argmin([s + cost(p, cfg) for s, p in zip(fit_scores, probs)]))
 
 
 def best_per_part(parts: list[int], fit_scores: list[float], probs: list[float], cfg: TypeCheckConfig) -> list[int]:

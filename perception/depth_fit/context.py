@@ -18,9 +18,9 @@ class FitContext:
     points (O, M, 3) (object frame, m; padded far off) valid where ``model_ok`` (O, M); their observed points
     (O, N, 3) (camera frame, m) with ``weights`` (O, N) (0: padding); the depth image (H, W) (m, 0: no depth) and
     intrinsics K (3, 3); the supporting plane (4,: n . x + d = 0, n unit, camera frame) or None; the models' ``grids``
-    and stacked point columns (3, O M) (row o M + j: point j of model o); their rests' ups (O, U, 3) and classes
-    (O, U) (``stacked_rests``) and their symmetries; given the plane, ``supports`` (O, S): heights (m) above it on
-    which each object may rest besides the plane (``supports``; 0 where none)."""
+    and stacked point columns (3, G M) (row u M + j: point j of the u-th distinct grid's model); their rests' ups
+    (O, U, 3) and classes (O, U) (``stacked_rests``) and their symmetries; given the plane, ``supports`` (O, S):
+    heights (m) above it on which each object may rest besides the plane (``supports``; 0 where none)."""
 
     models: torch.Tensor
     model_ok: torch.Tensor
@@ -43,9 +43,10 @@ class FitContext:
         m, m_ok = _padded([x.points for x in models], 1e3)  # padding far off, never a nearest point
         p, p_ok = _padded(observed)
         ups, labels = stacked_rests([x.rests for x in models])
+        grids = Grids([x.grid for x in models], m.shape[1])
         return cls(m, m_ok, p, p_ok.float(), torch.from_numpy(np.asarray(depth, dtype=np.float32)), K,
                    None if plane is None else torch.from_numpy(np.asarray(plane, dtype=np.float32)),
-                   Grids([x.grid for x in models], m.shape[1]), m.reshape(-1, 3).T.contiguous(), ups, labels,
+                   grids, m[grids.first].reshape(-1, 3).T.contiguous(), ups, labels,
                    [x.symmetries for x in models],
                    None if plane is None else supports(models, observed, np.asarray(plane, dtype=np.float64)))
 
@@ -66,15 +67,27 @@ def supports(models: list[ObjectModel], observed: list[np.ndarray], plane: np.nd
     are none): a part lying on other parts rests on their seen surfaces, not on the plane."""
     out = np.zeros((len(models), 1 + SUPPORT_HEIGHTS), dtype=np.float32)
     n, d = plane[:3], plane[3]
-    for o, (x, p) in enumerate(zip(models, observed)):
-        others = [q for q in observed if q is not p and len(q)]  # (one array given twice: one part, two types)
-        if not others or not len(p):
-            continue
-        q = np.concatenate(others) - np.mean(p, axis=0)
-        along = q - (q @ n)[:, None] * n  # the offsets along the plane
-        near = np.einsum("ij,ij->i", along, along) < float(np.max(np.einsum("ij,ij->i", x.points, x.points)))
-        if near.any():
-            out[o, 1:] = np.quantile(q[near] @ n + np.mean(p, axis=0) @ n + d, np.linspace(0.0, 1.0, SUPPORT_HEIGHTS))
+    parts = list({id(p): p for p in observed if len(p)}.values())  # (one array given twice: one part, two types)
+    if len(parts) < 2:
+        return torch.from_numpy(out)
+    e1 = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
+    e1 /= np.linalg.norm(e1)
+    basis = np.stack([e1, np.cross(n, e1)], axis=1)  # (3, 2): spans the plane
+    q = np.concatenate(parts)  # (Q, 3)
+    owner = np.repeat(np.arange(len(parts)), [len(p) for p in parts])  # (Q,)
+    own = {id(p): i for i, p in enumerate(parts)}
+    height = q @ n + d  # (Q,)
+    rows = [o for o, p in enumerate(observed) if len(p)]
+    centre = np.stack([np.mean(observed[o], axis=0) for o in rows]) @ basis  # (O', 2) along the plane
+    along = q @ basis  # (Q, 2)
+    dist2 = (np.einsum("ij,ij->i", centre, centre)[:, None] + np.einsum("ij,ij->i", along, along)[None]
+             - 2.0 * centre @ along.T)  # (O', Q)
+    radius = np.array([models[o].radius for o in rows])
+    near = (dist2 < radius[:, None] ** 2) & (owner[None] != np.array([own[id(observed[o])] for o in rows])[:, None])
+    levels = np.linspace(0.0, 1.0, SUPPORT_HEIGHTS)
+    for o, ok in zip(rows, near):
+        if ok.any():
+            out[o, 1:] = np.quantile(height[ok], levels)
     return torch.from_numpy(out)
 
 

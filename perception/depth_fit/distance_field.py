@@ -64,8 +64,9 @@ class Fields:
     (H, 3, N) (coordinates first), row h in the frame of object obj[h]."""
 
     def __init__(self, fields: list[DistanceField]):
-        self.values = torch.cat([f.values for f in fields])
-        self.start = torch.tensor([0] + [len(f.values) for f in fields[:-1]]).cumsum(0)  # (O,)
+        shared, which = distinct(fields)  # objects of one model share its field
+        self.values = torch.cat([fields[o].values for o in shared])
+        self.start = torch.tensor([0] + [len(fields[o].values) for o in shared[:-1]]).cumsum(0)[which]  # (O,)
         self.lo = torch.tensor(np.stack([f.lo for f in fields]), dtype=torch.float32)  # (O, 3)
         self.cell = torch.tensor([f.cell for f in fields], dtype=torch.float32)  # (O,)
         self.margin = torch.tensor([f.margin for f in fields], dtype=torch.float32)  # (O,)
@@ -86,3 +87,13 @@ class Fields:
         v = torch.lerp(v[..., 0], v[..., 1], f[:, 1, :, None])
         d = torch.lerp(v[..., 0], v[..., 1], f[:, 0]).abs()  # (H, N)
         return torch.where(outside, self.margin[obj, None].expand_as(d), d)
+
+
+def distinct(items: list) -> tuple[list[int], list[int]]:
+    """The index of the first of each distinct item of ``items`` (the same object given again is no new one), and
+    for each item the position of its distinct one among those."""
+    first: dict[int, int] = {}
+    for i, x in enumerate(items):
+        first.setdefault(id(x), i)
+    position = {i: u for u, i in enumerate(first.values())}
+    return list(first.values()), [position[first[id(x)]] for x in items]

@@ -15,8 +15,9 @@ from posegrasp.perception.depth_fit.context import FitContext
 from posegrasp.perception.depth_fit.grids import columns
 from posegrasp.perception.depth_fit.kabsch import Kabsch
 from posegrasp.perception.depth_fit.model import ObjectModel
+from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.depth_fit.score import Scored, best_rows, score
-from posegrasp.perception.depth_fit.search import ScoreOf, pattern_search, yaw_search
+from posegrasp.perception.depth_fit.search import pattern_search, yaw_search
 from posegrasp.perception.depth_fit.starts import rest_starts, resting, turned, up_face
 
 
@@ -28,12 +29,14 @@ def fit_pose(T_cam_obj: np.ndarray, model: ObjectModel, observed: np.ndarray, de
 
 def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: list[np.ndarray],
               depth: np.ndarray, K: np.ndarray, cfg: DepthFitConfig | None = None,
-              plane: np.ndarray | None = None) -> list[tuple[np.ndarray, float]]:
+              plane: np.ndarray | None = None, rivals: Rivals | None = None) -> list[tuple[np.ndarray, float]]:
     """The best-scoring fit of each object of a frame (``perception.depth_fit``): from its estimate T_cam_obj (4, 4),
     its ``ObjectModel`` and its observed points (N_o, 3) (camera frame, m), against the depth image (H, W) (m) seen
     through intrinsics K (3, 3), given the supporting plane (4,: n . x + d = 0, camera frame; ``perception.plane``)
     or None. Returns (T_cam_obj fitted, its score in m) per object. The objects' starts run as one batch (much of a
-    step's cost is fixed); each result is the one the object gets alone, up to float rounding."""
+    step's cost is fixed); each result is the one the object gets alone, up to float rounding. Given ``rivals``
+    (``perception.depth_fit.rivals``: objects that are one part posed as several types), a type that trails its part's
+    best is dropped along the way and returns its estimate with score inf."""
     if not estimates:
         return []
     cfg = cfg or DepthFitConfig()
@@ -46,17 +49,24 @@ def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: 
     fits = _starts(frame, estimates, [x.hypotheses for x in models], cfg.starts.level_rests)
     exact = min(cfg.fit.exact_steps, cfg.fit.iterations)
     fits = _grid_steps(frame, fits, cfg.fit.iterations - exact)
+    ranked = rank(fits.R, fits.t, fits.obj)
+    if rivals is not None:  # types of a part that trail its best by far are fitted no further
+        fits, ranked = _winners(fits, ranked, rivals, rivals.steps_margin)
     if cfg.turns.step_deg > 0:
-        fits = _turns(frame, fits, cfg.turns, rank)
+        fits = _turns(frame, fits, cfg.turns, ranked)
+        ranked = rank(fits.R, fits.t, fits.obj)
+        if rivals is not None:
+            fits, ranked = _winners(fits, ranked, rivals, rivals.turns_margin)
     if 0 < cfg.fit.polish < int(torch.bincount(fits.obj).max()):  # each object's best by the grid's score go on
-        fits = fits.rows(best_rows(rank(fits.R, fits.t, fits.obj), fits.obj, cfg.fit.polish, fits.R))
+        fits = fits.rows(best_rows(ranked, fits.obj, cfg.fit.polish, fits.R))
     fits = _exact_steps(frame, fits, exact)
     fine = partial(score, frame, cfg.score, fine=True)
     poses = yaw_search(Scored(fits.R, fits.t, fits.obj, fine(fits.R, fits.t, fits.obj)), frame.normal, cfg.search,
                        fine)
     if cfg.search.pattern_rounds > 0:
         poses = pattern_search(poses, frame.normal, frame.ups, cfg.search, fine)
-    return [poses.best(o) for o in range(len(estimates))]
+    left = set(poses.obj.tolist())
+    return [poses.best(o) if o in left else (estimates[o], float("inf")) for o in range(len(estimates))]
 
 
 @dataclass(frozen=True)
@@ -98,12 +108,18 @@ def _starts(frame: FitContext, estimates: list[np.ndarray], hypotheses: list[np.
     return _Fits(R, t, obj, held, low)
 
 
-def _turns(frame: FitContext, fits: _Fits, cfg: TurnConfig, rank: ScoreOf) -> _Fits:
+def _winners(fits: _Fits, ranked: torch.Tensor, rivals: Rivals, margin: float) -> tuple[_Fits, torch.Tensor]:
+    """The fits and their ranking scores (H,) without the rows of the rivals that trail by more than ``margin``."""
+    keep = rivals.rows(ranked, fits.obj, margin)
+    return fits.rows(keep), ranked[keep]
+
+
+def _turns(frame: FitContext, fits: _Fits, cfg: TurnConfig, ranked: torch.Tensor) -> _Fits:
     """The best fit of each of an object's ``cfg.seeds`` best-ranked rests facing up, turned about the normal by every
     ``cfg.step_deg`` of its period about it (``perception.depth_fit.starts.turned``), each fitted ``cfg.iterations``
     grid steps."""
     normal = frame.normal.double().numpy()
-    fits = fits.rows(best_rows(rank(fits.R, fits.t, fits.obj), fits.obj, cfg.seeds,
+    fits = fits.rows(best_rows(ranked, fits.obj, cfg.seeds,
                                face=up_face(fits.R, normal, frame.ups[fits.obj])))
     R, obj, source = turned(fits.R, fits.obj, normal, cfg.step_deg, frame.symmetries)
     return _grid_steps(frame, _Fits(R, fits.t[source], obj, fits.held[source], fits.low[source]), cfg.iterations)

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from posegrasp.perception.depth_fit.distance_field import DistanceField, Fields
+from posegrasp.perception.depth_fit.distance_field import DistanceField, Fields, distinct
 
 
 class NearestGrid:
@@ -41,7 +41,8 @@ class NearestGrid:
 
 
 class Grids:
-    """Several objects' ``NearestGrid``s as one lookup: model o's points start at row o x ``stride`` of the stacked
+    """Several objects' ``NearestGrid``s as one lookup, each distinct grid once (objects of one model share one):
+    the u-th distinct grid's points (those of object ``first[u]``'s model) start at row u x ``stride`` of the stacked
     models, and ``grids(points, obj)`` maps points (H, N, 3), row h in the frame of object obj[h], to rows of them;
     ``grids.posed(p, R, t, obj)`` does the same for camera-frame points p (H, 3, N) (coordinates first: batched
     products with 3-long rows are ~8x slower on a CPU) of objects at poses (R, t). ``fields``: their distance fields."""
@@ -49,8 +50,11 @@ class Grids:
     def __init__(self, grids: list[NearestGrid], stride: int):
         self.trees = [g.tree for g in grids]
         self.fields = Fields([g.field for g in grids])
-        self.index = torch.cat([g.index + o * stride for o, g in enumerate(grids)])
-        self.start = torch.tensor([0] + [len(g.index) for g in grids[:-1]]).cumsum(0)  # (O,)
+        #: The first object of each distinct grid (objects of one model share one): its model's points are the rows.
+        self.first, which = distinct(grids)
+        shared = [grids[o] for o in self.first]
+        self.index = torch.cat([g.index + u * stride for u, g in enumerate(shared)])
+        self.start = torch.tensor([0] + [len(g.index) for g in shared[:-1]]).cumsum(0)[which]  # (O,)
         self.lo = torch.tensor(np.stack([g.lo for g in grids]), dtype=torch.float32)  # (O, 3)
         self.cell = torch.tensor([g.cell for g in grids], dtype=torch.float32)  # (O,)
         self.max = torch.tensor(np.stack([g.shape - 1 for g in grids]), dtype=torch.float32)  # (O, 3)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -61,3 +62,8 @@ class ObjectModel:
     def smallest_side(self) -> float:
         """The shortest side (m) of the model points' bounding box."""
         return float(np.ptp(self.points, axis=0).min())
+
+    @cached_property
+    def radius(self) -> float:
+        """The largest distance (m) of a model point from the object frame's origin."""
+        return float(np.sqrt(np.max(np.einsum("ij,ij->i", self.points, self.points))))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from posegrasp.errors import ConfigError
-from posegrasp.perception.type_check import TypeCheckConfig, best_per_part, candidates, choose
+from posegrasp.perception.type_check import TypeCheckConfig, best_per_part, candidates, choose, cost
 
 
 def test_candidates_are_the_likely_types_most_probable_first_and_never_not_a_block():
@@ -20,6 +20,7 @@ def test_candidates_are_the_likely_types_most_probable_first_and_never_not_a_blo
 
 def test_choose_weighs_the_fit_against_the_classifier():
     cfg = TypeCheckConfig(weight=0.001)
+    assert cost(0.5, cfg) == pytest.approx(0.001 * np.log(2.0)) and cost(1.0, cfg) == 0.0
     # costs: 0.004 - 0.001 ln 0.6 = 0.00451; 0.002 - 0.001 ln 0.4 = 0.00292
     assert choose([0.004, 0.002], [0.6, 0.4], cfg) == 1
     assert choose([0.0023, 0.002], [0.6, 0.4], cfg) == 0  # 0.00281 against 0.00292
@@ -34,3 +35,5 @@ def test_choose_weighs_the_fit_against_the_classifier():
 def test_settings_are_checked():
     with pytest.raises(ConfigError, match="max_types"):
         TypeCheckConfig(max_types=0)
+    with pytest.raises(ConfigError, match="steps_margin"):
+        TypeCheckConfig(steps_margin=-0.001)
