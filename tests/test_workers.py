@@ -90,7 +90,8 @@ def tiny_toml(tmp_path_factory) -> Path:
 @pytest.mark.slow
 def test_datagen_workers_die_with_their_parent(tmp_path, tiny_toml):
     out = tmp_path / "killed"
-    args = ["datagen", "--out", str(out), "--scenes", "4", "--views", "3", "--seed", "5", "--workers", "2",
+    # 8 scenes: tiny ones finish fast, so with fewer the pool's results may all be written within one poll
+    args = ["datagen", "--out", str(out), "--scenes", "8", "--views", "3", "--seed", "5", "--workers", "2",
             "--config", str(tiny_toml), "--no-progress"]
     proc = subprocess.Popen(cli(*args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     try:
@@ -98,11 +99,11 @@ def test_datagen_workers_die_with_their_parent(tmp_path, tiny_toml):
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert not all(is_complete(out, "train_pbr", s) for s in range(4)), "the run finished before it was killed"
+    assert not all(is_complete(out, "train_pbr", s) for s in range(8)), "the run finished before it was killed"
     assert_orphans_gone_and_nothing_written(kids, out)
-    generate_dataset(out, 4, 3, 5, load_datagen_config(tiny_toml), workers=1)  # resumed
+    generate_dataset(out, 8, 3, 5, load_datagen_config(tiny_toml), workers=1)  # resumed
     ref = tmp_path / "reference"
-    generate_dataset(ref, 4, 3, 5, load_datagen_config(tiny_toml), workers=1)
+    generate_dataset(ref, 8, 3, 5, load_datagen_config(tiny_toml), workers=1)
     assert file_hashes(out) == file_hashes(ref)
 
 
