@@ -94,3 +94,21 @@ def test_parts_at_the_image_border_are_the_whole_images():
     parts = unexplained_parts(mask, explained, depth, SplitConfig(min_pixels=1, min_share=0.0))
     assert len(parts) == n - 1 == 3
     assert all((p == (comp == i)).all() for i, p in enumerate(parts, start=1))
+
+
+def test_two_poses_are_one_place_when_they_put_the_model_on_its_own_surface():
+    """``same_place``: a 4 cm square's points at a pose against its surface at another: the same pose, or one a
+    symmetry of the square apart (turned 90 deg about its normal), is one place; 1 cm off its plane it is not, nor 3 cm
+    beside it (median distance 1 and 2 cm), while 1 cm beside it, still mostly on the square, is."""
+    from posegrasp.geometry import axis_angle_R, make_T
+    from posegrasp.perception.split import same_place
+
+    face = _square_face(0.04, 100)
+    surface = ModelSurface(face)
+    T = make_T(axis_angle_R(np.array([1.0, 0.0, 0.0]), 0.4), np.array([0.02, -0.01, 0.5]))
+    turned = T @ make_T(axis_angle_R(np.array([0.0, 0.0, 1.0]), np.pi / 2), np.zeros(3))
+    moved = [T @ make_T(np.eye(3), np.array(d)) for d in ([0.0, 0.0, 0.01], [0.03, 0.0, 0.0], [0.01, 0.0, 0.0])]
+    points = face[::7]
+    assert same_place(points, T, surface, T, 0.001) and same_place(points, turned, surface, T, 0.001)
+    assert [same_place(points, M, surface, T, 0.005) for M in moved] == [False, False, True]
+    assert same_place(points, moved[0], surface, T, 0.02)  # within a wider tolerance
