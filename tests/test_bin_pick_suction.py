@@ -13,7 +13,7 @@ from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.grasps import Grasp
 from posegrasp.grasping.suction_grasps import SuctionGrasp
 from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid, OutBox
-from posegrasp.geometry import make_T
+from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.targets import reach_q
 from posegrasp.grasping.tasks.bin_pick.planner import (HeapView, _reachable, approach_end, choose_cup, off_the_walls,
                                                        pregrasp_height)
@@ -87,9 +87,10 @@ def test_the_suction_tool_picks_only_in_bin_picking(tmp_path):
     assert not out.exists()
 
 
-def _hybrid_pick(name: str, xy) -> tuple[object, Attempt]:
-    """Part ``name`` alone at ``xy`` in the tote, chosen and picked by the hybrid hand: its grasp and attempt."""
-    ep, ests, T_world_cam = _alone(name, xy, "hybrid")
+def _hybrid_pick(name: str, xy, T: np.ndarray | None = None) -> tuple[object, Attempt]:
+    """Part ``name`` alone at ``xy`` (or at pose ``T``) in the tote, chosen and picked by the hybrid hand: its grasp
+    and attempt."""
+    ep, ests, T_world_cam = _alone(name, xy, "hybrid", T)
     tool = Hybrid(ep)
     j, grasp, T_est = tool.choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
     b, att, part = ep.cfg.bin_pick, Attempt(0), ep.wc.blocks[0].block
@@ -117,6 +118,19 @@ def test_the_hybrid_hand_closes_its_fingers_round_the_cup_to_reach_a_part_flat_i
     half = 0.5 * np.ptp(CAT["long_cuboid"].vertices[:, :2], 0)
     grasp, att = _hybrid_pick("long_cuboid", lo[:2] + half + 0.005)
     assert isinstance(grasp, SuctionGrasp) and att.grasped and att.failure is None
+
+
+def test_a_prism_pinched_on_its_slopes_by_a_wall_is_drawn_off_it_and_lifted():
+    """A prism lying on a slope, its end cap 2 mm from a wall: no face for the cup, its end caps out of the fingers'
+    reach, so the fingers pinch its slopes; lifted along the wall, it turned out of them."""
+    lo, hi = _inner_bounds()
+    part = CAT["triangular_prism"]
+    T = make_T(axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(120.0)), np.zeros(3))
+    v = transform_points(T, part.vertices)
+    T[:3, 3] = (hi[0] - 0.002 - v[:, 0].max(), 0.5 * (lo[1] + hi[1]), lo[2] - v[:, 2].min() + 0.002)
+    grasp, att = _hybrid_pick("triangular_prism", None, T)
+    assert isinstance(grasp, Grasp) and grasp.width < 0.04  # across the slopes
+    assert att.grasped and att.failure is None
 
 
 def test_a_part_near_a_wall_is_drawn_off_it():

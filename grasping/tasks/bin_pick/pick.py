@@ -25,10 +25,10 @@ from posegrasp.grasping.suction_grasps import SuctionGrasp
 from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
-from posegrasp.grasping.tasks.bin_pick.planner import (CUP_BACKOFF, CUP_BACKOFF_RISE, CUP_PRESS, CUP_PRESS_SPEED,
-                                                       CUP_SETTLE_SPEED, CUP_SETTLE_TIME, HYBRID_TIE, HeapView,
-                                                       approach_end, choose_cup, choose_part, off_the_walls,
-                                                       pregrasp_height)
+from posegrasp.grasping.tasks.bin_pick.planner import (CUP_PRESS, CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME,
+                                                       HYBRID_TIE, WALL_BACKOFF, WALL_BACKOFF_RISE,
+                                                       WALL_BACKOFF_SPEED, HeapView, approach_end, choose_cup,
+                                                       choose_part, off_the_walls, pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import Area
 from posegrasp.grasping.tasks.bin_pick.squeeze import Squeeze, choose_squeeze
@@ -84,6 +84,16 @@ def _bottoms(wc: Workcell) -> np.ndarray:
                      for T, inst in zip(wc.block_poses(), wc.blocks)])
 
 
+def _draw_off(ep: Episode, plan: Plan, area: Area) -> None:
+    """Draw the held part of ``plan`` off the tote's walls it lies near (by its estimated pose): ``WALL_BACKOFF``."""
+    off = off_the_walls(plan.est_block or plan.block, plan.T_world_obj, area.tote, WALL_BACKOFF) \
+        if area.walls else np.zeros(3)
+    if off.any():
+        T = ep.ctl.target.copy()
+        T[:3, 3] += off + [0.0, 0.0, WALL_BACKOFF_RISE]
+        ep.ctl.move(T, speed=WALL_BACKOFF_SPEED)
+
+
 def _watch(ep: Episode, area: Area, k: int) -> _Contacts:
     """The contact monitor of a pick of part ``k``: the tote's walls, its floor and the table."""
     m = ep.wc.model
@@ -93,10 +103,11 @@ def _watch(ep: Episode, area: Area, k: int) -> _Contacts:
 
 
 def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None:
-    """Pick ``plan``'s part, lift it clear of the walls and hand it to ``dest`` (the out-box or the tray) to let go
-    of; marks ``att.grasped``; ``EpisodeFailed`` when the robot hits a wall, the floor on a failed grasp, the part
-    slips or falls, or another part came up with it (after the drop). A neighbour that stops the hand short of the
-    grasp (``_stopped_near``) does not end the attempt: the fingers close where the hand stopped."""
+    """Pick ``plan``'s part, draw it off the walls it lies near (``WALL_BACKOFF``; not a squeeze, which the wall
+    holds), lift it clear of them and hand it to ``dest`` (the out-box or the tray) to let go of; marks
+    ``att.grasped``; ``EpisodeFailed`` when the robot hits a wall, the floor on a failed grasp, the part slips or
+    falls, or another part came up with it (after the drop). A neighbour that stops the hand short of the grasp
+    (``_stopped_near``) does not end the attempt: the fingers close where the hand stopped."""
     ctl, cfg, k = ep.ctl, ep.cfg, plan.k
     g_cfg, b = cfg.grasp, cfg.bin_pick
     watch = _watch(ep, area, k)
@@ -120,6 +131,8 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
         ctl.pose_toward(None)  # the lift and the carry as ever
         start = _bottoms(ep.wc)
         T_hold = ep.wc.gripper_pose()
+        if not isinstance(plan.grasp, Squeeze):  # a squeeze holds the part against its wall
+            _draw_off(ep, plan, area)
         bottom_est, _ = plan.height_range()
         clear = max(area.top, dest.top_z) + b.wall_margin  # the part's bottom above both boxes' walls
         T_lift = ctl.target.copy()  # the grasp, or where a neighbour stopped the hand above it
@@ -152,7 +165,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
     come down above the grasp, approach along its axis, take up the arm's offset (``ArmController.null_offset``: on a
     25 mm face a 20 mm cup has 2.5 mm to spare), press the cup on by ``CUP_PRESS`` of its stroke, switch the
     vacuum on (``EpisodeFailed`` "no seal" where the rim does not seal on the part's true surface), wait for the
-    vacuum to build, draw a part lying near a wall off it (``CUP_BACKOFF``), lift clear of the walls with the hold
+    vacuum to build, draw a part lying near a wall off it (``WALL_BACKOFF``), lift clear of the walls with the hold
     model watching every control period ("seal lost"), and hand the part to ``dest`` (the out-box or the tray),
     which has the vacuum switched off (over the out-box the arm goes on once the part has left the cup); marks
     ``att.grasped``; "two parts lifted" after the drop when another part came up with it."""
@@ -193,12 +206,7 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
         ctl.pose_toward(None)  # the lift and the carry as ever
         start = _bottoms(wc)
         T_hold = wc.gripper_pose()
-        off = off_the_walls(plan.est_block or plan.block, plan.T_world_obj, area.tote, CUP_BACKOFF) \
-            if area.walls else np.zeros(3)
-        if off.any():  # drawn off the walls before the lift
-            T = ctl.target.copy()
-            T[:3, 3] += off + [0.0, 0.0, CUP_BACKOFF_RISE]
-            ctl.move(T, speed=CUP_PRESS_SPEED)
+        _draw_off(ep, plan, area)
         bottom_est, _ = plan.height_range()
         T_lift = ctl.target.copy()
         T_lift[2, 3] += max(max(area.top, dest.top_z) + b.wall_margin - bottom_est, cfg.scoring.lift_min)

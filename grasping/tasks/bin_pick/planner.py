@@ -62,9 +62,11 @@ CUP_PRESS = 0.3
 #: ... at this speed (m/s), once the arm has moved slower than ``CUP_SETTLE_SPEED`` (m/s) for 3 control periods,
 #: waiting at most ``CUP_SETTLE_TIME`` (s) for it.
 CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME = 0.05, 0.005, 1.0
-#: After the seal a part lying within this distance (m) of a tote's wall is drawn off it to this distance, raised
-#: ``CUP_BACKOFF_RISE`` (m) off the floor, before the lift: rubbing on the wall as it rises, it would pull the cup off.
-CUP_BACKOFF, CUP_BACKOFF_RISE = 0.006, 0.003
+#: Once held (the cup sealed, the fingers closed) a part lying within this distance (m) of a tote's wall is drawn off
+#: it to this distance, raised ``WALL_BACKOFF_RISE`` (m) off the floor, at ``WALL_BACKOFF_SPEED`` (m/s), before the
+#: lift: rubbing on the wall as it rises, it would pull the cup off, or turn out of the fingers (a prism pinched on
+#: its slopes, its end cap on a wall).
+WALL_BACKOFF, WALL_BACKOFF_RISE, WALL_BACKOFF_SPEED = 0.010, 0.003, 0.05
 #: The hybrid hand picks with its cup where the cup's part stands at most this far (m) below the fingers' part.
 HYBRID_TIE = 0.005
 
