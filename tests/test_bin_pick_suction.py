@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -15,11 +17,11 @@ from posegrasp.grasping.suction_grasps import SuctionGrasp
 from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid, OutBox
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.targets import reach_q
-from posegrasp.grasping.tasks.bin_pick.planner import (HeapView, _reachable, approach_end, choose_cup, off_the_walls,
-                                                       pregrasp_height)
+from posegrasp.grasping.tasks.bin_pick.planner import (HeapView, _reachable, approach_end, choose_cup, choose_part,
+                                                       off_the_walls, pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
-from test_bin_pick import CAT, _alone, _inner_bounds, _oracle_episode, _cfg
+from test_bin_pick import CAT, _alone, _cfg, _episode, _flat, _inner_bounds, _oracle_episode
 from tests.helpers import refused, run_cli
 
 
@@ -131,6 +133,47 @@ def test_a_prism_pinched_on_its_slopes_by_a_wall_is_drawn_off_it_and_lifted():
     grasp, att = _hybrid_pick("triangular_prism", None, T)
     assert isinstance(grasp, Grasp) and grasp.width < 0.04  # across the slopes
     assert att.grasped and att.failure is None
+
+
+def _two_parts(names: list[str], poses: list[np.ndarray], min_support: float):
+    """The ``names`` at ``poses`` in the tote, the hybrid hand's oracle estimates and settings with ``min_support``."""
+    ep = _episode(_cfg(len(names), "hybrid"), names, poses)
+    T_world_cam = ep.T_world_cam()
+    ests = [Estimate(CAT[n].obj_id, np.linalg.inv(T_world_cam) @ T, 1.0) for n, T in zip(names, ep.wc.block_poses())]
+    cfg = dataclasses.replace(ep.cfg, bin_pick=dataclasses.replace(ep.cfg.bin_pick, min_support=min_support))
+    return ep, cfg, ests, T_world_cam
+
+
+def test_a_poorly_supported_pinch_is_a_last_resort():
+    """A standing cylinder (pinched on its curved side: 22 % of the pads on flat faces) and a lying long cuboid (30 %):
+    with ``min_support`` between the two, the fingers go for the cuboid; a part with no other pinch is still pinched."""
+    lo, hi = _inner_bounds()
+    c = 0.5 * (lo + hi)
+    names = ["cylinder", "long_cuboid"]
+    poses = [_flat(names[0], (c[0] - 0.05, c[1])), _flat(names[1], (c[0] + 0.05, c[1]), 90.0)]
+    for min_support, part in ((0.0, 0), (0.25, 1)):
+        ep, cfg, ests, T_world_cam = _two_parts(names, poses, min_support)
+        j, grasp, _ = choose_part(ep.wc, cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0)
+        assert j == part
+    every = dataclasses.replace(cfg, bin_pick=dataclasses.replace(cfg.bin_pick, min_support=0.5))
+    _, grasp, _ = choose_part(ep.wc, every, ests[:1], T_world_cam, np.zeros((0, 3)), 0.0)
+    assert grasp.support < 0.5  # every pinch is poorly supported: the best of them
+
+
+def test_the_hybrid_hand_takes_a_lower_part_with_its_cup_before_a_poorly_supported_pinch():
+    """A prism ridge up (the cup seals on none of its faces; its fingers' best pinch 20 % on flat faces) and, 10 mm
+    lower, a long cuboid flat 6 mm from two walls (out of the fingers' reach): the fingers on the higher prism win
+    unless their pinch counts as poorly supported, and then the cup takes the cuboid."""
+    lo, hi = _inner_bounds()
+    names = ["triangular_prism", "long_cuboid"]
+    T = _flat(names[1], (0.0, 0.0))
+    v = transform_points(T, CAT[names[1]].vertices)
+    T[:2, 3] += hi[:2] - 0.006 - v[:, :2].max(0)
+    poses = [_flat(names[0], (0.5 * (lo[0] + hi[0]) - 0.05, 0.5 * (lo[1] + hi[1]))), T]
+    for min_support, part, kind in ((0.0, 0, Grasp), (0.25, 1, SuctionGrasp)):
+        ep, cfg, ests, T_world_cam = _two_parts(names, poses, min_support)
+        j, grasp, _ = Hybrid(ep).choose(ep.wc, cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
+        assert j == part and type(grasp) is kind
 
 
 def test_a_part_near_a_wall_is_drawn_off_it():

@@ -65,6 +65,10 @@ class BinPickConfig:
     turn_weight: float = field(default=1.0, metadata=within(0.0, 100.0))
     #: Parts are tried highest first; the best grasps of this many parts that have some compete.
     plan_parts: int = field(default=3, metadata=within(1, 200))
+    #: A pinch whose pads lie less than this share (0-0.5: ``Grasp.support``) on the part's flat faces (a part
+    #: leaning on the heap, pinched on edges or studs with the hand tilted to it) is a last resort: tried only when
+    #: no part has another grasp at any of ``part_clearance``; the hybrid hand takes the cup's grasp before it.
+    min_support: float = field(default=0.03, metadata=within(0.0, 0.5))
     #: The fingers open this much wider than the part they grasp (m; ``grasp.finger_margin`` on the table).
     finger_margin: float = field(default=0.01, metadata=within(0.0, 0.1))
     #: The open hand keeps this distance (m) from the other parts' estimated surfaces and the depth image's points

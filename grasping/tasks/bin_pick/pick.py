@@ -343,7 +343,8 @@ class Hybrid:
     """The hybrid hand: the 2-finger hand with a cup between its fingers (``sim.hybrid``), which picks each part
     with the cup or with the fingers. Both planners run on the estimates (``choose_cup``, ``choose_part``); the
     grasp on the higher part wins, the cup where both go for parts within ``HYBRID_TIE`` of each other's height (a
-    suction pick neither reaches between neighbours nor needs a wall's room): an ambidextrous policy. With
+    suction pick neither reaches between neighbours nor needs a wall's room) or where the fingers' pinch is poorly
+    supported (``min_support``): an ambidextrous policy. With
     ``cup_first`` (a destination that keeps the pose: the tray), the cup wherever it has a grasp: it holds the part
     as the estimate has it, where closing fingers shift it. Where neither has a grasp, the fingers squeeze a part
     turned near a wall along the wall (``squeeze.choose_squeeze``; ``wall_squeeze``)."""
@@ -365,7 +366,7 @@ class Hybrid:
             except EpisodeFailed as e:
                 why.append(e.reason)
                 continue
-            found.append((view.tops[j] + bonus, j, g, T))
+            found.append((not _poor(g, cfg.bin_pick), view.tops[j] + bonus, j, g, T))
         if not found:
             if cfg.bin_pick.wall_squeeze:
                 try:
@@ -373,7 +374,7 @@ class Hybrid:
                 except EpisodeFailed as e:
                     why.append(e.reason)
             raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)
-        _, j, g, T = max(found, key=lambda f: f[0])
+        *_, j, g, T = max(found, key=lambda f: f[:2])
         return j, g, T
 
     def pick(self, ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None:
@@ -390,6 +391,11 @@ class Hybrid:
         self.cup.let_go(ep)
         extend(ep.wc, False)
         Fingers.let_go(ep)
+
+
+def _poor(grasp: object, b: BinPickConfig) -> bool:
+    """Is ``grasp`` a pinch on too little of the part's flat faces (``min_support``): the hybrid hand's last resort?"""
+    return isinstance(grasp, Grasp) and grasp.support < b.min_support
 
 
 def tool_of(ep: Episode, dest: Destination) -> Tool:

@@ -17,7 +17,8 @@ the parts, highest first, the best grasps of ``plan_parts`` parts compete (score
 the part's top); the first that passes the IK check is taken. ``part_clearance`` holds several distances,
 strictest first: a looser one is tried only when no part has a reachable grasp at the stricter (a finger that lands
 on a neighbour stalls there, and the fingers opposite push the part away: clean grasps first, a shove into the heap
-only when nothing else is left).
+only when nothing else is left). A pinch with too little of its pads on the part's flat faces (``min_support``: a part
+leaning in the heap, pinched on its edges by a tilted hand; half of them slip) comes after all of them.
 """
 
 from __future__ import annotations
@@ -180,22 +181,23 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
                 ) -> tuple[int, Grasp, np.ndarray]:
     """The estimate to pick (index), its grasp and its levelled ``T_world_obj`` among the estimates in the tote,
     none of the grasps that ``failed`` before (``_tried``), at the first of ``part_clearance`` that gives a
-    reachable grasp; ``EpisodeFailed``: "nothing graspable" when no part has a clear grasp at any, "unreachable"
-    when the IK reaches none. ``heap``: the depth image's points on the heap (``heap_points``); ``view``: the
+    reachable grasp, the poorly supported pinches (``min_support``) after every clearance; ``EpisodeFailed``:
+    "nothing graspable" when no part has a clear grasp at any, "unreachable" when the IK reaches none. ``heap``: the depth image's points on the heap (``heap_points``); ``view``: the
     ``HeapView`` of these, when the caller has it."""
     b, g_cfg = cfg.bin_pick, cfg.grasp
     view = view or HeapView(wc, cfg, ests, T_world_cam, heap)
     area, poses, tops = view.area, view.poses, view.tops
     cam, hand = camera_box(wc.cfg.hand_camera.mount_pos), hand_of(wc.cfg)
 
-    def passes():  # one per clearance, strictest first
-        for clearance in b.part_clearance:
-            plan_cfg = dataclasses.replace(g_cfg, min_pinch_height=area.floor + g_cfg.min_pinch_height,
-                                           finger_margin=b.finger_margin, clearance_min=clearance,
-                                           score=dataclasses.replace(g_cfg.score, turn=b.turn_weight))
-            yield functools.partial(ranked, clearance, plan_cfg)
+    def passes():  # one per clearance, strictest first; then the poorly supported pinches, as a last resort
+        for poor in (False, True):
+            for clearance in b.part_clearance:
+                plan_cfg = dataclasses.replace(g_cfg, min_pinch_height=area.floor + g_cfg.min_pinch_height,
+                                               finger_margin=b.finger_margin, clearance_min=clearance,
+                                               score=dataclasses.replace(g_cfg.score, turn=b.turn_weight))
+                yield functools.partial(ranked, clearance, plan_cfg, poor)
 
-    def ranked(clearance: float, plan_cfg, j: int) -> list[tuple[float, Grasp]]:
+    def ranked(clearance: float, plan_cfg, poor: bool, j: int) -> list[tuple[float, Grasp]]:
         own, others, wall = view.around(j)
         clear_of_walls = lambda g, c=b.wall_clearance: _clear_of(g, wall, [cam], c) and (  # noqa: E731
             not area.walls or _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, c))
@@ -205,7 +207,8 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
                                     hand=hand)
             for g in ([g0] if clear_of_walls(g0) else
                       fit.shifted(g0) or fit.tilted(g0, wc.cfg, area.floor, g_cfg.score.tilt))
-            if not _tried(g, failed, b) and _clear_of(g, others, [cam], clearance)
+            if (g.support < b.min_support) == poor and not _tried(g, failed, b)
+            and _clear_of(g, others, [cam], clearance)
             and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)), g_cfg.grasps_per_block))
         return [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), g)
                 for g in grasps]
