@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import numpy as np
@@ -33,10 +34,11 @@ def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: 
     """The best-scoring fit of each object of a frame (``perception.depth_fit``): from its estimate T_cam_obj (4, 4),
     its ``ObjectModel`` and its observed points (N_o, 3) (camera frame, m), against the depth image (H, W) (m) seen
     through intrinsics K (3, 3), given the supporting plane (4,: n . x + d = 0, camera frame; ``perception.plane``)
-    or None. Returns (T_cam_obj fitted, its score in m) per object. The objects' starts run as one batch (much of a
-    step's cost is fixed); each result is the one the object gets alone, up to float rounding. Given ``rivals``
-    (``perception.depth_fit.rivals``: objects that are one part posed as several types), a type that trails its part's
-    best is dropped along the way and returns its estimate with score inf."""
+    or None. Returns (T_cam_obj fitted, its score in m) per object. The objects' fits run as one batch (much of a
+    step's cost is fixed), or with T > 1 torch threads as up to T batches of whole parts, one per thread (a step's
+    products keep about one core busy); each result is the one the object gets alone, up to float rounding. Given
+    ``rivals`` (``perception.depth_fit.rivals``: objects that are one part posed as several types), a type that trails
+    its part's best is dropped along the way and returns its estimate with score inf."""
     if not estimates:
         return []
     cfg = cfg or DepthFitConfig()
@@ -45,8 +47,51 @@ def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: 
         raise ConfigError(f"depth_fit score.truncation ({cfg.score.truncation} m) exceeds a model's distance field "
                           f"margin ({min(short)} m); build the fields with margin >= truncation")
     frame = FitContext.of(models, observed, depth, K, plane)
-    rank = partial(score, frame, cfg.score)
     fits = _starts(frame, estimates, [x.hypotheses for x in models], cfg.starts.level_rests)
+    parts = list(range(len(estimates))) if rivals is None else rivals.part
+    threads = torch.get_num_threads()
+    chunks = _chunks(parts, fits.obj, threads)
+    run = partial(_fit, frame, cfg, rivals)
+    if len(chunks) == 1:
+        done = [run(fits)]
+    else:  # a step's small batched products keep about one core busy: a chunk per thread, one torch thread each
+        torch.set_num_threads(1)
+        try:
+            with ThreadPoolExecutor(len(chunks)) as pool:
+                done = list(pool.map(run, [fits.rows(torch.isin(fits.obj, c)) for c in chunks]))
+        finally:
+            torch.set_num_threads(threads)
+    best = {o: c.best(o) for c in done for o in c.obj.unique().tolist()}
+    return [best.get(o, (estimates[o], float("inf"))) for o in range(len(estimates))]
+
+
+#: Fewest starts per chunk (below, a thread's start-up and the steps' fixed costs outweigh what it saves).
+CHUNK_ROWS = 500
+
+
+def _chunks(parts: list[int], obj: torch.Tensor, n: int) -> list[torch.Tensor]:
+    """The objects (indices) as up to ``n`` chunks of whole parts (rivals stay together; ``parts`` (O,): each object's
+    part), each of about as many (and at least ``CHUNK_ROWS``) fits, rows ``obj`` (H,): the largest part first into
+    the chunk with fewest."""
+    rows = torch.bincount(obj, minlength=len(parts)).tolist()
+    n = min(n, max(1, len(obj) // CHUNK_ROWS))
+    members: dict[int, list[int]] = {}
+    for o, p in enumerate(parts):
+        members.setdefault(p, []).append(o)
+    groups = sorted(members.values(), key=lambda g: -sum(rows[o] for o in g))
+    chunks: list[list[int]] = [[] for _ in range(max(1, min(n, len(groups))))]
+    load = [0] * len(chunks)
+    for g in groups:
+        i = load.index(min(load))
+        chunks[i] += g
+        load[i] += sum(rows[o] for o in g)
+    return [torch.tensor(sorted(c)) for c in chunks]
+
+
+def _fit(frame: FitContext, cfg: DepthFitConfig, rivals: Rivals | None, fits: _Fits) -> Scored:
+    """The fits from their starts on: grid steps, turns, exact steps and searches (``perception.depth_fit``), with
+    their objects' rivals dropped along the way; each object's final candidates and their scores."""
+    rank = partial(score, frame, cfg.score)
     exact = min(cfg.fit.exact_steps, cfg.fit.iterations)
     fits = _grid_steps(frame, fits, cfg.fit.iterations - exact)
     ranked = rank(fits.R, fits.t, fits.obj)
@@ -65,8 +110,7 @@ def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: 
                        fine)
     if cfg.search.pattern_rounds > 0:
         poses = pattern_search(poses, frame.normal, frame.ups, cfg.search, fine)
-    left = set(poses.obj.tolist())
-    return [poses.best(o) if o in left else (estimates[o], float("inf")) for o in range(len(estimates))]
+    return poses
 
 
 @dataclass(frozen=True)

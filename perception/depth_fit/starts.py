@@ -129,7 +129,8 @@ def resting(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tenso
             plane: torch.Tensor) -> torch.Tensor:
     """The translations t (H, 3) moved along the plane's normal until the lowest valid model point (m (O, M, 3),
     m_ok (O, M), of objects obj (H,)) under R (H, 3, 3) lies on the plane (4,: n . x + d = 0, n unit)."""
-    height = (m[obj] @ R.transpose(1, 2) + t[:, None]) @ plane[:3] + plane[3]  # (H, M)
+    a = R.transpose(1, 2) @ plane[:3]  # (H, 3): the normal in each object's frame
+    height = (m[obj] @ a[:, :, None])[..., 0] + (t @ plane[:3] + plane[3])[:, None]  # (H, M)
     lowest = height.masked_fill(~m_ok[obj], torch.inf).min(dim=1).values  # (H,)
     return t - lowest[:, None] * plane[:3]
 

@@ -28,7 +28,7 @@ from posegrasp.grasping.tasks.bin_pick.config import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.planner import (CUP_PRESS, CUP_PRESS_SPEED, CUP_SETTLE_SPEED, CUP_SETTLE_TIME,
                                                        HYBRID_TIE, WALL_BACKOFF, WALL_BACKOFF_RISE,
                                                        WALL_BACKOFF_SPEED, HeapView, approach_end, choose_cup,
-                                                       choose_part, off_the_walls, pregrasp_height)
+                                                       choose_part, off_the_walls, poorly_supported, pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.scene import Area
 from posegrasp.grasping.tasks.bin_pick.squeeze import Squeeze, choose_squeeze
@@ -366,7 +366,7 @@ class Hybrid:
             except EpisodeFailed as e:
                 why.append(e.reason)
                 continue
-            found.append((not _poor(g, cfg.bin_pick), view.tops[j] + bonus, j, g, T))
+            found.append((not poorly_supported(g, cfg.bin_pick), view.tops[j] + bonus, j, g, T))
         if not found:
             if cfg.bin_pick.wall_squeeze:
                 try:
@@ -391,11 +391,6 @@ class Hybrid:
         self.cup.let_go(ep)
         extend(ep.wc, False)
         Fingers.let_go(ep)
-
-
-def _poor(grasp: object, b: BinPickConfig) -> bool:
-    """Is ``grasp`` a pinch on too little of the part's flat faces (``min_support``): the hybrid hand's last resort?"""
-    return isinstance(grasp, Grasp) and grasp.support < b.min_support
 
 
 def tool_of(ep: Episode, dest: Destination) -> Tool:

@@ -124,6 +124,11 @@ def pregrasp_height(cfg: TrialConfig, area: Area, T_grasp: np.ndarray) -> float:
     return max(cfg.grasp.pregrasp_height, start - T_grasp[2, 3])
 
 
+def poorly_supported(grasp: object, b: BinPickConfig) -> bool:
+    """Is ``grasp`` a pinch with under ``min_support`` of its pads on the part's flat faces (a last resort)?"""
+    return isinstance(grasp, Grasp) and grasp.support < b.min_support
+
+
 def _tried(grasp: Grasp, failed: list[np.ndarray], b: BinPickConfig) -> bool:
     """Is ``grasp`` one of the ``failed`` grasp poses (world gripper), within ``retry_distance`` and
     ``retry_angle_deg`` of its squeeze axis?"""
@@ -207,7 +212,7 @@ def choose_part(wc: Workcell, cfg: TrialConfig, ests: list[Estimate], T_world_ca
                                     hand=hand)
             for g in ([g0] if clear_of_walls(g0) else
                       fit.shifted(g0) or fit.tilted(g0, wc.cfg, area.floor, g_cfg.score.tilt))
-            if (g.support < b.min_support) == poor and not _tried(g, failed, b)
+            if poorly_supported(g, b) == poor and not _tried(g, failed, b)
             and _clear_of(g, others, [cam], clearance)
             and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)), g_cfg.grasps_per_block))
         return [(g.score + g_cfg.detection_weight * ests[j].score + b.height_weight * (tops[j] - area.floor), g)
