@@ -79,7 +79,8 @@ class Grids:
     def _lookup(self, cells: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
         """Rows (H, N) for cell coordinates (H, 3, N)."""
         ijk = torch.minimum(cells.round_().clamp_(min=0), self.max[obj, :, None])  # (H, 3, N), whole numbers
-        return torch.take(self.index, (ijk * self.strides[obj]).sum(dim=1).long() + self.start[obj, None])
+        flat = torch.bmm(self.strides[obj].transpose(1, 2), ijk)[:, 0]  # (H, N): strides . ijk, exact in float32
+        return torch.take(self.index, flat.long() + self.start[obj, None])
 
     def exact(self, points: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
         """The rows (H, N) in each object's model of the exact nearest model points of points (H, N, 3), row h in the
