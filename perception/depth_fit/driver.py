@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -79,7 +79,7 @@ def _chunks(parts: list[int], obj: torch.Tensor, n: int) -> list[torch.Tensor]:
     for o, p in enumerate(parts):
         members.setdefault(p, []).append(o)
     groups = sorted(members.values(), key=lambda g: -sum(rows[o] for o in g))
-    chunks: list[list[int]] = [[] for _ in range(max(1, min(n, len(groups))))]
+    chunks: list[list[int]] = [[] for _ in range(min(n, len(groups)))]
     load = [0] * len(chunks)
     for g in groups:
         i = load.index(min(load))

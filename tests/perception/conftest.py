@@ -23,6 +23,8 @@ from posegrasp.io import write_image  # noqa: E402
 torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)  # two workers: a core each
 
 WIDTH, HEIGHT = 160, 120
+K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
+COLOURS = {1: (220, 60, 40), 2: (40, 160, 60), 3: (50, 80, 220)}
 
 
 @pytest.fixture
@@ -37,8 +39,6 @@ def torch_threads():
         finally:
             torch.set_num_threads(before)
     return threads
-K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
-COLOURS = {1: (220, 60, 40), 2: (40, 160, 60), 3: (50, 80, 220)}
 
 
 def _models():
