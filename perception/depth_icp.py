@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 from scipy import ndimage
 
 from posegrasp import bop
@@ -37,6 +36,7 @@ from posegrasp.config import settings, within
 from posegrasp.perception.crop import backproject
 from posegrasp.perception.depth_fit import DepthFitConfig, FitConfig, ObjectModel, fit_poses
 from posegrasp.perception.plane import fit_support_plane, plane_distance
+from posegrasp.perception.runtime import torch_threads
 
 
 @settings
@@ -156,13 +156,9 @@ class DepthIcp:
             blobs.append(idx)
         if not rows:
             return []
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)  # small batched ops: threads only add overhead (and compete with other workers)
-        try:
+        with torch_threads(1):  # small batched ops: threads only add overhead (and compete with other workers)
             fits = fit_poses([r[2] for r in rows], [r[1].model for r in rows], [r[3] for r in rows], depth, K,
                              cfg.depth_fit, plane)
-        finally:
-            torch.set_num_threads(threads)
         out = []
         for b, idx in enumerate(blobs):
             j = min((j for j, r in enumerate(rows) if r[0] == b),

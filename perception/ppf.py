@@ -33,7 +33,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 from scipy import ndimage
 
 from posegrasp import bop
@@ -42,6 +41,7 @@ from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.depth_fit import DepthFitConfig, FitConfig, ObjectModel, StartConfig, TurnConfig, fit_poses
 from posegrasp.perception.plane import PlaneConfig, fit_support_plane, plane_distance
+from posegrasp.perception.runtime import torch_threads
 
 MM = 1000.0  #: OpenCV's detector and ICP work in mm
 REFINERS = ("icp", "depth-fit", "none")  #: ``PpfConfig.refine``'s values
@@ -429,13 +429,9 @@ class Ppf:
         out = [h.T for h in hyps]
         if not rows:
             return out
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)  # small batched ops: threads only add overhead
-        try:
+        with torch_threads(1):  # small batched ops: threads only add overhead
             fits = fit_poses([hyps[i].T for i, _ in rows], [self.fit_models[hyps[i].model.obj_id] for i, _ in rows],
                              [seen for _, seen in rows], scene.depth, scene.K, self.cfg.depth_fit, scene.plane)
-        finally:
-            torch.set_num_threads(threads)
         for (i, _), (T, _) in zip(rows, fits):
             out[i] = T
         return out

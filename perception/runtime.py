@@ -1,11 +1,12 @@
 """How the trained nets run on a CPU at inference: BatchNorms folded into convolutions, channels-last weights
-(``for_inference``), and numpy's BLAS on one thread (``one_blas_thread``, ``with_one_blas_thread``)."""
+(``for_inference``), numpy's BLAS on one thread (``one_blas_thread``, ``with_one_blas_thread``), and torch on a
+given number of threads (``torch_threads``)."""
 
 from __future__ import annotations
 
 import contextlib
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 from threadpoolctl import ThreadpoolController
@@ -22,6 +23,17 @@ def one_blas_thread() -> contextlib.AbstractContextManager:
     if _BLAS is None:
         _BLAS = ThreadpoolController()
     return _BLAS.limit(limits=1, user_api="blas")
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """A context in which torch runs its CPU ops on ``n`` threads; the count before it is restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def with_one_blas_thread(method: Callable) -> Callable:

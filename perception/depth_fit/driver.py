@@ -20,6 +20,7 @@ from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.depth_fit.score import Scored, best_rows, score
 from posegrasp.perception.depth_fit.search import pattern_search, yaw_search
 from posegrasp.perception.depth_fit.starts import rest_starts, resting, turned, up_face
+from posegrasp.perception.runtime import torch_threads
 
 
 def fit_pose(T_cam_obj: np.ndarray, model: ObjectModel, observed: np.ndarray, depth: np.ndarray, K: np.ndarray,
@@ -49,18 +50,13 @@ def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: 
     frame = FitContext.of(models, observed, depth, K, plane)
     fits = _starts(frame, estimates, [x.hypotheses for x in models], cfg.starts.level_rests)
     parts = list(range(len(estimates))) if rivals is None else rivals.part
-    threads = torch.get_num_threads()
-    chunks = _chunks(parts, fits.obj, threads)
+    chunks = _chunks(parts, fits.obj, torch.get_num_threads())
     run = partial(_fit, frame, cfg, rivals)
     if len(chunks) == 1:
         done = [run(fits)]
     else:  # a step's small batched products keep about one core busy: a chunk per thread, one torch thread each
-        torch.set_num_threads(1)
-        try:
-            with ThreadPoolExecutor(len(chunks)) as pool:
-                done = list(pool.map(run, [fits.rows(torch.isin(fits.obj, c)) for c in chunks]))
-        finally:
-            torch.set_num_threads(threads)
+        with torch_threads(1), ThreadPoolExecutor(len(chunks)) as pool:
+            done = list(pool.map(run, [fits.rows(torch.isin(fits.obj, c)) for c in chunks]))
     best = {o: c.best(o) for c in done for o in c.obj.unique().tolist()}
     return [best.get(o, (estimates[o], float("inf"))) for o in range(len(estimates))]
 
@@ -78,13 +74,13 @@ def _chunks(parts: list[int], obj: torch.Tensor, n: int) -> list[torch.Tensor]:
     members: dict[int, list[int]] = {}
     for o, p in enumerate(parts):
         members.setdefault(p, []).append(o)
-    groups = sorted(members.values(), key=lambda g: -sum(rows[o] for o in g))
+    groups = sorted(((sum(rows[o] for o in g), g) for g in members.values()), key=lambda x: -x[0])
     chunks: list[list[int]] = [[] for _ in range(min(n, len(groups)))]
     load = [0] * len(chunks)
-    for g in groups:
+    for size, g in groups:
         i = load.index(min(load))
         chunks[i] += g
-        load[i] += sum(rows[o] for o in g)
+        load[i] += size
     return [torch.tensor(sorted(c)) for c in chunks]
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -25,20 +24,6 @@ torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)  # two 
 WIDTH, HEIGHT = 160, 120
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
 COLOURS = {1: (220, 60, 40), 2: (40, 160, 60), 3: (50, 80, 220)}
-
-
-@pytest.fixture
-def torch_threads():
-    """``torch_threads(n)``: a context in which torch runs on n threads (restored after)."""
-    @contextlib.contextmanager
-    def threads(n: int):
-        before = torch.get_num_threads()
-        torch.set_num_threads(n)
-        try:
-            yield
-        finally:
-            torch.set_num_threads(before)
-    return threads
 
 
 def _models():

@@ -10,6 +10,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from posegrasp.perception.depth_fit import driver
+from posegrasp.perception.runtime import torch_threads
 from posegrasp.perception.depth_fit import (FitConfig, NearestGrid, ObjectModel, DepthFitConfig, ScoreConfig, SearchConfig,
                                         StartConfig, TurnConfig, cube_rotations, distinct_rotations, fit_pose,
                                         fit_poses)
@@ -141,7 +142,7 @@ def test_icp_leaves_a_near_symmetric_wrong_rotation(tiny_bop):
 
 
 @pytest.mark.slow
-def test_objects_fitted_together_as_each_alone(tiny_bop, torch_threads, monkeypatch):
+def test_objects_fitted_together_as_each_alone(tiny_bop, monkeypatch):
     """``fit_poses`` batches the objects of a frame (models and point sets of different sizes, padded): each result
     is ``fit_pose``'s for that object alone, with and without the supporting plane, and the same with a torch thread
     per object (a batch per thread)."""

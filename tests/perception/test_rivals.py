@@ -9,6 +9,7 @@ from posegrasp.bop import models as bop_models
 from posegrasp.errors import ConfigError
 from posegrasp.perception.depth_fit import DepthFitConfig, FitConfig, ObjectModel, fit_poses
 from posegrasp.perception.depth_fit import driver
+from posegrasp.perception.runtime import torch_threads
 from posegrasp.perception.depth_fit.rivals import Rivals
 
 
@@ -43,8 +44,7 @@ def _one_part_as_each_type(tiny_bop):
     return depth, K, g.obj_id, types, [g.T_cam_obj] * len(types), models, [obs] * len(types)
 
 
-def test_the_types_a_part_is_not_are_dropped_and_its_own_fits_as_without_rivals(tiny_bop, torch_threads,
-                                                                                 monkeypatch):
+def test_the_types_a_part_is_not_are_dropped_and_its_own_fits_as_without_rivals(tiny_bop, monkeypatch):
     """A part posed as each type of the set: without margins every type is fitted as it is without rivals; with
     margins 0 only the best type is fitted to the end (the part's own), the others report score inf and their
     estimates, on one torch thread as on several (a part's rivals are fitted in one batch); a cost on the own type
