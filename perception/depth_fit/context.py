@@ -19,8 +19,9 @@ class FitContext:
     (O, N, 3) (camera frame, m) with ``weights`` (O, N) (0: padding); the depth image (H, W) (m, 0: no depth) and
     intrinsics K (3, 3); the supporting plane (4,: n . x + d = 0, n unit, camera frame) or None; the models' ``grids``
     and stacked point columns (3, G M) (row u M + j: point j of the u-th distinct grid's model); their rests' ups
-    (O, U, 3) and classes (O, U) (``stacked_rests``) and their symmetries; given the plane, ``supports`` (O, S):
-    heights (m) above it on which each object may rest besides the plane (``supports``; 0 where none)."""
+    (O, U, 3) and classes (O, U) (``stacked_rests``), their symmetries and their convex hulls' vertices ``hulls``
+    (O, V, 3) (``ObjectModel.hull``, padded by repeating the first); given the plane, ``supports`` (O, S): heights
+    (m) above it on which each object may rest besides the plane (``supports``; 0 where none)."""
 
     models: torch.Tensor
     model_ok: torch.Tensor
@@ -34,6 +35,7 @@ class FitContext:
     ups: torch.Tensor
     rest_labels: torch.Tensor
     symmetries: list[Symmetries]
+    hulls: torch.Tensor
     supports: torch.Tensor | None = None
 
     @classmethod
@@ -47,7 +49,7 @@ class FitContext:
         return cls(m, m_ok, p, p_ok.float(), torch.from_numpy(np.asarray(depth, dtype=np.float32)), K,
                    None if plane is None else torch.from_numpy(np.asarray(plane, dtype=np.float32)),
                    grids, m[grids.first].reshape(-1, 3).T.contiguous(), ups, labels,
-                   [x.symmetries for x in models],
+                   [x.symmetries for x in models], _repeated([x.hull for x in models]),
                    None if plane is None else supports(models, observed, np.asarray(plane, dtype=np.float64)))
 
     @property
@@ -99,3 +101,10 @@ def _padded(arrays: list[np.ndarray], fill: float = 0.0) -> tuple[torch.Tensor, 
     for i, a in enumerate(arrays):
         out[i, :len(a)], valid[i, :len(a)] = torch.from_numpy(np.asarray(a, dtype=np.float32)), True
     return out, valid
+
+
+def _repeated(arrays: list[np.ndarray]) -> torch.Tensor:
+    """Point sets (n_i, 3) as one float32 tensor (O, max n_i, 3), each padded by repeating its first point."""
+    n = max(len(a) for a in arrays)
+    return torch.from_numpy(np.stack([np.concatenate([a, np.repeat(a[:1], n - len(a), axis=0)])
+                                      for a in arrays]).astype(np.float32))

@@ -19,7 +19,7 @@ from posegrasp.perception.depth_fit.model import ObjectModel
 from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.depth_fit.score import Scored, best_rows, score
 from posegrasp.perception.depth_fit.search import pattern_search, yaw_search
-from posegrasp.perception.depth_fit.starts import rest_starts, resting, turned, up_face
+from posegrasp.perception.depth_fit.starts import lowest, rest_starts, resting, turned, up_face
 from posegrasp.perception.runtime import torch_threads
 
 
@@ -139,12 +139,9 @@ def _starts(frame: FitContext, estimates: list[np.ndarray], hypotheses: list[np.
     if pl is not None:
         R2, src = (rest_starts(R, obj, pl[:3], frame.ups, frame.rest_labels, frame.symmetries) if level_rests
                    else (R, torch.arange(len(R))))
-        R, t = torch.cat([R, R2]), torch.cat([t, resting(R2, t[src], frame.models, frame.model_ok, obj[src], pl)])
+        R, t = torch.cat([R, R2]), torch.cat([t, resting(R2, t[src], frame.hulls, obj[src], pl)])
         obj, held = torch.cat([obj, obj[src]]), torch.cat([held, torch.full((len(R2),), level_rests)])
-    low = torch.zeros(len(R))
-    if held.any():
-        low = (frame.models[obj] @ (R.transpose(1, 2) @ pl[:3])[:, :, None])[..., 0] \
-            .masked_fill(~frame.model_ok[obj], torch.inf).min(1)[0]
+    low = lowest(R, frame.hulls, obj, pl[:3]) if held.any() else torch.zeros(len(R))
     return _Fits(R, t, obj, held, low)
 
 

@@ -64,6 +64,17 @@ class ObjectModel:
         return float(np.ptp(self.points, axis=0).min())
 
     @cached_property
+    def hull(self) -> np.ndarray:
+        """The model points' convex-hull vertices (V, 3) (all the points when they span no volume): a linear
+        function's extremes over the points (``perception.depth_fit.starts.lowest``)."""
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            return self.points[ConvexHull(self.points).vertices]
+        except (QhullError, ValueError):
+            return self.points
+
+    @cached_property
     def radius(self) -> float:
         """The largest distance (m) of a model point from the object frame's origin."""
         return float(np.sqrt(np.max(np.einsum("ij,ij->i", self.points, self.points))))

@@ -125,14 +125,19 @@ def _nearest_up(R: torch.Tensor, normal: torch.Tensor, ups: torch.Tensor | None
     return a, ups[torch.arange(len(R)), k].to(R.dtype), k
 
 
-def resting(R: torch.Tensor, t: torch.Tensor, m: torch.Tensor, m_ok: torch.Tensor, obj: torch.Tensor,
-            plane: torch.Tensor) -> torch.Tensor:
-    """The translations t (H, 3) moved along the plane's normal until the lowest valid model point (m (O, M, 3),
-    m_ok (O, M), of objects obj (H,)) under R (H, 3, 3) lies on the plane (4,: n . x + d = 0, n unit)."""
-    a = R.transpose(1, 2) @ plane[:3]  # (H, 3): the normal in each object's frame
-    height = (m[obj] @ a[:, :, None])[..., 0] + (t @ plane[:3] + plane[3])[:, None]  # (H, M)
-    lowest = height.masked_fill(~m_ok[obj], torch.inf).min(dim=1).values  # (H,)
-    return t - lowest[:, None] * plane[:3]
+def resting(R: torch.Tensor, t: torch.Tensor, hull: torch.Tensor, obj: torch.Tensor, plane: torch.Tensor
+            ) -> torch.Tensor:
+    """The translations t (H, 3) moved along the plane's normal until the lowest model point under R (H, 3, 3) lies
+    on the plane (4,: n . x + d = 0, n unit): ``lowest`` over the hull vertices (O, V, 3) of objects obj (H,)."""
+    return t - (lowest(R, hull, obj, plane[:3]) + t @ plane[:3] + plane[3])[:, None] * plane[:3]
+
+
+def lowest(R: torch.Tensor, hull: torch.Tensor, obj: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """min_j h_j . (R^T n) (H,): the lowest model point's height along ``normal`` n (3,, unit) above the object
+    origin, for rotations R (H, 3, 3) of objects obj (H,) with hull vertices h (O, V, 3) (``ObjectModel.hull``, any
+    padding a repeated vertex). A linear function's least value over the points is taken at a vertex of their convex
+    hull, so the vertices give the model points' minimum at a fraction of the work."""
+    return (hull[obj] @ (R.transpose(1, 2) @ normal)[:, :, None])[..., 0].min(dim=1).values  # (H, V) -> (H,)
 
 
 def up_face(R: torch.Tensor, normal: torch.Tensor | np.ndarray, ups: torch.Tensor | None = None) -> torch.Tensor:
