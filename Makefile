@@ -48,15 +48,19 @@ XDIST := -n 2 --dist loadfile
 test test-fast: export PYTHONDONTWRITEBYTECODE :=
 
 # The suites run on two worker processes (pytest-xdist), a test file to a worker so that its fixtures are built
-# once; the session fixtures of many files (the tiny dataset, its trained run) once for both.
+# once; the session fixtures of many files (the tiny dataset, its trained run) once for both. xdist hands the files
+# out in the order given: the longest first, so that neither worker is left waiting on one at the end.
+LONGEST_TESTS := $(addprefix tests/,test_closed_loop.py test_hardening_runs.py test_tray.py test_plugins.py \
+	test_workers.py test_ray.py test_depth_icp.py perception/test_estimator.py test_trials.py test_tasks.py \
+	perception/test_cli.py test_bin_pick.py)
 test: setup sysdeps
-	$(BIN)/python -m pytest -q $(XDIST) $(addprefix --ignore=,$(FAULT_TESTS) $(SIGNAL_TESTS) $(ALONE_TESTS))
+	$(BIN)/python -m pytest -q $(XDIST) $(LONGEST_TESTS) tests $(addprefix --ignore=,$(FAULT_TESTS) $(SIGNAL_TESTS) $(ALONE_TESTS))
 	$(BIN)/python -m pytest -q $(ALONE_TESTS)
 	$(BIN)/python -m pytest -q $(XDIST) $(FAULT_TESTS)
 	$(BIN)/python -m pytest -q -n 2 --dist load $(SIGNAL_TESTS)
 
 test-fast: setup sysdeps
-	$(BIN)/python -m pytest -q $(XDIST) -m "not slow"
+	$(BIN)/python -m pytest -q $(XDIST) -m "not slow" $(LONGEST_TESTS) tests
 
 clean:
 	rm -rf $(VENV) demo_out
