@@ -46,6 +46,7 @@ class Failure(StrEnum):
     THROWN_OUT = "part thrown out"  # bin: a part left the tote other than into the out-box
     NO_SEAL = "no seal"  # bin, suction: the cup's rim did not seal on the part
     SEAL_LOST = "seal lost"  # bin, suction: the vacuum let the part go in the lift or the carry
+    ROLLED = "rolled off a wall"  # bin, hybrid: the closed fingers rolled a round part off a wall, picking nothing
     NO_SLOT = "no free slot"  # bin, tray: parts were seen, none of a type with a free slot left in the tray
     PARTS_LEFT = "parts left"  # bin episode: the robot saw nothing more to pick, yet parts were not removed
     FAILED_IN_A_ROW = "failed in a row"  # bin episode: ended after too many failed attempts in a row
@@ -57,7 +58,7 @@ FAILURES = tuple(Failure)
 #: Failures never re-counted as "pose error" (``grasping.episode``): nothing was grasped, or the task's own verdict.
 NOT_POSE_ERRORS = frozenset({Failure.NO_DETECTION, Failure.SIMULATION_ERROR, Failure.NO_UPRIGHT, Failure.NO_BASE,
                              Failure.WRONG_FACE, Failure.MISALIGNED, Failure.BASE_MOVED, Failure.NOTHING_GRASPABLE,
-                             Failure.PARTS_LEFT, Failure.FAILED_IN_A_ROW, Failure.ATTEMPT_LIMIT})
+                             Failure.ROLLED, Failure.PARTS_LEFT, Failure.FAILED_IN_A_ROW, Failure.ATTEMPT_LIMIT})
 #: Record fields of the kitting and stack tasks, left out of a pick-and-place record.
 TASK_FIELDS = ("task", "estimate_error", "final_error", "base")
 #: Record types by task name: an ``EpisodeRecord`` subclass declared with ``task=NAME`` registers itself here, and

@@ -19,7 +19,10 @@ from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.targets import reach_q
 from posegrasp.grasping.tasks.bin_pick.planner import (HeapView, _reachable, approach_end, choose_cup, choose_part,
                                                        off_the_walls, pregrasp_height)
+from posegrasp.grasping.tasks.bin_pick.attempt import _look, _open_and_retreat
+from posegrasp.grasping.tasks.bin_pick.metrics import grasped_for
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
+from posegrasp.grasping.tasks.bin_pick.roll import Roll, wall_rolls
 from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
 from test_bin_pick import CAT, _alone, _cfg, _episode, _flat, _inner_bounds, _oracle_episode
 from tests.helpers import refused, run_cli
@@ -213,3 +216,67 @@ def test_a_cup_grasp_is_reachable_only_where_its_approach_starts_within_reach():
     start = approach_end(g)
     assert reach_q(wc, cfg.grasp, start, pregrasp_height(cfg, area, start)) is None
     assert _reachable(wc, cfg, HeapView(wc, cfg, [], np.eye(4), np.zeros((0, 3))), [(1.0, 0, g)]) is None
+
+
+def _lying_in_the_corner(name: str, yaw_deg: float, gap: float = 0.002) -> np.ndarray:
+    """Part ``name`` on its side (its object z axis horizontal, turned ``yaw_deg`` from world x) ``gap`` (m) from the
+    tote's +x and +y walls."""
+    lo, hi = _inner_bounds()
+    T = make_T(axis_angle_R(np.array([0.0, 0.0, 1.0]), np.radians(yaw_deg))
+               @ axis_angle_R(np.array([0.0, 1.0, 0.0]), np.pi / 2), np.zeros(3))
+    v = transform_points(T, CAT[name].vertices)
+    T[:3, 3] = (*(hi[:2] - gap - v[:, :2].max(0)), lo[2] - v[:, 2].min() + 0.001)
+    return T
+
+
+def _wall_gaps(ep) -> np.ndarray:
+    """The only part's distances (m) from the tote's -x, +x, -y and +y walls (the simulator's truth)."""
+    lo, hi = _inner_bounds()
+    v = transform_points(ep.wc.block_poses()[0], ep.wc.blocks[0].block.vertices)
+    return np.concatenate([v[:, :2].min(0) - lo[:2], hi[:2] - v[:, :2].max(0)])[[0, 2, 1, 3]]
+
+
+@pytest.mark.parametrize("yaw", [0.0, 90.0])
+def test_the_hybrid_hand_rolls_a_cylinder_out_of_a_corner_and_then_picks_it(yaw):
+    """A cylinder on its side 2 mm from two walls: no face for the cup, no room for a finger beside it, its end disc
+    on a wall: the closed fingers roll it off the wall it lies along, and at the next look the fingers pick it."""
+    ep, ests, T_world_cam = _alone("cylinder", None, "hybrid", _lying_in_the_corner("cylinder", yaw))
+    tool, b, part = Hybrid(ep), ep.cfg.bin_pick, CAT["cylinder"]
+    along = 3 if yaw == 0.0 else 1  # the wall it lies along: +y, or +x
+    _, roll, T_est = tool.choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
+    assert isinstance(roll, Roll) and len(roll.lengths) >= 3
+    with pytest.raises(EpisodeFailed) as e:
+        tool.pick(ep, Plan(1, part, roll, T_est, part), area_of(ep.wc, b), OutBox(ep, outbox_of(ep.wc.cfg, b)),
+                  Attempt(0))
+    assert e.value.reason == Failure.ROLLED
+    gaps = _wall_gaps(ep)
+    assert gaps[along] > 0.035 and gaps[4 - along] < 0.005  # off one wall, still on the other
+    _open_and_retreat(ep, area_of(ep.wc, b), tool)  # as the attempt loop does
+    _look(ep, area_of(ep.wc, b))
+    ests = [Estimate(part.obj_id, np.linalg.inv(T_world_cam) @ ep.wc.block_poses()[0], 1.0)]
+    _, grasp, T_est = tool.choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
+    att = Attempt(1)
+    tool.pick(ep, Plan(1, part, grasp, T_est, part), area_of(ep.wc, b), OutBox(ep, outbox_of(ep.wc.cfg, b)), att)
+    assert not isinstance(grasp, Roll) and att.grasped and att.failure is None
+
+
+def test_only_a_round_part_lying_by_a_wall_is_rolled():
+    """A cylinder standing, or lying in the middle of the tote, and a cuboid on its side by the wall: no roll."""
+    lo, hi = _inner_bounds()
+    area = area_of(bin_workcell(_cfg(1, "hybrid"), []), _cfg(1, "hybrid").bin_pick)
+    middle = _flat("cylinder", 0.5 * (lo[:2] + hi[:2]))
+    lying = _lying_in_the_corner("cylinder", 0.0)
+    assert wall_rolls(CAT["cylinder"], lying, area, 0.005, 0.011)
+    lying_middle = lying.copy()
+    lying_middle[:2, 3] = 0.5 * (lo[:2] + hi[:2])
+    for name, T in (("cylinder", _lying_in_the_corner("cylinder", 0.0) @ make_T(axis_angle_R(
+            np.array([0.0, 1.0, 0.0]), -np.pi / 2), np.zeros(3))), ("cylinder", middle), ("cylinder", lying_middle),
+                    ("long_cuboid", _lying_in_the_corner("long_cuboid", 0.0))):
+        assert wall_rolls(CAT[name], T, area, 0.005, 0.011) == [], name
+
+
+def test_a_roll_counts_as_an_attempt_but_not_as_a_grasp():
+    target = {"instance": 1, "type": "cylinder"}
+    assert not grasped_for({"target": target, "failure": Failure.ROLLED.value, "outcome": "failure"})
+    assert grasped_for({"target": target, "failure": Failure.SLIP.value, "outcome": "failure"})
+    assert not grasped_for({"target": None, "failure": Failure.NOTHING_GRASPABLE.value, "outcome": "failure"})

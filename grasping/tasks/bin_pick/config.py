@@ -96,6 +96,9 @@ class BinPickConfig:
     #: The hybrid hand squeezes a part turned near a wall along the wall where neither its cup nor its fingers have a
     #: grasp (``bin_pick/squeeze.py``): more totes emptied, as reliable, a few picks an hour fewer.
     wall_squeeze: bool = True
+    #: ... and where it has no squeeze either, rolls a round part lying on its side by a wall off it with its closed
+    #: fingers (``bin_pick/roll.py``; the attempt picks nothing: "rolled off a wall").
+    wall_roll: bool = True
     #: A neighbour that stops the hand on its way down to the grasp (a guarded move): the fingers close where the hand
     #: stopped if its pinch point stands at most this far (m) above the grasp ...
     close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))

@@ -24,6 +24,7 @@ import numpy as np
 from rich.console import Console
 
 from posegrasp.grasping.latency import looks
+from posegrasp.grasping.record import Failure
 from posegrasp.grasping.stats import newcombe, rate_row
 from posegrasp.grasping.tables import print_failures, rate_text
 from posegrasp.grasping.tasks.bin_pick.config import BIN_PICK
@@ -54,6 +55,12 @@ def visibility_bin(fraction: float | None) -> str:
     return next(label for label, lo, hi in VISIBILITY_BINS if lo <= fraction < hi)
 
 
+def grasped_for(attempt: dict) -> bool:
+    """Did the attempt (its JSON record) go for a part with a grasp (or for a false detection): a target, and not a
+    roll off a wall (``roll.py``: no grasp)?"""
+    return bool(attempt.get("target")) and attempt.get("failure") != Failure.ROLLED
+
+
 def cycle_hours(record: dict, latency: float) -> float:
     """An episode's cycle time (hours): the arm's simulated time plus ``latency`` seconds of perception per look."""
     return (record["sim_time"] + looks(record) * latency) / 3600.0
@@ -67,11 +74,11 @@ def bin_metrics(records: list[dict], latency: float = 0.0) -> dict:
     eps = [r for r in records if r.get("task") == BIN_PICK]
     attempts = [a for r in eps for a in r.get("attempts", [])]
     ok = [a["outcome"] == "success" for a in attempts]
-    went = [s for a, s in zip(attempts, ok) if a.get("target")]  # the robot went for a part (or a false detection)
+    went = [s for a, s in zip(attempts, ok) if grasped_for(a)]
     by_type: dict[str, list[bool]] = defaultdict(list)
     by_vis: dict[str, list[bool]] = defaultdict(list)
     for a, s in zip(attempts, ok):
-        if a.get("target"):
+        if grasped_for(a):
             by_type[a["target"].get("type", "(no part there)")].append(s)
             by_vis[visibility_bin(a.get("visib_fract"))].append(s)
     sim_hours = sum(r["sim_time"] for r in eps) / 3600.0
@@ -165,7 +172,7 @@ def compare(a: dict[int, dict], b: dict[int, dict], common: list[int],
         "attempts": attempts,
         "picks_per_hour": _paired(*rates),
         "latency_s": list(latency),
-        "grasps": unpaired_rates([[t for t in run if t.get("target")] for run in runs]),
+        "grasps": unpaired_rates([[t for t in run if grasped_for(t)] for run in runs]),
         "percent_cleared": _paired([100.0 * a[i]["cleared"] for i in common], [100.0 * b[i]["cleared"] for i in common]),
     }
     if any(run[i].get("place") == "tray" for run in (a, b) for i in common):

@@ -30,6 +30,7 @@ from posegrasp.grasping.tasks.bin_pick.planner import (CUP_PRESS, CUP_PRESS_SPEE
                                                        WALL_BACKOFF_SPEED, HeapView, approach_end, choose_cup,
                                                        choose_part, off_the_walls, poorly_supported, pregrasp_height)
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
+from posegrasp.grasping.tasks.bin_pick.roll import Roll, choose_roll, roll_off
 from posegrasp.grasping.tasks.bin_pick.scene import Area
 from posegrasp.grasping.tasks.bin_pick.squeeze import Squeeze, choose_squeeze
 from posegrasp.sim.hybrid import extend
@@ -347,7 +348,8 @@ class Hybrid:
     supported (``min_support``): an ambidextrous policy. With
     ``cup_first`` (a destination that keeps the pose: the tray), the cup wherever it has a grasp: it holds the part
     as the estimate has it, where closing fingers shift it. Where neither has a grasp, the fingers squeeze a part
-    turned near a wall along the wall (``squeeze.choose_squeeze``; ``wall_squeeze``)."""
+    turned near a wall along the wall (``squeeze.choose_squeeze``; ``wall_squeeze``), or else roll a round part
+    lying by a wall off it (``roll.choose_roll``; ``wall_roll``) for the next look to pick."""
 
     def __init__(self, ep: Episode, cup_first: bool = False):
         self.cup = Cup(ep)
@@ -368,9 +370,10 @@ class Hybrid:
                 continue
             found.append((not poorly_supported(g, cfg.bin_pick), view.tops[j] + bonus, j, g, T))
         if not found:
-            if cfg.bin_pick.wall_squeeze:
+            for on, last_resort in ((cfg.bin_pick.wall_squeeze, choose_squeeze), (cfg.bin_pick.wall_roll, choose_roll)):
                 try:
-                    return choose_squeeze(wc, cfg, view, failed)
+                    if on:
+                        return last_resort(wc, cfg, view, failed)
                 except EpisodeFailed as e:
                     why.append(e.reason)
             raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)
@@ -380,6 +383,8 @@ class Hybrid:
     def pick(self, ep: Episode, plan: Plan, area: Area, dest: Destination, att: Attempt) -> None:
         if isinstance(plan.grasp, SuctionGrasp):
             self.cup.pick(ep, plan, area, dest, att)
+        elif isinstance(plan.grasp, Roll):
+            roll_off(ep, plan.grasp, area, _watch(ep, area, plan.k))
         else:
             pick_and_drop(ep, plan, area, dest, att)
 
