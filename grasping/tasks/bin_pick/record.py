@@ -15,8 +15,9 @@ from posegrasp.io import jsonable
 
 @dataclass
 class Attempt:
-    """One bin-picking attempt: look, perceive, choose a part, pick it and drop it into the out-box. ``attempt``
-    (0-based) is also the ``im_id`` of its capture."""
+    """One bin-picking attempt: look, perceive, choose a part, pick it and drop it into the out-box (or, the hybrid
+    hand, roll it off a wall: ``roll.py``, failure "rolled off a wall"). ``attempt`` (0-based) is also the ``im_id``
+    of its capture."""
 
     attempt: int
     outcome: str = "failure"  # or "success": the target, alone, ended in the out-box (in its slot, within tolerance)
