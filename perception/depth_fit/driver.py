@@ -134,14 +134,14 @@ def _starts(frame: FitContext, estimates: list[np.ndarray], hypotheses: list[np.
     obj = torch.cat([torch.full((len(Q),), o) for o, Q in enumerate(hypotheses)])  # (H,): each hypothesis' object
     R = T[obj, :3, :3] @ torch.from_numpy(np.concatenate(hypotheses)).float()  # (H, 3, 3)
     t = T[obj, :3, 3]  # (H, 3)
-    held = torch.zeros(len(R), dtype=torch.bool)
+    held, low = torch.zeros(len(R), dtype=torch.bool), torch.zeros(len(R))  # low: a held row's only
     pl = frame.plane
     if pl is not None:
         R2, src = (rest_starts(R, obj, pl[:3], frame.ups, frame.rest_labels, frame.symmetries) if level_rests
                    else (R, torch.arange(len(R))))
-        R, t = torch.cat([R, R2]), torch.cat([t, resting(R2, t[src], frame.hulls, obj[src], pl)])
+        t2, low2 = resting(R2, t[src], frame.hulls, obj[src], pl)
+        R, t, low = torch.cat([R, R2]), torch.cat([t, t2]), torch.cat([low, low2])
         obj, held = torch.cat([obj, obj[src]]), torch.cat([held, torch.full((len(R2),), level_rests)])
-    low = lowest(R, frame.hulls, obj, pl[:3]) if held.any() else torch.zeros(len(R))
     return _Fits(R, t, obj, held, low)
 
 

@@ -126,10 +126,12 @@ def _nearest_up(R: torch.Tensor, normal: torch.Tensor, ups: torch.Tensor | None
 
 
 def resting(R: torch.Tensor, t: torch.Tensor, hull: torch.Tensor, obj: torch.Tensor, plane: torch.Tensor
-            ) -> torch.Tensor:
+            ) -> tuple[torch.Tensor, torch.Tensor]:
     """The translations t (H, 3) moved along the plane's normal until the lowest model point under R (H, 3, 3) lies
-    on the plane (4,: n . x + d = 0, n unit): ``lowest`` over the hull vertices (O, V, 3) of objects obj (H,)."""
-    return t - (lowest(R, hull, obj, plane[:3]) + t @ plane[:3] + plane[3])[:, None] * plane[:3]
+    on the plane (4,: n . x + d = 0, n unit), and that point's height (H,) above the object origin: ``lowest`` over
+    the hull vertices (O, V, 3) of objects obj (H,)."""
+    low = lowest(R, hull, obj, plane[:3])
+    return t - (low + t @ plane[:3] + plane[3])[:, None] * plane[:3], low
 
 
 def lowest(R: torch.Tensor, hull: torch.Tensor, obj: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:

@@ -337,7 +337,7 @@ def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
     # a 2 cm cube levelled and set on the plane n . x + 0.5 = 0: its lowest corner on it, its top face 2 cm above
     corners = torch.tensor(list(itertools.product((-0.01, 0.01), repeat=3)), dtype=torch.float64)[None]
     plane = torch.cat([n, torch.tensor([0.5], dtype=torch.float64)])
-    t = resting(L[:1], torch.zeros(1, 3, dtype=torch.float64), corners, torch.zeros(1, dtype=torch.long), plane)
+    t, _ = resting(L[:1], torch.zeros(1, 3, dtype=torch.float64), corners, torch.zeros(1, dtype=torch.long), plane)
     height = (corners[0] @ L[0].T + t[0]) @ n + 0.5
     assert float(height.min()) == pytest.approx(0.0, abs=1e-9) and float(height.max()) == pytest.approx(0.02, abs=1e-9)
 
