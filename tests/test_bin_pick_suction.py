@@ -250,7 +250,7 @@ def test_the_hybrid_hand_rolls_a_cylinder_out_of_a_corner_and_then_picks_it(yaw)
                   Attempt(0))
     assert e.value.reason == Failure.ROLLED
     gaps = _wall_gaps(ep)
-    assert gaps[along] > 0.035 and gaps[4 - along] < 0.005  # off one wall, still on the other
+    assert gaps[along] > 0.03 and gaps[4 - along] < 0.005  # off one wall past the fingers' reach, still on the other
     _open_and_retreat(ep, area_of(ep.wc, b), tool)  # as the attempt loop does
     _look(ep, area_of(ep.wc, b))
     ests = [Estimate(part.obj_id, np.linalg.inv(T_world_cam) @ ep.wc.block_poses()[0], 1.0)]

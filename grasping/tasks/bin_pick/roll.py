@@ -11,12 +11,12 @@ falls back along the pad,
     stroke length = (pad + behind) / (1 - ROLL_RATIO)    (the top line at the pad's back edge)
 
 then up, back to the top line and again, until the part lies ``ROLL_TO`` (m) from every wall it rolls away from,
-where the fingers reach round it. The roll is planned
-from the estimate alone: a part with a continuous symmetry whose axis lies within ``LEVEL_DEG`` of horizontal,
-resting on the floor; the closed fingers (``planner.finger_boxes``, their meshes) and the camera keep
-``wall_clearance`` from the walls and the loosest ``part_clearance`` from the other parts at the first and the last
-stroke, and the part's rolled pose keeps ``PART_ROOM`` from the other parts. A roll picks nothing: its attempt
-fails ("rolled off a wall"), and the next look picks the part where it came to rest.
+where the fingers reach round it. The roll is planned from the estimate alone: a part with a continuous symmetry
+whose axis lies within ``LEVEL_DEG`` of horizontal, resting on the floor; the closed fingers' meshes and the camera
+keep ``wall_clearance`` from the walls, the fingers' boxes (``planner.finger_boxes``) and the camera the loosest
+``part_clearance`` from the other parts, at the first and the last stroke; the part's rolled pose keeps
+``PART_ROOM`` from the other parts. A roll picks nothing: its attempt fails ("rolled off a wall"), and the next look
+picks the part where it came to rest.
 """
 
 from __future__ import annotations
