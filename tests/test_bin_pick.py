@@ -19,7 +19,7 @@ from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.tasks.bin_pick.attempt import _look, _same_view, empty_tote, tally
 from posegrasp.grasping.tasks.bin_pick.pick import Hybrid, OutBox, _Contacts, _stopped_near, pick_and_drop
 from posegrasp.grasping.tasks.bin_pick.planner import _clear_of, choose_cup, choose_part
-from posegrasp.grasping.tasks.bin_pick.squeeze import Squeeze
+from posegrasp.grasping.tasks.bin_pick.squeeze import OFF_WALL, Squeeze
 from posegrasp.grasping.calibration import load_hand_eye
 from posegrasp.grasping.compare import compare_runs, is_worse, print_comparison
 from posegrasp.grasping.config import TrialConfig
@@ -295,6 +295,21 @@ def test_a_brick_on_its_side_turned_against_a_wall_is_squeezed_along_it_by_the_h
     assert isinstance(grasp, Squeeze) and abs(grasp.T_world_gripper[1, 0]) > 0.99  # along the x wall
     assert _picked(ep, grasp)
     assert not ep.ctl.unexpected_contacts(1)
+
+
+def test_a_squeeze_whose_hand_would_reach_the_wall_moves_off_it():
+    """A 2x2 brick on its side, square to the -y wall, its studs 1 mm from it: centred on the brick, the squeeze's
+    fingers would come within ``wall_clearance`` of the wall; the hybrid hand squeezes it the least of ``OFF_WALL``
+    off the wall that clears it, and lifts it."""
+    lo, hi = _inner_bounds()
+    R = axis_angle_R(np.array([1.0, 0.0, 0.0]), np.pi / 2)  # the studs (object +z) toward -y
+    v = CAT["brick_2x2"].vertices @ R.T
+    T = make_T(R, (0.5 * (lo[0] + hi[0]) - v[:, 0].mean(), lo[1] + 0.001 - v[:, 1].min(), 0.011 - v[:, 2].min()))
+    ep, ests, T_world_cam = _alone("brick_2x2", None, "hybrid", T)
+    _, grasp, _ = Hybrid(ep).choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
+    assert isinstance(grasp, Squeeze) and 0.0 < grasp.off_wall <= max(OFF_WALL)
+    assert grasp.clearance < ep.cfg.bin_pick.wall_clearance + 0.0021  # the least move that clears: 2 mm steps
+    assert _picked(ep, grasp)
 
 
 def test_tally_finds_parts_in_the_out_box_and_parts_thrown_out():

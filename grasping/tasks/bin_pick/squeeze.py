@@ -8,7 +8,8 @@ wall turn it square to their pads as they close where it is free to turn (a sque
 "Orienting polygonal parts without sensors", Algorithmica 1993) and hold it by two edges where a wall keeps it from
 turning, so the pinch needs no face pair: its axis ``a`` runs along the wall, its centre is the middle of the part's
 estimated extent along ``a`` and across it (moved off that middle, away from the wall, the pads meet the part off
-centre and it turns out of them in the lift), at half the part's height (at least ``PINCH_BELOW_TOP`` below its top
+centre and a turned part may turn out of them in the lift: the centre moves ``OFF_WALL`` away from the wall only where
+the hand would not clear it, the least that does), at half the part's height (at least ``PINCH_BELOW_TOP`` below its top
 and ``grasp.min_pinch_height`` above the floor), and the fingers open ``finger_margin`` wider than the extent along
 ``a``.
 
@@ -44,11 +45,16 @@ from posegrasp.sim.workcell import Workcell
 @dataclass(frozen=True)
 class Squeeze(Grasp):
     """A squeeze along a wall (``wall_squeezes``): a ``Grasp`` whose descent, near the tote's near wall where the
-    IK's posture term holds the hand up to 9 mm off, gets the controller's ``reposture``."""
+    IK's posture term holds the hand up to 9 mm off, gets the controller's ``reposture``; its centre lies
+    ``off_wall`` (m) from the middle of the part, away from the wall."""
+
+    off_wall: float = 0.0
 
 
 #: A wall nearer the part than this (m) is one to squeeze along: more than a finger's reach down beside a part.
 NEAR_WALL = 0.035
+#: A squeeze's centre moves this far (m) off the part's middle, away from the wall, the least whose hand clears it.
+OFF_WALL = (0.0, 0.002, 0.004, 0.006, 0.008)
 #: The squeeze's pinch point lies at least this high (m): this far below the part's top (the fingertips, 8 mm below
 #: the pinch point, clear of the floor where the arm ends a descent near the tote's near wall a few mm low).
 PINCH_BELOW_TOP = 0.012
@@ -57,8 +63,9 @@ PINCH_BELOW_TOP = 0.012
 def wall_squeezes(part: PartType, T_world_obj: np.ndarray, area: Area, min_pinch_height: float,
                   max_width: float) -> list[Squeeze]:
     """Squeezes of ``part`` at its estimated ``T_world_obj`` along each tote wall nearer than ``NEAR_WALL`` (m),
-    nearest wall first, both signs of the pinch axis (the module's docstring); none wider than ``max_width`` (m).
-    Poses are the gripper's (world, z straight down, x the pinch axis); ``clearance`` is left for ``wall_room``."""
+    nearest wall first, both signs of the pinch axis, each moved off the wall by every ``OFF_WALL`` (the module's
+    docstring); none wider than ``max_width`` (m). Poses are the gripper's (world, z straight down, x the pinch axis);
+    ``clearance`` is left for ``wall_room``."""
     v = transform_points(T_world_obj, part.vertices)
     lo, hi = area.tote.inner_bounds()
     gaps = np.array([v[:, 0].min() - lo[0], hi[0] - v[:, 0].max(), v[:, 1].min() - lo[1], hi[1] - v[:, 1].max()])
@@ -72,10 +79,12 @@ def wall_squeezes(part: PartType, T_world_obj: np.ndarray, area: Area, min_pinch
         width = float(np.ptp(v @ along))
         if width > max_width:
             continue
-        for a in (along, -along):
+        inward = np.eye(3)[w // 2] * (1.0 if w % 2 == 0 else -1.0)  # the wall's normal into the tote
+        for a, off in itertools.product((along, -along), OFF_WALL):
             T = np.eye(4)
-            T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = a, np.cross((0.0, 0.0, -1.0), a), (0.0, 0.0, -1.0), centre
-            grasps.append(Squeeze(T, width, clearance=0.0, tilt_deg=0.0, support=0.0, score=0.0))
+            T[:3, 0], T[:3, 1], T[:3, 2] = a, np.cross((0.0, 0.0, -1.0), a), (0.0, 0.0, -1.0)
+            T[:3, 3] = centre + off * inward
+            grasps.append(Squeeze(T, width, clearance=0.0, tilt_deg=0.0, support=0.0, score=0.0, off_wall=off))
     return grasps
 
 
@@ -102,12 +111,16 @@ def choose_squeeze(wc: Workcell, cfg: TrialConfig, view: HeapView, failed: list[
 
     def ranked(j: int) -> list[tuple[float, Grasp]]:
         own, others, wall = view.around(j)
-        grasps = [dataclasses.replace(g, clearance=wall_room(g, wc.cfg, b.finger_margin, area, cam))
-                  for g in wall_squeezes(view.part(j), view.poses[j], area, g_cfg.min_pinch_height, g_cfg.max_width)
-                  if not _tried(g, failed, b) and _clear_of(g, wall, [cam], b.wall_clearance)
-                  and _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, b.wall_clearance)
-                  and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
-                  and _clear_of(g, others, [*hand.boxes((g.width + b.finger_margin) / 2), cam], b.part_clearance[-1])]
+        grasps, axes = [], set()
+        for g in wall_squeezes(view.part(j), view.poses[j], area, g_cfg.min_pinch_height, g_cfg.max_width):
+            axis = tuple(np.round(g.T_world_gripper[:3, 0], 6))  # per pinch axis, the least move off the wall
+            if (axis not in axes and not _tried(g, failed, b) and _clear_of(g, wall, [cam], b.wall_clearance)
+                    and _fingers_inside(g, wc.cfg, b.finger_margin, area.tote, b.wall_clearance)
+                    and _clear_of(g, own.data, hand.boxes((g.width + b.finger_margin) / 2)[:-1], 0.0)
+                    and _clear_of(g, others, [*hand.boxes((g.width + b.finger_margin) / 2), cam],
+                                  b.part_clearance[-1])):
+                axes.add(axis)
+                grasps.append(dataclasses.replace(g, clearance=wall_room(g, wc.cfg, b.finger_margin, area, cam)))
         return [(b.height_weight * (view.tops[j] - area.floor + g.clearance), g) for g in grasps]
 
     return _first_reachable(wc, cfg, view, [ranked])
