@@ -371,9 +371,10 @@ class Hybrid:
             found.append((not poorly_supported(g, cfg.bin_pick), view.tops[j] + bonus, j, g, T))
         if not found:
             for on, last_resort in ((cfg.bin_pick.wall_squeeze, choose_squeeze), (cfg.bin_pick.wall_roll, choose_roll)):
+                if not on:
+                    continue
                 try:
-                    if on:
-                        return last_resort(wc, cfg, view, failed)
+                    return last_resort(wc, cfg, view, failed)
                 except EpisodeFailed as e:
                     why.append(e.reason)
             raise EpisodeFailed(Failure.UNREACHABLE if Failure.UNREACHABLE in why else Failure.NOTHING_GRASPABLE)
