@@ -19,7 +19,7 @@ from posegrasp.perception.depth_fit.model import ObjectModel
 from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.depth_fit.score import Scored, best_rows, score
 from posegrasp.perception.depth_fit.search import pattern_search, yaw_search
-from posegrasp.perception.depth_fit.starts import lowest, rest_starts, resting, turned, up_face
+from posegrasp.perception.depth_fit.starts import rest_starts, resting, turned, up_face
 from posegrasp.perception.runtime import torch_threads
 
 

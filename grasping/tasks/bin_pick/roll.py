@@ -76,6 +76,11 @@ class Roll(Grasp):
     behind: float = BEHIND
     lengths: tuple[float, ...] = ()
 
+    @property
+    def shift(self) -> np.ndarray:
+        """(3,) how far (m, world) the part's axis moves in the whole roll: ``ROLL_RATIO`` of the strokes."""
+        return ROLL_RATIO * sum(self.lengths) * np.asarray(self.direction)
+
     def stroke(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Stroke ``i``'s start and end poses (world gripper): each after the first starts ``BEHIND`` from where the
         part's top line will be (``ROLL_RATIO`` of the strokes before)."""
@@ -162,13 +167,6 @@ def _placed(v: np.ndarray, origin: np.ndarray, axis: np.ndarray, d: np.ndarray, 
     return rolls
 
 
-def rolled(roll: Roll, T_world_obj: np.ndarray) -> np.ndarray:
-    """The part's pose ``T_world_obj`` moved as ``roll`` rolls it (its turn about its axis left out: a round part)."""
-    T = np.array(T_world_obj, float)
-    T[:3, 3] += ROLL_RATIO * sum(roll.lengths) * np.asarray(roll.direction)
-    return T
-
-
 def choose_roll(wc: Workcell, cfg: TrialConfig, view: HeapView, failed: list[np.ndarray]
                 ) -> tuple[int, Roll, np.ndarray]:
     """The estimate of ``view`` to roll off a wall (index), its ``wall_rolls`` roll and its levelled
@@ -194,7 +192,7 @@ def choose_roll(wc: Workcell, cfg: TrialConfig, view: HeapView, failed: list[np.
             ends = [dataclasses.replace(g, T_world_gripper=T) for T in (g.stroke(0)[0], g.stroke(len(g.lengths) - 1)[1])]
             if _tried(g, failed, b) or not all(clear(e, others, wall) for e in ends):
                 continue
-            moved = own.data + (rolled(g, view.poses[j]) - view.poses[j])[:3, 3]
+            moved = own.data + g.shift
             if len(others) and cKDTree(moved).query(others, distance_upper_bound=PART_ROOM)[0].min() < PART_ROOM:
                 continue
             out.append((b.height_weight * (view.tops[j] - area.floor), g))
