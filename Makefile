@@ -33,13 +33,7 @@ demo: setup sysdeps
 	$(BIN)/posegrasp trials --episodes 20 --seed 0 --perception model --workers 2 --out demo_out
 	@echo "Open demo_out/report.html (episodes.jsonl and summary.json beside it)"
 
-# The fault tests (full disks on a mounted tmpfs, Ctrl-C, the fuzz harness) run in pytest processes of their own,
-# after the rest: their tiny dataset is drawn with pyrender in the test process, whose EGL teardown ends the display
-# MuJoCo renders with there.
-# The Ctrl-C tests signal their commands' process groups: they too get processes of their own, a test to a worker.
 # The record-for-record comparison of a model campaign with its replay runs alone, in one process.
-FAULT_TESTS := tests/test_fuzz.py tests/test_full_disk.py
-SIGNAL_TESTS := tests/test_interrupt.py
 ALONE_TESTS := tests/test_captures.py
 XDIST := -n 2 --dist loadfile
 
@@ -49,15 +43,15 @@ test test-fast: export PYTHONDONTWRITEBYTECODE :=
 
 # The suites run on two worker processes (pytest-xdist), a test file to a worker so that its fixtures are built
 # once; the session fixtures of many files (the tiny dataset, its trained run) once for both. xdist hands the files
-# out in the order given: the longest first, so that neither worker is left waiting on one at the end.
-LONGEST_TESTS := $(addprefix tests/,test_closed_loop.py test_hardening_runs.py test_tray.py test_plugins.py \
-	test_workers.py test_ray.py test_depth_icp.py perception/test_estimator.py test_trials.py test_tasks.py \
-	perception/test_cli.py test_bin_pick.py)
+# out in the order given: the longest first, so that neither worker is left waiting on one at the end. The fault
+# tests (full disks on a mounted tmpfs, Ctrl-C to a command's own process group, the fuzz harness) run their
+# commands in child processes and draw their datasets there too, so they share the workers with the rest.
+LONGEST_TESTS := $(addprefix tests/,test_full_disk.py test_interrupt.py test_fuzz.py test_closed_loop.py \
+	test_hardening_runs.py test_tray.py test_plugins.py test_workers.py test_ray.py test_depth_icp.py \
+	perception/test_estimator.py test_trials.py test_tasks.py perception/test_cli.py test_bin_pick.py)
 test: setup sysdeps
-	$(BIN)/python -m pytest -q $(XDIST) $(LONGEST_TESTS) tests $(addprefix --ignore=,$(FAULT_TESTS) $(SIGNAL_TESTS) $(ALONE_TESTS))
+	$(BIN)/python -m pytest -q $(XDIST) $(LONGEST_TESTS) tests $(addprefix --ignore=,$(ALONE_TESTS))
 	$(BIN)/python -m pytest -q $(ALONE_TESTS)
-	$(BIN)/python -m pytest -q $(XDIST) $(FAULT_TESTS)
-	$(BIN)/python -m pytest -q -n 2 --dist load $(SIGNAL_TESTS)
 
 test-fast: setup sysdeps
 	$(BIN)/python -m pytest -q $(XDIST) -m "not slow" $(LONGEST_TESTS) tests
