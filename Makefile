@@ -44,13 +44,14 @@ test test-fast: export PYTHONDONTWRITEBYTECODE :=
 # The suites run on two worker processes (pytest-xdist), a test file to a worker so that its fixtures are built
 # once; the session fixtures of many files (the tiny dataset, its trained run) once for both. xdist hands the files
 # out in the order given: the longest first, so that neither worker is left waiting on one at the end. The fault
-# tests (full disks on a mounted tmpfs, Ctrl-C to a command's own process group, the fuzz harness) run their
-# commands in child processes and draw their datasets there too, so they share the workers with the rest.
-LONGEST_TESTS := $(addprefix tests/,test_full_disk.py test_interrupt.py test_fuzz.py test_closed_loop.py \
-	test_hardening_runs.py test_tray.py test_plugins.py test_workers.py test_ray.py test_depth_icp.py \
-	perception/test_estimator.py test_trials.py test_tasks.py perception/test_cli.py test_bin_pick.py)
+# tests (full disks on a mounted tmpfs, Ctrl-C to a command's own process group, the fuzz harness; mostly slow)
+# run their commands in child processes and draw their datasets there too, so they share the workers with the rest.
+FAULT_TESTS := $(addprefix tests/,test_full_disk.py test_interrupt.py test_fuzz.py)
+LONGEST_TESTS := $(addprefix tests/,test_closed_loop.py test_hardening_runs.py test_tray.py test_plugins.py \
+	test_workers.py test_ray.py test_depth_icp.py perception/test_estimator.py test_trials.py test_tasks.py \
+	perception/test_cli.py test_bin_pick.py)
 test: setup sysdeps
-	$(BIN)/python -m pytest -q $(XDIST) $(LONGEST_TESTS) tests $(addprefix --ignore=,$(ALONE_TESTS))
+	$(BIN)/python -m pytest -q $(XDIST) $(FAULT_TESTS) $(LONGEST_TESTS) tests $(addprefix --ignore=,$(ALONE_TESTS))
 	$(BIN)/python -m pytest -q $(ALONE_TESTS)
 
 test-fast: setup sysdeps
