@@ -7,14 +7,14 @@ import json
 import numpy as np
 import pytest
 
-from helpers import refused, run_cli
+from helpers import refused
+from posegrasp.cli import main
 from posegrasp.io import read_image
 
 
 def test_scene_writes_labelled_capture(tmp_path):
     out = tmp_path / "scene"
-    r = run_cli("scene", "--seed", "2", "--blocks", "3", "--resolution", "320x240", "--out", str(out))
-    assert r.returncode == 0, r.stderr
+    assert main(["scene", "--seed", "2", "--blocks", "3", "--resolution", "320x240", "--out", str(out)]) == 0
     rgb, depth, mask = (read_image(out / f) for f in ("rgb.png", "depth.png", "mask.png"))
     assert rgb.shape == (240, 320, 3) and rgb.dtype == np.uint8
     assert depth.dtype == np.uint16 and 150 < np.median(depth[depth > 0]) < 2000  # millimetres

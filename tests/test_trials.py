@@ -9,7 +9,7 @@ import shutil
 import pytest
 from rich.console import Console
 
-from helpers import PICK_PLACE_ORACLE, run_cli, success_floor
+from helpers import PICK_PLACE_ORACLE, refused, run_cli, success_floor
 from posegrasp.grasping.config import TrialConfig
 from posegrasp.grasping.stats import wilson
 from posegrasp.grasping.runfolder import EPISODES
@@ -120,8 +120,7 @@ def test_bad_input_is_one_line(tmp_path, args, words):
     assert len(lines) == 1 and words in lines[0] and "Traceback" not in r.stderr, r.stderr
 
 
-def test_missing_calibration_is_one_line(tmp_path):
+def test_missing_calibration_is_one_line(capsys, tmp_path):
     cfg = tmp_path / "t.toml"
     cfg.write_text(f'hand_eye = "{tmp_path / "nowhere.json"}"\n')
-    r = run_cli("trials", "--episodes", "1", "--config", str(cfg), "--out", str(tmp_path / "o"))
-    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "calibrate" in r.stderr
+    refused(capsys, ["trials", "--episodes", "1", "--config", cfg, "--out", tmp_path / "o"], "calibrate")
