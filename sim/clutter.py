@@ -22,6 +22,7 @@ from posegrasp.errors import SceneUnsettled, UserError
 from posegrasp.geometry import make_T, transform_points
 from posegrasp.sim.config import WorkcellConfig, check_pairs
 from posegrasp.sim.scene import SETTLE_PERIOD, random_rotation, run_held
+from posegrasp.sim.shaker import ShakerConfig
 from posegrasp.sim.tote import Tote, ToteConfig, check_reach, tote_geoms
 from posegrasp.sim.workcell import PARKING_GAP, PARKING_Y, BlockInstance, Workcell
 
@@ -103,9 +104,10 @@ def check_clutter(workcell: WorkcellConfig, kind: str, cfg: ClutterConfig, types
 
 
 def clutter_workcell(workcell: WorkcellConfig, kind: str, parts: Sequence[BlockInstance], cfg: ClutterConfig,
-                     extras: Callable[[mjcf.RootElement], None] | None = None) -> Workcell:
-    """The workcell with ``parts`` (parked until dropped) and, for a ``bin``, the tote in the pick area;
-    ``extras(root)`` as in ``Workcell``."""
+                     extras: Callable[[mjcf.RootElement], None] | None = None,
+                     shaker: ShakerConfig | None = None) -> Workcell:
+    """The workcell with ``parts`` (parked until dropped) and, for a ``bin``, the tote in the pick area (on a
+    ``shaker`` stage if given: ``sim.shaker``); ``extras(root)`` as in ``Workcell``."""
     if kind not in CLUTTER_KINDS:
         raise ValueError(f"clutter scene {kind!r} must be one of {', '.join(CLUTTER_KINDS)}")
     tote = tote_of(workcell, cfg) if kind == "bin" else None
@@ -114,7 +116,7 @@ def clutter_workcell(workcell: WorkcellConfig, kind: str, parts: Sequence[BlockI
         if extras is not None:
             extras(root)
         if tote is not None:
-            tote.add_to(root)
+            tote.add_to(root, shaker)
 
     wc = Workcell(workcell, parts, extras=compose)
     # dm-control's arm model turns MuJoCo's native convex collision off; with the older one, convex parts landing

@@ -22,6 +22,7 @@ from posegrasp.config import settings, within
 from posegrasp.errors import UserError
 from posegrasp.geometry import axis_angle_R, make_T
 from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.shaker import ShakerConfig, add_shaker
 from posegrasp.sim.workcell import Workcell
 
 TOTE = "tote"  #: model name of the tote: the prefix of its geoms' names in a workcell
@@ -108,10 +109,13 @@ class Tote:
         root.worldbody.add("geom", name="wall_y1", size=(hx, 0.5 * t, wh), pos=(0, hy + 0.5 * t, wh), **kw)
         return root
 
-    def add_to(self, root: mjcf.RootElement) -> None:
-        """Attach the tote to a workcell's MJCF ``root`` (static: no joint), at ``center`` on the table top."""
+    def add_to(self, root: mjcf.RootElement, shaker: ShakerConfig | None = None) -> None:
+        """Attach the tote to a workcell's MJCF ``root`` at ``center`` on the table top: static (no joint), or on
+        a ``shaker`` stage (``sim.shaker``)."""
         frame = root.attach(self.mjcf_model())
         frame.pos = (*self.center, 0.0)
+        if shaker is not None:
+            add_shaker(frame, root, shaker)
 
 
 def tote_geoms(model: mujoco.MjModel) -> np.ndarray:

@@ -36,8 +36,10 @@ from posegrasp.grasping.tasks import get_task, with_set
 from posegrasp.grasping.tasks.bin_pick import BinPickConfig
 from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
 from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
+from posegrasp.grasping.tasks.bin_pick.shake import shake_direction
 from posegrasp.grasping.trials import Display, run_trials
 from posegrasp.sim.clutter import ClutterConfig, settle_heap
+from posegrasp.sim.shaker import Shaker
 from posegrasp.sim.tote import WALLS
 from posegrasp.sim.workcell import BlockInstance
 
@@ -358,6 +360,25 @@ def test_an_episode_ends_when_no_part_it_sees_has_a_grasp():
         empty_tote(ep)
     assert e.value.reason == Failure.NOTHING_GRASPABLE  # the second look sees the same: no second attempt
     assert [a.failure for a in ep.rec.attempts] == [Failure.NOTHING_GRASPABLE] and ep.rec.removed == 0
+
+
+def test_a_part_in_a_corner_is_shaken_off_the_walls_and_picked_at_the_next_look():
+    cfg = _cfg(1, shakes=1)
+    area = area_of(bin_workcell(cfg, []), cfg.bin_pick)
+    lo, hi = area.tote.inner_bounds()
+    corner = (lo[0] + 0.017, lo[1] + 0.017)  # as above: no finger fits
+    u = shake_direction(area, [make_T(np.eye(3), (*corner, 0.02))], cfg.bin_pick.shake_margin)
+    assert np.allclose(u, [-np.sqrt(0.5), -np.sqrt(0.5)])  # the tote jerks into the corner: the part slides out
+    assert shake_direction(area, [make_T(np.eye(3), (*(0.5 * (lo + hi))[:2], 0.02))], 0.04) is None
+    ep = _episode(cfg, ["cube"], [_flat("cube", corner)])
+    shaker = Shaker.of(ep.wc.model, ep.wc.data, cfg.bin_pick.shaker)
+    empty_tote(ep)
+    assert [a.failure for a in ep.rec.attempts] == [Failure.NOTHING_GRASPABLE, None] and ep.rec.removed == 1
+    assert ep.rec.attempts[0].shaken and not ep.rec.attempts[1].shaken
+    assert np.abs(ep.wc.data.qpos[shaker.qadr]).max() < 1e-4  # the tote back where it stands
+    back = EpisodeRecord.from_json(json.loads(json.dumps(ep.rec.to_json())))
+    assert back.to_json() == ep.rec.to_json() and "shaken" not in ep.rec.to_json()["attempts"][1]
+    assert Shaker.of(bin_workcell(_cfg(1), []).model, None, cfg.bin_pick.shaker) is None  # no stage by default
 
 
 def test_an_episode_ends_when_the_arm_reaches_no_grasp_of_what_it_sees():

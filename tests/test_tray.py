@@ -162,7 +162,7 @@ def test_the_cup_sets_parts_down_in_their_slots(tmp_path):
     assert t == s["bin_pick"]["tray"] and t["set_down"] >= len(down) and t["placed"]["success"] >= len(ok)
 
 
-def test_the_shipped_bin_examples_load_the_second_look_and_the_small_cup():
+def test_the_shipped_bin_examples_load_the_second_look_the_small_cup_and_the_shakes():
     from posegrasp.grasping.config import load_trial_config
 
     examples = Path(__file__).parents[1] / "examples" / "bin"
@@ -171,6 +171,9 @@ def test_the_shipped_bin_examples_load_the_second_look_and_the_small_cup():
     cup = load_trial_config(examples / "hybrid_cup15.toml").scene.workcell
     assert cup.suction.diameter == 0.015 < TrialConfig().scene.workcell.suction.diameter
     dataclasses.replace(cup, hand="hybrid")  # the cup fits between the hybrid hand's fingers
+    for name in ("shake.toml", "tray_shake.toml"):
+        assert load_trial_config(examples / name).bin_pick.shakes == 3 and TrialConfig().bin_pick.shakes == 0
+    assert load_trial_config(examples / "tray_shake.toml").bin_pick.tray.second_look
 
 
 @pytest.mark.slow

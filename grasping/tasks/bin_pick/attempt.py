@@ -27,9 +27,11 @@ from posegrasp.grasping.tasks.bin_pick.pick import Destination, OutBox, Tool, to
 from posegrasp.grasping.tasks.bin_pick.planner import depth_points, heap_points
 from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
 from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, outbox_of, tray_of
+from posegrasp.grasping.tasks.bin_pick.shake import shake_direction, shake_tote
 from posegrasp.grasping.tasks.bin_pick.tray import TrayPlace
 from posegrasp.sim.camera import Frame
 from posegrasp.sim.clutter import park
+from posegrasp.sim.shaker import Shaker
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell, wrap_angle
 
 if TYPE_CHECKING:
@@ -147,6 +149,8 @@ class _Emptying:
         self.end = Failure.PARTS_LEFT
         self.ests: list[Estimate] = []
         self.tool: Tool = tool_of(ep, self.dest)
+        self.shaker = Shaker.of(ep.wc.model, ep.wc.data, b.shaker) if b.shakes else None  # the tote's stage, if on one
+        self.shakes = 0
 
     def attempt(self, a: int) -> bool:
         """Attempt ``a``: capture, perceive, pick and drop, look again, judge; False when the episode stops at
@@ -167,6 +171,7 @@ class _Emptying:
             att.failure = Failure.SIMULATION_ERROR
             self._finish(att, t0)
             raise
+        self._shake(att)
         try:
             _look(ep, self.area)
         except EpisodeFailed:  # the arm is lost: the attempt and the episode end here
@@ -179,6 +184,18 @@ class _Emptying:
         self.stuck = self.seen if att.failure in (Failure.NOTHING_GRASPABLE, Failure.UNREACHABLE) else None
         self.stuck_why = att.failure if self.stuck is not None else self.stuck_why
         return True
+
+    def _shake(self, att: Attempt) -> None:
+        """After a look that found nothing graspable, shake the tote (``shake.py``) where the episode has shakes
+        left and some estimate lies by a wall."""
+        b = self.ep.cfg.bin_pick
+        if att.failure != Failure.NOTHING_GRASPABLE or self.shaker is None or self.shakes >= b.shakes:
+            return
+        u = shake_direction(self.area, [T for _, T in self.seen], b.shake_margin)
+        if u is not None:
+            shake_tote(self.ep, self.shaker, u)
+            self.shakes += 1
+            att.shaken = True
 
     def _pick(self, att: Attempt, frame: Frame) -> bool:
         """Perceive ``frame``, choose a part and pick and drop it (``EpisodeFailed`` when the attempt fails); False

@@ -8,6 +8,7 @@ from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
 from posegrasp.perception.held import HeldFitConfig
 from posegrasp.sim.clutter import ClutterConfig
+from posegrasp.sim.shaker import ShakerConfig
 from posegrasp.sim.tote import ToteConfig
 from posegrasp.sim.tray import TrayConfig
 
@@ -99,6 +100,14 @@ class BinPickConfig:
     #: ... and where it has no squeeze either, rolls a round part lying on its side by a wall off it with its closed
     #: fingers (``bin_pick/roll.py``; the attempt picks nothing: "rolled off a wall").
     wall_roll: bool = True
+    #: A look that finds nothing graspable (a failed attempt) is followed by a shake of the tote's stage, the parts
+    #: lying against its walls sliding off them (``sim.shaker``), at most this many times an episode (0: the tote
+    #: stands still on the table, on no stage; the other attempts and the heap's settling change with a stage too).
+    shakes: int = field(default=0, metadata=within(0, 100))
+    #: ... shaken toward the walls that the estimates' centres lie within this distance (m) of.
+    shake_margin: float = field(default=0.06, metadata=within(0.0, 0.5))
+    #: The tote's stage and its shake.
+    shaker: ShakerConfig = field(default_factory=ShakerConfig)
     #: A neighbour that stops the hand on its way down to the grasp (a guarded move): the fingers close where the hand
     #: stopped if its pinch point stands at most this far (m) above the grasp ...
     close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))

@@ -33,6 +33,7 @@ class Attempt:
     slot: int | None = None  # tray: the slot (0-based) the target was set down in
     place_error: dict | None = None  # tray: the target at rest against its slot (``tray.PlaceError``: m, deg)
     in_hand: dict | None = None  # tray's second look: whether it saw the part, its change to the held pose (m, deg)
+    shaken: bool = False  # after finding nothing graspable, the tote was shaken (``BinPickConfig.shakes``)
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
@@ -41,6 +42,8 @@ class Attempt:
         for key in ("slot", "place_error", "in_hand"):  # the tray's: an out-box record has none
             if d[key] is None:
                 del d[key]
+        if not self.shaken:
+            del d["shaken"]
         return d
 
 

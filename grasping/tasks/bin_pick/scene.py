@@ -62,10 +62,11 @@ def add_outbox(box: Tote) -> Callable[[mjcf.RootElement], None]:
 
 
 def bin_workcell(cfg: TrialConfig, parts: list[BlockInstance]) -> Workcell:
-    """The campaign's bin or pile workcell with ``parts`` (parked until dropped) and the out-box or the tray."""
+    """The campaign's bin or pile workcell with ``parts`` (parked until dropped), the out-box or the tray, and the
+    tote's stage where ``shakes`` asks for one."""
     b, wc = cfg.bin_pick, cfg.scene.workcell
     extras = tray_of(wc, b).add_to if b.place == "tray" else add_outbox(outbox_of(wc, b))
-    return clutter_workcell(wc, b.scene, parts, b.clutter, extras=extras)
+    return clutter_workcell(wc, b.scene, parts, b.clutter, extras=extras, shaker=b.shaker if b.shakes else None)
 
 
 def kit_types(cfg: TrialConfig, n_parts: int, rng: np.random.Generator) -> list[PartType]:

@@ -1,0 +1,46 @@
+"""Shaking the tote when nothing is graspable: parts that lie against the walls, where neither the fingers nor the
+cup reach them (a part 0-18 mm from a wall needs 29-35 mm for the fingers; a brick lying studs up gives the cup no
+seal), are shaken off the walls by the tote's stage (``sim.shaker``), and the robot looks again.
+
+The direction comes from the estimates only: the sum of the outward normals of the walls that each estimate's
+centre lies within ``shake_margin`` of. The tote jerks toward those walls, so the parts slide away from them;
+a part in a corner leaves both walls.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from posegrasp.grasping.tasks.bin_pick.scene import Area
+
+if TYPE_CHECKING:
+    from posegrasp.grasping.episode import Episode
+    from posegrasp.sim.shaker import Shaker
+
+
+def shake_direction(area: Area, poses: list[np.ndarray], margin: float) -> np.ndarray | None:
+    """Unit vector (world xy) the tote should jerk along, from the estimated poses ``poses`` (T_world_obj, m): the
+    normalised sum, over poses, of the outward normals of the walls whose inner face the pose's origin lies within
+    ``margin`` (m) of; None where no estimate lies that near a wall (or the walls' pulls cancel)."""
+    lo, hi = area.tote.inner_bounds()
+    u = np.zeros(2)
+    for T in poses:
+        xy = T[:2, 3]
+        u += (hi[:2] - xy < margin).astype(float) - (xy - lo[:2] < margin).astype(float)
+    n = float(np.linalg.norm(u))
+    return u / n if n > 0.0 else None
+
+
+def shake_tote(ep: Episode, shaker: Shaker, u: np.ndarray) -> None:
+    """Shake the tote along ``u`` (``Shaker.shake``), the arm holding its pose (the look) meanwhile."""
+    ctl = ep.ctl
+
+    def run(duration: float, at: Callable[[float], None]) -> None:
+        t0 = ctl.sim_time
+        at(0.0)
+        ctl.hold(duration, until=lambda: bool(at(ctl.sim_time - t0)))
+
+    shaker.shake(u, run)
+    ep.log.stop("shake", ctl, add=True)
