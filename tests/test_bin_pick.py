@@ -34,6 +34,7 @@ from posegrasp.grasping.runfolder import EPISODES, SUMMARY
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.tasks import get_task, with_set
 from posegrasp.grasping.tasks.bin_pick import BinPickConfig
+from posegrasp.grasping.tasks.bin_pick.metrics import bin_metrics
 from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
 from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
 from posegrasp.grasping.tasks.bin_pick.shake import shake_direction
@@ -379,6 +380,7 @@ def test_a_part_in_a_corner_is_shaken_off_the_walls_and_picked_at_the_next_look(
     back = EpisodeRecord.from_json(json.loads(json.dumps(ep.rec.to_json())))
     assert back.to_json() == ep.rec.to_json() and "shaken" not in ep.rec.to_json()["attempts"][1]
     assert Shaker.of(bin_workcell(_cfg(1), []).model, None, cfg.bin_pick.shaker) is None  # no stage by default
+    assert bin_metrics([ep.rec.to_json()])["bin_pick"]["shakes"] == 1
 
 
 def test_an_episode_ends_when_the_arm_reaches_no_grasp_of_what_it_sees():

@@ -85,8 +85,10 @@ def bin_metrics(records: list[dict], latency: float = 0.0) -> dict:
     hours = sum(cycle_hours(r, latency) for r in eps)
     labels = [label for label, _, _ in VISIBILITY_BINS] + ["unknown"]
     tray = tray_metrics(eps, latency)
+    shakes = sum(bool(a.get("shaken")) for a in attempts)  # the tote's shakes (``shake.py``), none without a stage
     return {"bin_pick": {
         **({"tray": tray} if tray else {}),
+        **({"shakes": shakes} if shakes else {}),
         "percent_cleared": mean_ci95([100.0 * r["cleared"] for r in eps], 0.0, 100.0),
         "episodes_cleared": sum(r["outcome"] == "success" for r in eps),
         "parts_present": sum(r["n_blocks"] for r in eps),
@@ -141,7 +143,8 @@ def print_summary(b: dict, console: Console) -> None:
     pph = f"{b['picks_per_hour']:.0f}" if b.get("picks_per_hour") else "-"
     console.print(f"[bold]bin picking[/]: cleared {mean} of the parts per episode{ci}, "
                   f"{b['episodes_cleared']}/{pc['n']} totes emptied; attempts {rate_text(b['attempts'])}; grasps "
-                  f"(attempts that went for a part) {rate_text(b['grasps'])}; {pph} picks per hour (arm and perception)")
+                  f"(attempts that went for a part) {rate_text(b['grasps'])}; {pph} picks per hour (arm and perception)"
+                  + (f"; the tote shaken {b['shakes']} times" if b.get("shakes") else ""))
     t = b.get("tray")
     if t:
         pos, yaw = t["position_error_mm"], t["yaw_error_deg"]
