@@ -160,3 +160,6 @@ class BinPickConfig:
         if not all(0.0 < t <= 40.0 for t in self.wall_tilts_deg):
             raise ConfigError(f"bin_pick.wall_tilts_deg must be angles (deg) in (0, 40], got "
                               f"{list(self.wall_tilts_deg)}")
+        if self.shakes and self.scene == "pile":
+            raise ConfigError(f"bin_pick.shakes = {self.shakes} shakes the tote, and a pile has none; use --scene bin "
+                              "or shakes = 0")
