@@ -28,6 +28,7 @@ from dm_control import mjcf
 
 from posegrasp.config import settings, within
 
+STAGE_MEMORY = "256M"  #: MuJoCo's arena (``size/memory``) of a workcell whose tote stands on the stage
 JOINTS = ("shake_x", "shake_y")  #: the stage's slide joints (world x, world y), on the tote's attachment frame
 
 
@@ -58,6 +59,9 @@ def add_shaker(frame: mjcf.Element, root: mjcf.RootElement, cfg: ShakerConfig) -
         frame.add("joint", name=name, type="slide", axis=axis, stiffness=cfg.stiffness, damping=cfg.damping,
                   springref=0.0)
     root.contact.add("exclude", name="tote_table", body1="world", body2=frame)
+    # the tote, a body now, joins every part touching it in one constraint island: the solver's working memory
+    # grows with the island (MuJoCo's default arena overflowed with 12 parts and 1234 constraint rows)
+    root.size.memory = STAGE_MEMORY
 
 
 class Shaker:
