@@ -1,14 +1,14 @@
 """A shaker stage under the tote: parts that lie against its walls are shaken off them, as a flexible feeder does.
 
 The tote stands on a stage that moves in world x and y: two slide joints on the tote's attachment frame, each held
-at its set point by a stiff, damped spring (a servo), so the tote is as still as a static one between shakes
-(a 0.1 kg part hitting it at 1 m/s moves it by about 0.03 mm) and moves with real velocity when shaken, so that the
-floor's friction carries parts with it.
+at its set point by a stiff, damped spring (a servo): between shakes the tote stays within a fraction of a millimetre
+of its place (a 0.1 kg part hitting it at 1 m/s moves it at most ``p / (m w)``, about 0.3 mm, for a few hundredths of
+a second); shaken, it moves with real velocity, so the floor's friction acts on the parts as a moving floor's does.
 
 A shake is a sawtooth along a horizontal unit vector ``u`` (``Shaker.shake``), ``cycles`` times:
 
 - the jerk: the set point jumps by ``stroke`` along ``u``; the spring accelerates the tote at up to
-  ``stiffness * stroke / m`` (about 100 m/s^2 with the defaults), far above what the floor's friction can give a
+  ``stiffness * stroke / m`` (about 200 m/s^2 with the defaults and a 2.8 kg tote), far above what the floor's friction can give a
   part (``mu g``, about 9 m/s^2), so the parts slide: they stay behind, moving by up to ``stroke`` along ``-u``
   relative to the tote, off the wall that ``u`` points at;
 - the ease back: the set point returns to zero along a smoothstep over ``ease_time`` (peak acceleration
