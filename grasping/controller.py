@@ -177,17 +177,17 @@ class ArmController:
         self.posture.set_target(qp)
 
     def move(self, T_goal: np.ndarray, speed: float | None = None, until: Callable[[], bool] | None = None,
-             reposture: bool = False) -> bool:
+             reposture: bool = False, max_lag: float | None = None) -> bool:
         """Move the gripper along a straight segment from the current target to ``T_goal``.
 
         The reference follows a smooth (cubic) time law with peak speed ``speed`` (m/s, default from the
-        config) and waits whenever the measured pose lags it by more than ``max_lag`` (joint speed limits),
-        so the hand stays on the line. True once the pose is within tolerance, False on timeout. If
-        ``until()`` becomes true first, the hand stops where the reference is and the move returns True.
-        With ``reposture``, a hand held off ``T_goal`` (a tilted goal far from the look pose, whose joint angles
-        the posture term pulls the arm toward: 7 mm off at 38 deg) gets ``settle_timeout`` more with the posture
-        term pointed at the IK's joint angles for ``T_goal`` from where the arm is, each endless joint's within half a
-        turn of where it is (``pose_toward``; the caller points it back).
+        config) and waits whenever the measured pose lags it by more than ``max_lag`` (m; the config's unless
+        given: joint speed limits), so the hand stays on the line. True once the pose is within tolerance, False
+        on timeout. If ``until()`` becomes true first, the hand stops where the reference is and the move returns
+        True. With ``reposture``, a hand held off ``T_goal`` (a tilted goal far from the look pose, whose joint
+        angles the posture term pulls the arm toward: 7 mm off at 38 deg) gets ``settle_timeout`` more with the
+        posture term pointed at the IK's joint angles for ``T_goal`` from where the arm is, each endless joint's
+        within half a turn of where it is (``pose_toward``; the caller points it back).
         """
         c = self.cfg
         T0 = self.target
@@ -198,7 +198,7 @@ class ArmController:
         i, T_ref = 0, T0
         while i < n and budget > 0:
             dp, dr = self.pose_error(T_ref)
-            if dp < c.max_lag and dr < np.deg2rad(c.max_lag_deg):
+            if dp < (max_lag or c.max_lag) and dr < np.deg2rad(c.max_lag_deg):
                 i += 1
                 u = i / n
                 T_ref = interpolate(T0, T_goal, 3 * u * u - 2 * u * u * u)

@@ -5,7 +5,7 @@ at its set point by a stiff, damped spring (a servo): between shakes the tote st
 of its place (a 0.1 kg part hitting it at 1 m/s moves it at most ``p / (m w)``, about 0.3 mm, for a few hundredths of
 a second); shaken, it moves with real velocity, so the floor's friction acts on the parts as a moving floor's does.
 
-A shake is a sawtooth along a horizontal unit vector ``u`` (``Shaker.shake``), ``cycles`` times:
+A shake is a sawtooth along a horizontal unit vector ``u`` (``Shaker.offset``), ``cycles`` times:
 
 - the jerk: the set point jumps by ``stroke`` along ``u``; the spring accelerates the tote at up to
   ``stiffness * stroke / m`` (about 200 m/s^2 with the defaults and a 2.8 kg tote), far above what the floor's friction can give a
@@ -20,7 +20,6 @@ Parts against the opposite wall are pushed along by it; no part moves toward the
 from __future__ import annotations
 
 from dataclasses import field
-from typing import Callable
 
 import mujoco
 import numpy as np
@@ -85,21 +84,22 @@ class Shaker:
         v = self.data.qvel[self.dadr]
         self.data.qvel[self.dadr] = np.where(v == 0.0, -0.0, v)
 
-    def shake(self, u: np.ndarray, run: Callable[[float, Callable[[float], None]], None]) -> None:
-        """Shake along the unit vector ``u`` (world xy): the parts slide along ``-u``. ``run(duration, at)``
-        steps the physics for ``duration`` seconds, calling ``at(t)`` (t: seconds since it began) before each
-        control period (the set point renewed, so that the tote never sleeps while it shakes)."""
+    @property
+    def duration(self) -> float:
+        """Seconds (simulated) a shake takes, the parts' settling included."""
         c = self.cfg
-        u = np.asarray(u, float)[:2]
+        return c.cycles * (c.jerk_time + c.ease_time) + c.settle_time
 
-        def ease(t: float) -> None:
-            s = min(t / c.ease_time, 1.0)
-            self.set_point((1.0 - s * s * (3.0 - 2.0 * s)) * c.stroke * u)
-
-        for _ in range(c.cycles):
-            run(c.jerk_time, lambda t: self.set_point(c.stroke * u))
-            run(c.ease_time, ease)
-        run(c.settle_time, lambda t: self.set_point(np.zeros(2)))
+    def offset(self, u: np.ndarray, t: float) -> np.ndarray:
+        """The set point (m, world x and y) ``t`` seconds into a shake along the unit vector ``u`` (world xy; the
+        parts slide along ``-u``): ``cycles`` times ``stroke * u`` for ``jerk_time``, then back to zero along a
+        smoothstep ``1 - s^2 (3 - 2 s)``, ``s = t' / ease_time``, over ``ease_time``; zero once the cycles are over."""
+        c = self.cfg
+        i, r = divmod(max(t, 0.0), c.jerk_time + c.ease_time)
+        if i >= c.cycles:
+            return np.zeros(2)
+        s = min(max(r - c.jerk_time, 0.0) / c.ease_time, 1.0)
+        return (1.0 - s * s * (3.0 - 2.0 * s)) * c.stroke * np.asarray(u, float)[:2]
 
 
 def _joint_name(model: mujoco.MjModel, joint: str) -> str:

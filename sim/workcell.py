@@ -213,6 +213,8 @@ class Workcell:
         self.data = mujoco.MjData(self.model)
         #: Called with the workcell after every ``step`` (None: nothing); it must not change the physics state.
         self.on_step: Callable[[Workcell], None] | None = None
+        #: Called before every ``step`` (None: nothing): what the workcell does meanwhile (the tote's stage shaking).
+        self.background: Callable[[], None] | None = None
         m = self.model
         self.arm_joint_names = [f"jaco_arm/{j}" for j in ARM_JOINTS]
         self.finger_joint_names = [f"jaco_arm/jaco_hand/{j}" for j in finger_joints(cfg.hand)]
@@ -338,7 +340,9 @@ class Workcell:
 
     # -- control -------------------------------------------------------------------------------------
     def step(self, n: int = 1) -> None:
-        """Advance physics ``n`` steps with the current controls."""
+        """Advance physics ``n`` steps with the current controls (``background`` run first)."""
+        if self.background is not None:
+            self.background()
         mujoco.mj_step(self.model, self.data, nstep=n)
         if self.on_step is not None:
             self.on_step(self)

@@ -383,6 +383,15 @@ def test_a_part_in_a_corner_is_shaken_off_the_walls_and_picked_at_the_next_look(
     assert bin_metrics([ep.rec.to_json()])["bin_pick"]["shakes"] == 1
 
 
+def test_the_tote_shaken_while_the_arm_carries_a_part_away_frees_one_in_a_corner_for_the_next_look():
+    cfg = _cfg(2, "2-finger", shakes=1, shake_away=True)
+    lo, _ = area_of(bin_workcell(cfg, []), cfg.bin_pick).tote.inner_bounds()
+    ep = _episode(cfg, ["cube", "cube"], [_flat("cube", (0.45, 0.0)), _flat("cube", (lo[0] + 0.017, lo[1] + 0.017))])
+    empty_tote(ep)  # without the shake while away: picked, nothing graspable (then shaken), picked
+    assert [(a.failure, a.shaken) for a in ep.rec.attempts] == [(None, True), (None, False)] and ep.rec.removed == 2
+    assert ep.wc.background is None and ep.log.sim["shake"] > 0.0
+
+
 def test_an_episode_ends_when_the_arm_reaches_no_grasp_of_what_it_sees():
     cfg = _cfg(1)
     cfg = dataclasses.replace(cfg, grasp=dataclasses.replace(cfg.grasp, reach_tol=1e-12))  # no IK solution is close

@@ -172,7 +172,8 @@ def test_the_shipped_bin_examples_load_the_second_look_the_small_cup_and_the_sha
     assert cup.suction.diameter == 0.015 < TrialConfig().scene.workcell.suction.diameter
     dataclasses.replace(cup, hand="hybrid")  # the cup fits between the hybrid hand's fingers
     for name in ("shake.toml", "tray_shake.toml"):
-        assert load_trial_config(examples / name).bin_pick.shakes == 3 and TrialConfig().bin_pick.shakes == 0
+        b = load_trial_config(examples / name).bin_pick
+        assert b.shakes == 30 and b.shake_away and TrialConfig().bin_pick.shakes == 0
     assert load_trial_config(examples / "tray_shake.toml").bin_pick.tray.second_look
 
 

@@ -11,7 +11,7 @@ tote elsewhere than into the out-box ("part thrown out"), the target not landing
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import mujoco
 import numpy as np
@@ -27,7 +27,7 @@ from posegrasp.grasping.tasks.bin_pick.pick import Destination, OutBox, Tool, to
 from posegrasp.grasping.tasks.bin_pick.planner import depth_points, heap_points
 from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
 from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, outbox_of, tray_of
-from posegrasp.grasping.tasks.bin_pick.shake import shake_direction, shake_tote
+from posegrasp.grasping.tasks.bin_pick.shake import Shake, shake_direction
 from posegrasp.grasping.tasks.bin_pick.tray import TrayPlace
 from posegrasp.sim.camera import Frame
 from posegrasp.sim.clutter import park
@@ -151,6 +151,7 @@ class _Emptying:
         self.tool: Tool = tool_of(ep, self.dest)
         self.shaker = Shaker.of(ep.wc.model, ep.wc.data, b.shaker) if b.shakes else None  # the tote's stage, if on one
         self.shakes = 0
+        self.shaking: Shake | None = None  # a shake under way while the arm is away (``shake_away``)
 
     def attempt(self, a: int) -> bool:
         """Attempt ``a``: capture, perceive, pick and drop, look again, judge; False when the episode stops at
@@ -178,6 +179,9 @@ class _Emptying:
             att.failure = att.failure or Failure.TIMEOUT
             self._finish(att, t0)
             raise
+        if self.shaking is not None:  # the parts at rest before the look's capture
+            self.shaking.finish()
+            self.shaking = None
         self._tally(att)
         self._finish(att, t0)
         self.in_a_row = 0 if att.outcome == "success" else self.in_a_row + 1
@@ -193,9 +197,30 @@ class _Emptying:
             return
         u = shake_direction(self.area, [T for _, T in self.seen], b.shake_margin)
         if u is not None:
-            shake_tote(self.ep, self.shaker, u)
-            self.shakes += 1
-            att.shaken = True
+            self._start_shake(att, u).finish()
+
+    def _start_shake(self, att: Attempt, u: np.ndarray) -> Shake:
+        self.shakes += 1
+        att.shaken = True
+        return Shake(self.ep, self.shaker, u)
+
+    def _away_shake(self, att: Attempt, T_target: np.ndarray) -> Destination:
+        """The destination of the attempt's part: with ``shake_away`` and shakes left, one that sets the tote
+        shaking (``Shake``) as the part leaves it, where another estimate than the target's (``T_target``) lies
+        by a wall: the shake runs while the arm carries the part and comes back, and the next look sees those
+        parts off the walls."""
+        b = self.ep.cfg.bin_pick
+        if not b.shake_away or self.shaker is None or self.shakes >= b.shakes:
+            return self.dest
+        others = [T for _, T in self.seen if np.linalg.norm(T[:3, 3] - T_target[:3, 3]) > 1e-6]
+        u = shake_direction(self.area, others, b.shake_margin)
+        if u is None:
+            return self.dest
+
+        def start() -> None:
+            self.shaking = self._start_shake(att, u)
+
+        return _Leaving(self.dest, start)
 
     def _pick(self, att: Attempt, frame: Frame) -> bool:
         """Perceive ``frame``, choose a part and pick and drop it (``EpisodeFailed`` when the attempt fails); False
@@ -240,7 +265,8 @@ class _Emptying:
         att.target = self.tool.target(k, block, block.obj_id == ests[j].obj_id, self.grasp)
         att.pose_error = pose_errors(block, T_est, wc.block_poses()[k - 1], cfg.scoring.pose_error_points)
         att.visib_fract = visible_fraction(ep, frame, k)
-        self.tool.pick(ep, Plan(k, block, self.grasp, T_est, cat[ests[j].obj_id]), self.area, self.dest, att)
+        self.tool.pick(ep, Plan(k, block, self.grasp, T_est, cat[ests[j].obj_id]), self.area,
+                       self._away_shake(att, T_est), att)
         return True
 
     def _tally(self, att: Attempt) -> None:
@@ -266,6 +292,20 @@ class _Emptying:
 
     def _finish(self, att: Attempt, t0: float) -> None:
         _finish(self.rec, att, self.ep.ctl.sim_time - t0, self.n, self.left + self.lost, self.ep.cfg.scoring)
+
+
+class _Leaving:
+    """``dest`` that calls ``start()`` as the part, lifted clear of the tote, leaves for it."""
+
+    def __init__(self, dest: Destination, start: Callable[[], None]):
+        self.dest, self.start = dest, start
+
+    def __getattr__(self, name: str):
+        return getattr(self.dest, name)
+
+    def deliver(self, plan: Plan, T_lift: np.ndarray, T_hold: np.ndarray, let_go: Callable[[], None]) -> None:
+        self.start()
+        self.dest.deliver(plan, T_lift, T_hold, let_go)
 
 
 def _same_view(seen: list[tuple[int, np.ndarray]], before: list[tuple[int, np.ndarray]], tol: float = 1e-4

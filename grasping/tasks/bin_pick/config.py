@@ -106,8 +106,17 @@ class BinPickConfig:
     shakes: int = field(default=0, metadata=within(0, 100))
     #: ... shaken toward the walls that the estimates' centres lie within this distance (m) of.
     shake_margin: float = field(default=0.06, metadata=within(0.0, 0.5))
+    #: Also shake while the arm is away (from the lift, as it carries the part and comes back for the next look)
+    #: where another estimate than the target's lies by a wall: the next look sees it off the wall. Takes from
+    #: the same ``shakes``.
+    shake_away: bool = False
     #: The tote's stage and its shake.
     shaker: ShakerConfig = field(default_factory=ShakerConfig)
+    #: On its way down from the pre-grasp to the grasp the hand's reference waits while the hand lags it by more
+    #: than this (m; elsewhere ``control.max_lag``): at the approach speed the arm sways 5-15 mm off the line where
+    #: it reaches far, a fingertip or the cup on the tote's far wall (not a squeeze: its hand, tilted, is held
+    #: further off the line by the posture term).
+    approach_lag: float = field(default=0.004, metadata=within(0.0005, 0.1))
     #: A neighbour that stops the hand on its way down to the grasp (a guarded move): the fingers close where the hand
     #: stopped if its pinch point stands at most this far (m) above the grasp ...
     close_slack: float = field(default=0.025, metadata=within(0.0, 0.1))
@@ -160,6 +169,9 @@ class BinPickConfig:
         if not all(0.0 < t <= 40.0 for t in self.wall_tilts_deg):
             raise ConfigError(f"bin_pick.wall_tilts_deg must be angles (deg) in (0, 40], got "
                               f"{list(self.wall_tilts_deg)}")
+        if self.shake_away and not self.shakes:
+            raise ConfigError("bin_pick.shake_away shakes from the episode's shakes, and shakes = 0 gives it none; "
+                              "set shakes = N (N >= 1)")
         if self.shakes and self.scene == "pile":
             raise ConfigError(f"bin_pick.shakes = {self.shakes} shakes the tote, and a pile has none; use --scene bin "
                               "or shakes = 0")

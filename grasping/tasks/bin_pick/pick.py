@@ -122,7 +122,9 @@ def pick_and_drop(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
         if not ctl.move(T_pre, reposture=True):
             raise EpisodeFailed(Failure.TIMEOUT)
         watch.approach = T_grasp[:3, 2]
-        if not ctl.move(T_grasp, speed=g_cfg.approach_speed, reposture=isinstance(plan.grasp, Squeeze)):
+        squeeze = isinstance(plan.grasp, Squeeze)  # its hand leaning toward the wall: the posture term holds it off
+        if not ctl.move(T_grasp, speed=g_cfg.approach_speed, reposture=squeeze,
+                        max_lag=None if squeeze else b.approach_lag):
             if not _stopped_near(ep.wc.gripper_pose(), T_grasp, b) or watch.floor:
                 raise EpisodeFailed(watch.blocked())
             ctl.target = ep.wc.gripper_pose()
@@ -191,7 +193,8 @@ def pick_with_cup(ep: Episode, plan: Plan, area: Area, dest: Destination, att: A
 
     ctl.monitor = watch
     try:
-        if not ctl.move(T_pre, reposture=True) or not ctl.move(T_near, speed=g_cfg.approach_speed, reposture=True):
+        if not ctl.move(T_pre, reposture=True) or not ctl.move(T_near, speed=g_cfg.approach_speed, reposture=True,
+                                                               max_lag=b.approach_lag):
             raise EpisodeFailed(watch.blocked())
         watch.approach = z
         ctl.hold(max(0.0, out_at - ctl.sim_time))

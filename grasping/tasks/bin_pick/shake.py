@@ -9,7 +9,7 @@ a part in a corner leaves both walls.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,14 +33,23 @@ def shake_direction(area: Area, poses: list[np.ndarray], margin: float) -> np.nd
     return u / n if n > 0.0 else None
 
 
-def shake_tote(ep: Episode, shaker: Shaker, u: np.ndarray) -> None:
-    """Shake the tote along ``u`` (``Shaker.shake``), the arm holding its pose (the look) meanwhile."""
-    ctl = ep.ctl
+class Shake:
+    """A shake of the tote's stage along the unit vector ``u`` (world xy), under way from now on while the robot
+    does what it does (``Workcell.background``: the set point renewed before each physics step, so that the tote
+    never sleeps while it shakes); ``finish`` waits out the rest of it."""
 
-    def run(duration: float, at: Callable[[float], None]) -> None:
-        t0 = ctl.sim_time
-        at(0.0)
-        ctl.hold(duration, until=lambda: bool(at(ctl.sim_time - t0)))
+    def __init__(self, ep: Episode, shaker: Shaker, u: np.ndarray):
+        self.ep, self.shaker, self.u = ep, shaker, u
+        self.t0 = ep.wc.data.time
+        ep.wc.background = self
 
-    shaker.shake(u, run)
-    ep.log.stop("shake", ctl, add=True)
+    def __call__(self) -> None:
+        self.shaker.set_point(self.shaker.offset(self.u, self.ep.wc.data.time - self.t0))
+
+    def finish(self) -> None:
+        """Hold the arm where it is until the shake is over (the parts at rest), and end it."""
+        ctl = self.ep.ctl
+        ctl.hold(max(0.0, self.t0 + self.shaker.duration - ctl.sim_time))
+        self.ep.wc.background = None
+        self.shaker.set_point(np.zeros(2))
+        self.ep.log.stop("shake", ctl, add=True)
