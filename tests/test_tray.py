@@ -230,8 +230,8 @@ def test_a_locked_grip_keeps_the_part_where_the_look_saw_it(tmp_path, monkeypatc
     slots = (Slot("cylinder", (-0.05, 0.0), 30.0), Slot("arch", (0.05, 0.0), -20.0))
     cfg = _tray_cfg(slots)
     cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, workcell=dataclasses.replace(
-        cfg.scene.workcell, hand="2-finger")), bin_pick=dataclasses.replace(
-        cfg.bin_pick, tray=dataclasses.replace(cfg.bin_pick.tray, second_look=True)))
+        cfg.scene.workcell, hand="2-finger")), bin_pick=dataclasses.replace(  # the approach as the episode had it:
+        cfg.bin_pick, tray=dataclasses.replace(cfg.bin_pick.tray, second_look=True), approach_lag=0.02))
 
     def first_set_down(out: Path) -> dict:
         run_trials(out, 1, 6, "oracle", 1, cfg, display=Display(progress=False))
