@@ -200,6 +200,7 @@ class _Emptying:
             self._start_shake(att, u).finish()
 
     def _start_shake(self, att: Attempt, u: np.ndarray) -> Shake:
+        """Set the tote shaking along ``u`` in attempt ``att``, one of the episode's shakes."""
         self.shakes += 1
         att.shaken = True
         return Shake(self.ep, self.shaker, u)

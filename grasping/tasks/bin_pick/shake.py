@@ -1,6 +1,8 @@
-"""Shaking the tote when nothing is graspable: parts that lie against the walls, where neither the fingers nor the
-cup reach them (a part 0-18 mm from a wall needs 29-35 mm for the fingers; a brick lying studs up gives the cup no
-seal), are shaken off the walls by the tote's stage (``sim.shaker``), and the robot looks again.
+"""Shaking the tote: parts that lie against the walls, where neither the fingers nor the cup reach them (a part
+0-18 mm from a wall needs 29-35 mm for the fingers; a brick lying studs up gives the cup no seal), are shaken off
+the walls by the tote's stage (``sim.shaker``): after a look that finds nothing graspable, the robot waiting, and
+(``shake_away``) while the arm carries a part off and comes back, as a flexible feeder shakes while the robot is
+away, so that the next look finds those parts off the walls.
 
 The direction comes from the estimates only: the sum of the outward normals of the walls that each estimate's
 centre lies within ``shake_margin`` of. The tote jerks toward those walls, so the parts slide away from them;
