@@ -486,6 +486,7 @@ def test_bad_bin_pick_input_is_one_line_and_writes_nothing(capsys, tmp_path, arg
     ("[bin_pick]\noutbox_offset = [0.0, 0.2]\n", [], "puts the out-box on the bin's area (overlap 30.0 mm)"),
     ("[bin_pick]\noutbox_offset = [0.0, 0.24]\n", ["--scene", "pile"], "on the pile's area (overlap 30.0 mm)"),
     ("[bin_pick]\nshakes = 2\n", ["--scene", "pile"], "bin_pick.shakes = 2 shakes the tote, and a pile has none"),
+    ("[bin_pick]\nshake_away = true\n", [], "shakes = 0 gives it none"),
     ("[bin_pick.shaker]\ncycles = 0\n", [], "cycles"),
 ])
 def test_parts_too_big_for_the_hand_too_many_for_the_tote_or_bad_clearances_are_refused(capsys, tmp_path, toml, args,
