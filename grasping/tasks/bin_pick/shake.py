@@ -51,7 +51,7 @@ class Shake:
     def finish(self) -> None:
         """Hold the arm where it is until the shake is over (the parts at rest), and end it."""
         ctl = self.ep.ctl
-        ctl.hold(max(0.0, self.t0 + self.shaker.duration - ctl.sim_time))
+        ctl.hold(max(0.0, self.t0 + self.shaker.duration - self.ep.wc.data.time))
         self.ep.wc.background = None
         self.shaker.set_point(np.zeros(2))
         self.ep.log.stop("shake", ctl, add=True)
