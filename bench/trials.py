@@ -7,7 +7,7 @@ would reach on otherwise idle cores), then a JSON line.
 Run: ``MUJOCO_GL=egl .venv/bin/python bench/trials.py [EPISODES] [WORKERS] [TASK] [--task TASK] [--scene SCENE]
 [--blocks N] [--seed S] [--perception SPEC] [--hand HAND]`` (defaults 60, 2, pick-place, the task's scene, seed 1000,
 oracle, the 3-finger hand; TASK is a ``--task``: pick-place, kitting, stack or bin-pick, whose SCENE is bin or pile;
-HAND is 3-finger or 2-finger). For bin picking it also prints
+HAND is 3-finger, 2-finger, suction or hybrid). For bin picking it also prints
 the successful picks per wall-clock minute and per simulated hour, percent cleared and attempt success.
 With ``--baseline REF [--rounds N]``: also on git ref REF's code, alternating, and the ratio (``bench/baseline.py``).
 """
