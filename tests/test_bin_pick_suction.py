@@ -14,7 +14,7 @@ from posegrasp.grasping.targets import Plan
 from posegrasp.grasping.tasks.base import EpisodeFailed
 from posegrasp.grasping.grasps import Grasp
 from posegrasp.grasping.suction_grasps import SuctionGrasp
-from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid, OutBox
+from posegrasp.grasping.tasks.bin_pick.pick import Cup, Hybrid, OutBox, tool_of
 from posegrasp.geometry import axis_angle_R, make_T, transform_points
 from posegrasp.grasping.targets import reach_q
 from posegrasp.grasping.tasks.bin_pick.planner import (HeapView, _reachable, approach_end, choose_cup, choose_part,
@@ -23,7 +23,9 @@ from posegrasp.grasping.tasks.bin_pick.attempt import _look, _open_and_retreat
 from posegrasp.grasping.tasks.bin_pick.metrics import grasped_for
 from posegrasp.grasping.tasks.bin_pick.record import Attempt
 from posegrasp.grasping.tasks.bin_pick.roll import Roll, wall_rolls
-from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of
+from posegrasp.grasping.tasks.bin_pick.scene import area_of, bin_workcell, outbox_of, tray_of
+from posegrasp.grasping.tasks.bin_pick.tray import TrayPlace
+from posegrasp.sim.tray import Slot, TrayConfig
 from test_bin_pick import CAT, _alone, _cfg, _episode, _flat, _inner_bounds, _oracle_episode
 from tests.helpers import refused
 
@@ -177,6 +179,31 @@ def test_the_hybrid_hand_takes_a_lower_part_with_its_cup_before_a_poorly_support
         ep, cfg, ests, T_world_cam = _two_parts(names, poses, min_support)
         j, grasp, _ = Hybrid(ep).choose(ep.wc, cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
         assert j == part and type(grasp) is kind
+
+
+def test_for_the_tray_the_hybrid_hand_takes_its_cup_first_unless_a_second_look_sees_the_fingers_shift():
+    """The prism and cuboid above, the pinch on the prism well supported: for the out-box the fingers take the higher
+    prism; for the tray the cup takes the cuboid (closing fingers shift a part, the pick's estimate would not know);
+    with the tray's second look, which sees the shift, the fingers again (the cup first leaves the parts only the
+    fingers take for last, flat on the floor, where the fingertips meet the floor beside them)."""
+    lo, hi = _inner_bounds()
+    names = ["triangular_prism", "long_cuboid"]
+    T = _flat(names[1], (0.0, 0.0))
+    T[:2, 3] += hi[:2] - 0.006 - transform_points(T, CAT[names[1]].vertices)[:, :2].max(0)
+    poses = [_flat(names[0], (0.5 * (lo[0] + hi[0]) - 0.05, 0.5 * (lo[1] + hi[1]))), T]
+    slots = (Slot(names[0], (-0.05, 0.0)), Slot(names[1], (0.05, 0.0)))
+    ep = _episode(_cfg(2, "hybrid", place="tray", tray=TrayConfig(slots=slots)), names, poses)
+    T_world_cam = ep.T_world_cam()
+    ests = [Estimate(CAT[n].obj_id, np.linalg.inv(T_world_cam) @ T, 1.0) for n, T in zip(names, ep.wc.block_poses())]
+    chosen = []
+    for second_look in (False, True):
+        b = ep.cfg.bin_pick
+        ep.job = dataclasses.replace(ep.job, cfg=dataclasses.replace(ep.cfg, bin_pick=dataclasses.replace(
+            b, min_support=0.0, tray=dataclasses.replace(b.tray, second_look=second_look))))
+        for dest in (OutBox(ep, outbox_of(ep.wc.cfg, ep.cfg.bin_pick)), TrayPlace(ep, tray_of(ep.wc.cfg, ep.cfg.bin_pick))):
+            j, grasp, _ = tool_of(ep, dest).choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
+            chosen.append((j, type(grasp)))
+    assert chosen == [(0, Grasp), (1, SuctionGrasp), (0, Grasp), (0, Grasp)]
 
 
 def test_a_part_near_a_wall_is_drawn_off_it():

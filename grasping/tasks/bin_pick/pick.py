@@ -349,8 +349,10 @@ class Hybrid:
     grasp on the higher part wins, the cup where both go for parts within ``HYBRID_TIE`` of each other's height (a
     suction pick neither reaches between neighbours nor needs a wall's room) or where the fingers' pinch is poorly
     supported (``min_support``): an ambidextrous policy. With
-    ``cup_first`` (a destination that keeps the pose: the tray), the cup wherever it has a grasp: it holds the part
-    as the estimate has it, where closing fingers shift it. Where neither has a grasp, the fingers squeeze a part
+    ``cup_first`` (a destination that keeps the pose, the tray, without its second look), the cup wherever it has a
+    grasp: it holds the part as the estimate has it, where closing fingers shift it (the second look sees the shift;
+    with it, the cup first would leave the parts only the fingers take for last, flat on the floor, where a
+    fingertip meets the floor beside them). Where neither has a grasp, the fingers squeeze a part
     turned near a wall along the wall (``squeeze.choose_squeeze``; ``wall_squeeze``), or else roll a round part
     lying by a wall off it (``roll.choose_roll``; ``wall_roll``) for the next look to pick."""
 
@@ -405,7 +407,8 @@ class Hybrid:
 def tool_of(ep: Episode, dest: Destination) -> Tool:
     """The tool of the episode's workcell (``WorkcellConfig.hand``) for the destination ``dest``."""
     hand = ep.wc.cfg.hand
-    return Cup(ep) if hand == "suction" else Hybrid(ep, dest.keeps_pose) if hand == "hybrid" else Fingers()
+    cup_first = dest.keeps_pose and not ep.cfg.bin_pick.tray.second_look
+    return Cup(ep) if hand == "suction" else Hybrid(ep, cup_first) if hand == "hybrid" else Fingers()
 
 
 def _stopped_near(T: np.ndarray, T_grasp: np.ndarray, b: BinPickConfig) -> bool:
