@@ -80,6 +80,7 @@ class ArmController:
         self.free = m.jnt_limited[[m.joint(n).id for n in robot.arm_joint_names]] == 0  # the arm's endless joints
         self.q_posture = self.q.copy()  # the look pose's arm angles, the model's own for the rest
         self.q_posture[self.r_arm_q] = q_posture
+        self.free_q = self.r_arm_q[self.free]  # the endless joints' indices in ``q``
         self.pose_toward(None)
         guarded = [m.geom(i).name for i in range(m.ngeom)
                    if m.geom_contype[i] and any(m.body(m.geom_bodyid[i]).name == f"jaco_arm/{b}"
@@ -149,6 +150,7 @@ class ArmController:
         self.q[self.r_arm_q] = wc.data.qpos[wc.arm_qadr]
         self.q[self.r_finger_q] = np.clip(wc.data.qpos[wc.finger_qadr], self.finger_range[:, 0], self.finger_range[:, 1])
         self.configuration.update(self.q)
+        self._unwind_posture()
         self.task.set_target(mink.SE3.from_matrix(T_target))
         v = mink.solve_ik(self.configuration, [self.task, self.posture], self.cfg.dt, "daqp", damping=1e-3,
                           limits=self.limits)
@@ -174,7 +176,20 @@ class ArmController:
         qp = self.q_posture.copy()
         if q is not None:
             qp[self.r_arm_q] = q
+        self.posture_q, self.posture_turns = qp, np.zeros(len(self.free_q))
         self.posture.set_target(qp)
+
+    def _unwind_posture(self) -> None:
+        """Keep the posture term's target for each endless joint within half a turn of the joint's angle, ``q_p -
+        2 pi round((q_p - q) / 2 pi)``: the arm's angles are not wrapped, and a wrist wound whole turns (set-downs in a
+        tray turn it on one way: -27 rad by an episode's end) would be pulled back by them against the hand's pose,
+        the hand swinging centimetres as it comes down. Within half a turn the target is left as set."""
+        turns = np.round((self.posture_q[self.free_q] - self.q[self.free_q]) / (2.0 * np.pi))
+        if not np.array_equal(turns, self.posture_turns):
+            qp = self.posture_q.copy()
+            qp[self.free_q] -= 2.0 * np.pi * turns
+            self.posture.set_target(qp)
+            self.posture_turns = turns
 
     def move(self, T_goal: np.ndarray, speed: float | None = None, until: Callable[[], bool] | None = None,
              reposture: bool = False, max_lag: float | None = None) -> bool:

@@ -101,6 +101,25 @@ def test_reposture_reaches_a_tilted_goal_the_posture_term_holds_off():
     assert np.array_equal(ctl.posture.target_q, look)
 
 
+def test_a_wrist_wound_whole_turns_moves_as_an_unwound_one():
+    """The arm's endless joints are not wrapped: a wrist wound four turns (as set-downs in a tray leave it) is the
+    same arm pose, and the posture term, kept within half a turn of it, lets the hand make the same move in the same
+    time (pulled back by four turns, the hand stopped 8 mm short of the goal and the move timed out)."""
+    wc = Workcell(WorkcellConfig(hand="hybrid"))
+    wrist = wc.arm_joint_names.index("jaco_arm/joint_6")
+    moves = []
+    for turns in (0, -4):
+        q = wc.look_q.copy()
+        q[wrist] += 2.0 * np.pi * turns
+        wc.reset(q)
+        ctl = ArmController(wc, ControlConfig(), wc.look_q)
+        goal = wc.gripper_pose()
+        goal[:3, 3] += (0.05, 0.0, -0.12)
+        moves.append((ctl.move(goal, speed=0.25), round(wc.data.time, 6), ctl.pose_error(goal)[0]))
+    assert moves[0][:2] == moves[1][:2] and moves[0][0], moves
+    assert abs(moves[1][2] - moves[0][2]) < 1e-4, moves
+
+
 def test_table_collision_avoidance_stops_the_fingers(arm):
     ctl = ArmController(arm, ControlConfig(), arm.look_q)
     assert ctl.move(make_T(DOWN, (0.45, 0.0, 0.06)))
