@@ -184,8 +184,7 @@ def test_the_hybrid_hand_takes_a_lower_part_with_its_cup_before_a_poorly_support
 def test_for_the_tray_the_hybrid_hand_takes_its_cup_first_unless_a_second_look_sees_the_fingers_shift():
     """The prism and cuboid above, the pinch on the prism well supported: for the out-box the fingers take the higher
     prism; for the tray the cup takes the cuboid (closing fingers shift a part, the pick's estimate would not know);
-    with the tray's second look, which sees the shift, the fingers again (the cup first leaves the parts only the
-    fingers take for last, flat on the floor, where the fingertips meet the floor beside them)."""
+    with the tray's second look, which sees the shift, the fingers again."""
     lo, hi = _inner_bounds()
     names = ["triangular_prism", "long_cuboid"]
     T = _flat(names[1], (0.0, 0.0))
