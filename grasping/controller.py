@@ -183,7 +183,7 @@ class ArmController:
         """Keep the posture term's target for each endless joint within half a turn of the joint's angle, ``q_p -
         2 pi round((q_p - q) / 2 pi)``: the arm's angles are not wrapped, and a wrist wound whole turns (set-downs in a
         tray turn it on one way: -27 rad by an episode's end) would be pulled back by them against the hand's pose,
-        the hand swinging centimetres as it comes down. Within half a turn the target is left as set."""
+        the hand swinging a centimetre as it comes down. Within half a turn the target is left as set."""
         turns = np.round((self.posture_q[self.free_q] - self.q[self.free_q]) / (2.0 * np.pi))
         if not np.array_equal(turns, self.posture_turns):
             qp = self.posture_q.copy()
