@@ -199,7 +199,8 @@ def test_for_the_tray_the_hybrid_hand_takes_its_cup_first_unless_a_second_look_s
         b = ep.cfg.bin_pick
         ep.job = dataclasses.replace(ep.job, cfg=dataclasses.replace(ep.cfg, bin_pick=dataclasses.replace(
             b, min_support=0.0, tray=dataclasses.replace(b.tray, second_look=second_look))))
-        for dest in (OutBox(ep, outbox_of(ep.wc.cfg, ep.cfg.bin_pick)), TrayPlace(ep, tray_of(ep.wc.cfg, ep.cfg.bin_pick))):
+        b = ep.cfg.bin_pick
+        for dest in (OutBox(ep, outbox_of(ep.wc.cfg, b)), TrayPlace(ep, tray_of(ep.wc.cfg, b))):
             j, grasp, _ = tool_of(ep, dest).choose(ep.wc, ep.cfg, ests, T_world_cam, np.zeros((0, 3)), 0.0, [])
             chosen.append((j, type(grasp)))
     assert chosen == [(0, Grasp), (1, SuctionGrasp), (0, Grasp), (0, Grasp)]

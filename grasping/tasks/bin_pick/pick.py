@@ -351,9 +351,10 @@ class Hybrid:
     supported (``min_support``): an ambidextrous policy. With
     ``cup_first`` (a destination that keeps the pose, the tray, without its second look), the cup wherever it has a
     grasp: it holds the part as the estimate has it, where closing fingers shift it (the second look sees the shift;
-    with it the hand chooses as for the out-box, not leaving the parts only the fingers take for last). Where neither has a grasp, the fingers squeeze a part
-    turned near a wall along the wall (``squeeze.choose_squeeze``; ``wall_squeeze``), or else roll a round part
-    lying by a wall off it (``roll.choose_roll``; ``wall_roll``) for the next look to pick."""
+    with it the hand chooses as for the out-box, not leaving the parts only the fingers take for last). Where neither
+    has a grasp, the fingers squeeze a part turned near a wall along the wall (``squeeze.choose_squeeze``;
+    ``wall_squeeze``), or else roll a round part lying by a wall off it (``roll.choose_roll``; ``wall_roll``) for the
+    next look to pick."""
 
     def __init__(self, ep: Episode, cup_first: bool = False):
         self.cup = Cup(ep)
