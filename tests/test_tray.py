@@ -171,10 +171,12 @@ def test_the_shipped_bin_examples_load_the_second_look_the_small_cup_and_the_sha
     cup = load_trial_config(examples / "hybrid_cup15.toml").scene.workcell
     assert cup.suction.diameter == 0.015 < TrialConfig().scene.workcell.suction.diameter
     dataclasses.replace(cup, hand="hybrid")  # the cup fits between the hybrid hand's fingers
-    for name in ("shake.toml", "tray_shake.toml"):
+    for name in ("shake.toml", "tray_shake.toml", "tray_fit.toml"):
         b = load_trial_config(examples / name).bin_pick
         assert b.shakes == 30 and b.shake_away and TrialConfig().bin_pick.shakes == 0
     assert load_trial_config(examples / "tray_shake.toml").bin_pick.tray.second_look
+    fit = load_trial_config(examples / "tray_fit.toml").bin_pick.tray
+    assert fit.second_look and fit.look_fit and not fit.look_provider
 
 
 @pytest.mark.slow
