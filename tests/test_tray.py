@@ -175,8 +175,9 @@ def test_the_shipped_bin_examples_load_the_second_look_the_small_cup_and_the_sha
         b = load_trial_config(examples / name).bin_pick
         assert b.shakes == 30 and b.shake_away and TrialConfig().bin_pick.shakes == 0
     assert load_trial_config(examples / "tray_shake.toml").bin_pick.tray.second_look
-    fit = load_trial_config(examples / "tray_fit.toml").bin_pick.tray
-    assert fit.second_look and fit.look_fit and not fit.look_provider
+    fit = load_trial_config(examples / "tray_fit.toml").bin_pick
+    assert fit.tray.second_look and fit.tray.look_fit and not fit.tray.look_provider
+    assert fit.held_fit.turn_deg == 8.0 and TrialConfig().bin_pick.held_fit.turn_deg == 0.0
 
 
 @pytest.mark.slow

@@ -18,7 +18,8 @@ hand first holds the part over the tray's upward camera (``sim.tray``) and the p
 ``T_gripper_obj = T_world_gripper^-1 T_world_cam T_cam_obj`` of the estimate of the part's type nearest (over the part's
 symmetries) to where the pick's estimate puts it, within ``LOOK_GATE``; without one, or without asking the provider
 (``look_provider`` false), and with ``look_fit``, the pose the pick's estimate gives the part, shifted onto the look's
-depth image less the hand's own surface (``perception.held``, ``sim.robot_surface``), within the gate; else the
+depth image less the hand's own surface (``perception.held``, ``sim.robot_surface``) and, with the fit's ``turn_deg``,
+turned about the vertical to its seen outline, within the gate; else the
 pick's stands. The verdict (the simulator's truth) on the part at rest, modulo its symmetries (``PlaceError``): its face
 within ``face_tol_deg`` of the planned one (else "wrong face up"), its origin within ``pos_tol`` (xy) of the slot (else
 "misplaced", as for a part of another type than the slot's), its yaw within ``yaw_tol_deg`` (else "misaligned").
@@ -322,7 +323,8 @@ class TrayPlace:
             fit = _held_fit(wc.cfg.objects, ep.cfg.bin_pick.held_fit)
             T_cam_world = np.linalg.inv(T_world_cam)
             T_cam_fit = fit(block.obj_id, T_cam_world @ T_expect, observation(frame).depth, frame.K,
-                            ep.seed_for(LOOK_SEEDS + a), exclude=transform_points(T_cam_world, hand_points(wc)))
+                            ep.seed_for(LOOK_SEEDS + a), exclude=transform_points(T_cam_world, hand_points(wc)),
+                            up=T_cam_world[:3, 2])
             best = None if T_cam_fit is None else near(T_cam_fit)
         if best is None:
             return T_obj_gripper, {"seen": False}
