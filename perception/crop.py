@@ -99,3 +99,20 @@ def backproject(depth: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int]
     x = (u - K[0, 2]) * z / K[0, 0]
     y = (v - K[1, 2]) * z / K[1, 1]
     return np.stack([x, y, z], axis=1)
+
+
+def seen_facing(points: np.ndarray, normals: np.ndarray, T_cam_obj: np.ndarray, K: np.ndarray, depth: np.ndarray,
+                min_cos: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A model's surface points (N, 3) with outward normals (N, 3) (object frame, m) placed at ``T_cam_obj`` (4, 4):
+    those facing the camera (the cosine of a normal's angle to the line of sight above ``min_cos``) in front of it
+    that project into the depth image (H, W) (m, 0: none) through K (3, 3). Returns their camera-frame points (M, 3),
+    their pixels' flat indices (M,) (nearest pixel centres) and the depth seen there (M,) (m)."""
+    p = points @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    cos = -np.einsum("ij,ij->i", normals @ T_cam_obj[:3, :3].T, p) / np.maximum(np.linalg.norm(p, axis=1), 1e-12)
+    p = p[(cos > min_cos) & (p[:, 2] > 1e-6)]
+    h, w = depth.shape
+    u = np.round(p[:, 0] / p[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
+    v = np.round(p[:, 1] / p[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    pix = v[inside] * w + u[inside]
+    return p[inside], pix, depth.flat[pix]

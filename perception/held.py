@@ -35,8 +35,8 @@ from scipy.spatial import cKDTree
 
 from posegrasp.bop import models as bop_models
 from posegrasp.config import settings, within
-from posegrasp.geometry import axis_angle_R
-from posegrasp.perception.crop import backproject
+from posegrasp.geometry import axis_angle_R, make_T
+from posegrasp.perception.crop import backproject, seen_facing
 
 
 @settings
@@ -149,15 +149,8 @@ class HeldFit:
         c = self.cfg
         pts, normals, tree = self.model(obj_id)
         fit = np.minimum(tree.query((P - t) @ R, distance_upper_bound=c.truncation)[0], c.truncation).mean()
-        M = pts @ R.T + t
-        cos = -np.einsum("ij,ij->i", normals @ R.T, M) / np.linalg.norm(M, axis=1).clip(1e-9)
-        M = M[(cos > c.facing) & (M[:, 2] > 1e-6)]
-        u = np.rint(M[:, 0] * K[0, 0] / M[:, 2] + K[0, 2]).astype(int)
-        v = np.rint(M[:, 1] * K[1, 1] / M[:, 2] + K[1, 2]).astype(int)
-        H, W = depth.shape
-        inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        dz = depth[v[inside], u[inside]]
-        viol = ((dz == 0) | (dz > M[inside, 2] + c.violation_margin)).sum() / max(int(inside.sum()), 1)
+        M, _, dz = seen_facing(pts, normals, make_T(R, t), K, depth, c.facing)
+        viol = ((dz == 0) | (dz > M[:, 2] + c.violation_margin)).sum() / max(len(M), 1)
         return float(fit + c.violation_weight * viol)
 
     def _turn(self, obj_id: int, R: np.ndarray, t: np.ndarray, P: np.ndarray, seen: cKDTree, depth: np.ndarray,

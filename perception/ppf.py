@@ -39,6 +39,7 @@ from posegrasp import bop
 from posegrasp.bop import models as bop_models
 from posegrasp.config import settings, within
 from posegrasp.errors import ConfigError
+from posegrasp.perception.crop import seen_facing
 from posegrasp.perception.depth_fit import DepthFitConfig, FitConfig, ObjectModel, StartConfig, TurnConfig, fit_poses
 from posegrasp.perception.plane import PlaneConfig, fit_support_plane, plane_distance
 from posegrasp.perception.runtime import torch_threads
@@ -309,23 +310,15 @@ def verify(T: np.ndarray, model: PpfModel, scene: _Scene, cfg: PpfConfig, tol: f
     """The score of the model at pose T (4, 4) (m) against the seen depth with inlier distance ``tol`` (m; module
     doc, step 5), the flat indices of its inlier pixels and its support: the model's surface area (m^2) those inliers
     stand for."""
-    p = model.points @ T[:3, :3].T + T[:3, 3]
-    facing = -np.einsum("ij,ij->i", model.normals @ T[:3, :3].T, p) / np.maximum(np.linalg.norm(p, axis=1), 1e-12)
-    p = p[(facing > np.cos(np.radians(cfg.max_incidence_deg))) & (p[:, 2] > 1e-6)]  # as the scene's points
+    p, pix, d = seen_facing(model.points, model.normals, T, scene.K, scene.depth,  # as the scene's points
+                            np.cos(np.radians(cfg.max_incidence_deg)))
+    if not len(pix):
+        return 0.0, np.zeros(0, dtype=np.int64), 0.0
     sunk = np.zeros(len(p), dtype=bool) if scene.plane is None else \
         p @ scene.plane[:3] + scene.plane[3] < -cfg.sink_dist
-    h, w = scene.depth.shape
-    K = scene.K
-    u = np.round(p[:, 0] / p[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
-    v = np.round(p[:, 1] / p[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    if not inside.any():
-        return 0.0, np.zeros(0, dtype=np.int64), 0.0
-    pix, z = v[inside] * w + u[inside], p[inside, 2]
-    d = scene.depth.flat[pix]
-    seen = d > 0
+    z, seen = p[:, 2], d > 0
     inlier = seen & (np.abs(z - d) < tol)
-    violation = (seen & (z < d - tol)) | sunk[inside]
+    violation = (seen & (z < d - tol)) | sunk
     score = (inlier.sum() - cfg.violation_weight * violation.sum()) / len(pix)
     return float(max(score, 0.0)), np.unique(pix[inlier]), float(inlier.sum() / len(model.points) * model.area)
 
