@@ -196,20 +196,14 @@ class ScoringConfig:
 @settings
 class FirmHoldConfig:
     """How the tasks that hold the block firmly (``TrialConfig.firm_hold_tasks``) do it: the yaw-stable pinch
-    (``GraspConfig.pose_hand_y``) with all three fingers, MuJoCo's noslip solver, which removes the slip the soft
+    (``GraspConfig.pose_hand_y``) with all three fingers and MuJoCo's noslip solver, which removes the slip the soft
     contacts still allow (without it a 2x2 brick pinched by its top edge slid 9 mm down the fingers and turned
-    10 deg during the carry: stack, seed 0, 7 of its 8 episodes failed), and MuJoCo's sleeping islands: bodies at
-    rest are not simulated until something touches them, so blocks resting on the table cost nothing (the physics
-    of a stack episode took half the time, noslip only 15 % more)."""
+    10 deg during the carry: stack, seed 0, 7 of its 8 episodes failed; noslip costs about 15 % more physics)."""
 
     #: Once two fingers grip, control periods the fingers may close more until all three touch.
     finger_wait: int = field(default=10, metadata=within(0, 1000))
     #: Noslip solver iterations per physics step (0: off).
     noslip_iterations: int = field(default=2, metadata=within(0, 1000))
-    #: Whether bodies at rest sleep (MuJoCo's sleeping islands).
-    sleep: bool = True
-    #: Speeds below which a body is at rest and may sleep (MuJoCo's ``sleep_tolerance``; its default).
-    sleep_tolerance: float = field(default=1e-3, metadata=within(0.0, 1.0))
 
 
 @settings
@@ -226,8 +220,12 @@ class TrialConfig:
     elliptic_cones: bool = True
     #: MuJoCo impedance ratio of the contacts (high: less creep in the fingers).
     impratio: float = field(default=10.0, metadata=within(0.001, 10000.0))
+    #: Whether bodies at rest sleep after the scene settles (MuJoCo's sleeping islands: not simulated till touched).
+    sleep: bool = True
+    #: Speeds below which a body is at rest and may sleep (MuJoCo's ``sleep_tolerance``; its default).
+    sleep_tolerance: float = field(default=1e-3, metadata=within(0.0, 1.0))
     #: Tasks that hold the block firmly (``firm_hold``); unset: the set's manifest's choice (imported sets: all; else
-    #: kitting and stack).
+    #: kitting, stack and bin-pick).
     firm_hold_tasks: tuple[str, ...] | None = None
     #: How those tasks hold firmly.
     firm_hold: FirmHoldConfig = field(default_factory=FirmHoldConfig)

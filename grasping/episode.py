@@ -176,17 +176,17 @@ def episode_workcell(task: Task, cfg: TrialConfig, scene_seed: int, n_blocks: in
 
 def trial_physics(wc: Workcell, cfg: TrialConfig) -> None:
     """Set the trial's contact and solver settings on a settled scene ``wc``: the supports' contact time constant,
-    the friction cones, and for the tasks that hold firmly (``config.holds_firmly``) noslip and sleeping islands."""
+    the friction cones, sleeping islands, and for the tasks that hold firmly (``config.holds_firmly``) noslip."""
     for name in ("table", "place_pad"):  # solmix: their contacts with the blocks take their solref
         g = wc.model.geom(name).id
         wc.model.geom_solref[g, 0], wc.model.geom_solmix[g] = cfg.support_timeconst, 1e3
     wc.model.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.elliptic_cones else mujoco.mjtCone.mjCONE_PYRAMIDAL
     wc.model.opt.impratio = cfg.impratio
+    if cfg.sleep:
+        wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+        wc.model.opt.sleep_tolerance = cfg.sleep_tolerance
     if holds_firmly(cfg):
         wc.model.opt.noslip_iterations = cfg.firm_hold.noslip_iterations
-        if cfg.firm_hold.sleep:
-            wc.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
-            wc.model.opt.sleep_tolerance = cfg.firm_hold.sleep_tolerance
 
 
 def clear_grasp(g_cfg: GraspConfig, wc: Workcell, k: int) -> bool:

@@ -65,13 +65,13 @@ depth_fit = true
 TRIAL_TOML = """\
 min_blocks = 1
 max_blocks = 2
+sleep = true
 [control]
 dt = 0.04
 speed = 0.4
 pos_tol = 0.004
 [firm_hold]
 finger_wait = 10
-sleep = true
 """
 DATAGEN_TOML = """\
 min_spacing = 0.03

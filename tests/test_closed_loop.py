@@ -50,9 +50,8 @@ def test_shipped_model_meets_the_ci_floor_and_records_pose_errors(model_run):
 
 
 def test_a_degraded_model_shows_up_as_worse_in_compare(model_run, tmp_path):
-    # Noise on the segmentation net and the classifier (rel-sigma 1.0): measured 20 -> 10 successes over these
-    # 20 episodes (10 flips, McNemar p = 0.002; 9 before the split). The table-plane cleanup, the classifier and the depth refinement
-    # repair much of a single stage's damage: noise on the seg net alone gave 14/20, on the classifier alone 18/20.
+    # Noise on the segmentation net and the classifier (rel-sigma 1.0): measured 19 -> 0 successes over these
+    # 20 episodes (19 of them find no block).
     noisy = tmp_path / "noisy"
     assert main(["perturb", "--weights", str(SHIPPED_MODEL), "--out", str(noisy), "--rel-sigma", "1.0",
                  "--stages", "seg,cls"]) == 0

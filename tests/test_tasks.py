@@ -172,15 +172,17 @@ def test_yaw_stable_pinch_prefers_faces_that_reach_fingers_2_and_3():
     assert max(g.score for g in ends) < unpenalised - GraspConfig().score.unstable + 0.2  # the penalty, not the hand_y shift
 
 
-def test_firm_hold_tasks_run_noslip_and_sleep_and_pick_place_does_not_by_default():
+def test_firm_hold_tasks_run_noslip_and_pick_place_does_not_by_default_and_every_task_sleeps():
     from posegrasp.grasping.episode import episode_workcell
     import mujoco
 
     sleep = int(mujoco.mjtEnableBit.mjENBL_SLEEP)
-    for task, firm, noslip in [("pick-place", (), 0), ("kitting", (), 2), ("stack", (), 2),
-                               ("pick-place", ("pick-place",), 2), ("kitting", ("pick-place",), 0)]:
+    for task, firm, noslip, asleep in [("pick-place", (), 0, True), ("kitting", (), 2, True), ("stack", (), 2, True),
+                                       ("pick-place", ("pick-place",), 2, True), ("kitting", ("pick-place",), 0, True),
+                                       ("stack", None, 2, False)]:
         cfg = TrialConfig(task=task, firm_hold_tasks=firm) if firm else TrialConfig(task=task)
+        cfg = dataclasses.replace(cfg, sleep=asleep)
         m = episode_workcell(get_task(task), cfg, 3, 2).model
-        assert m.opt.noslip_iterations == noslip and bool(m.opt.enableflags & sleep) == (noslip > 0), (task, firm)
+        assert m.opt.noslip_iterations == noslip and bool(m.opt.enableflags & sleep) == asleep, (task, firm)
     with pytest.raises(UserError, match="firm_hold_tasks names unknown task"):
         check_task(TrialConfig(firm_hold_tasks=("juggling",)))
