@@ -118,11 +118,7 @@ def clutter_workcell(workcell: WorkcellConfig, kind: str, parts: Sequence[BlockI
         if tote is not None:
             tote.add_to(root, shaker)
 
-    wc = Workcell(workcell, parts, extras=compose)
-    # dm-control's arm model turns MuJoCo's native convex collision off; with the older one, convex parts landing
-    # on each other in a heap spin up and sink through the thin tote, so a clutter scene turns it back on
-    wc.model.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
-    return wc
+    return Workcell(workcell, parts, extras=compose)
 
 
 #: Drop points drawn per part; the part is dropped from the one where it starts lowest (a compact heap, short falls).

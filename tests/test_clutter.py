@@ -193,7 +193,7 @@ def test_table_datasets_stay_as_they_were(tmp_path):
     (["--scene", "bin", "--blocks", "31"], "", "max_parts 30"),
     (["--scene", "pile", "--blocks", "20"], "[clutter.tote]\ninner_size = [0.1, 0.1]\n", "do not fit the tote"),
     (["--scene", "bin"], "[clutter.tote]\ninner_size = [0.07, 0.3]\n", "does not fit the tote's floor"),
-    (["--scene", "bin"], "[clutter.tote]\ninner_size = [0.36, 0.44]\n", "cannot reach the tote's floor corner"),
+    (["--scene", "bin"], "[clutter.tote]\ninner_size = [0.6, 0.8]\n", "cannot reach the tote's floor corner"),
     (["--scene", "bin"], "[clutter.tote]\nwall_height = 0.12\n", "cannot reach the tote's floor corner"),
 ])
 def test_bad_clutter_input_is_refused_with_nothing_written(tmp_path, capsys, argv, toml, words):

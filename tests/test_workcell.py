@@ -229,7 +229,8 @@ def test_the_hand_points_lie_on_the_hand_and_move_with_it():
 @pytest.mark.parametrize("hand", ["3-finger", "suction", "hybrid"])
 def test_the_robot_attached_as_a_spec_is_the_model_of_one_mjcf(hand: str) -> None:
     """``compile_workcell`` attaches the once-parsed robot to each world: the compiled model must equal that of one
-    dm-control MJCF holding the world, the robot, the parts and the cup's welds (every array but the names)."""
+    dm-control MJCF holding the world, the robot, the parts and the cup's welds (every array but the names), but for
+    the native convex collision the arm's model turns off."""
     cfg = WorkcellConfig(hand=hand)
     parts = load_catalog()
     blocks = [BlockInstance(parts[n], (0.2, 0.4, 0.6, 1.0)) for n in ("cube", "arch", "triangular_prism")]
@@ -247,4 +248,6 @@ def test_the_robot_attached_as_a_spec_is_the_model_of_one_mjcf(hand: str) -> Non
     arrays = [a for a in dir(one) if isinstance(getattr(one, a), np.ndarray) and not a.startswith("_")
               and "name" not in a and "path" not in a]
     assert [a for a in arrays if not np.array_equal(getattr(one, a), getattr(wc.model, a), equal_nan=True)] == []
-    assert one.opt.disableflags == wc.model.opt.disableflags and one.opt.timestep == wc.model.opt.timestep
+    native = int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
+    assert one.opt.disableflags == wc.model.opt.disableflags | native and one.opt.timestep == wc.model.opt.timestep
+    assert not wc.model.opt.disableflags & native
