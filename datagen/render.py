@@ -43,7 +43,7 @@ class LabelRenderer:
         # two GL resource sets: multisampled (anti-aliased) for colour, single-sampled for labels and depth
         self.con_rgb, self.con = self._context(m, msaa), self._context(m, 0)
         self.con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
-        self.scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom))
+        self.scene = mujoco.MjvScene(m, maxgeom=gl.scene_capacity(m))
         self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = render.shadows
         self.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = render.reflections
         self.cam = mujoco.MjvCamera()
