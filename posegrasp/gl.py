@@ -8,7 +8,7 @@ generation render a new scene per episode or scene. So the process makes one con
 its context. ``mjr_render`` draws into whichever framebuffer is bound, so a renderer binds its own offscreen
 buffer (``bind_offscreen``) before every draw: several renderers may share the context at once.
 
-pyrender (the reference silhouettes of the report and the tests) makes its own EGL context per
+pyrender (the tests' reference renderer) makes its own EGL context per
 ``OffscreenRenderer``; deleting one calls ``eglTerminate`` on the EGL display that MuJoCo's context lives on,
 so ``pyrender_renderer`` keeps one per size for the whole process and never frees it.
 """

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import mujoco
 import numpy as np
 import pytest
@@ -11,6 +12,8 @@ import trimesh
 
 from posegrasp.catalog import load_catalog
 from posegrasp.geometry import invert, rotation_angle, transform_points
+from posegrasp.gl import pyrender_renderer
+from posegrasp.grasping.report.figures import silhouette
 from posegrasp.sim.camera import CameraRenderer, Frame
 from posegrasp.sim.config import WorkcellConfig
 from posegrasp.sim.scene import SceneConfig, make_scene
@@ -81,11 +84,28 @@ def test_depth_lies_on_model_surface(look_frame):
     assert checked >= 3
 
 
+def pyrender_silhouette(block, T_cam_obj: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W) bool: ``block``'s mesh at ``T_cam_obj`` (OpenCV camera) rendered alone by pyrender."""
+    import pyrender
+
+    r = pyrender_renderer(width, height)
+    # pyrender's principal point is in pixel-edge coordinates; OpenCV's K uses pixel centres.
+    cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=0.02, zfar=5.0)
+    sc = pyrender.Scene()
+    sc.add(pyrender.Mesh.from_trimesh(trimesh.Trimesh(block.vertices, block.faces, process=False), smooth=False),
+           pose=T_cam_obj)
+    sc.add(cam, pose=np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenCV camera -> OpenGL camera
+    return r.render(sc, flags=pyrender.RenderFlags.DEPTH_ONLY) > 0
+
+
 def pyrender_silhouettes(frame: Frame, scene, width: int, height: int) -> list[np.ndarray]:
     """Each block rendered alone by pyrender from its PLY-equivalent mesh at the ground-truth pose."""
-    from posegrasp.grasping.report.figures import silhouette
+    return [pyrender_silhouette(inst.block, frame.T_cam_obj[k], frame.K, width, height)
+            for k, inst in enumerate(scene.blocks)]
 
-    return [silhouette(inst.block, frame.T_cam_obj[k], frame.K, width, height) for k, inst in enumerate(scene.blocks)]
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / (a | b).sum())
 
 
 def test_masks_agree_with_pyrender(look_frame):
@@ -97,11 +117,28 @@ def test_masks_agree_with_pyrender(look_frame):
         others = np.any([o for j, o in enumerate(sil, start=1) if j != k], axis=0)
         if not s.any() or (s & others).any() or s[0].any() or s[-1].any() or s[:, 0].any() or s[:, -1].any():
             continue  # occluded by another block or cut by the image border
-        m = frame.mask == k
-        iou = (m & s).sum() / (m | s).sum()
-        assert iou >= 0.97, (scene.blocks[k - 1].block.name, iou)
+        assert iou(frame.mask == k, s) >= 0.97, (scene.blocks[k - 1].block.name, iou(frame.mask == k, s))
         checked += 1
     assert checked >= 3
+
+
+def test_report_silhouettes_agree_with_pyrender(look_frame):
+    """The report's filled-triangle silhouettes hold pyrender's pixels and at most the ring of pixels around them
+    (a triangle's border pixels are filled), for every block in view; nothing behind the camera is drawn."""
+    frame, scene = look_frame
+    h, w = frame.mask.shape
+    checked = 0
+    for k, inst in enumerate(scene.blocks):
+        ref = pyrender_silhouette(inst.block, frame.T_cam_obj[k], frame.K, w, h)
+        if ref.any():
+            s = silhouette(inst.block, frame.T_cam_obj[k], frame.K, w, h)
+            ring = cv2.dilate(ref.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+            assert max((ref & ~s).sum(), (s & ~ring).sum()) <= 0.002 * ref.sum(), inst.block.name
+            checked += 1
+    assert checked >= 3
+    behind = frame.T_cam_obj[0].copy()
+    behind[2, 3] = -behind[2, 3]  # mirrored behind the camera: nothing drawn
+    assert not silhouette(scene.blocks[0].block, behind, frame.K, w, h).any()
 
 
 @pytest.mark.slow

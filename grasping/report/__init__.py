@@ -4,7 +4,7 @@ It holds the summary (success with its Wilson 95 % interval), the per-block and 
 against pose error, and sample frames like the paper's Fig. 9-10: a few episodes are re-simulated from their
 recorded seeds up to the look capture (``grasping.episode``'s own functions, so the frame is the one the
 provider saw) and drawn with the segmentation (the model's labels, or the ground-truth mask for the
-oracles) and the block models rendered by pyrender at the estimated and at the true pose. The strip shows
+oracles) and the outlines of the block models projected at the estimated and at the true pose. The strip shows
 the overview camera at the look pose of several episodes (episodes do not expose mid-episode frames).
 A task with a page of its own (``Task.report_page``) shows that instead: bin picking's statistics and, for a few
 episodes, every attempt (``grasping.tasks.bin_pick.report``).

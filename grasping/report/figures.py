@@ -10,12 +10,17 @@ from typing import Callable
 
 import numpy as np
 
-from posegrasp.gl import pyrender_renderer
+from posegrasp.geometry import transform_points
 from posegrasp.grasping.record import EpisodeRecord
 from posegrasp.sim.camera import Frame
 
 #: Outline colours (RGB) of the model at the true and at the estimated pose.
 TRUE_RGB, EST_RGB = (40, 230, 60), (255, 40, 200)
+#: Nearest depth (m) of a triangle drawn in a silhouette (those nearer, or behind the camera, are left out).
+NEAR = 0.02
+#: Fractional bits of the silhouettes' vertex coordinates (``cv2.fillConvexPoly``'s ``shift``).
+_SHIFT = 4
+_SUBPIXEL = 1 << _SHIFT
 
 
 @dataclass
@@ -30,18 +35,19 @@ class Look:
 
 
 def silhouette(block, T_cam_obj: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(H, W) bool: pixels covered by ``block``'s mesh at ``T_cam_obj`` (OpenCV camera, m), rendered by pyrender."""
-    import pyrender
-    import trimesh
+    """(H, W) bool: pixels covered by ``block``'s mesh at ``T_cam_obj`` (OpenCV camera, m): its triangles lying
+    wholly ``NEAR`` m or more in front of the camera, projected with ``K`` and filled, border pixels included
+    (about half a pixel wider than a renderer draws it)."""
+    import cv2
 
-    r = pyrender_renderer(width, height)
-    # pyrender's principal point is in pixel-edge coordinates; OpenCV's K uses pixel centres.
-    cam = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=0.02, zfar=5.0)
-    sc = pyrender.Scene()
-    sc.add(pyrender.Mesh.from_trimesh(trimesh.Trimesh(block.vertices, block.faces, process=False), smooth=False),
-           pose=T_cam_obj)
-    sc.add(cam, pose=np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenCV camera -> OpenGL camera
-    return r.render(sc, flags=pyrender.RenderFlags.DEPTH_ONLY) > 0
+    tri = transform_points(T_cam_obj, block.vertices)[np.asarray(block.faces)]  # (F, 3 corners, xyz)
+    tri = tri[(tri[..., 2] >= NEAR).all(axis=1)]
+    uv = tri @ np.asarray(K, dtype=float).T
+    px = np.round(_SUBPIXEL * uv[..., :2] / uv[..., 2:]).astype(np.int32)  # OpenCV: pixel centres at integers
+    out = np.zeros((height, width), dtype=np.uint8)
+    for t in px:
+        cv2.fillConvexPoly(out, t, 1, shift=_SHIFT)
+    return out > 0
 
 
 def _outline(mask: np.ndarray, width: int = 2) -> np.ndarray:

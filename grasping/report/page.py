@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from posegrasp.errors import UserError
@@ -38,10 +39,12 @@ def _table_page(run: TrialRun, samples: int, strip: int, executor: Executor | No
     """The page of a table task: sample frames and the overview strip at the look pose."""
     shown, strip_eps = pick_samples(run.episodes, samples), run.episodes[:strip]
     resim = {r.episode: r for r in shown + strip_eps}
-    looks = resimulate_looks(run.path, [resim[e] for e in sorted(resim)], executor)
-    return sections.page([sections.headline(run), sections.settings(run), sections.per_block(run),
-                          sections.failures(run), sections.error_plots(run),
-                          sections.sample_frames(run, shown, looks), sections.episode_strip(strip_eps, looks)])
+    with ThreadPoolExecutor(1) as plotter:  # the plots drawn while the looks are re-simulated (and rendered here)
+        plots = plotter.submit(sections.error_plots, run)
+        looks = resimulate_looks(run.path, [resim[e] for e in sorted(resim)], executor)
+        return sections.page([sections.headline(run), sections.settings(run), sections.per_block(run),
+                              sections.failures(run), plots.result(),
+                              sections.sample_frames(run, shown, looks), sections.episode_strip(strip_eps, looks)])
 
 
 def register(sub: argparse._SubParsersAction) -> None:
