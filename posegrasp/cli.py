@@ -7,10 +7,13 @@ the handler it sets with ``set_defaults(run=...)`` receives the parsed arguments
 from __future__ import annotations
 
 import argparse
+import atexit
 import errno
 import importlib
 import os
 import sys
+import threading
+from typing import NoReturn
 
 from posegrasp.arguments import positive_int, workers_arg  # noqa: F401  (option types, re-exported)
 from posegrasp.errors import NoSpaceError, SimulationError, UserError
@@ -90,5 +93,38 @@ def _written_folder(e: OSError, args: argparse.Namespace | None) -> str:
     return str(out) if out else os.getcwd()
 
 
+def exit_now(status: int) -> NoReturn:
+    """End the process with ``status`` as ``sys.exit`` does, less the interpreter's teardown: the threads are joined
+    and the exit handlers run (``atexit``: Ray's shutdown, temporary folders, logging), stdout and stderr flushed,
+    but the modules are not freed one by one (about 0.5 s with torch, SciPy and MuJoCo loaded; 0.8 s in a forked
+    process, whose teardown copies every page it touches). The program's files are closed by then."""
+    threading._shutdown()  # what the interpreter does first on its way out: join the threads not daemonic
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe or stream: nothing left to say
+            pass
+    os._exit(status)
+
+
+def entry() -> NoReturn:
+    """The ``posegrasp`` program: ``main``'s status (or ``SystemExit``'s) as the exit status, by ``exit_now``; an
+    uncaught error ends it the usual way, with its traceback."""
+    try:
+        status = main()
+    except SystemExit as e:  # ``--help``'s, or a plug-in's
+        status = _exit_status(e.code)
+    exit_now(status)
+
+
+def _exit_status(code: object) -> int:
+    """The exit status of ``SystemExit(code)``, as the interpreter reads it: None is 0, a message is printed (1)."""
+    if code is None or isinstance(code, int):
+        return code or 0
+    print(code, file=sys.stderr)
+    return 1
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -2,8 +2,9 @@
 line and its heavy libraries once (``tests/zygote_server.py``), so a test pays for a command's work, not for its
 start-up's imports (2-4 s each: torch, its compiler's modules, MuJoCo, trimesh).
 
-The child runs ``posegrasp.cli.main`` as the entry point does, in its own session, with the caller's environment and
-working folder, stdin from ``/dev/null``: its exit status, output and files are the command's own.
+The child runs the command as the ``posegrasp`` program does (``posegrasp.cli.entry``), in its own session, with the
+caller's environment and working folder, stdin from ``/dev/null``: its exit status, output and files are the
+command's own.
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@ Requests and answers are JSON lines on stdin and stdout: ``{"argv", "cwd", "stdo
 optionally ``"env"`` (the child's whole environment) in,
 ``{"rc", "hung", "seconds"}`` out. A child past its limit is killed with its process group (``hung``: true); a
 child killed by a signal answers ``rc`` = minus the signal's number. The child runs the command as
-``python -m posegrasp.cli`` does: ``main(argv)``'s status is the exit status and an uncaught exception prints its
-traceback, so what a user would see is what the harness sees.
+the ``posegrasp`` program does (``posegrasp.cli.entry``): ``main``'s status is the exit status and an uncaught
+exception prints its traceback, so what a user would see is what the harness sees.
 """
 
 from __future__ import annotations
@@ -51,16 +51,13 @@ def _child(req: dict) -> None:
         os.dup2(f, fd)
         os.close(f)
     sys.argv = ["posegrasp", *req["argv"]]
-    from posegrasp.cli import main
+    from posegrasp.cli import entry, exit_now
 
     try:
-        rc = main(req["argv"])
-    except SystemExit:
-        raise
+        entry()  # exits with the command's status
     except BaseException:  # what the real command prints on its way out
         traceback.print_exc()
-        rc = 1
-    sys.exit(rc)
+        exit_now(1)
 
 
 def _serve() -> None:
