@@ -143,3 +143,14 @@ def test_installed_wheel_runs_from_any_folder(wheel: Path, tmp_path: Path) -> No
                        timeout=300)
     assert r.returncode == 0, r.stderr
     assert (work / "out" / "scene.json").exists() and (work / "out" / "rgb.png").exists()
+
+
+@pytest.mark.parametrize("code, status, stderr", [("None", 0, ""), ("3", 3, ""), ("'no such run'", 1, "no such run\n")])
+def test_the_program_exits_with_its_status_after_its_exit_handlers_and_output(code: str, status: int,
+                                                                               stderr: str) -> None:
+    """``entry`` ends the process at once (``exit_now``), but as ``sys.exit`` would: the status, the exit handlers
+    run, buffered output written."""
+    script = ("import atexit, sys\nfrom posegrasp import cli\natexit.register(print, 'handler ran')\n"
+              f"print('buffered', end=' ')\ncli.main = lambda: sys.exit({code})\ncli.entry()\n")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert (r.returncode, r.stdout, r.stderr) == (status, "buffered handler ran\n", stderr)
