@@ -22,6 +22,7 @@ declared invalid and skipped, as in the paper.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +41,7 @@ from posegrasp.perception.ensemble import ClassifierEnsemble
 from posegrasp.perception.depth_fit import DepthFitConfig, ObjectModel, fit_poses
 from posegrasp.perception.depth_fit.distance_field import distinct
 from posegrasp.perception.depth_fit.rivals import Rivals
+from posegrasp.perception.depth_fit.starts import Symmetries
 from posegrasp.perception.guided import GuidedConfig, snap_labels
 from posegrasp.perception.inputs import prepare_pose_input, seam_components, segment_components
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
@@ -161,21 +163,25 @@ class Estimator:
         self.support_plane, self.plane_cfg = cfg.support_plane, PlaneConfig()
         self.split_cfg, self.guided_cfg, self.type_check_cfg = cfg.split, cfg.guided, cfg.type_check
         self.seam_threshold = cfg.seam_threshold
-        self.objects: dict[int, ObjectModel] = {}  # by obj_id; empty without ``models``
-        if cfg.models is not None:
-            self._load_models(cfg.models)
+        self._meshes = self._read_models(cfg.models) if cfg.models is not None else {}
 
-    def _load_models(self, models: str | Path) -> None:
-        """The ``ObjectModel`` of every object of the pose net (with its split surface when splitting is on), from the
-        BOP dataset root ``models``."""
+    def _read_models(self, models: str | Path) -> dict[int, tuple[object, Symmetries]]:
+        """The mesh and symmetries of every object of the pose net, read (and checked) from the BOP dataset root
+        ``models``."""
         infos = bop.load_models_info(models)
         missing = [o for o in self.obj_ids if o not in infos]
         if missing:
             raise DatasetError(f"models in {models} lack objects {missing} of the pose net")
+        return {o: (bop_models.load_model(models, o), infos[o].symmetry_rotations()) for o in self.obj_ids}
+
+    @functools.cached_property
+    def objects(self) -> dict[int, ObjectModel]:
+        """The ``ObjectModel`` of every object of the pose net by obj_id (with its split surface when splitting is
+        on), empty without ``EstimatorConfig.models``; made on first use: its distance field takes about 0.3 s an
+        object, which a process that only checks the weights never pays."""
         surface = self.split_cfg.model_points if self.split_cfg.rounds > 0 else 0
-        self.objects = {o: ObjectModel.of_mesh(bop_models.load_model(models, o), infos[o].symmetry_rotations(),
-                                               self.depth_fit_cfg, seed=o, surface_points=surface)
-                        for o in self.obj_ids}
+        return {o: ObjectModel.of_mesh(mesh, syms, self.depth_fit_cfg, seed=o, surface_points=surface)
+                for o, (mesh, syms) in self._meshes.items()}
 
     @property
     def obj_ids(self) -> list[int]:

@@ -32,7 +32,7 @@ class DistanceField:
         lo = points.min(axis=0) - margin
         self.shape = np.ceil((points.max(axis=0) + margin - lo) / cell).astype(int) + 1
         nodes = lo + np.stack(np.meshgrid(*[np.arange(n) for n in self.shape], indexing="ij"), -1).reshape(-1, 3) * cell
-        dist, j = cKDTree(points).query(nodes)
+        dist, j = cKDTree(points).query(nodes, workers=-1)  # (the same answer on every core)
         if normals is not None:  # signed; the distance to the tangent plane where the node lies over the sample
             along = np.einsum("ij,ij->i", nodes - points[j], np.asarray(normals)[j])
             over = dist ** 2 - along ** 2 < flat ** 2
