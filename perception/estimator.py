@@ -158,16 +158,13 @@ class Estimator:
                         (self.pose_cfg.num_points, self.pose_cfg.crop_size))
         self.pose_points = points if cfg.pose_points is None else cfg.pose_points
         self.pose_crop = crop if cfg.pose_crop is None else cfg.pose_crop
-        self.seed = cfg.seed
-        self.depth_fit_cfg = cfg.depth_fit
+        self.seed, self.depth_fit_cfg, self.seam_threshold = cfg.seed, cfg.depth_fit, cfg.seam_threshold
         self.support_plane, self.plane_cfg = cfg.support_plane, PlaneConfig()
         self.split_cfg, self.guided_cfg, self.type_check_cfg = cfg.split, cfg.guided, cfg.type_check
-        self.seam_threshold = cfg.seam_threshold
         self._meshes = self._read_models(cfg.models) if cfg.models is not None else {}
 
     def _read_models(self, models: str | Path) -> dict[int, tuple[object, Symmetries]]:
-        """The mesh and symmetries of every object of the pose net, read (and checked) from the BOP dataset root
-        ``models``."""
+        """The mesh and symmetries of every object of the pose net, read and checked, from the BOP root ``models``."""
         infos = bop.load_models_info(models)
         missing = [o for o in self.obj_ids if o not in infos]
         if missing:
@@ -176,9 +173,8 @@ class Estimator:
 
     @functools.cached_property
     def objects(self) -> dict[int, ObjectModel]:
-        """The ``ObjectModel`` of every object of the pose net by obj_id (with its split surface when splitting is
-        on), empty without ``EstimatorConfig.models``; made on first use: its distance field takes about 0.3 s an
-        object, which a process that only checks the weights never pays."""
+        """Each object's ``ObjectModel`` by obj_id (with its split surface when splitting is on; none without
+        ``EstimatorConfig.models``), made on first use: a process that only checks the weights skips 0.3 s an object."""
         surface = self.split_cfg.model_points if self.split_cfg.rounds > 0 else 0
         return {o: ObjectModel.of_mesh(mesh, syms, self.depth_fit_cfg, seed=o, surface_points=surface)
                 for o, (mesh, syms) in self._meshes.items()}
