@@ -15,7 +15,7 @@ import numpy as np
 
 from posegrasp.geometry import invert, transform_points
 from posegrasp import gl
-from posegrasp.sim.camera import Frame, intrinsics
+from posegrasp.sim.camera import Frame, instances, intrinsics
 from posegrasp.sim.config import CameraConfig, RenderConfig
 from posegrasp.sim.workcell import Workcell
 
@@ -118,18 +118,7 @@ class LabelRenderer:
         raw = np.empty((self.height, self.width), np.float32)
         mujoco.mjr_readPixels(seg, raw, self.rect, self.con)
         self._set_seg(False)
-        # segmentation colour = segid + 1 (little-endian RGB); map it to block instance ids
-        n = self.scene.ngeom
-        lut = np.zeros(max(n + 2, 256), np.uint16)
-        geom_t = int(mujoco.mjtObj.mjOBJ_GEOM)
-        for g in self.scene.geoms[:n]:
-            if g.segid >= 0 and g.objtype == geom_t:
-                lut[g.segid + 1] = self.wc.geom_instance[g.objid]
-        if n + 1 < 256:  # one byte holds every id
-            inst = lut[seg[..., 0]]
-        else:
-            ids = seg[..., 0].astype(np.int32) | (seg[..., 1].astype(np.int32) << 8) | (seg[..., 2].astype(np.int32) << 16)
-            inst = lut[np.minimum(ids, n + 1)]
+        inst = instances(self.scene, seg, self.wc.geom_instance)
         return self._metric_depth(raw)[::-1].copy(), inst[::-1].copy()
 
     def amodal(self, T_cam_obj: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int, int, int] | None],

@@ -51,6 +51,22 @@ class Frame:
     extra: dict = field(default_factory=dict)
 
 
+def instances(scene: mujoco.MjvScene, seg: np.ndarray, geom_instance: np.ndarray) -> np.ndarray:
+    """Instance ids (H, W) uint16 of ``seg`` (H, W, 3) uint8, a segmentation render of ``scene``
+    (``gl.Renderer.read_segments``: each pixel's colour is its geom's segid + 1, little-endian RGB, 0 the
+    background): the geom's ``geom_instance`` (k for block k), 0 on the background."""
+    n = scene.ngeom
+    lut = np.zeros(max(n + 2, 256), np.uint16)
+    geom_t = int(mujoco.mjtObj.mjOBJ_GEOM)
+    for g in scene.geoms[:n]:
+        if g.segid >= 0 and g.objtype == geom_t:
+            lut[g.segid + 1] = geom_instance[g.objid]
+    if n + 1 < 256:  # one byte holds every id
+        return lut[seg[..., 0]]
+    ids = seg[..., 0].astype(np.int32) | (seg[..., 1].astype(np.int32) << 8) | (seg[..., 2].astype(np.int32) << 16)
+    return lut[np.minimum(ids, n + 1)]
+
+
 class CameraRenderer:
     """Offscreen renderer for one camera of a workcell, in the process's GL context (``posegrasp.gl``); reuse it for
     many frames, ``close()`` frees the model's GL resources."""
@@ -92,13 +108,8 @@ class CameraRenderer:
 
     def mask(self) -> np.ndarray:
         """Instance mask (H, W) uint16: 0 background and robot, k where block k is visible."""
-        self.renderer.disable_depth_rendering()
-        self.renderer.enable_segmentation_rendering()
         self._update()
-        seg = self.renderer.render()
-        self.renderer.disable_segmentation_rendering()
-        ids = np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)
-        return self.wc.geom_instance[ids].astype(np.uint16)
+        return instances(self.renderer.scene, self.renderer.read_segments(), self.wc.geom_instance)[::-1].copy()
 
     def capture(self, images: bool = True) -> Frame:
         """RGB, depth and mask of the current state, with K, the camera pose and every block's ``T_cam_obj``;

@@ -142,9 +142,18 @@ def test_report_silhouettes_agree_with_pyrender(look_frame):
 
 
 @pytest.mark.slow
+def mujoco_mask(cam: CameraRenderer) -> np.ndarray:
+    """``cam``'s instance mask from its renderer's own segmentation: ``mujoco.Renderer``'s (object id, type) pairs."""
+    cam.renderer.enable_segmentation_rendering()
+    cam._update()
+    seg = cam.renderer.render()
+    cam.renderer.disable_segmentation_rendering()
+    return cam.wc.geom_instance[np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)]
+
+
 def test_shared_gl_context_renders_like_an_own_one():
     """Renderers sharing the process's GL context, two drawing in turns, across scenes, give the images of a
-    ``mujoco.Renderer`` with a GL context of its own."""
+    ``mujoco.Renderer`` with a GL context of its own, and the masks its own segmentation maps to."""
     for seed in (1, 2):
         wc = make_scene(seed, 3).workcell
         assert wc.drive_arm(wc.look_q, tol=0.01)
@@ -154,7 +163,7 @@ def test_shared_gl_context_renders_like_an_own_one():
         own.renderer = mujoco.Renderer(wc.model, c.height, c.width)
         own.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = r.shadows
         own.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = r.reflections
-        want = [own.rgb(), own.depth(), own.mask()]
+        want = [own.rgb(), own.depth(), mujoco_mask(own)]
         hand = CameraRenderer(wc, HAND_CAMERA, c, r)
         over = CameraRenderer(wc, OVERVIEW_CAMERA, o, r)
         overview = over.rgb()
