@@ -17,7 +17,7 @@ from typing import NoReturn
 
 from posegrasp.arguments import positive_int, workers_arg  # noqa: F401  (option types, re-exported)
 from posegrasp.errors import NoSpaceError, SimulationError, UserError
-from posegrasp.io import is_no_space
+from posegrasp.io import flush_output, is_no_space
 
 #: Exit status of a full disk (``EX_IOERR`` of sysexits.h); bad input exits 2, Ctrl-C 130.
 EXIT_NO_SPACE = 74
@@ -104,11 +104,7 @@ def exit_now(status: int) -> NoReturn:
         sys.exit(status)
     threading._shutdown()  # what the interpreter does first on its way out: join the threads not daemonic
     atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a closed pipe or stream: nothing left to say
-            pass
+    flush_output()
     os._exit(status)
 
 

@@ -23,6 +23,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Callable, Iterator, Protocol, Self, Sequence
 
 from posegrasp.errors import UserError
+from posegrasp.io import flush_output
 
 #: ``prctl`` option asking the kernel to signal this process when its parent dies (linux/prctl.h).
 PR_SET_PDEATHSIG = 1
@@ -79,11 +80,7 @@ def _exit_without_teardown() -> None:
     stdout and stderr are flushed, and it ends with status 0 without the interpreter's teardown (0.2 s of freeing
     torch, SciPy and MuJoCo, per worker at the end of every pool). Its results went back to the parent as tasks
     finished, and a worker only ends this way once the pool stops it."""
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
+    flush_output()
     os._exit(0)
 
 

@@ -10,6 +10,7 @@ import errno
 import json
 import math
 import os
+import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -135,3 +136,13 @@ def read_image(path: str | Path) -> np.ndarray:
     if img.ndim == 3:
         img = img[..., :3][..., ::-1].copy()
     return img
+
+
+def flush_output() -> None:
+    """Flush stdout and stderr before a process ends without the interpreter's teardown; a closed pipe or stream
+    has nothing left to say."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
