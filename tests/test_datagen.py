@@ -425,3 +425,26 @@ def test_distractors_occlude_but_are_never_labelled():
     for a, b in zip(with_d.extra["amodal"], without.extra["amodal"]):
         np.testing.assert_array_equal(a, b)  # amodal masks ignore them; visible ones lose what they hide
     assert all((with_d.mask == k).sum() <= (without.mask == k).sum() for k in range(1, 5))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("shape", [(1, 1), (3, 7), (480, 640)])
+def test_grey_png_decodes_to_the_same_pixels(dtype, shape):
+    """Depth and mask PNGs (``encode_grey_png``) read back bit for bit by OpenCV and Pillow (bop_toolkit's readers)."""
+    import cv2
+    from io import BytesIO
+
+    from PIL import Image
+
+    from posegrasp.bop.images import encode_grey_png
+
+    rng = np.random.default_rng(shape[1])
+    a = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
+    a.flat[0], a.flat[-1] = np.iinfo(dtype).max, 0
+    a[: shape[0] // 2] = 0  # long runs, as in masks and depth holes
+    data = encode_grey_png(a)
+    by_cv2 = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert by_cv2.dtype == dtype and np.array_equal(by_cv2, a)
+    assert np.array_equal(np.asarray(Image.open(BytesIO(data))).astype(dtype), a)
+    with pytest.raises(ValueError, match="float32"):
+        encode_grey_png(a.astype(np.float32))
