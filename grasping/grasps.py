@@ -102,15 +102,19 @@ def _surface_samples(block: PartType, n: int, seed: int) -> tuple[np.ndarray, np
     return sample_surface(block, n, seed), idx
 
 
-def _flat_patch(pts: np.ndarray, normals: np.ndarray, tree: cKDTree, contact: np.ndarray, normal: np.ndarray,
-                cos_cone: float) -> bool:
-    """Does the surface within ``_PATCH_RADIUS`` of ``contact`` and 2 mm of its tangent plane face ``normal``
-    within the cone everywhere (a finger pad rests on it, not on a thin rim or a stud; a thin wall's inside is
-    not in the way)? ``pts``/``normals``: surface samples (m), ``tree`` a k-d tree of ``pts``."""
-    idx = np.asarray(tree.query_ball_point(contact, _PATCH_RADIUS), dtype=np.int64)
-    rel = pts[idx] - contact
-    near = idx[(np.linalg.norm(rel, axis=1) < _PATCH_RADIUS) & (np.abs(rel @ normal) < 0.002)]
-    return bool(np.all(normals[near] @ normal >= cos_cone))
+def _flat_patches(pts: np.ndarray, normals: np.ndarray, tree: cKDTree, contacts: np.ndarray, facing: np.ndarray,
+                  cos_cone: float) -> np.ndarray:
+    """(K,) bool: does the surface within ``_PATCH_RADIUS`` of ``contacts[k]`` and 2 mm of its tangent plane face
+    ``facing[k]`` within the cone everywhere (a finger pad rests on it, not on a thin rim or a stud; a thin wall's
+    inside is not in the way)? ``pts``/``normals``: surface samples (m), ``tree`` a k-d tree of ``pts``."""
+    near = tree.query_ball_point(contacts, _PATCH_RADIUS)
+    owner = np.repeat(np.arange(len(contacts)), [len(n) for n in near])
+    idx = np.fromiter((i for n in near for i in n), np.int64, len(owner))
+    rel = pts[idx] - contacts[owner]
+    f = facing[owner]
+    on = (np.linalg.norm(rel, axis=1) < _PATCH_RADIUS) & (np.abs(np.einsum("ij,ij->i", rel, f)) < 0.002)
+    away = on & (np.einsum("ij,ij->i", normals[idx], f) < cos_cone)
+    return np.bincount(owner[away], minlength=len(contacts)) == 0
 
 
 @functools.lru_cache(maxsize=32)
@@ -144,20 +148,25 @@ def antipodal_pairs(block: PartType, n: int = _ANTIPODAL_SAMPLES, seed: int = 0,
     last: dict[int, int] = {}
     for h in exits[np.lexsort((-dist[exits], ray[exits]))]:  # where each ray leaves the part for good
         last.setdefault(int(ray[h]), int(h))
+    rays = np.array(sorted(last), dtype=np.int64)
+    h = np.array([last[r] for r in rays], dtype=np.int64)
+    axis, width, far = d[rays], dist[h], hits[h]
     round_axes = np.array([a for a, _ in block.symmetries_continuous]).reshape(-1, 3)
-    pairs: list[np.ndarray] = []
-    for r, h in sorted(last.items()):
-        axis, width = d[r], float(dist[h])
-        ends = np.stack([p1[r], hits[h]])
-        if (not min_width <= width <= max_width or normals[face[h]] @ axis < cos_cone
-                or np.abs(round_axes @ axis).max(initial=0.0) > cos_cone
-                or not all(_flat_patch(pts, pt_n, tree, e, s * axis, cos_cone) for e, s in zip(ends, (-1.0, 1.0)))):
+    ok = ((min_width <= width) & (width <= max_width) & (np.einsum("ij,ij->i", normals[face[h]], axis) >= cos_cone)
+          & (np.abs(axis @ round_axes.T).max(1, initial=0.0) <= cos_cone))
+    rays, axis, width, far = rays[ok], axis[ok], width[ok], far[ok]
+    flat = _flat_patches(pts, pt_n, tree, np.concatenate([p1[rays], far]), np.concatenate([-axis, axis]), cos_cone)
+    keep = flat[: len(rays)] & flat[len(rays):]
+    # greedy: a pair within 3 mm and 10 deg of one kept before it is dropped
+    cos10 = np.cos(np.deg2rad(10.0))
+    mids, spans, pairs = np.empty((0, 3)), np.empty((0, 3)), []
+    for r, a, w, q in zip(rays[keep], axis[keep], width[keep], far[keep]):
+        mid = p1[r] + 0.5 * w * a
+        if np.any((np.linalg.norm(mids - mid, axis=1) < 3e-3)
+                  & (np.abs(spans @ a) > cos10 * np.linalg.norm(spans, axis=1))):
             continue
-        mid = p1[r] + 0.5 * width * axis
-        if any(np.linalg.norm(0.5 * (q[0] + q[1]) - mid) < 3e-3
-               and abs(axis @ (q[1] - q[0])) > np.cos(np.deg2rad(10.0)) * np.linalg.norm(q[1] - q[0]) for q in pairs):
-            continue
-        pairs.append(ends)
+        pairs.append(np.stack([p1[r], q]))
+        mids, spans = np.vstack([mids, 0.5 * (p1[r] + q)]), np.vstack([spans, q - p1[r]])
     return np.stack(pairs) if pairs else np.zeros((0, 2, 3))
 
 
