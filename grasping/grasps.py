@@ -107,9 +107,8 @@ def _flat_patches(pts: np.ndarray, normals: np.ndarray, tree: cKDTree, contacts:
     """(K,) bool: does the surface within ``_PATCH_RADIUS`` of ``contacts[k]`` and 2 mm of its tangent plane face
     ``facing[k]`` within the cone everywhere (a finger pad rests on it, not on a thin rim or a stud; a thin wall's
     inside is not in the way)? ``pts``/``normals``: surface samples (m), ``tree`` a k-d tree of ``pts``."""
-    near = tree.query_ball_point(contacts, _PATCH_RADIUS)
-    owner = np.repeat(np.arange(len(contacts)), [len(n) for n in near])
-    idx = np.fromiter((i for n in near for i in n), np.int64, len(owner))
+    near = cKDTree(contacts).sparse_distance_matrix(tree, _PATCH_RADIUS, output_type="ndarray")
+    owner, idx = near["i"], near["j"]
     rel = pts[idx] - contacts[owner]
     f = facing[owner]
     on = (np.linalg.norm(rel, axis=1) < _PATCH_RADIUS) & (np.abs(np.einsum("ij,ij->i", rel, f)) < 0.002)
