@@ -12,6 +12,10 @@ worktree but its parts from the installed checkout. The worktree's ``posegrasp/`
 (``posegrasp/sim -> ../sim``), so that ``PYTHONPATH=WORKTREE`` imports all of REF's code, in worker processes too;
 each side's imported module files are printed and checked before any run.
 
+``{tree}`` in an option's value stands for the side's checkout (the current one, or REF's worktree), so that each
+side reads its own shipped files, such as weights whose format changed since REF. Inputs a script makes with
+``shared_input`` (a simulated frame) are made once, by the current code, and read by both sides.
+
 REF runs its own copy of the bench script (the benchmark as REF knew it) unless ``--baseline-script current``; when
 its copy rejects an option, the current script file runs on REF's code instead, and the output says so.
 """
@@ -29,9 +33,16 @@ import sys
 import tempfile
 import tomllib
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+#: In an option's value, the side's own checkout: ``--weights {tree}/assets/perception/model_bin`` gives each side
+#: the weights its code shipped with.
+TREE = "{tree}"
+#: Environment variable naming a folder both sides of a comparison share, for inputs made once (``shared_input``).
+SHARED = "POSEGRASP_BENCH_SHARED"
 #: Modules whose files must come from the side's own tree.
 PROBES = ("posegrasp", "posegrasp.sim.workcell", "posegrasp.datagen.generate", "posegrasp.perception.estimator",
           "posegrasp.grasping.trials")
@@ -45,6 +56,21 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     g.add_argument("--rounds", type=int, default=1, help="with --baseline: pairs of runs (default 1)")
     g.add_argument("--baseline-script", choices=("own", "current"), default="own",
                    help="with --baseline: REF's copy of this script (default) or the current file on REF's code")
+
+
+def shared_input(name: str, make: Callable[[], tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """``make()``'s arrays, made once per comparison: the first run (the current code's, which goes first) saves them
+    as ``name`` (.npz) in the comparison's shared folder, and REF's runs load them, so both sides time the same input
+    even where REF's code could not make it. Outside a comparison: ``make()``."""
+    folder = os.environ.get(SHARED)
+    path = Path(folder) / name if folder else None
+    if path is not None and path.is_file():
+        with np.load(path) as f:
+            return tuple(f[f"a{i}"] for i in range(len(f.files)))
+    arrays = make()
+    if path is not None:
+        np.savez(path, **{f"a{i}": a for i, a in enumerate(arrays)})
+    return arrays
 
 
 def own_argv(argv: Sequence[str]) -> list[str]:
@@ -119,9 +145,11 @@ def _value(result: dict, key: str) -> float:
 class _Sides:
     """The two sides of a comparison: script, environment and figures of the current code and of REF's."""
 
-    def __init__(self, script: Path, ref: str, tree: Path, which: str):
+    def __init__(self, script: Path, ref: str, tree: Path, which: str, shared: Path):
         self.script, self.ref = script, ref
-        self.env = {"current": dict(os.environ), "baseline": {**os.environ, "PYTHONPATH": str(tree)}}
+        self.env = {"current": {**os.environ, SHARED: str(shared)},
+                    "baseline": {**os.environ, SHARED: str(shared), "PYTHONPATH": str(tree)}}
+        self.trees = {"current": ROOT, "baseline": tree}
         own = tree / script.relative_to(ROOT)
         self.scripts = {"current": script, "baseline": own if which == "own" and own.is_file() else script}
         self.figures: dict[str, dict[str, list[float]]] = {}
@@ -131,6 +159,7 @@ class _Sides:
         """One run of ``side``; its figures at ``keys`` kept, printed after ``label`` with the 1-min load before and
         after it."""
         l0 = os.getloadavg()[0]
+        argv = [a.replace(TREE, str(self.trees[side])) for a in argv]
         res, err = _run(self.scripts[side], argv, self.env[side])
         if res is None and self.scripts[side] != self.script and "unrecognized arguments" in err:
             print(f"{self.ref}'s own {self.script.name} rejects the options ({err}); the current file runs on its code")
@@ -161,8 +190,8 @@ def compare(script: str, argv: Sequence[str], ref: str, key: str, higher_is_bett
     script, argv = Path(script).resolve(), own_argv(argv)
     keys = [key] + ([cpu_key] if cpu_key else [])
     sha = _git("rev-parse", "--short", f"{ref}^{{commit}}")
-    with checkout(ref) as tree:
-        sides = _Sides(script, ref, tree, which)
+    with checkout(ref) as tree, tempfile.TemporaryDirectory(prefix="posegrasp_bench_inputs_") as shared:
+        sides = _Sides(script, ref, tree, which, Path(shared))
         _check_side("current", ROOT, sides.env["current"])
         _check_side(f"{ref} ({sha})", tree, sides.env["baseline"])
         for r in range(rounds):

@@ -192,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
                "attention": [est.pose_cfg.use_pam, est.pose_cfg.use_cam, est.pose_cfg.use_gfem],
                "refiner_iterations": est.refiner_cfg.iterations if est.refiner_cfg else 0}
         if args.scene == "bin":
-            res = bench_whole(est, bin_frame(args.seed, args.blocks), args.repeats, args.warmup)
+            frame = baseline.shared_input(f"bin_{args.seed}_{args.blocks}.npz", lambda: bin_frame(args.seed, args.blocks))
+            res = bench_whole(est, frame, args.repeats, args.warmup)
         else:
             with one_blas_thread():  # as in the Estimator's own methods, for the plane's fit called here
                 res = bench(est, args.repeats, args.warmup)

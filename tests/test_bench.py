@@ -52,3 +52,24 @@ def test_baseline_checkout_imports_its_own_code() -> None:
     assert not tree.exists()
     listed = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True).stdout
     assert str(tree) not in listed
+
+
+def test_shared_inputs_are_made_once_per_comparison(tmp_path: Path, monkeypatch) -> None:
+    """Inside a comparison the first run's arrays are saved and later runs load them without making them."""
+    import numpy as np
+
+    baseline = _bench_module("baseline")
+    made = []
+
+    def make():
+        made.append(1)
+        return np.arange(6.0).reshape(2, 3), np.eye(3, dtype=np.float32)
+
+    monkeypatch.delenv(baseline.SHARED, raising=False)
+    baseline.shared_input("x.npz", make)
+    assert len(made) == 1 and not list(tmp_path.iterdir())  # outside a comparison: made, nothing saved
+    monkeypatch.setenv(baseline.SHARED, str(tmp_path))
+    first = baseline.shared_input("x.npz", make)
+    again = baseline.shared_input("x.npz", make)
+    assert len(made) == 2 and len(again) == 2
+    assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(first, again))
