@@ -41,7 +41,7 @@ class LabelRenderer:
         self.K = intrinsics(width, height, c.fovy_deg)
         gl.make_current()
         # two GL resource sets: multisampled (anti-aliased) for colour, single-sampled for labels and depth
-        self.con_rgb, self.con = self._context(m, msaa), self._context(m, 0)
+        self.con_rgb, self.con = gl.mjr_context(m, msaa), gl.mjr_context(m, 0)
         self.con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self.scene = mujoco.MjvScene(m, maxgeom=gl.scene_capacity(m))
         self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = render.shadows
@@ -60,16 +60,6 @@ class LabelRenderer:
         # near/far planes of MuJoCo's reversed-Z projection, for depth conversion
         ext = m.stat.extent
         self._znear, self._zfar = np.float32(m.vis.map.znear * ext), np.float32(m.vis.map.zfar * ext)
-
-    @staticmethod
-    def _context(m: mujoco.MjModel, samples: int) -> mujoco.MjrContext:
-        """An ``MjrContext`` for ``m`` rendering offscreen with ``samples`` multisamples per pixel."""
-        saved = m.vis.quality.offsamples
-        m.vis.quality.offsamples = samples
-        try:
-            return mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
-        finally:
-            m.vis.quality.offsamples = saved
 
     def close(self) -> None:
         """Free this model's GL resources (the process's GL context stays)."""

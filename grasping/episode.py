@@ -306,9 +306,12 @@ class Episode:
         of the episode (shown to ``on_capture``); with its RGB-D when the capture hook or the provider needs it, or
         ``images``."""
         c = c or self.wc.cfg.hand_camera
-        if camera not in self.cameras:
-            self.cameras[camera] = CameraRenderer(self.wc, camera, c, self.wc.cfg.render)
-        frame = self.cameras[camera].capture(images=images or _needs_images(self))
+        images = images or _needs_images(self)
+        if camera in self.cameras and images and not self.cameras[camera].antialias:
+            self.cameras.pop(camera).close()
+        if camera not in self.cameras:  # single-sampled while only masks are needed (the same masks, faster)
+            self.cameras[camera] = CameraRenderer(self.wc, camera, c, self.wc.cfg.render, antialias=images)
+        frame = self.cameras[camera].capture(images=images)
         if self.on_capture is not None:
             self.on_capture(self.wc, frame, im_id, camera, c)
         return frame

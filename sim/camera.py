@@ -71,14 +71,18 @@ class CameraRenderer:
     """Offscreen renderer for one camera of a workcell, in the process's GL context (``posegrasp.gl``); reuse it for
     many frames, ``close()`` frees the model's GL resources."""
 
-    def __init__(self, workcell, camera: str, c: CameraConfig, render: RenderConfig = RenderConfig()):
-        """The renderer of ``camera`` with its settings ``c`` (size, field of view, depth range) and ``render``."""
+    def __init__(self, workcell, camera: str, c: CameraConfig, render: RenderConfig = RenderConfig(),
+                 antialias: bool = True):
+        """The renderer of ``camera`` with its settings ``c`` (size, field of view, depth range) and ``render``;
+        ``antialias`` False: single-sampled, for masks alone (the same masks, made and read faster; colour edges
+        jagged)."""
+        self.antialias = antialias
         self.wc = workcell
         self.camera = camera
         self.cam_id = workcell.camera_ids[camera]
         self.near, self.far = c.near, c.far
         self.K = intrinsics(c.width, c.height, c.fovy_deg)
-        self.renderer = gl.Renderer(workcell.model, height=c.height, width=c.width)
+        self.renderer = gl.Renderer(workcell.model, height=c.height, width=c.width, samples=None if antialias else 0)
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = render.shadows
         self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = render.reflections
         self.option = mujoco.MjvOption()  # groups 0-2 visible: collision primitives (group 3) are hidden

@@ -141,7 +141,6 @@ def test_report_silhouettes_agree_with_pyrender(look_frame):
     assert not silhouette(scene.blocks[0].block, behind, frame.K, w, h).any()
 
 
-@pytest.mark.slow
 def mujoco_mask(cam: CameraRenderer) -> np.ndarray:
     """``cam``'s instance mask from its renderer's own segmentation: ``mujoco.Renderer``'s (object id, type) pairs."""
     cam.renderer.enable_segmentation_rendering()
@@ -151,9 +150,11 @@ def mujoco_mask(cam: CameraRenderer) -> np.ndarray:
     return cam.wc.geom_instance[np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)]
 
 
+@pytest.mark.slow
 def test_shared_gl_context_renders_like_an_own_one():
     """Renderers sharing the process's GL context, two drawing in turns, across scenes, give the images of a
-    ``mujoco.Renderer`` with a GL context of its own, and the masks its own segmentation maps to."""
+    ``mujoco.Renderer`` with a GL context of its own, and the masks its own segmentation maps to; a single-sampled
+    renderer (``antialias=False``) the same masks, and colour without anti-aliasing."""
     for seed in (1, 2):
         wc = make_scene(seed, 3).workcell
         assert wc.drive_arm(wc.look_q, tol=0.01)
@@ -174,7 +175,10 @@ def test_shared_gl_context_renders_like_an_own_one():
         for name, a, b in zip(("rgb", "depth", "mask"), want, got):
             np.testing.assert_array_equal(a, b, err_msg=name)
         assert (got[2] > 0).sum() > 1000 and overview.shape == (o.height, o.width, 3)
-        for x in (own, hand, over):
+        labels = CameraRenderer(wc, HAND_CAMERA, c, r, antialias=False)
+        np.testing.assert_array_equal(labels.mask(), got[2])
+        assert not np.array_equal(labels.rgb(), got[0])
+        for x in (own, hand, over, labels):
             x.close()
 
 
