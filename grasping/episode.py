@@ -306,8 +306,7 @@ class Episode:
         of the episode (shown to ``on_capture``); with its RGB-D when the capture hook or the provider needs it, or
         ``images``."""
         c = c or self.wc.cfg.hand_camera
-        images = images or _needs_images(self)
-        if camera in self.cameras and images and not self.cameras[camera].antialias:
+        if (images := images or _needs_images(self)) and camera in self.cameras and not self.cameras[camera].antialias:
             self.cameras.pop(camera).close()
         if camera not in self.cameras:  # single-sampled while only masks are needed (the same masks, faster)
             self.cameras[camera] = CameraRenderer(self.wc, camera, c, self.wc.cfg.render, antialias=images)
