@@ -1,4 +1,4 @@
-"""Writing generated frames into a BOP dataset, atomically (temporary file, then rename).
+"""Writing generated frames into a BOP dataset, a scene complete only once all its files are.
 
 Per scene: ``rgb/`` (jpg or png), ``depth/`` (uint16 png, value x depth_scale = mm), optional ``depth_clean/``,
 ``mask/`` (amodal) and ``mask_visib/`` (0/255 png per annotation), then ``scene_camera.json``,
@@ -7,10 +7,10 @@ is complete exactly when that file exists. The bytes of every file come from ``p
 
 A worker encodes a scene's files in memory (``SceneWriter``) and returns them; the process that owns the
 output folder writes them (``SceneWriter.write``), so workers never touch the dataset (no shared filesystem
-on a cluster, and a worker outliving a killed parent has nothing to write). Image files are renamed into
-place without a per-file fsync (a killed process still never leaves a partial file); one ``os.sync()``
-before the JSON files (fsynced) makes sure a scene marked complete has all its images on disk even after a
-power cut. Per-file fsyncs cost 10-40 ms a frame.
+on a cluster, and a worker outliving a killed parent has nothing to write). Image files go straight
+into the scene's folder, made afresh (a killed run's partial folder is incomplete and is written again), without
+temporary files or per-file fsyncs (10-40 ms a frame); one ``os.sync()`` before the JSON files (atomic and
+fsynced) makes sure a scene marked complete has all its images on disk even after a power cut.
 """
 
 from __future__ import annotations
@@ -156,10 +156,12 @@ class SceneWriter:
         (scene complete)."""
         if scene_dir.exists():
             shutil.rmtree(scene_dir)
-        for sub in ("rgb", "depth", "mask", "mask_visib"):
-            (scene_dir / sub).mkdir(parents=True)
-        for rel, data in self.files.items():
-            pio.write_bytes(scene_dir / rel, data, fsync=False)
+        for sub in {*map(Path, ("rgb", "depth", "mask", "mask_visib")), *(Path(rel).parent for rel in self.files)}:
+            (scene_dir / sub).mkdir(parents=True, exist_ok=True)
+        with pio.writing_into(scene_dir):  # a fresh folder, incomplete until its last file: no temporary files
+            for rel, data in self.files.items():
+                with open(scene_dir / rel, "xb") as f:
+                    f.write(data)
         os.sync()
         bop.write_scene_camera(scene_dir / "scene_camera.json", self.cams)
         bop.write_scene_gt(scene_dir / "scene_gt.json", self.gt)

@@ -141,6 +141,16 @@ def test_a_pool_keeps_its_workers_inside_a_with_block_and_ends_them_after():
     assert {pid for _, pid in PoolExecutor(2).imap(_pid_after_a_moment, range(2))}.isdisjoint(first)
 
 
+def test_pool_workers_render_on_their_share_of_the_cores_unless_told(monkeypatch):
+    from posegrasp.executor import RENDER_THREADS_ENV, PoolExecutor
+
+    monkeypatch.delenv(RENDER_THREADS_ENV, raising=False)
+    share = str(max(1, (os.cpu_count() or 1) // 2))
+    assert {v for _, v in PoolExecutor(2).imap(os.getenv, [RENDER_THREADS_ENV] * 2)} == {share}
+    monkeypatch.setenv(RENDER_THREADS_ENV, "3")
+    assert {v for _, v in PoolExecutor(1).imap(os.getenv, [RENDER_THREADS_ENV])} == {"3"}
+
+
 def _pid_after_a_moment(_: int) -> int:
     time.sleep(0.2)  # long enough for both workers to take tasks
     return os.getpid()
