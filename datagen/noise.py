@@ -86,11 +86,12 @@ def noisy_depth(depth: np.ndarray, K: np.ndarray, cfg: DepthNoiseConfig, rng: np
     # disparity quantisation
     fb = np.float32(fx * cfg.baseline)
     disp = np.round(fb / np.maximum(z, 1e-3) / cfg.disparity_step) * np.float32(cfg.disparity_step)
-    z = np.where(disp > 0, fb / np.maximum(disp, 1e-6), 0.0).astype(np.float32)
+    z = fb / np.maximum(disp, np.float32(1e-6))
+    z *= disp > 0  # (z is finite and >= 0 here: a product with a mask zeroes pixels faster than a masked store)
     # dropout: edges and projector shadow (with probability edge_dropout), plus random pixels
     u = rng.random((H, W), dtype=np.float32)
     lost = (drop & (u < cfg.edge_dropout)) | (u >= 1.0 - cfg.random_dropout) | ~valid
-    z[lost | (z < near) | (z > far)] = 0.0
+    z *= ~(lost | (z < near) | (z > far))
     return z
 
 

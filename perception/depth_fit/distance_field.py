@@ -66,13 +66,15 @@ class Fields:
     def __init__(self, fields: list[DistanceField]):
         shared, which = distinct(fields)  # objects of one model share its field
         self.values = torch.cat([fields[o].values for o in shared])
-        self.start = torch.tensor([0] + [len(fields[o].values) for o in shared[:-1]]).cumsum(0)[which]  # (O,)
+        self.start = torch.tensor([0] + [len(fields[o].values) for o in shared[:-1]]).cumsum(0)[which].int()  # (O,)
         self.lo = torch.tensor(np.stack([f.lo for f in fields]), dtype=torch.float32)  # (O, 3)
         self.cell = torch.tensor([f.cell for f in fields], dtype=torch.float32)  # (O,)
         self.margin = torch.tensor([f.margin for f in fields], dtype=torch.float32)  # (O,)
         self.top = torch.tensor(np.stack([f.shape - 1 for f in fields]), dtype=torch.float32)  # (O, 3): last node
-        self.strides = torch.tensor(np.stack([[f.shape[1] * f.shape[2], f.shape[2], 1] for f in fields]))  # (O, 3)
-        bits = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])  # (8, 3): a cell's nodes (x, y, z)
+        self.strides = torch.tensor(np.stack([[f.shape[1] * f.shape[2], f.shape[2], 1] for f in fields]),
+                                    dtype=torch.int32)  # (O, 3); int32 indices: see ``gather``
+        # (8, 3): a cell's nodes (x, y, z)
+        bits = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=torch.int32)
         self.corners = self.strides @ bits.T  # (O, 8): their offsets from its first node, x major
 
     def __call__(self, points: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
@@ -81,12 +83,18 @@ class Fields:
         outside = ((x < 0) | (x > top)).any(dim=1)  # (H, N)
         i = torch.minimum(x.floor(), top - 1).clamp_(min=0)  # (H, 3, N): the first node of the cell (or the nearest)
         f = (x - i).clamp_(0, 1)  # (H, 3, N): where in it
-        base = (i.long() * self.strides[obj, :, None]).sum(dim=1) + self.start[obj, None]  # (H, N)
-        v = torch.take(self.values, base[..., None] + self.corners[obj, None]).view(*base.shape, 2, 2, 2)
+        base = (i.int() * self.strides[obj, :, None]).sum(dim=1, dtype=torch.int32) + self.start[obj, None]  # (H, N)
+        v = gather(self.values, base[..., None] + self.corners[obj, None]).view(*base.shape, 2, 2, 2)
         v = torch.lerp(v[..., 0], v[..., 1], f[:, 2, :, None, None])  # (H, N, 2, 2): along z, then y, then x
         v = torch.lerp(v[..., 0], v[..., 1], f[:, 1, :, None])
         d = torch.lerp(v[..., 0], v[..., 1], f[:, 0]).abs()  # (H, N)
         return torch.where(outside, self.margin[obj, None].expand_as(d), d)
+
+
+def gather(values: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``values`` (1-D) at int32 indices ``idx`` of any shape, shaped as ``idx``: ``torch.take``, ~2x faster (and
+    float32 -> int32 casts ~5x faster than to int64)."""
+    return values.index_select(0, idx.reshape(-1)).view(idx.shape)
 
 
 def distinct(items: list) -> tuple[list[int], list[int]]:

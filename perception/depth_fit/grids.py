@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from posegrasp.perception.depth_fit.distance_field import DistanceField, Fields, distinct
+from posegrasp.perception.depth_fit.distance_field import DistanceField, Fields, distinct, gather
 
 
 class NearestGrid:
@@ -53,8 +53,9 @@ class Grids:
         #: The first object of each distinct grid (objects of one model share one): its model's points are the rows.
         self.first, which = distinct(grids)
         shared = [grids[o] for o in self.first]
-        self.index = torch.cat([g.index + u * stride for u, g in enumerate(shared)])
-        self.start = torch.tensor([0] + [len(g.index) for g in shared[:-1]]).cumsum(0)[which]  # (O,)
+        # int32 rows and indices (``gather``)
+        self.index = torch.cat([g.index + u * stride for u, g in enumerate(shared)]).int()
+        self.start = torch.tensor([0] + [len(g.index) for g in shared[:-1]]).cumsum(0)[which].int()  # (O,)
         self.lo = torch.tensor(np.stack([g.lo for g in grids]), dtype=torch.float32)  # (O, 3)
         self.cell = torch.tensor([g.cell for g in grids], dtype=torch.float32)  # (O,)
         self.max = torch.tensor(np.stack([g.shape - 1 for g in grids]), dtype=torch.float32)  # (O, 3)
@@ -66,7 +67,7 @@ class Grids:
         return self.local(points.transpose(1, 2), obj)
 
     def local(self, points: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
-        """Rows (H, N) of the nearest model points of points (H, 3, N) in their objects' frames."""
+        """Rows (H, N) int32 of the nearest model points of points (H, 3, N) in their objects' frames."""
         return self._lookup((points - self.lo[obj, :, None]) / self.cell[obj, None, None], obj)
 
     def posed(self, p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
@@ -80,7 +81,7 @@ class Grids:
         """Rows (H, N) for cell coordinates (H, 3, N)."""
         ijk = torch.minimum(cells.round_().clamp_(min=0), self.max[obj, :, None])  # (H, 3, N), whole numbers
         flat = torch.bmm(self.strides[obj].transpose(1, 2), ijk)[:, 0]  # (H, N): strides . ijk, exact in float32
-        return torch.take(self.index, flat.long() + self.start[obj, None])
+        return gather(self.index, flat.int() + self.start[obj, None])
 
     def exact(self, points: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
         """The rows (H, N) in each object's model of the exact nearest model points of points (H, N, 3), row h in the

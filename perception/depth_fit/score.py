@@ -23,6 +23,7 @@ import torch
 
 from posegrasp.perception.depth_fit.config import ScoreConfig
 from posegrasp.perception.depth_fit.context import FitContext
+from posegrasp.perception.depth_fit.distance_field import gather
 from posegrasp.perception.depth_fit.grids import columns
 
 
@@ -44,11 +45,11 @@ def score(frame: FitContext, cfg: ScoreConfig, R: torch.Tensor, t: torch.Tensor,
     fit = (dist.clamp(max=cfg.truncation) * wo).sum(dim=1) / wo.sum(dim=1)
     K, depth, plane = frame.K, frame.depth, frame.plane
     z = mc[:, 2].clamp(min=1e-6)
-    u = torch.round(mc[:, 0] * float(K[0, 0]) / z + float(K[0, 2])).long()
-    v = torch.round(mc[:, 1] * float(K[1, 1]) / z + float(K[1, 2])).long()
-    h, w_img = depth.shape
+    u = torch.round(mc[:, 0] * float(K[0, 0]) / z + float(K[0, 2]))  # (H, k) whole pixel numbers, float32
+    v = torch.round(mc[:, 1] * float(K[1, 1]) / z + float(K[1, 2]))
+    h, w_img = depth.shape  # (pixel indices below 2^24: exact in float32)
     inside = ok & (u >= 0) & (u < w_img) & (v >= 0) & (v < h)
-    dz = torch.take(depth, v.clamp(0, h - 1) * w_img + u.clamp(0, w_img - 1))
+    dz = gather(depth.reshape(-1), (v.clamp_(0, h - 1).mul_(w_img) + u.clamp_(0, w_img - 1)).int())
     viol = (inside & (dz > 0) & (z < dz - cfg.violation_margin)).sum(dim=1) / inside.sum(dim=1).clamp(min=1)
     total = fit
     if plane is not None:
