@@ -120,7 +120,8 @@ def same_place(points: np.ndarray, T_a: np.ndarray, surface: ModelSurface, T_b: 
     """Whether a model's points (M, 3) (object frame) placed at T_a (4x4, camera frame) lie, in the median, within
     ``tol`` (m) of the block's ``surface`` placed at T_b: the two poses put one block in one place."""
     placed = points @ T_a[:3, :3].T + T_a[:3, 3]  # camera frame
-    dist, _ = surface.tree.query((placed - T_b[:3, 3]) @ T_b[:3, :3])
+    # distances of tol or more come back as inf: the median is below tol exactly when it was, and far points cost less
+    dist, _ = surface.tree.query((placed - T_b[:3, 3]) @ T_b[:3, :3], distance_upper_bound=tol)
     return float(np.median(dist)) < tol
 
 
