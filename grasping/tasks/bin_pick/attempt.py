@@ -29,7 +29,7 @@ from posegrasp.grasping.tasks.bin_pick.record import Attempt, BinPickRecord
 from posegrasp.grasping.tasks.bin_pick.scene import Area, area_of, outbox_of, tray_of
 from posegrasp.grasping.tasks.bin_pick.shake import Shake, shake_direction
 from posegrasp.grasping.tasks.bin_pick.tray import TrayPlace
-from posegrasp.sim.camera import Frame
+from posegrasp.sim.camera import Frame, instances
 from posegrasp.sim.clutter import park
 from posegrasp.sim.shaker import Shaker
 from posegrasp.sim.workcell import HAND_CAMERA, Workcell, wrap_angle
@@ -50,14 +50,12 @@ def visible_fraction(ep: Episode, frame: Frame, k: int) -> float | None:
     option.geomgroup[5] = 1
     m.geom_group[geoms] = 5
     try:
-        r.disable_depth_rendering()
-        r.enable_segmentation_rendering()
         r.update_scene(ep.wc.data, camera=cam.cam_id, scene_option=option)
-        seg = r.render()
-        r.disable_segmentation_rendering()
+        seg = r.read_segments()
     finally:
         m.geom_group[geoms] = saved
-    alone = int(np.count_nonzero(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)))
+    every_geom = np.ones(len(ep.wc.geom_instance), np.uint16)  # any geom's pixels count (the part's alone are drawn)
+    alone = int(np.count_nonzero(instances(r.scene, seg, every_geom)))
     return None if alone == 0 else min(1.0, int(np.count_nonzero(frame.mask == k)) / alone)
 
 
