@@ -1,5 +1,5 @@
-"""How the trained nets run on a CPU at inference: BatchNorms folded into convolutions, channels-last weights
-(``for_inference``), numpy's BLAS on one thread (``one_blas_thread``, ``with_one_blas_thread``), and torch on a
+"""How the trained nets run on a CPU at inference: BatchNorms folded into convolutions, subnormal weights zeroed,
+channels-last weights (``for_inference``), numpy's BLAS on one thread (``one_blas_thread``, ``with_one_blas_thread``), and torch on a
 given number of threads (``torch_threads``)."""
 
 from __future__ import annotations
@@ -46,12 +46,30 @@ def with_one_blas_thread(method: Callable) -> Callable:
 
 
 def for_inference(model: torch.nn.Module) -> torch.nn.Module:
-    """``model`` itself, in eval mode, its BatchNorms folded into their convolutions (``fold_batch_norms``) and its 2D
-    convolutions' weights channels-last: the outputs stay the same (to float rounding; inputs may stay NCHW) and come
-    ~35 % faster on a CPU (oneDNN's native layout), a classifier's on a frame's 19 crops another ~35 % faster without
-    the BatchNorms. For inference only: the model no longer trains or loads a checkpoint as it did."""
+    """``model`` itself, in eval mode, its BatchNorms folded into their convolutions (``fold_batch_norms``), its
+    subnormal weights zeroed (``flush_subnormals``) and its 2D convolutions' weights channels-last: the outputs stay the
+    same (to float rounding; inputs may stay NCHW) and come ~35 % faster on a CPU (oneDNN's native layout), a
+    classifier's on a frame's 19 crops another ~35 % faster without the BatchNorms. For inference only: the model no
+    longer trains or loads a checkpoint as it did."""
     fold_batch_norms(model.eval())
+    flush_subnormals(model)
     return model.to(memory_format=torch.channels_last)
+
+
+def flush_subnormals(model: torch.nn.Module) -> int:
+    """Zero every subnormal value (0 < |w| < ``torch.finfo(dtype).tiny``, 1.2e-38 in float32) of ``model``'s floating
+    parameters and buffers; returns how many. Training leaves some (weights of a dead channel decay towards 0; a folded
+    BatchNorm of tiny gain scales its convolution's weights there). A product with one is below float32's range, so it
+    adds nothing to a sum of normal terms, but x86 CPUs multiply subnormals in microcode, ~100x slower: 8,500 of them
+    in a seg net's 1/16-resolution convolutions made its forward pass 1.7x slower."""
+    n = 0
+    with torch.no_grad():
+        for t in (*model.parameters(), *model.buffers()):
+            if t.is_floating_point():
+                tiny = (t != 0) & (t.abs() < torch.finfo(t.dtype).tiny)
+                n += int(tiny.sum())
+                t.masked_fill_(tiny, 0.0)
+    return n
 
 
 def fold_batch_norms(model: torch.nn.Module) -> None:

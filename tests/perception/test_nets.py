@@ -111,8 +111,10 @@ def _trained_batch_norms(net: torch.nn.Module) -> torch.nn.Module:
 
 
 def test_inference_form_keeps_the_outputs():
-    """``for_inference``: BatchNorms folded into the convolutions, weights channels-last; the same outputs."""
+    """``for_inference``: BatchNorms folded into the convolutions, subnormal weights zeroed, weights channels-last; the
+    same outputs."""
     seg = _trained_batch_norms(build_seg_net(SegNetConfig(num_classes=3, width=0.125, input_size=(64, 96))))
+    seg.encoder.bottleneck[0][0].weight.data[0] = 1e-39  # a dead channel's weights, as training leaves them
     cls = _trained_batch_norms(build_classifier(ClassifierConfig(obj_ids=[1, 2, 3], widths=(8, 16))))
     pcfg = PoseNetConfig(obj_ids=[1, 2], symmetric=[False, True], num_points=64, crop_size=32, backbone_width=8)
     pose = _trained_batch_norms(build_pose_net(pcfg))
@@ -128,4 +130,6 @@ def test_inference_form_keeps_the_outputs():
     assert w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous() and not seg_f.training
     for net in (seg_f, cls_f, pose_f):
         assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
+        assert not any(((p != 0) & (p.abs() < torch.finfo(p.dtype).tiny)).any() for p in net.parameters())
+    assert not seg_f.encoder.bottleneck[0][0].weight[0].any()
     torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-4)
