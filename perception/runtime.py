@@ -1,6 +1,6 @@
 """How the trained nets run on a CPU at inference: BatchNorms folded into convolutions, subnormal weights zeroed,
-channels-last weights (``for_inference``), numpy's BLAS on one thread (``one_blas_thread``, ``with_one_blas_thread``), and torch on a
-given number of threads (``torch_threads``)."""
+channels-last weights (``for_inference``), numpy's BLAS on one thread (``one_blas_thread``,
+``with_one_blas_thread``), and torch on a given number of threads (``torch_threads``)."""
 
 from __future__ import annotations
 

@@ -275,8 +275,8 @@ def loop(t: StageTraining, log: MetricsLog, progress: bool) -> dict[str, float]:
     """Run the training ``t``'s steps from its state's step to ``cfg.steps`` - 1 (``t.step``, then ``t.after_step``),
     log every ``cfg.log_every`` (and after evaluations: keys of ``after_step``'s dict starting with ``val_``),
     checkpoint (``t.save``) every ``cfg.checkpoint_every`` and at the end. Every ``FLUSH_EVERY`` steps, from step 0, the
-    net's subnormal weights are zeroed first (``flush_subnormals``): the shipped bin seg net held 117k, and a step of
-    fine-tuning it ran 1.8x slower with them.
+    net's subnormal weights are zeroed first (``flush_subnormals``): the shipped bin seg net held 117k, and fine-tuning
+    it ran 1.5x slower with them.
 
     Ctrl-C lets the current step finish, checkpoints it and raises ``KeyboardInterrupt`` (a second Ctrl-C stops at
     once, keeping the last checkpoint). A checkpoint holds the values not yet logged (``state["pending"]``), so a
