@@ -58,10 +58,11 @@ def for_inference(model: torch.nn.Module) -> torch.nn.Module:
 
 def flush_subnormals(model: torch.nn.Module) -> None:
     """Zero every subnormal value (0 < |w| < ``torch.finfo(dtype).tiny``, 1.2e-38 in float32) of ``model``'s floating
-    parameters and buffers (at inference, and every few steps in training). Training leaves some (weights of a dead channel decay towards 0; a folded
-    BatchNorm of tiny gain scales its convolution's weights there). A product with one is below float32's range, so it
-    adds nothing to a sum of normal terms, but x86 CPUs multiply subnormals in microcode, ~100x slower: 8,500 of them
-    in a seg net's 1/16-resolution convolutions made its forward pass 1.7x slower."""
+    parameters and buffers (at inference, and every few steps in training). Training leaves some (weights of a dead
+    channel decay towards 0; a folded BatchNorm of tiny gain scales its convolution's weights there). A product with
+    one is below float32's range, so it adds nothing to a sum of normal terms, but x86 CPUs multiply subnormals in
+    microcode, ~100x slower: 8,500 of them in a seg net's 1/16-resolution convolutions made its forward pass 1.7x
+    slower."""
     with torch.no_grad():
         for t in (*model.parameters(), *model.buffers()):
             if t.is_floating_point():
