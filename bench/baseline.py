@@ -86,7 +86,7 @@ def own_argv(argv: Sequence[str]) -> list[str]:
     return out
 
 
-def _git(*args: str) -> str:
+def git(*args: str) -> str:
     return subprocess.run(["git", "-C", str(ROOT), *args], check=True, capture_output=True, text=True).stdout.strip()
 
 
@@ -94,7 +94,7 @@ def _git(*args: str) -> str:
 def checkout(ref: str) -> Iterator[Path]:
     """A detached worktree of ``ref`` whose ``posegrasp/`` links its parts' folders, removed on exit."""
     tmp = Path(tempfile.mkdtemp(prefix="posegrasp_baseline_")) / "tree"
-    _git("worktree", "add", "--detach", "--quiet", str(tmp), ref)
+    git("worktree", "add", "--detach", "--quiet", str(tmp), ref)
     try:
         dirs = tomllib.loads((tmp / "pyproject.toml").read_text())["tool"]["setuptools"].get("package-dir", {})
         for name, folder in dirs.items():
@@ -118,7 +118,7 @@ def _imported_from(env: dict[str, str]) -> dict[str, str]:
     return json.loads(r.stdout)
 
 
-def _check_side(label: str, tree: Path, env: dict[str, str]) -> None:
+def check_side(label: str, tree: Path, env: dict[str, str]) -> None:
     """Exit unless every probe module of ``env``'s process lies in ``tree``; print where they come from."""
     files = _imported_from(env)
     wrong = {m: f for m, f in files.items() if not Path(f).is_relative_to(tree.resolve())}
@@ -189,11 +189,11 @@ def compare(script: str, argv: Sequence[str], ref: str, key: str, higher_is_bett
     average, then both medians and their ratios."""
     script, argv = Path(script).resolve(), own_argv(argv)
     keys = [key] + ([cpu_key] if cpu_key else [])
-    sha = _git("rev-parse", "--short", f"{ref}^{{commit}}")
+    sha = git("rev-parse", "--short", f"{ref}^{{commit}}")
     with checkout(ref) as tree, tempfile.TemporaryDirectory(prefix="posegrasp_bench_inputs_") as shared:
         sides = _Sides(script, ref, tree, which, Path(shared))
-        _check_side("current", ROOT, sides.env["current"])
-        _check_side(f"{ref} ({sha})", tree, sides.env["baseline"])
+        check_side("current", ROOT, sides.env["current"])
+        check_side(f"{ref} ({sha})", tree, sides.env["baseline"])
         for r in range(rounds):
             for side in (("current", "baseline") if r % 2 == 0 else ("baseline", "current")):
                 sides.run(f"round {r + 1}", side, argv, keys)

@@ -1,18 +1,21 @@
 """Where the time goes: one job profiled with cProfile, as a ``.prof`` file and a table of its top costs.
 
-    MUJOCO_GL=egl .venv/bin/python bench/profile.py JOB [--size N] [--out DIR] [--top 25] [--py-spy]
+    MUJOCO_GL=egl .venv/bin/python bench/profile.py JOB [--size N] [--out DIR] [--top 25] [--py-spy] [--baseline REF]
 
 JOB, run in this one process (no workers, so the profile sees all of it):
   datagen     ``generate_dataset``: 1 scene of N views (default 25), 640x480, 5 blocks, every file written;
   trials      ``run_trials``: N oracle pick-place episodes (default 4, seed 1000), summary and report included;
-  perception  ``bench/perception.py``'s stages on its frame, random-weight nets, N frames (default 5) and a warm-up;
+  perception  ``bench/perception.py``'s stages on its frame, the shipped model, N frames (default 5) and a warm-up;
   bin-pick    ``run_trials``: N oracle bin-pick episodes in the tote (default 1, seed 0).
-The job's main modules are imported, and the perception job's nets loaded and frame rendered, before the profile
+The job's main modules are imported, and the perception job's model loaded and frame rendered, before the profile
 starts. Writes DIR/JOB.prof (``python -m pstats`` or
 snakeviz reads it) and DIR/JOB.txt: the job's wall and CPU seconds,
 the 1-min load average, and the top rows by cumulative time and by own time (time in the function itself, C calls
 such as MuJoCo's rendering included); prints the latter. ``--py-spy`` (when py-spy is installed) also samples an
 unprofiled run of the job into DIR/JOB.svg, a flame graph. DIR defaults to /tmp/posegrasp_profile.
+``--baseline REF`` first profiles the same job on git ref REF's code (a worktree, as ``bench/baseline.py`` makes
+it; this file runs there, the perception job with REF's own ``bench/perception.py``) into DIR/JOB@SHA.prof and
+.txt: the costs before and after, side by side.
 """
 
 from __future__ import annotations
@@ -43,7 +46,6 @@ import time  # noqa: E402
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-ROOT = Path(__file__).resolve().parents[1]
 SIZES = {"datagen": 25, "trials": 4, "perception": 5, "bin-pick": 1}
 
 
@@ -59,26 +61,31 @@ def _trials(n: int, tmp: Path, task: str = "pick-place", seed: int = 1000) -> Ca
 
     from posegrasp.grasping.cli import with_scene
     from posegrasp.grasping.config import TrialConfig
-    from posegrasp.grasping.trials import Display, run_trials
+    from posegrasp.grasping import trials
 
     cfg = with_scene(dataclasses.replace(TrialConfig(), task=task), None, None)
-    return lambda: run_trials(tmp / "run", n, seed=seed, perception="oracle", workers=1, cfg=cfg,
-                              display=Display(Console(stderr=True, quiet=True)))
+    quiet = Console(stderr=True, quiet=True)
+    # older code (a --baseline ref) takes the console and the progress flag as arguments of their own
+    shown = {"display": trials.Display(quiet)} if hasattr(trials, "Display") else {"console": quiet, "progress": False}
+    return lambda: trials.run_trials(tmp / "run", n, seed=seed, perception="oracle", workers=1, cfg=cfg, **shown)
 
 
 def _perception(n: int, tmp: Path) -> Callable[[], object]:
-    """Set-up (nets saved and loaded, the frame rendered) outside the profile; one warm-up frame inside."""
+    """Set-up (the shipped model loaded, the frame rendered) outside the profile; one warm-up frame inside."""
     import torch
 
+    import posegrasp
     from posegrasp import ASSETS
     from posegrasp.perception.estimator import Estimator, EstimatorConfig
     from posegrasp.perception.runtime import one_blas_thread
 
-    spec = importlib.util.spec_from_file_location("bench_perception", Path(__file__).with_name("perception.py"))
+    # the bench script of the code profiled (a --baseline ref's own)
+    script = Path(posegrasp.__file__).resolve().parents[1] / "bench" / "perception.py"
+    spec = importlib.util.spec_from_file_location("bench_perception", script)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     torch.set_num_threads(2)
-    est = Estimator(bench.make_default_run(tmp), EstimatorConfig(models=ASSETS / "blocks"))
+    est = Estimator(ASSETS / "perception" / "model", EstimatorConfig(models=ASSETS / "blocks"))
     frame = bench.sim_frame()
     bench.sim_frame = lambda: frame
 
@@ -100,7 +107,10 @@ IMPORTS = {"datagen": ("posegrasp.datagen.generate", "trimesh"),
 
 def _where(file: str) -> str:
     """``file`` shortened: relative to the repository or to site-packages, built-ins as ``~``."""
-    for base in (Path(sysconfig.get_paths()["purelib"]), ROOT, Path(sysconfig.get_paths()["stdlib"])):
+    import posegrasp
+
+    tree = Path(posegrasp.__file__).resolve().parents[1]  # the checkout profiled (a --baseline ref's worktree)
+    for base in (Path(sysconfig.get_paths()["purelib"]), tree, Path(sysconfig.get_paths()["stdlib"])):
         try:
             return str(Path(file).resolve().relative_to(base.resolve()))
         except ValueError:
@@ -134,12 +144,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "posegrasp_profile")
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--py-spy", action="store_true", help="also a py-spy flame graph DIR/JOB.svg")
+    ap.add_argument("--baseline", metavar="REF", help="first profile the job on git ref REF's code")
     ap.add_argument("--plain", action="store_true", help=argparse.SUPPRESS)  # the job alone (under py-spy)
+    ap.add_argument("--stem", help=argparse.SUPPRESS)  # the files' name (default: JOB)
     args = ap.parse_args(argv)
     n = args.size or SIZES[args.job]
     if args.py_spy and not shutil.which("py-spy"):
         ap.error("--py-spy: py-spy is not installed (pip install py-spy)")
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.baseline:
+        _profile_ref(args.baseline, [args.job, "--size", str(n), "--out", str(args.out), "--top", str(args.top)])
     with tempfile.TemporaryDirectory() as tmp:
         for m in IMPORTS[args.job]:
             importlib.import_module(m)
@@ -152,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
         load, w0, c0, prof = os.getloadavg()[0], time.perf_counter(), _cpu(), cProfile.Profile()
         prof.runcall(work)
         wall, cpu = time.perf_counter() - w0, _cpu() - c0
-    stem = args.out / args.job
+    stem = args.out / (args.stem or args.job)
     prof.dump_stats(stem.with_suffix(".prof"))
     stats = pstats.Stats(prof, stream=io.StringIO())
     head = (f"bench/profile.py {args.job} --size {n}: {wall:.1f} s wall, {cpu:.1f} s CPU (this process), 1-min load "
@@ -165,6 +179,19 @@ def main(argv: list[str] | None = None) -> int:
                         __file__, args.job, "--size", str(n), "--plain"], check=True)
         print(f"wrote {stem}.svg")
     return 0
+
+
+def _profile_ref(ref: str, argv: list[str]) -> None:
+    """Run this file with ``argv`` on git ref ``ref``'s code, its files named JOB@SHA."""
+    import baseline
+
+    sha = baseline.git("rev-parse", "--short", f"{ref}^{{commit}}")
+    with baseline.checkout(ref) as tree:
+        env = {**os.environ, "PYTHONPATH": str(tree)}
+        baseline.check_side(f"{ref} ({sha})", tree, env)
+        print(f"== {ref} ({sha})", flush=True)
+        subprocess.run([sys.executable, __file__, *argv, "--stem", f"{argv[0]}@{sha}"], env=env, check=True)
+    print("== current", flush=True)
 
 
 if __name__ == "__main__":

@@ -23,16 +23,23 @@ def _bench_module(name: str):
 
 
 @pytest.mark.slow
-def test_profile_writes_a_profile_and_its_table(tmp_path: Path) -> None:
+def test_profile_writes_a_profile_and_its_table_and_the_baselines(tmp_path: Path) -> None:
+    """The job's profile and table, and with ``--baseline REF`` REF's beside them, made from REF's worktree."""
     env = {**os.environ, "MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl"}
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "profile.py"), "datagen", "--size", "1", "--top", "5",
-                        "--out", str(tmp_path)], env=env, capture_output=True, text=True, timeout=300)
+                        "--out", str(tmp_path), "--baseline", "HEAD"], env=env, capture_output=True, text=True,
+                       timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
-    stats = pstats.Stats(str(tmp_path / "datagen.prof"))
-    assert any(fn == "generate_scene" for _, _, fn in stats.stats), "the job's work is not in the profile"
-    text = (tmp_path / "datagen.txt").read_text()
-    assert "function (by cumulative)" in text and "function (by tottime)" in text
-    assert "generate_scene" in text  # the job's own frames, not the harness's
+    sha = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                         text=True).stdout.strip()
+    for stem, where in (("datagen", ROOT), (f"datagen@{sha}", Path("/posegrasp_baseline_"))):
+        stats = pstats.Stats(str(tmp_path / f"{stem}.prof"))
+        files = {file for file, _, fn in stats.stats if fn == "generate_scene"}
+        assert files, f"{stem}: the job's work is not in the profile"
+        assert all(str(where) in str(Path(f).resolve()) for f in files), (stem, files)
+        text = (tmp_path / f"{stem}.txt").read_text()
+        assert "function (by cumulative)" in text and "function (by tottime)" in text
+        assert "generate_scene" in text  # the job's own frames, not the harness's
 
 
 def test_baseline_options_are_not_passed_on() -> None:
