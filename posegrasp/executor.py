@@ -95,13 +95,11 @@ def _exit_without_teardown() -> None:
 
 
 class PoolExecutor:
-    """A local pool of ``workers`` processes (spawned, so every worker owns its own GL context) that die with
-    this process.
-
-    Spawned, not forked: importing dm_control initialises an EGL display, and a display initialised before a fork
-    cannot render in the child on GPU drivers. Forking would start each worker about 1 s sooner (8 scenes of
-    ``bench/datagen.py`` 14 % faster on Mesa); a forkserver preloading the GL-free libraries saves nothing on 2 cores,
-    where the workers already import in parallel."""
+    """A local pool of ``workers`` processes that die with this process, spawned so that every worker owns its own GL
+    context: importing dm_control initialises an EGL display, and one initialised before a fork cannot render in the
+    child on GPU drivers. Forking would start each worker about 1 s sooner (8 scenes of ``bench/datagen.py`` 14 %
+    faster on Mesa); a forkserver preloading the GL-free libraries saves nothing on 2 cores, where the workers already
+    import in parallel."""
 
     def __init__(self, workers: int):
         if workers < 1:
