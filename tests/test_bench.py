@@ -32,11 +32,12 @@ def test_profile_writes_a_profile_and_its_table_and_the_baselines(tmp_path: Path
     assert r.returncode == 0, r.stderr[-2000:]
     sha = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                          text=True).stdout.strip()
-    for stem, where in (("datagen", ROOT), (f"datagen@{sha}", Path("/posegrasp_baseline_"))):
+    # the current profile's code from this checkout; REF's from its worktree (``baseline.checkout``'s temporary folder)
+    for stem, where in (("datagen", str(ROOT)), (f"datagen@{sha}", "/posegrasp_baseline_")):
         stats = pstats.Stats(str(tmp_path / f"{stem}.prof"))
         files = {file for file, _, fn in stats.stats if fn == "generate_scene"}
         assert files, f"{stem}: the job's work is not in the profile"
-        assert all(str(where) in str(Path(f).resolve()) for f in files), (stem, files)
+        assert all(where in str(Path(f).resolve()) for f in files), (stem, files)
         text = (tmp_path / f"{stem}.txt").read_text()
         assert "function (by cumulative)" in text and "function (by tottime)" in text
         assert "generate_scene" in text  # the job's own frames, not the harness's
