@@ -176,6 +176,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="table: 5 blocks, true masks after segmentation; bin: whole calls on a tote of --blocks parts")
     ap.add_argument("--blocks", type=int, default=30, help="parts in the tote (--scene bin)")
     ap.add_argument("--seed", type=int, default=0, help="the tote's scene seed (--scene bin)")
+    ap.add_argument("--no-int8", action="store_true", help="the seg net and classifiers in float, also where the run "
+                    "has int8 ranges (int8.json)")
     baseline.add_arguments(ap)
     args = ap.parse_args(argv)
     if args.baseline:
@@ -185,12 +187,14 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         bin_model = ASSETS / "perception" / "model_bin"
         weights = args.weights or (bin_model if args.scene == "bin" else make_default_run(Path(tmp)))
-        est = Estimator(weights, EstimatorConfig(models=ASSETS / "blocks"))  # the catalogue's meshes: the depth fit
+        float_only = {"int8": False} if args.no_int8 else {}  # (a baseline's code may predate the setting)
+        est = Estimator(weights, EstimatorConfig(models=ASSETS / "blocks", **float_only))  # meshes: the depth fit
         cfg = {"seg_input_size": list(est.seg_cfg.input_size), "seg_width": est.seg_cfg.width,
                "num_points": est.pose_points, "crop_size": est.pose_crop,
                "backbone_width": est.pose_cfg.backbone_width,
                "attention": [est.pose_cfg.use_pam, est.pose_cfg.use_cam, est.pose_cfg.use_gfem],
-               "refiner_iterations": est.refiner_cfg.iterations if est.refiner_cfg else 0}
+               "refiner_iterations": est.refiner_cfg.iterations if est.refiner_cfg else 0,
+               "int8": getattr(est, "int8_nets", [])}
         if args.scene == "bin":
             frame = baseline.shared_input(f"bin_{args.seed}_{args.blocks}.npz", lambda: bin_frame(args.seed, args.blocks))
             res = bench_whole(est, frame, args.repeats, args.warmup)

@@ -34,6 +34,7 @@ from posegrasp import inputs
 from posegrasp import io as pio
 from posegrasp.config import from_dict
 from posegrasp.errors import UserError, WeightsError
+from posegrasp.perception import int8
 from posegrasp.perception.classifier import ClassifierConfig, build_classifier
 from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
 from posegrasp.perception.refiner import RefinerConfig, build_refiner
@@ -317,6 +318,8 @@ def _perturb_into(src: Path, dst: Path, rel_sigma: float, stages: tuple[str, ...
         state = {**read_state(ckpt), "perturbed": {"from": str(src), "rel_sigma": rel_sigma, "seed": seed}}
         train_cfg = cfg["train"]
         save(dst / stage, stage, model, model_cfg, None, state)
+        if stage not in stages:  # the same weights: the same int8 net
+            int8.copy_ranges(ckpt, dst / stage)
         if train_cfg is not None:  # keep the training settings the weights came from
             written = {**read_config(dst / stage), "stage": FILE_TAGS.get(stage, stage), "train": train_cfg}
             pio.write_json(dst / stage / "config.json", written)

@@ -1,4 +1,5 @@
-"""``posegrasp train seg|pose|refiner|cls``, ``posegrasp eval`` and ``posegrasp perturb`` subcommands.
+"""``posegrasp train seg|pose|refiner|cls``, ``posegrasp eval``, ``posegrasp quantize`` and ``posegrasp perturb``
+subcommands.
 
 A ``--config`` TOML file may hold sections ``[seg]``, ``[pose]``, ``[refiner]``, ``[cls]`` and ``[eval]`` (with
 sub-tables such as ``[pose.model]`` and ``[pose.data]``) matching the settings classes of
@@ -70,7 +71,7 @@ SETTINGS = (
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``train``, ``eval`` and ``perturb`` subcommands."""
+    """Add the ``train``, ``eval``, ``quantize`` and ``perturb`` subcommands."""
     p = subparsers.add_parser("train", help="train the segmentation net, the pose net, the refiner or the classifier",
                               description="Train one stage of the perception network on a BOP dataset.")
     p.add_argument("stage", choices=TRAIN_STAGES, type=renamed,
@@ -106,6 +107,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--no-split", action="store_true", help="ablation: merged segments not split by the fitted models")
     e.add_argument("--no-type-check", action="store_true",
                    help="ablation: a part's type is the classifier's alone, not checked by fits of its likely types")
+    e.add_argument("--no-int8", action="store_true",
+                   help="the seg net and classifiers in float, also where the run has int8 ranges")
     e.add_argument("--max-images", type=positive_int("--max-images"), help="evaluate at most this many images")
     e.add_argument("--threads", type=positive_int("--threads"), help="torch CPU threads (default 2; the grasp "
                    "trials' estimator runs 1, and its scores can differ in the last digits with more)")
@@ -114,6 +117,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "provider; default 0)")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(run=run_eval)
+
+    q = subparsers.add_parser("quantize",
+                              help="measure a run's int8 ranges: its seg net and classifiers then run in int8",
+                              description="Runs the seg net and the classifiers (on the true segments) on a "
+                                          "dataset's images and writes each net's activation ranges (int8.json) beside "
+                                          "its weights; eval and trials then run those nets in int8 (the seg net in "
+                                          "about 0.6 of its float time; eval --no-int8: float).")
+    q.add_argument("--weights", required=True, type=in_dir("--weights"),
+                   help="run directory with seg/, pose/ [, cls/]: int8.json is written (or replaced) in seg/ and cls*/")
+    q.add_argument("--data", required=True, type=in_dir("--data"),
+                   help="BOP dataset root with images like the run's inputs (its training data will do)")
+    q.add_argument("--split", default="train_pbr", help="split to read (default: train_pbr)")
+    q.add_argument("--images", type=positive_int("--images"), default=32,
+                   help="images, spread evenly over the split (default 32)")
+    q.add_argument("--force", action="store_true", help="replace an int8.json that 'posegrasp quantize' did not write")
+    q.add_argument("--no-progress", action="store_true", help="no progress bar")
+    q.set_defaults(run=run_quantize)
 
     d = subparsers.add_parser("perturb", help="write a deliberately degraded copy of a run (seeded weight noise)",
                               description="For sensitivity studies: run trials with model:OUT and compare.")
@@ -164,7 +184,7 @@ def eval_settings(args: argparse.Namespace) -> EvalConfig:
                     classify=False if args.no_cls else None, depth_fit=False if args.no_depth_fit else None,
                     plane=False if args.no_plane else None,
                     guided=False if args.no_guided else None, split_merged=False if args.no_split else None,
-                    type_check=False if args.no_type_check else None)
+                    type_check=False if args.no_type_check else None, int8=False if args.no_int8 else None)
 
 
 def print_eval_summary(out: Path, report: dict) -> None:
@@ -187,6 +207,17 @@ def run_eval(args: argparse.Namespace) -> int:
     require_valid(args.data, cfg.split, cfg.max_images or None, scoring=True, progress=not args.no_progress)
     report = evaluate(args.data, args.weights, out, cfg, progress=not args.no_progress)
     print_eval_summary(out, report)
+    return 0
+
+
+def run_quantize(args: argparse.Namespace) -> int:
+    """Handler of ``posegrasp quantize``."""
+    from posegrasp.bop.check import require_valid
+    from posegrasp.perception.calibrate import calibrate
+
+    require_valid(args.data, args.split, args.images, progress=not args.no_progress)
+    for path in calibrate(args.weights, args.data, args.split, args.images, not args.no_progress, args.force):
+        print(path)
     return 0
 
 

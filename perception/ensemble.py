@@ -13,7 +13,7 @@ from posegrasp.errors import WeightsError
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.classifier import ClassifierConfig
 from posegrasp.perception.inputs import normalize_cls_input, prepare_cls_input
-from posegrasp.perception.runtime import for_inference
+from posegrasp.perception.int8 import inference_form
 
 
 class ClassifierEnsemble:
@@ -23,15 +23,21 @@ class ClassifierEnsemble:
     def __init__(self, models: list[torch.nn.Module], cfg: ClassifierConfig):
         self.models, self.cfg = models, cfg
 
+    @staticmethod
+    def members(weights: Path) -> list[Path]:
+        """The checkpoint folders of the run ``weights``'s classifiers: ``cls/``, then ``cls_<name>/`` by name."""
+        return [weights / "cls"] + sorted(p for p in weights.glob("cls_*") if p.is_dir())
+
     @classmethod
-    def load(cls, weights: Path) -> "ClassifierEnsemble":
-        """The run ``weights``'s ``cls/`` and its further members ``cls_<name>/`` (by name); WeightsError when they
-        differ in their objects, crop settings or height ranges."""
-        dirs = [weights / "cls"] + sorted(p for p in weights.glob("cls_*") if p.is_dir())
+    def load(cls, weights: Path, int8: bool = True) -> "ClassifierEnsemble":
+        """The run ``weights``'s classifiers (``members``), each in int8 when ``int8`` and its folder holds its
+        measured ranges (``perception.int8``); WeightsError when they differ in their objects, crop settings or height
+        ranges."""
+        dirs = cls.members(weights)
         models, cfgs = [], []
         for d in dirs:
             model, cfg, _ = ckpt_mod.load_model(d, "cls")
-            models.append(for_inference(model))
+            models.append(inference_form(model, d, int8))
             cfgs.append(cfg)
         key = [(list(c.obj_ids), c.crop_size, c.crop_side, c.depth_range) for c in cfgs]
         for d, k in zip(dirs[1:], key[1:]):

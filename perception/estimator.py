@@ -43,8 +43,9 @@ from posegrasp.perception.depth_fit.distance_field import distinct
 from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.depth_fit.starts import Symmetries
 from posegrasp.perception.guided import GuidedConfig, snap_labels
-from posegrasp.perception.inputs import prepare_pose_input, seam_components, segment_components
+from posegrasp.perception.inputs import check_frame, prepare_pose_input, seam_components, segment_components
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
+from posegrasp.perception.int8 import runs_int8
 from posegrasp.perception.refiner import refine
 from posegrasp.perception.runtime import for_inference, with_one_blas_thread
 from posegrasp.perception.segmenter import Segmenter
@@ -68,6 +69,8 @@ class EstimatorConfig:
     refiner_iterations: int | None = field(default=None, metadata=within(0, 100))
     #: Objects with fewer valid-depth pixels in their mask are skipped.
     min_valid_points: int = field(default=50, metadata=within(0, 10000000))
+    #: Run the seg net and classifiers in int8 where their folders hold ranges (``posegrasp quantize``); false: float.
+    int8: bool = True
     #: Torch CPU threads; unset leaves the process's setting alone.
     threads: int | None = field(default=None, metadata=within(1, 256))
     #: Seed of the depth points sampled per object (each call is deterministic).
@@ -133,7 +136,7 @@ class Estimator:
             raise WeightsError(f"weights directory {weights} does not exist")
         if cfg.threads is not None:
             torch.set_num_threads(cfg.threads)
-        self.segmenter = Segmenter.load(weights / "seg")
+        self.segmenter = Segmenter.load(weights / "seg", cfg.int8)
         self.seg_cfg = self.segmenter.cfg
         self.pose, self.pose_cfg, _ = ckpt_mod.load_model(weights / "pose", "pose")
         for_inference(self.pose)
@@ -146,7 +149,7 @@ class Estimator:
                 raise WeightsError(f"refiner in {refiner_dir} was trained for another pose net")
         self.classifier: ClassifierEnsemble | None = None
         if cfg.classify is not False and (weights / "cls").exists():
-            self.classifier = ClassifierEnsemble.load(weights)
+            self.classifier = ClassifierEnsemble.load(weights, cfg.int8)
         elif cfg.classify:
             raise WeightsError(f"{weights} has no cls/ checkpoint: train one with 'posegrasp train cls'")
         default_iters = self.refiner_cfg.iterations if self.refiner_cfg is not None else 0
@@ -162,6 +165,14 @@ class Estimator:
         self.support_plane, self.plane_cfg = cfg.support_plane, PlaneConfig()
         self.split_cfg, self.guided_cfg, self.type_check_cfg = cfg.split, cfg.guided, cfg.type_check
         self._meshes = self._read_models(cfg.models) if cfg.models is not None else {}
+
+    @property
+    def int8_nets(self) -> list[str]:
+        """The nets that run in int8 (``perception.int8``): "seg", and "cls" and "cls 2", ... for the classifiers."""
+        nets = [("seg", self.segmenter.model)]
+        if self.classifier is not None:
+            nets += [(f"cls {i + 1}" if i else "cls", m) for i, m in enumerate(self.classifier.models)]
+        return [name for name, m in nets if runs_int8(m)]
 
     def _read_models(self, models: str | Path) -> dict[int, tuple[object, Symmetries]]:
         """The mesh and symmetries of every object of the pose net, read and checked, from the BOP root ``models``."""
@@ -319,7 +330,7 @@ class Estimator:
     @with_one_blas_thread
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> EstimateResult:
         """Detect and estimate every known object in an RGB-D frame (depth in metres, 0 = invalid)."""
-        rgb, depth, K = _check_inputs(rgb, depth, K)
+        rgb, depth, K = check_frame(rgb, depth, K)
         t0 = time.perf_counter()
         labels, prob, seams = self.segmenter.run(rgb)
         plane = None
@@ -485,16 +496,3 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     return cv2.dilate(mask.view(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
 
-
-def _check_inputs(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The frame as the estimator reads it: rgb uint8 (H, W, 3), depth float32 (H, W) with NaN / inf as 0 (invalid),
-    K float64 (3, 3); ValueError on other shapes."""
-    rgb, depth, K = np.asarray(rgb), np.asarray(depth), np.asarray(K, dtype=np.float64)
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"rgb must be uint8 (H, W, 3), got {rgb.dtype} {rgb.shape}")
-    if depth.shape != rgb.shape[:2]:
-        raise ValueError(f"depth must be (H, W) = {rgb.shape[:2]}, got {depth.shape}")
-    if K.shape != (3, 3):
-        raise ValueError(f"K must be 3x3, got {K.shape}")
-    depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    return rgb, depth, K

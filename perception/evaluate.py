@@ -80,6 +80,8 @@ class EvalConfig:
     split_merged: bool = True
     #: Fit a part of uncertain type as each likely type; needs `depth_fit` (`--no-type-check`).
     type_check: bool = True
+    #: The seg net and classifiers in int8 where the run has their measured ranges (`--no-int8`: float).
+    int8: bool = True
     #: Ground-truth instances less visible are not evaluated (BOP: 0.1).
     min_visib_fract: float = field(default=0.1, metadata=within(0, 1))
     #: Objects with fewer valid-depth pixels in their mask are skipped.
@@ -105,7 +107,7 @@ class EvalConfig:
         """The estimator's settings for these, with the dataset root ``models`` for the depth fit."""
         return EstimatorConfig(
             refiner_iterations=None if self.refiner_iterations < 0 else self.refiner_iterations,
-            min_valid_points=self.min_valid_points, threads=self.threads, seed=self.seed,
+            min_valid_points=self.min_valid_points, threads=self.threads, seed=self.seed, int8=self.int8,
             classify=None if self.classify else False, models=models if self.depth_fit else None,
             support_plane=self.plane, split=SplitConfig() if self.split_merged else SplitConfig(rounds=0),
             guided=GuidedConfig() if self.guided else GuidedConfig(radius=0),
@@ -297,7 +299,7 @@ def _estimator_method(weights: str | Path, data: Path, cfg: EvalConfig) -> Metho
                          "refiner_iterations": est.refiner_iterations, "masks": cfg.masks,
                          "classifier": est.classifier is not None and cfg.masks == "pred", "depth_fit": cfg.depth_fit,
                          "plane": cfg.plane, "guided": cfg.guided, "split_merged": cfg.split_merged and cfg.depth_fit,
-                         "type_check": cfg.type_check and cfg.depth_fit}}
+                         "type_check": cfg.type_check and cfg.depth_fit, "int8": est.int8_nets}}
     return Method(run, list(est.obj_ids), STAGES, est.seg_cfg.num_classes, head)
 
 

@@ -164,3 +164,17 @@ def seam_components(labels: np.ndarray, seams: np.ndarray, min_pixels: int, pass
         mask[box] = ids[box] == k
         out.append((int(np.bincount(labels[mask]).argmax()), mask))
     return out
+
+
+def check_frame(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The frame as the estimator reads it: rgb uint8 (H, W, 3), depth float32 (H, W) with NaN / inf as 0 (invalid),
+    K float64 (3, 3); ValueError on other shapes."""
+    rgb, depth, K = np.asarray(rgb), np.asarray(depth), np.asarray(K, dtype=np.float64)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be uint8 (H, W, 3), got {rgb.dtype} {rgb.shape}")
+    if depth.shape != rgb.shape[:2]:
+        raise ValueError(f"depth must be (H, W) = {rgb.shape[:2]}, got {depth.shape}")
+    if K.shape != (3, 3):
+        raise ValueError(f"K must be 3x3, got {K.shape}")
+    depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    return rgb, depth, K

@@ -12,21 +12,22 @@ import torch
 from posegrasp.perception import checkpoint as ckpt_mod
 from posegrasp.perception.guided import argmax_planes
 from posegrasp.perception.inputs import normalize_rgb, seam_components, segment_components
-from posegrasp.perception.runtime import for_inference
+from posegrasp.perception.int8 import inference_form
 from posegrasp.perception.seg_net import SegNetConfig
 
 
 class Segmenter:
-    """The segmentation stage alone: a seg net and its config; ``segmenter(rgb)`` -> class map."""
+    """The segmentation stage alone: a seg net in inference form and its config; ``segmenter(rgb)`` -> class map."""
 
     def __init__(self, model: torch.nn.Module, cfg: SegNetConfig):
-        self.model, self.cfg = for_inference(model), cfg
+        self.model, self.cfg = model, cfg
 
     @classmethod
-    def load(cls, ckpt: str | Path) -> "Segmenter":
-        """From a ``seg`` checkpoint directory."""
+    def load(cls, ckpt: str | Path, int8: bool = True) -> "Segmenter":
+        """From a ``seg`` checkpoint directory, the net in int8 when ``int8`` and the folder holds its measured ranges
+        (``perception.int8``), else in float."""
         model, cfg, _ = ckpt_mod.load_model(Path(ckpt), "seg")
-        return cls(model, cfg)
+        return cls(inference_form(model, Path(ckpt), int8), cfg)
 
     def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Class map (H, W) int64 (0 background, else obj_id) and class probabilities (H, W, C)

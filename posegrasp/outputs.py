@@ -105,27 +105,28 @@ def _inside(p: Path, folder: Path) -> bool:
 
 
 def check_out_file(path: str | Path, command: str, inputs: Iterable[str | Path] = (), force: bool = False,
-                   what: str = "", sealed: Iterable[str | Path] = ()) -> Path:
-    """``path`` (given as ``--out``) if ``command`` may write its output file there (the module's rule), else a
-    one-line UserError. ``inputs``: files and folders the command reads (no file of them is replaced); ``sealed``:
-    input folders nothing may be added to (a dataset: a new image there would change it); ``what``: the file the
-    command writes (default: a file written by it)."""
+                   what: str = "", sealed: Iterable[str | Path] = (), option: str = "--out") -> Path:
+    """``path`` (given as ``option``; "" for a file the command names itself) if ``command`` may write its output file
+    there (the module's rule), else a one-line UserError. ``inputs``: files and folders the command reads (no file of
+    them is replaced); ``sealed``: input folders nothing may be added to (a dataset: a new image there would change
+    it); ``what``: the file the command writes (default: a file written by it)."""
     path = Path(path)
     real = path.parent.resolve() / path.name
+    name, fix = (f"{option} {path}", "name a new file") if option else (str(path), "move it away")
     for i in sealed:
         if _inside(real, Path(i).resolve()):
-            raise UserError(f"--out {path} is inside {i}, which this command reads; name a file outside it")
+            raise UserError(f"{name} is inside {i}, which this command reads; name a file outside it")
     if not os.path.lexists(path):
         return path
     st = os.lstat(path)
     if not (stat.S_ISREG(st.st_mode) or stat.S_ISLNK(st.st_mode)):
-        raise UserError(f"--out {path} is {what_is(st.st_mode)}; name a file")
+        raise UserError(f"{name} is {what_is(st.st_mode)}; {fix}")
     for i in inputs:
         if _inside(real, Path(i).resolve()) or _inside(path.resolve(), Path(i).resolve()):
-            raise UserError(f"--out {path} is an input of this command ({i}); name a new file")
+            raise UserError(f"{name} is an input of this command ({i}); {fix}")
     if not force and (stat.S_ISLNK(st.st_mode) or written_by(path) != marker(command)):
         what = "a link" if stat.S_ISLNK(st.st_mode) else f"not {what or 'a file'} written by '{marker(command)}'"
-        raise UserError(f"--out {path} already exists and is {what}; name a new file, or pass --force to replace it")
+        raise UserError(f"{name} already exists and is {what}; {fix}, or pass --force to replace it")
     return path
 
 
