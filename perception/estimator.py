@@ -44,8 +44,8 @@ from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.depth_fit.starts import Symmetries
 from posegrasp.perception.guided import GuidedConfig, snap_labels
 from posegrasp.perception.inputs import check_frame, prepare_pose_input, seam_components, segment_components
-from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from posegrasp.perception.int8 import runs_int8
+from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from posegrasp.perception.refiner import refine
 from posegrasp.perception.runtime import for_inference, with_one_blas_thread
 from posegrasp.perception.segmenter import Segmenter
