@@ -20,8 +20,9 @@ class ClassifierEnsemble:
     """Members (in inference form) and the crop settings they share (``cfg``: objects, crop geometry, the height
     channel's range; members without the height channel read a crop's first 6 channels)."""
 
-    def __init__(self, models: list[torch.nn.Module], cfg: ClassifierConfig):
+    def __init__(self, models: list[torch.nn.Module], cfg: ClassifierConfig, names: list[str] | None = None):
         self.models, self.cfg = models, cfg
+        self.names = names or [f"cls {i + 1}" for i in range(len(models))]  #: each member's (its folder's) name
 
     @staticmethod
     def members(weights: Path) -> list[Path]:
@@ -48,7 +49,8 @@ class ClassifierEnsemble:
         if len(heights) > 1:
             raise WeightsError(f"the classifiers in {weights} use height ranges {heights}: an ensemble's members share "
                                "one")
-        return cls(models, dataclasses.replace(cfgs[0], height_range=heights[0] if heights else 0.0))
+        shared = dataclasses.replace(cfgs[0], height_range=heights[0] if heights else 0.0)
+        return cls(models, shared, [d.name for d in dirs])
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
                  plane: np.ndarray | None) -> list[tuple[int, float] | None]:

@@ -168,10 +168,10 @@ class Estimator:
 
     @property
     def int8_nets(self) -> list[str]:
-        """The nets that run in int8 (``perception.int8``): "seg", and "cls" and "cls 2", ... for the classifiers."""
+        """The nets that run in int8 (``perception.int8``) by their folders' names: "seg", "cls", "cls_<name>"."""
         nets = [("seg", self.segmenter.model)]
         if self.classifier is not None:
-            nets += [(f"cls {i + 1}" if i else "cls", m) for i, m in enumerate(self.classifier.models)]
+            nets += list(zip(self.classifier.names, self.classifier.models))
         return [name for name, m in nets if runs_int8(m)]
 
     def _read_models(self, models: str | Path) -> dict[int, tuple[object, Symmetries]]:

@@ -133,6 +133,7 @@ def test_quantize_command_on_a_trained_run(tiny_run, tiny_bop, tmp_path, capsys)
         est = Estimator(run, EstimatorConfig(int8=on, models=tiny_bop))
         nets = [est.segmenter.model, *est.classifier.models]
         assert all(any(isinstance(m, QuantizedConvReLU2d) for m in n.modules()) == on for n in nets)
+        assert est.int8_nets == (["seg", "cls"] if on else [])
         assert est(*frame).labels.shape == frame[1].shape
     for stages, kept in (("pose", True), ("seg", False)):  # a perturbed copy keeps the ranges of weights it kept
         out = tmp_path / f"perturbed_{stages}"
