@@ -121,7 +121,7 @@ def ranges(model: nn.Module) -> dict[str, list[float]]:
 
 def quantized(model: nn.Module, measured: dict[str, list[float]]) -> nn.Module:
     """``model`` itself, its runs in int8 with the activation ranges ``measured`` (``ranges``); WeightsError when
-    they are not this net's."""
+    they are not this net's. Sets torch's quantized engine, process-wide, to ``ENGINE``."""
     from torch.ao.quantization import convert
 
     torch.backends.quantized.engine = ENGINE
