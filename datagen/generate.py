@@ -13,6 +13,7 @@ import dataclasses
 import json
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from posegrasp.datagen.noise import noisy_depth, noisy_rgb
 from posegrasp.datagen.render import LabelRenderer
 from posegrasp.datagen.scene import build_scene, check_capacity
 from posegrasp.datagen.views import ViewStats, visit_views
-from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root
+from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root, write_models_eval
 from posegrasp import bop, inputs
 from posegrasp import io as pio
 from posegrasp.errors import ConfigError, DatasetError, SceneUnsettled
@@ -185,12 +186,14 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
         jobs = [SceneJob(split, s, seed, views, cfg) for s in todo]
         t0 = time.perf_counter()
         frames = 0
-        with executor, _progress(progress) as bar:  # Ctrl-C ends the workers at once
+        with ThreadPoolExecutor(1) as side, executor, _progress(progress) as bar:  # Ctrl-C ends the workers at once
+            models_eval = side.submit(write_models_eval, root)  # while the workers start (0.5 s, trimesh's import)
             task = bar.add_task("datagen", total=len(todo) * views, fps=0.0)
             for _, scene in executor.imap(generate_scene, jobs):
                 scene.write(bop.scene_dir(root, split, scene.extra["scene_id"]))
                 frames += scene.extra["images"]
                 bar.update(task, advance=views, fps=frames / max(time.perf_counter() - t0, 1e-9))
+            models_eval.result()
         seconds = time.perf_counter() - t0
         stats = aggregate_stats(root, split, scenes)
         pio.write_json(bop.split_dir(root, split) / STATS_FILE, stats)

@@ -56,9 +56,9 @@ def _set_models_in(folder: Path, names: Iterable[str]) -> dict[str, bytes]:
 
 def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
     """Write ``models/`` (the object set ``objects``'s BOP models, byte for byte; ``""``: the shipped blocks) and
-    ``camera.json``; remove leftovers of killed writes. Models of another set or a ``camera.json`` for another
-    camera are a DatasetError (one dataset, one set, one camera) once a scene was completed with them; before that
-    (a failed start) they are replaced."""
+    ``camera.json``; remove leftovers of killed writes (``models_eval/``, the caller's: ``write_models_eval``). Models
+    of another set or a ``camera.json`` for another camera are a DatasetError (one dataset, one set, one camera) once
+    a scene was completed with them; before that (a failed start) they are replaced."""
     for tmp in [*root.glob(".*.tmp"), *root.glob("models/.*.tmp"), *root.glob("models_eval/.*.tmp")]:
         tmp.unlink(missing_ok=True)
     models = _set_models(objects)
@@ -71,7 +71,6 @@ def prepare_root(root: Path, camera: bop.Camera, objects: str = "") -> None:
             (d / name).unlink(missing_ok=True)
     for name, data in models.items():
         write_if_changed(bop.models_dir(root) / name, data)
-    write_models_eval(root)
     cam_file = bop.camera_path(root)
     if cam_file.is_file() and has_scenes(root):
         old = bop.load_camera(cam_file)

@@ -33,7 +33,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemaini
 from posegrasp import bop
 from posegrasp.datagen.generate import check_settings
 from posegrasp.datagen.render import LabelRenderer
-from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root
+from posegrasp.datagen.writer import COMPLETE_FILE, SceneWriter, has_scenes, prepare_root, write_models_eval
 from posegrasp.executor import make_executor
 from posegrasp.grasping.config import TrialConfig, config_record
 from posegrasp.grasping.episode import EpisodeJob, run_episode
@@ -116,6 +116,7 @@ def open_export(root: Path | None, seed: int, cfg: TrialConfig) -> Iterator[Capt
                        binding=has_scenes(root, SPLIT))
         prepare_root(root, bop.Camera(c.width, c.height, intrinsics(c.width, c.height, c.fovy_deg), DEPTH_SCALE),
                      cfg.scene.workcell.objects)
+        write_models_eval(root)
         for tmp in bop.split_dir(root, SPLIT).glob(".*.tmp"):  # leftovers of a killed write
             tmp.unlink()
         yield CaptureExport(root)

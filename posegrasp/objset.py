@@ -30,7 +30,7 @@ import numpy as np
 
 from posegrasp import inputs
 from posegrasp.bop import load_models_info
-from posegrasp.bop.models import load_model
+from posegrasp.bop.models import model_arrays
 from posegrasp.errors import DatasetError, UserError
 from posegrasp.geometry import quat_to_R
 from posegrasp.io import dumps_json
@@ -303,9 +303,11 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
                            "re-import the set")
     if oid not in info:
         raise DatasetError(f"{root / 'models/models_info.json'} has no entry for obj_id {oid}; re-import the set")
-    mesh = load_model(_in_set(root, d["model"], where))
+    vertices, faces = model_arrays(_in_set(root, d["model"], where))
     mi = info[oid]
-    if np.abs(mesh.bounds[0] - mi.min_xyz).max() > 1e-5 or np.abs(mesh.extents - mi.size_xyz).max() > 1e-5:
+    used = vertices[np.unique(faces)]  # the bounds of the faces, as trimesh's
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    if np.abs(lo - mi.min_xyz).max() > 1e-5 or np.abs(hi - lo - mi.size_xyz).max() > 1e-5:
         raise DatasetError(f"{root / d['model']} does not match its models_info.json entry (bounding box); "
                            "re-import the set")
     for key, (n, lo, hi) in OBJECT_NUMBERS.items():
@@ -333,7 +335,7 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
         raise DatasetError(f"{where}: upright.quat {quat.tolist()} is not a unit quaternion turning upright.down "
                            f"{down.tolist()} to -z; re-import the set")
     return SetObject(
-        obj_id=oid, name=name, vertices=np.asarray(mesh.vertices, np.float64), faces=np.asarray(mesh.faces),
+        obj_id=oid, name=name, vertices=vertices, faces=faces,
         mass=float(d["mass_kg"]), density=float(d["density"]), friction=tuple(d["friction"]),
         rgba=tuple(d["rgba"]), collision=pieces, upright_quat=tuple(quat.tolist()), upright_down=down,
         flat_top=bool(up.get("flat_top", False)), flat_bottom=bool(up.get("flat_bottom", False)),

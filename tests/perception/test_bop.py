@@ -37,6 +37,36 @@ def test_tiny_dataset_reads_in_metres(tiny_bop):
     assert r.rgb_path.exists() and r.load_rgb().shape == (120, 160, 3)
 
 
+def test_model_arrays_are_trimeshs_numbers_with_or_without_it(tmp_path):
+    import trimesh
+
+    from posegrasp import ASSETS
+
+    files = sorted((ASSETS / "blocks" / "models").glob("*.ply"))
+    mesh = trimesh.load(files[0], force="mesh", process=False)
+    files.append(tmp_path / "ascii.ply")  # a layout read by trimesh
+    files[-1].write_bytes(mesh.export(file_type="ply", encoding="ascii"))
+    for p in files:
+        v, f = bop_models.model_arrays(p)
+        want = bop_models.load_model(p)
+        assert (bop_models.plain_ply(p.read_bytes()) is None) == (p.parent == tmp_path)
+        assert v.tobytes() == np.asarray(want.vertices, np.float64).tobytes()  # bit for bit, zeros' signs too
+        assert f.tobytes() == np.asarray(want.faces, np.int64).tobytes()
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(files[0].read_bytes()[:-7])
+    with pytest.raises(UserError, match="cut.ply: expected a PLY triangle mesh, got an unreadable file"):
+        bop_models.model_arrays(cut)
+
+
+def test_an_object_set_is_read_without_importing_trimesh():
+    import subprocess
+    import sys
+
+    code = "import sys; from posegrasp.catalog import load_catalog; load_catalog(''); print('trimesh' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False"]
+
+
 def test_scene_round_trip(tmp_path):
     T = make_T(axis_angle_R(np.array([1.0, 2.0, 3.0]), 0.7), np.array([0.01, -0.02, 0.5]))
     bop.write_scene_gt(tmp_path / "scene_gt.json", {3: [(7, T)]})
