@@ -306,8 +306,8 @@ def _parse_object(root: Path, entry: dict[str, Any], info: dict[int, Any]) -> Se
     vertices, faces = model_arrays(_in_set(root, d["model"], where))
     mi = info[oid]
     used = vertices[np.unique(faces)]  # the bounds of the faces, as trimesh's
-    lo, hi = used.min(axis=0), used.max(axis=0)
-    if np.abs(lo - mi.min_xyz).max() > 1e-5 or np.abs(hi - lo - mi.size_xyz).max() > 1e-5:
+    least, size = used.min(axis=0), np.ptp(used, axis=0)
+    if np.abs(least - mi.min_xyz).max() > 1e-5 or np.abs(size - mi.size_xyz).max() > 1e-5:
         raise DatasetError(f"{root / d['model']} does not match its models_info.json entry (bounding box); "
                            "re-import the set")
     for key, (n, lo, hi) in OBJECT_NUMBERS.items():
