@@ -20,9 +20,7 @@ def load_model(root_or_file: str | Path, obj_id: int | None = None):
     ``DatasetFileError`` unless it is a triangle mesh with finite vertices, within ``bop_schema.MAX_MM`` of its
     origin and not flat to a point, whose faces index its vertices."""
     p = _model_file(root_or_file, obj_id)
-    mesh = _trimesh(p, inputs.read_bytes(p, "mesh", DatasetFileError))
-    mesh.apply_scale(MM)
-    return mesh
+    return _trimesh(p, inputs.read_bytes(p, "mesh", DatasetFileError))
 
 
 def model_arrays(root_or_file: str | Path, obj_id: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -34,7 +32,6 @@ def model_arrays(root_or_file: str | Path, obj_id: int | None = None) -> tuple[n
     plain = plain_ply(data)
     if plain is None:
         mesh = _trimesh(p, data)
-        mesh.apply_scale(MM)
         return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
     _check(p, *plain)
     return plain[0] * MM + 0.0, plain[1]  # (+ 0.0: zeros positive, as trimesh's scaling leaves them)
@@ -90,7 +87,7 @@ def _model_file(root_or_file: str | Path, obj_id: int | None) -> Path:
 
 
 def _trimesh(p: Path, data: bytes):
-    """The PLY bytes ``data`` of file ``p`` as a checked ``trimesh.Trimesh`` in the file's units."""
+    """The PLY bytes ``data`` (mm) of file ``p`` as a checked ``trimesh.Trimesh`` in metres."""
     import trimesh
 
     try:
@@ -100,6 +97,7 @@ def _trimesh(p: Path, data: bytes):
                                f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     _check(p, np.asarray(getattr(mesh, "vertices", np.zeros((0, 3)))),
            np.asarray(getattr(mesh, "faces", np.zeros((0, 3)))))
+    mesh.apply_scale(MM)
     return mesh
 
 
