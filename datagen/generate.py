@@ -13,7 +13,6 @@ import dataclasses
 import json
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -186,14 +185,13 @@ def generate_dataset(out: str | Path, scenes: int, views: int, seed: int = 0, cf
         jobs = [SceneJob(split, s, seed, views, cfg) for s in todo]
         t0 = time.perf_counter()
         frames = 0
-        with ThreadPoolExecutor(1) as side, executor, _progress(progress) as bar:  # Ctrl-C ends the workers at once
-            models_eval = side.submit(write_models_eval, root)  # while the workers start (0.5 s, trimesh's import)
+        with executor, _progress(progress) as bar:  # Ctrl-C ends the workers at once
+            write_models_eval(root)
             task = bar.add_task("datagen", total=len(todo) * views, fps=0.0)
             for _, scene in executor.imap(generate_scene, jobs):
                 scene.write(bop.scene_dir(root, split, scene.extra["scene_id"]))
                 frames += scene.extra["images"]
                 bar.update(task, advance=views, fps=frames / max(time.perf_counter() - t0, 1e-9))
-            models_eval.result()
         seconds = time.perf_counter() - t0
         stats = aggregate_stats(root, split, scenes)
         pio.write_json(bop.split_dir(root, split) / STATS_FILE, stats)

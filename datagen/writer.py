@@ -85,13 +85,11 @@ def write_models_eval(root: Path) -> None:
     """Write ``models_eval/``: each model of ``models/`` with its edges split down to ``EVAL_EDGE`` x its diameter
     (``bop_models.resample_for_eval``), in mm, as the BOP metrics' evaluation points and VSD's renderings use, and
     ``models_info.json`` (the same surfaces, so the same info; bop_toolkit's ``eval_bop19_pose.py`` reads it there)."""
-    import trimesh
-
     diameters = {o: i.diameter / bop.MM for o, i in bop.load_models_info(root).items()}
     for oid, diameter in diameters.items():
         src = bop.model_path(root, oid)
-        mesh = bop_models.resample_for_eval(trimesh.load(src, force="mesh", process=False), EVAL_EDGE * diameter)
-        write_if_changed(bop.models_eval_dir(root) / src.name, mesh.export(file_type="ply", encoding="binary"))
+        v, f = bop_models.resample_for_eval(*bop_models.model_arrays(src, scale=1.0), EVAL_EDGE * diameter)
+        write_if_changed(bop.models_eval_dir(root) / src.name, bop_models.ply_bytes(v, f))
     write_if_changed(bop.models_eval_dir(root) / "models_info.json", bop.models_info_path(root).read_bytes())
 
 

@@ -94,12 +94,26 @@ def _exit_without_teardown() -> None:
     os._exit(0)
 
 
+#: Modules whose import opens a GL display: dm_control's renderers (``posegrasp`` imports it switched off).
+DISPLAY_MODULES = ("dm_control._render.pyopengl.egl_renderer", "dm_control._render.glfw_renderer")
+
+
+def fork_is_safe() -> bool:
+    """Whether pool workers may be forked from this process (Linux): it has loaded no torch (its thread pools do not
+    survive a fork) and opened no GL display (on GPU drivers a child cannot render through its parent's): none of
+    MuJoCo's EGL, ``posegrasp.gl``'s contexts or ``DISPLAY_MODULES``."""
+    if not sys.platform.startswith("linux") or "torch" in sys.modules or any(m in sys.modules for m in DISPLAY_MODULES):
+        return False
+    egl, gl = sys.modules.get("mujoco.egl"), sys.modules.get("posegrasp.gl")
+    return getattr(egl, "EGL_DISPLAY", None) is None and not (gl is not None and gl.holds_context())
+
+
 class PoolExecutor:
-    """A local pool of ``workers`` processes that die with this process, spawned so that every worker owns its own GL
-    context: importing dm_control initialises an EGL display, and one initialised before a fork cannot render in the
-    child on GPU drivers. Forking would start each worker about 1 s sooner (8 scenes of ``bench/datagen.py`` 14 %
-    faster on Mesa); a forkserver preloading the GL-free libraries saves nothing on 2 cores, where the workers already
-    import in parallel."""
+    """A local pool of ``workers`` processes that die with this process. They are forked where that is safe
+    (``fork_is_safe``), all at once as the pool opens, before this process starts any thread (a fork copies the
+    threads' locks, not the threads), and start with this process's modules: a spawned worker first imports them,
+    about 1 s (dataset generation, 8 scenes of ``bench/datagen.py``: 20 % faster forked on Mesa). Elsewhere they are
+    spawned, so that each owns its GL context and torch threads."""
 
     def __init__(self, workers: int):
         if workers < 1:
@@ -109,8 +123,15 @@ class PoolExecutor:
 
     def _new_pool(self) -> ProcessPoolExecutor:
         threads = max(1, (os.cpu_count() or 1) // self.workers)
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
+        method = "fork" if fork_is_safe() else "spawn"
+        pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context(method),
                                    initializer=_pool_worker, initargs=(os.getpid(), threads))
+        if method == "fork":
+            import gc
+            gc.freeze()
+            pool.submit(int)  # forks every worker now
+            gc.unfreeze()
+        return pool
 
     def __enter__(self) -> "PoolExecutor":
         self._pool = self._new_pool()

@@ -30,6 +30,11 @@ def _context() -> "mujoco.GLContext":
     return ctx
 
 
+def holds_context() -> bool:
+    """Whether this process has made a GL context here: its own (``make_current``) or a kept pyrender renderer."""
+    return _context.cache_info().currsize > 0 or pyrender_renderer.cache_info().currsize > 0
+
+
 def make_current() -> None:
     """Make the process's GL context current (created on first use; another library may have switched)."""
     _context().make_current()

@@ -55,13 +55,14 @@ def listing(root: Path) -> dict[str, tuple[int, int]]:
 
 
 def kill_parent_when(proc: subprocess.Popen, ready, what: str) -> dict[int, str]:
-    """Wait until ``ready()`` with two pool workers up, SIGKILL the parent alone; its children before the kill."""
+    """Wait until ``ready()`` with two pool workers (forked or spawned: not multiprocessing's resource tracker) up,
+    SIGKILL the parent alone; its children before the kill."""
     t0 = time.monotonic()
     while True:
         assert proc.poll() is None, f"{what} ended before the kill: {proc.stderr.read().decode()}"
         assert time.monotonic() - t0 < 240, f"{what}: never ready"
         kids = children(proc.pid)
-        if sum("spawn_main" in c for c in kids.values()) >= 2 and ready():
+        if sum("resource_tracker" not in c for c in kids.values()) >= 2 and ready():
             break
         time.sleep(0.01)
     os.kill(proc.pid, signal.SIGKILL)
@@ -149,6 +150,17 @@ def test_pool_workers_render_on_their_share_of_the_cores_unless_told(monkeypatch
     assert {v for _, v in PoolExecutor(2).imap(os.getenv, [RENDER_THREADS_ENV] * 2)} == {share}
     monkeypatch.setenv(RENDER_THREADS_ENV, "3")
     assert {v for _, v in PoolExecutor(1).imap(os.getenv, [RENDER_THREADS_ENV])} == {"3"}
+
+
+def test_datagen_forks_its_workers_until_its_process_renders():
+    """``posegrasp datagen``'s process loads no torch and opens no GL display (dm_control's renderer is imported
+    switched off), so its workers are forked, with its modules; once it renders they are spawned."""
+    import sys
+
+    code = ("from posegrasp.datagen import cli, generate; from posegrasp import executor, gl; "
+            "print(executor.fork_is_safe()); gl.make_current(); print(executor.fork_is_safe())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["True", "False"]
 
 
 def _pid_after_a_moment(_: int) -> int:

@@ -23,18 +23,19 @@ def load_model(root_or_file: str | Path, obj_id: int | None = None):
     return _trimesh(p, inputs.read_bytes(p, "mesh", DatasetFileError))
 
 
-def model_arrays(root_or_file: str | Path, obj_id: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``load_model``'s vertices (V, 3) (m, float64) and triangles (F, 3) (int64), the same numbers, checked alike.
-    A PLY laid out as this product and trimesh write models (``plain_ply``) is read without trimesh, whose import
-    costs a process 0.4 s."""
+def model_arrays(root_or_file: str | Path, obj_id: int | None = None, scale: float = MM
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``load_model``'s vertices (V, 3) (float64: the file's mm times ``scale``, metres by default) and triangles
+    (F, 3) (int64), the same numbers, checked alike. A PLY laid out as this product and trimesh write models
+    (``plain_ply``) is read without trimesh, whose import costs a process 0.4 s."""
     p = _model_file(root_or_file, obj_id)
     data = inputs.read_bytes(p, "mesh", DatasetFileError)
     plain = plain_ply(data)
     if plain is None:
-        mesh = _trimesh(p, data)
+        mesh = _trimesh(p, data, scale)
         return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
     _check(p, *plain)
-    return plain[0] * MM + 0.0, plain[1]  # (+ 0.0: zeros positive, as trimesh's scaling leaves them)
+    return plain[0] * scale + 0.0, plain[1]  # (+ 0.0: zeros positive, as trimesh's scaling leaves them)
 
 
 #: Vertex property types ``plain_ply`` reads, as numpy little-endian types.
@@ -86,8 +87,8 @@ def _model_file(root_or_file: str | Path, obj_id: int | None) -> Path:
     return p
 
 
-def _trimesh(p: Path, data: bytes):
-    """The PLY bytes ``data`` (mm) of file ``p`` as a checked ``trimesh.Trimesh`` in metres."""
+def _trimesh(p: Path, data: bytes, scale: float = MM):
+    """The PLY bytes ``data`` (mm) of file ``p`` as a checked ``trimesh.Trimesh``, scaled by ``scale`` (metres)."""
     import trimesh
 
     try:
@@ -97,7 +98,8 @@ def _trimesh(p: Path, data: bytes):
                                f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     _check(p, np.asarray(getattr(mesh, "vertices", np.zeros((0, 3)))),
            np.asarray(getattr(mesh, "faces", np.zeros((0, 3)))))
-    mesh.apply_scale(MM)
+    if scale != 1:
+        mesh.apply_scale(scale)
     return mesh
 
 
@@ -126,25 +128,43 @@ def sample_model_surface(mesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.nd
     return np.asarray(pts, dtype=np.float64), np.asarray(mesh.face_normals, dtype=np.float64)[face]
 
 
-def resample_for_eval(mesh, max_edge: float):
-    """The mesh with every edge longer than ``max_edge`` (the mesh's units) split at its midpoint, repeatedly,
-    each face re-triangulated by which of its edges were split (a conforming refinement: no T-junctions): the
-    same surface with dense, roughly uniform vertices, like BOP's ``models_eval``. A ``trimesh.Trimesh``."""
-    import trimesh
+def unique_edges(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct edges (E, 2) of triangles f (F, 3), lower vertex first, ordered by their higher vertex, then their
+    lower (as trimesh's ``edges_unique``), and each face's edges (F, 3): those of (f0, f1), (f1, f2), (f2, f0)."""
+    e = np.sort(np.asarray(f, np.int64)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    key, inverse = np.unique((e[:, 1] << 32) | e[:, 0], return_inverse=True)
+    return np.stack([key & 0xFFFFFFFF, key >> 32], axis=1), inverse.reshape(-1, 3)
 
-    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+
+def resample_for_eval(v: np.ndarray, f: np.ndarray, max_edge: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh of vertices v (V, 3) and triangles f (F, 3) with every edge longer than ``max_edge`` (v's units)
+    split at its midpoint, repeatedly, each face re-triangulated by which of its edges were split (a conforming
+    refinement: no T-junctions): the same surface with dense, roughly uniform vertices, like BOP's ``models_eval``.
+    Returns its vertices (float64) and triangles (int64)."""
+    v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
     while True:
-        m = trimesh.Trimesh(v, f, process=False)
-        edges, fe = m.edges_unique, m.faces_unique_edges  # fe[:, k]: edge of (f[k], f[k + 1])
+        edges, fe = unique_edges(f)  # fe[:, k]: edge of (f[k], f[k + 1])
         long = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1) > max_edge
         if not long.any():
-            return trimesh.Trimesh(v, f, process=False)
+            return v, f
         mid = np.full(len(edges), -1)
         mid[long] = len(v) + np.arange(long.sum())
         v = np.concatenate([v, 0.5 * (v[edges[long, 0]] + v[edges[long, 1]])])
         local = np.concatenate([f, mid[fe]], axis=1)  # v0 v1 v2 m01 m12 m20 (-1: edge kept)
         code = (local[:, 3:] >= 0) @ np.array([4, 2, 1])
         f = np.concatenate([local[code == c][:, t].reshape(-1, 3) for c, t in _SPLIT_TRIANGLES.items()])
+
+
+def ply_bytes(v: np.ndarray, f: np.ndarray) -> bytes:
+    """A triangle mesh, vertices (V, 3) and triangles (F, 3), as binary PLY bytes: float32 x, y, z and int indices
+    counted by a uchar, in the layout of trimesh's exporter, its comment line included (files written before
+    match byte for byte)."""
+    faces = np.empty(len(f), [("n", "u1"), ("i", "<i4", 3)])
+    faces["n"], faces["i"] = 3, f
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment https://github.com/mikedh/trimesh\n"
+              f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
+              f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n")
+    return header.encode("ascii") + np.ascontiguousarray(v, "<f4").tobytes() + faces.tobytes()
 
 
 #: Triangles (local vertex indices: 0-2 corners, 3-5 midpoints of edges 01, 12, 20) of a face whose split edges

@@ -58,6 +58,20 @@ def test_model_arrays_are_trimeshs_numbers_with_or_without_it(tmp_path):
         bop_models.model_arrays(cut)
 
 
+def test_eval_models_are_trimeshs_edges_and_files_byte_for_byte():
+    import trimesh
+
+    meshes = [trimesh.creation.box((0.03, 0.02, 0.05)), trimesh.creation.cylinder(0.02, 0.05, sections=24),
+              trimesh.creation.icosphere(2, 0.03), trimesh.creation.annulus(0.01, 0.02, 0.03)]
+    for m in meshes:
+        edges, fe = bop_models.unique_edges(m.faces)
+        assert np.array_equal(edges, m.edges_unique) and np.array_equal(fe, m.faces_unique_edges)
+        v, f = bop_models.resample_for_eval(m.vertices, m.faces, 0.004)
+        assert bop_models.ply_bytes(v, f) == trimesh.Trimesh(v, f, process=False).export(file_type="ply",
+                                                                                         encoding="binary")
+        assert np.array_equal(bop_models.plain_ply(bop_models.ply_bytes(v, f))[1], f)
+
+
 def test_an_object_set_is_read_without_importing_trimesh():
     import subprocess
     import sys

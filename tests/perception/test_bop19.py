@@ -20,12 +20,13 @@ T_GT = make_T(axis_angle_R([1.0, 2.0, 3.0], 0.7), np.array([0.02, -0.01, 0.5]))
 
 @pytest.fixture(scope="module")
 def box_points():
-    return np.asarray(bop_models.resample_for_eval(trimesh.creation.box(2 * HALF), 0.004).vertices)
+    box = trimesh.creation.box(2 * HALF)
+    return bop_models.resample_for_eval(box.vertices, box.faces, 0.004)[0]
 
 
 def test_resampled_model_keeps_its_surface_with_dense_vertices():
     box = trimesh.creation.box(2 * HALF)
-    dense = bop_models.resample_for_eval(box, 0.004)
+    dense = trimesh.Trimesh(*bop_models.resample_for_eval(box.vertices, box.faces, 0.004), process=False)
     assert dense.edges_unique_length.max() <= 0.004 and len(dense.vertices) > 300
     assert dense.is_watertight and np.isclose(dense.volume, box.volume) and np.isclose(dense.area, box.area)
 
@@ -52,7 +53,8 @@ def test_continuous_symmetry_is_discretised_and_composed():
                           symmetries_continuous=[(np.array([0.0, 0.0, 1.0]), np.zeros(3))])
     syms = B.symmetry_transforms(info)
     assert syms.shape == (2 * 315, 4, 4) and np.allclose(syms[0], np.eye(4))
-    pts = np.asarray(bop_models.resample_for_eval(trimesh.creation.cylinder(0.02, 0.05, sections=24), 0.004).vertices)
+    cyl = trimesh.creation.cylinder(0.02, 0.05, sections=24)
+    pts = bop_models.resample_for_eval(cyl.vertices, cyl.faces, 0.004)[0]
     spin = make_T(axis_angle_R([0.0, 0.0, 1.0], 1.234), np.zeros(3))
     # any turn about the axis, also upside down, is within one step: 2 pi / 315 x 20 mm at most
     assert B.mssd(T_GT @ spin @ FLIPS[0], T_GT, pts, syms) <= 2 * np.pi / 315 * 0.02
