@@ -77,12 +77,20 @@ def die_with_parent(parent: int, sig: signal.Signals = signal.SIGKILL) -> None:
         os._exit(1)
 
 
-def _pool_worker(parent: int, render_threads: int) -> None:
-    """Pool worker initializer: ``die_with_parent``, and software rendering on ``render_threads`` rasteriser
-    threads unless the environment sets them (the workers share the cores: with one per core, llvmpipe's default
-    thread per core only adds switching, 5 % of dataset generation's CPU; the images are the same)."""
-    os.environ.setdefault(RENDER_THREADS_ENV, str(render_threads))
+def _pool_worker(parent: int, rasterisers: int) -> None:
+    """Pool worker initializer: ``die_with_parent``, and software rendering on ``rasterisers`` threads
+    (``render_threads``) unless the environment sets them."""
+    os.environ.setdefault(RENDER_THREADS_ENV, str(rasterisers))
     die_with_parent(parent)
+
+
+def render_threads(workers: int) -> int:
+    """Mesa llvmpipe's rasteriser threads for each of ``workers`` processes sharing this machine's cores: their share
+    of the cores, or 0 (rasterise on the drawing thread) for a core or less. Its default, a thread per core, only adds
+    switching (5 % of dataset generation's CPU), and one thread of its own only hand-offs (8-12 % of a scene's time);
+    the images are the same."""
+    share = (os.cpu_count() or 1) // workers
+    return share if share > 1 else 0
 
 
 def _exit_without_teardown() -> None:
@@ -122,10 +130,9 @@ class PoolExecutor:
         self._pool: ProcessPoolExecutor | None = None  # kept between imap calls inside a with block
 
     def _new_pool(self) -> ProcessPoolExecutor:
-        threads = max(1, (os.cpu_count() or 1) // self.workers)
         method = "fork" if fork_is_safe() else "spawn"
         pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context(method),
-                                   initializer=_pool_worker, initargs=(os.getpid(), threads))
+                                   initializer=_pool_worker, initargs=(os.getpid(), render_threads(self.workers)))
         if method == "fork":
             import gc
             gc.freeze()

@@ -143,10 +143,11 @@ def test_a_pool_keeps_its_workers_inside_a_with_block_and_ends_them_after():
 
 
 def test_pool_workers_render_on_their_share_of_the_cores_unless_told(monkeypatch):
-    from posegrasp.executor import RENDER_THREADS_ENV, PoolExecutor
+    from posegrasp.executor import RENDER_THREADS_ENV, PoolExecutor, render_threads
 
     monkeypatch.delenv(RENDER_THREADS_ENV, raising=False)
-    share = str(max(1, (os.cpu_count() or 1) // 2))
+    share = str((os.cpu_count() or 1) // 2 if (os.cpu_count() or 1) >= 4 else 0)
+    assert render_threads(2) == int(share) and render_threads(os.cpu_count() or 1) == 0
     assert {v for _, v in PoolExecutor(2).imap(os.getenv, [RENDER_THREADS_ENV] * 2)} == {share}
     monkeypatch.setenv(RENDER_THREADS_ENV, "3")
     assert {v for _, v in PoolExecutor(1).imap(os.getenv, [RENDER_THREADS_ENV])} == {"3"}
