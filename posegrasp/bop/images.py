@@ -112,4 +112,4 @@ def read(path: str | Path, kind: str, size: tuple[int, int] | None = None) -> np
         raise DatasetFileError(f"{path}: expected depth measurements, got an image of zeros")
     if kind == "mask" and img.all():
         raise DatasetFileError(f"{path}: expected a mask of one object, got every pixel set")
-    return img[..., :3][..., ::-1].copy() if c > 1 else img
+    return pio.swap_red_blue(img) if c > 1 else img
