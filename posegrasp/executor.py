@@ -108,12 +108,14 @@ DISPLAY_MODULES = ("dm_control._render.pyopengl.egl_renderer", "dm_control._rend
 
 def fork_is_safe() -> bool:
     """Whether pool workers may be forked from this process (Linux): it has loaded no torch (its thread pools do not
-    survive a fork) and opened no GL display (on GPU drivers a child cannot render through its parent's): none of
-    MuJoCo's EGL, ``posegrasp.gl``'s contexts or ``DISPLAY_MODULES``."""
+    survive a fork), opened no GL display (on GPU drivers a child cannot render through its parent's: none of
+    MuJoCo's EGL, ``posegrasp.gl``'s contexts or ``DISPLAY_MODULES``) and started no process (a plug-in's host: a
+    worker would inherit its handles but could not use them)."""
     if not sys.platform.startswith("linux") or "torch" in sys.modules or any(m in sys.modules for m in DISPLAY_MODULES):
         return False
     egl, gl = sys.modules.get("mujoco.egl"), sys.modules.get("posegrasp.gl")
-    return getattr(egl, "EGL_DISPLAY", None) is None and not (gl is not None and gl.holds_context())
+    return (getattr(egl, "EGL_DISPLAY", None) is None and not (gl is not None and gl.holds_context())
+            and not mp.active_children())
 
 
 class PoolExecutor:
