@@ -20,6 +20,7 @@ import os
 import signal
 import socket
 import sys
+import threading
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Callable, Iterator, Protocol, Self, Sequence
 
@@ -108,11 +109,13 @@ DISPLAY_MODULES = ("dm_control._render.pyopengl.egl_renderer", "dm_control._rend
 
 
 def fork_is_safe() -> bool:
-    """Whether pool workers may be forked from this process (Linux): it has loaded no torch (its thread pools do not
-    survive a fork), opened no GL display (on GPU drivers a child cannot render through its parent's: none of
-    MuJoCo's EGL, ``posegrasp.gl``'s contexts or ``DISPLAY_MODULES``) and started no process (a plug-in's host: a
-    worker would inherit its handles but could not use them)."""
-    if not sys.platform.startswith("linux") or "torch" in sys.modules or any(m in sys.modules for m in DISPLAY_MODULES):
+    """Whether pool workers may be forked from this process (Linux): it runs one thread (a fork copies the others'
+    locks, not them), has loaded no torch (its thread pools do not survive a fork), opened no GL display (on GPU
+    drivers a child cannot render through its parent's: none of MuJoCo's EGL, ``posegrasp.gl``'s contexts or
+    ``DISPLAY_MODULES``) and started no process (a plug-in's host: a worker would inherit its handles but could not
+    use them)."""
+    if not sys.platform.startswith("linux") or threading.active_count() > 1 or "torch" in sys.modules \
+            or any(m in sys.modules for m in DISPLAY_MODULES):
         return False
     egl, gl = sys.modules.get("mujoco.egl"), sys.modules.get("posegrasp.gl")
     return (getattr(egl, "EGL_DISPLAY", None) is None and not (gl is not None and gl.holds_context())
@@ -121,11 +124,10 @@ def fork_is_safe() -> bool:
 
 class PoolExecutor:
     """A local pool of ``workers`` processes that die with this process. They are forked where that is safe
-    (``fork_is_safe``), all at once as the pool opens, before this process starts any thread (a fork copies the
-    threads' locks, not the threads), and start with this process's modules, which a spawned worker first imports
-    (about 0.7 s of CPU each); this process's objects are kept out of their garbage collections (``gc.freeze``),
-    which would otherwise write to, and so copy, every page holding one. Elsewhere they are spawned, so that each
-    owns its GL context and torch threads."""
+    (``fork_is_safe``), all at once as the pool opens, before this process starts another thread, and start with
+    this process's modules, which a spawned worker first imports (about 0.7 s of CPU each); this process's objects
+    are kept out of their garbage collections (``gc.freeze``), which would otherwise write to, and so copy, every
+    page holding one. Elsewhere they are spawned, so that each owns its GL context and torch threads."""
 
     def __init__(self, workers: int):
         if workers < 1:

@@ -155,13 +155,15 @@ def test_pool_workers_render_on_their_share_of_the_cores_unless_told(monkeypatch
 
 def test_datagen_forks_its_workers_until_its_process_renders():
     """``posegrasp datagen``'s process loads no torch and opens no GL display (dm_control's renderer is imported
-    switched off), so its workers are forked, with its modules; once it renders they are spawned."""
+    switched off), so its workers are forked, with its modules; while it runs a second thread, and once it renders,
+    they are spawned."""
     import sys
 
-    code = ("from posegrasp.datagen import cli, generate; from posegrasp import executor, gl; "
-            "print(executor.fork_is_safe()); gl.make_current(); print(executor.fork_is_safe())")
+    code = ("import threading; from posegrasp.datagen import cli, generate; from posegrasp import executor, gl; "
+            "print(executor.fork_is_safe()); e = threading.Event(); t = threading.Thread(target=e.wait); t.start(); "
+            "print(executor.fork_is_safe()); e.set(); t.join(); gl.make_current(); print(executor.fork_is_safe())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.split() == ["True", "False"]
+    assert out.split() == ["True", "False", "False"]
 
 
 def _pid_after_a_moment(_: int) -> int:
