@@ -15,7 +15,7 @@ def _dm_control_renderer_off() -> None:
     """Import dm_control's renderer switched off, before anything imports dm_control: on import it opens a GL
     display for its own renderer (EGL: ``eglInitialize``), which posegrasp never uses (MuJoCo's contexts render,
     ``posegrasp.gl``), and a process holding a display cannot fork workers that render (``posegrasp.executor``).
-    ``MUJOCO_GL`` itself stays as set, for MuJoCo."""
+    ``MUJOCO_GL`` itself stays as set, for MuJoCo; a program that renders with dm_control imports it first."""
     saved = os.environ.get("MUJOCO_GL")
     os.environ["MUJOCO_GL"] = "disable"
     try:
