@@ -103,10 +103,12 @@ def write_json(path: str | Path, obj: Any, indent: int | None = 2) -> Path:
 
 
 def swap_red_blue(image: np.ndarray) -> np.ndarray:
-    """A new (H, W, 3) image of an (H, W, 3 or 4) one's first three channels in reverse order (RGB <-> BGR, alpha
-    dropped): OpenCV's conversion, 70x faster than copying numpy's reversed view."""
+    """A new (H, W, C) image of an (H, W, C') one's first C = min(C', 3) channels in reverse order (RGB <-> BGR,
+    alpha dropped); for 3 or 4 channels OpenCV's conversion, 70x faster than copying numpy's reversed view."""
     import cv2
 
+    if image.shape[2] not in (3, 4):
+        return np.ascontiguousarray(image[..., :3][..., ::-1])
     return cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
 
 
