@@ -15,19 +15,21 @@ from posegrasp.errors import DatasetFileError
 
 
 def load_model(root_or_file: str | Path, obj_id: int | None = None):
-    """A model PLY (mm) as a ``trimesh.Trimesh`` in metres; pass the dataset root and obj_id, or a file.
+    """A model PLY (mm) as a ``trimesh.Trimesh`` in metres, of ``model_arrays``' vertices and triangles (the file's
+    normals and colours left out); pass the dataset root and obj_id, or a file."""
+    import trimesh
 
-    ``DatasetFileError`` unless it is a triangle mesh with finite vertices, within ``bop_schema.MAX_MM`` of its
-    origin and not flat to a point, whose faces index its vertices."""
-    p = _model_file(root_or_file, obj_id)
-    return _trimesh(p, inputs.read_bytes(p, "mesh", DatasetFileError))
+    return trimesh.Trimesh(*model_arrays(root_or_file, obj_id), process=False)
 
 
 def model_arrays(root_or_file: str | Path, obj_id: int | None = None, scale: float = MM
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """``load_model``'s vertices (V, 3) (float64: the file's mm times ``scale``, metres by default) and triangles
-    (F, 3) (int64), the same numbers, checked alike. A PLY laid out as this product and trimesh write models
-    (``plain_ply``) is read without trimesh, whose import costs a process 0.4 s."""
+    """A model PLY's vertices (V, 3) (float64: the file's mm times ``scale``, metres by default) and triangles (F, 3)
+    (int64); pass the dataset root and obj_id, or a file.
+
+    ``DatasetFileError`` unless it is a triangle mesh with finite vertices, within ``bop_schema.MAX_MM`` of its
+    origin and not flat to a point, whose faces index its vertices. A PLY laid out as this product and trimesh write
+    models (``plain_ply``) is read without trimesh, as trimesh reads it."""
     p = _model_file(root_or_file, obj_id)
     data = inputs.read_bytes(p, "mesh", DatasetFileError)
     plain = plain_ply(data)
