@@ -4,6 +4,7 @@ perception stays free of the simulator (it also runs on real camera data)."""
 from __future__ import annotations
 
 import ast
+import functools
 import os
 import shutil
 import subprocess
@@ -50,6 +51,7 @@ def _imports(tree: ast.AST):
         todo.extend(ast.iter_child_nodes(node))
 
 
+@functools.lru_cache(maxsize=1)
 def import_graph() -> nx.DiGraph:
     """Module -> module edges for every import statement of the package that runs, those inside functions
     included."""
