@@ -92,7 +92,8 @@ def git(*args: str) -> str:
 
 @contextlib.contextmanager
 def checkout(ref: str) -> Iterator[Path]:
-    """A detached worktree of ``ref`` whose ``posegrasp/`` links its parts' folders, removed on exit."""
+    """A detached worktree of ``ref`` whose ``posegrasp/`` links its parts' folders, with its compiled parts built
+    in place (where it has a ``setup.py``), removed on exit."""
     tmp = Path(tempfile.mkdtemp(prefix="posegrasp_baseline_")) / "tree"
     git("worktree", "add", "--detach", "--quiet", str(tmp), ref)
     try:
@@ -101,6 +102,9 @@ def checkout(ref: str) -> Iterator[Path]:
             part = name.split(".")
             if len(part) == 2 and part[0] == "posegrasp" and not (tmp / "posegrasp" / part[1]).exists():
                 (tmp / "posegrasp" / part[1]).symlink_to(Path("..") / folder)
+        if (tmp / "setup.py").exists():
+            subprocess.run([sys.executable, "setup.py", "-q", "build_ext", "--inplace"], cwd=tmp, check=True,
+                           capture_output=True)
         yield tmp
     finally:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tmp)], capture_output=True)

@@ -11,7 +11,7 @@ batch of whole parts per thread):
    same fit under the object's symmetries. Given the supporting plane, each also starts moved along its normal n to
    rest on it and laid on the model's rest nearest n (``rests``: the faces of its convex hull it stands on); those
    starts are held: each step fits them as a turn about n and a shift along the plane, and sets them back resting.
-2. Grid steps (``grids``, ``kabsch``): ``iterations - exact_steps`` times, each observed point p_i is matched to a
+2. Grid steps (``grids``, ``icp``): ``iterations - exact_steps`` times, each observed point p_i is matched to a
    nearest model point m_j under (R_h, t_h), looked up in a voxel grid, and (R_h, t_h) <- Kabsch(m_j -> p_i).
 3. Turns (``TurnConfig``): the best fit of each of an object's ``seeds`` best-scoring rests facing up is turned about
    n through its centre by every ``step_deg`` of the turn that maps the model onto itself about n, and each is fitted

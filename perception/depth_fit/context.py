@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -11,6 +13,9 @@ from posegrasp.perception.depth_fit.grids import Grids
 from posegrasp.perception.depth_fit.model import ObjectModel
 from posegrasp.perception.depth_fit.starts import Symmetries, stacked_rests
 
+if TYPE_CHECKING:
+    from posegrasp.perception.depth_fit.kernels import KernelFrame
+
 
 @dataclass(frozen=True)
 class FitContext:
@@ -18,10 +23,11 @@ class FitContext:
     points (O, M, 3) (object frame, m; padded far off) valid where ``model_ok`` (O, M); their observed points
     (O, N, 3) (camera frame, m) with ``weights`` (O, N) (0: padding); the depth image (H, W) (m, 0: no depth) and
     intrinsics K (3, 3); the supporting plane (4,: n . x + d = 0, n unit, camera frame) or None; the models' ``grids``
-    and stacked point columns (3, G M) (row u M + j: point j of the u-th distinct grid's model); their rests' ups
-    (O, U, 3) and classes (O, U) (``stacked_rests``), their symmetries and their convex hulls' vertices ``hulls``
-    (O, V, 3) (``ObjectModel.hull``, padded by repeating the first); given the plane, ``supports`` (O, S): heights
-    (m) above it on which each object may rest besides the plane (``supports``; 0 where none)."""
+    and their stacked points ``table`` (G M, 3) (row u M + j: point j of the u-th distinct grid's model); their
+    rests' ups (O, U, 3) and classes (O, U) (``stacked_rests``), their symmetries and their convex hulls' vertices
+    ``hulls`` (O, V, 3) (``ObjectModel.hull``, padded by repeating the first); given the plane, ``supports`` (O, S):
+    heights (m) above it on which each object may rest besides the plane (``supports``; 0 where none); ``kernels``,
+    all this as the compiled kernels read it."""
 
     models: torch.Tensor
     model_ok: torch.Tensor
@@ -31,7 +37,7 @@ class FitContext:
     K: np.ndarray
     plane: torch.Tensor | None
     grids: Grids
-    columns: torch.Tensor
+    table: torch.Tensor
     ups: torch.Tensor
     rest_labels: torch.Tensor
     symmetries: list[Symmetries]
@@ -48,9 +54,16 @@ class FitContext:
         grids = Grids([x.grid for x in models], m.shape[1])
         return cls(m, m_ok, p, p_ok.float(), torch.from_numpy(np.asarray(depth, dtype=np.float32)), K,
                    None if plane is None else torch.from_numpy(np.asarray(plane, dtype=np.float32)),
-                   grids, m[grids.first].reshape(-1, 3).T.contiguous(), ups, labels,
+                   grids, m[grids.first].reshape(-1, 3).contiguous(), ups, labels,
                    [x.symmetries for x in models], _repeated([x.hull for x in models]),
                    None if plane is None else supports(models, observed, np.asarray(plane, dtype=np.float64)))
+
+    @cached_property
+    def kernels(self) -> KernelFrame:
+        """This context as the compiled kernels' structures (``kernels.KernelFrame``), built once."""
+        from posegrasp.perception.depth_fit.kernels import KernelFrame
+
+        return KernelFrame(self)
 
     @property
     def normal(self) -> torch.Tensor:

@@ -12,9 +12,8 @@ import torch
 
 from posegrasp.errors import ConfigError
 from posegrasp.perception.depth_fit.config import DepthFitConfig, TurnConfig
+from posegrasp.perception.depth_fit import icp
 from posegrasp.perception.depth_fit.context import FitContext
-from posegrasp.perception.depth_fit.grids import columns
-from posegrasp.perception.depth_fit.kabsch import Kabsch
 from posegrasp.perception.depth_fit.model import ObjectModel
 from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.depth_fit.score import Scored, best_rows, score
@@ -163,32 +162,16 @@ def _turns(frame: FitContext, fits: _Fits, cfg: TurnConfig, ranked: torch.Tensor
 
 
 def _grid_steps(frame: FitContext, fits: _Fits, n: int) -> _Fits:
-    """``n`` ICP steps, each observed point matched to the grid's nearest model point."""
-    p = frame.points[fits.obj]  # (H, N, 3)
-    p_cols, kabsch = p.transpose(1, 2).contiguous(), Kabsch(p, frame.weights[fits.obj])  # (H, 3, N)
-    for _ in range(n):
-        fits = _step(frame, kabsch, fits, columns(frame.columns, frame.grids.posed(p_cols, fits.R, fits.t, fits.obj)))
-    return fits
+    """``n`` ICP steps, each observed point matched to the grid's nearest model point (``icp``)."""
+    R, t = icp.steps(frame, fits.R, fits.t, fits.obj, fits.held, fits.low, n)
+    return dataclasses.replace(fits, R=R, t=t)
 
 
 def _exact_steps(frame: FitContext, fits: _Fits, n: int) -> _Fits:
     """``n`` ICP steps, each observed point matched to its exact nearest model point (a k-d tree of the model)."""
-    p, m = frame.points[fits.obj], frame.models[fits.obj]
-    kabsch = Kabsch(p, frame.weights[fits.obj])
-    rows = torch.arange(len(fits.obj))[:, None]
+    p = frame.points[fits.obj]
     for _ in range(n):
         nn = frame.grids.exact((p - fits.t[:, None]) @ fits.R, fits.obj)  # (H, N)
-        fits = _step(frame, kabsch, fits, m[rows, nn].transpose(1, 2))
+        R, t = icp.steps(frame, fits.R, fits.t, fits.obj, fits.held, fits.low, 1, nn)
+        fits = dataclasses.replace(fits, R=R, t=t)
     return fits
-
-
-def _step(frame: FitContext, kabsch: Kabsch, fits: _Fits, src: torch.Tensor) -> _Fits:
-    """The fits of the model points src (H, 3, N) matched to the observed points; the held ones turned about the
-    plane's normal and shifted along it, then set back resting on it."""
-    if not bool(fits.held.any()):
-        R, t = kabsch.fit(src)
-        return dataclasses.replace(fits, R=R, t=t)
-    n, held = frame.plane[:3], fits.held
-    R, t = kabsch.fit(src, held, fits.R, n)
-    t[held] = t[held] - (fits.low[held] + t[held] @ n + frame.plane[3])[:, None] * n
-    return dataclasses.replace(fits, R=R, t=t)

@@ -43,9 +43,8 @@ class NearestGrid:
 class Grids:
     """Several objects' ``NearestGrid``s as one lookup, each distinct grid once (objects of one model share one):
     the u-th distinct grid's points (those of object ``first[u]``'s model) start at row u x ``stride`` of the stacked
-    models, and ``grids(points, obj)`` maps points (H, N, 3), row h in the frame of object obj[h], to rows of them;
-    ``grids.posed(p, R, t, obj)`` does the same for camera-frame points p (H, 3, N) (coordinates first: batched
-    products with 3-long rows are ~8x slower on a CPU) of objects at poses (R, t). ``fields``: their distance fields."""
+    models, and ``grids(points, obj)`` maps points (H, N, 3), row h in the frame of object obj[h], to rows of them
+    (the ICP steps, ``icp``, look them up in compiled code). ``fields``: their distance fields."""
 
     def __init__(self, grids: list[NearestGrid], stride: int):
         self.trees = [g.tree for g in grids]
@@ -70,13 +69,6 @@ class Grids:
         """Rows (H, N) int32 of the nearest model points of points (H, 3, N) in their objects' frames."""
         return self._lookup((points - self.lo[obj, :, None]) / self.cell[obj, None, None], obj)
 
-    def posed(self, p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
-        """Rows (H, N) of the nearest model points of p (H, 3, N) in the frames R (H, 3, 3), t (H, 3): cell
-        coordinates (R^T (p - t) - lo) / cell = (R / cell)^T p - (R^T t + lo) / cell, in one batched product."""
-        s = 1.0 / self.cell[obj, None, None]  # (H, 1, 1)
-        offset = ((t[:, None] @ R)[:, 0] + self.lo[obj]) * s[:, 0]  # (H, 3)
-        return self._lookup(torch.baddbmm(-offset[:, :, None], R.transpose(1, 2) * s, p), obj)
-
     def _lookup(self, cells: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
         """Rows (H, N) for cell coordinates (H, 3, N)."""
         ijk = torch.minimum(cells.round_().clamp_(min=0), self.max[obj, :, None])  # (H, 3, N), whole numbers
@@ -93,7 +85,3 @@ class Grids:
             idx[h] = torch.from_numpy(i).view(-1, points.shape[1])
         return idx
 
-
-def columns(table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """Columns idx (H, N) of a (3, R) table, as (H, 3, N) (a view of a (3, H, N) tensor)."""
-    return table.index_select(1, idx.reshape(-1)).view(3, *idx.shape).transpose(0, 1)

@@ -21,46 +21,28 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from posegrasp.errors import PosegraspError
+from posegrasp.perception.depth_fit import kernels
 from posegrasp.perception.depth_fit.config import ScoreConfig
 from posegrasp.perception.depth_fit.context import FitContext
-from posegrasp.perception.depth_fit.distance_field import gather
-from posegrasp.perception.depth_fit.grids import columns
 
 
 def score(frame: FitContext, cfg: ScoreConfig, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor,
           fine: bool = False) -> torch.Tensor:
     """Scores (H,) in m of the poses R (H, 3, 3), t (H, 3) (object to camera) of the frame's objects ``obj`` (H,)
-    (module doc); ``fine``: the distances from the models' surfaces and all the model points."""
-    m, m_ok, p, w = frame.models, frame.model_ok, frame.points, frame.weights
-    k = m.shape[1] if fine else cfg.rank_points
-    ok, wo = m_ok[obj, :k], w[obj]
-    # coordinates first, (H, 3, k) and (H, 3, N): batched products with 3-long rows are ~8x slower on a CPU
-    mc = torch.baddbmm(t[:, :, None], R, m[:, :k].transpose(1, 2)[obj])  # (H, 3, k), camera frame
-    Rt = R.transpose(1, 2)
-    local = torch.baddbmm(-(Rt @ t[:, :, None]), Rt, p.transpose(1, 2)[obj])  # (H, 3, N), object frame
-    if fine:
-        dist = frame.grids.fields(local, obj)
-    else:  # (the sum of squares: torch's norm along a 3-long dim of a (H, 3, N) tensor is ~20x slower)
-        dist = ((local - columns(frame.columns, frame.grids.local(local, obj))) ** 2).sum(dim=1).sqrt()
-    fit = (dist.clamp(max=cfg.truncation) * wo).sum(dim=1) / wo.sum(dim=1)
-    K, depth, plane = frame.K, frame.depth, frame.plane
-    z = mc[:, 2].clamp(min=1e-6)
-    u = torch.round(mc[:, 0] * float(K[0, 0]) / z + float(K[0, 2]))  # (H, k) whole pixel numbers, float32
-    v = torch.round(mc[:, 1] * float(K[1, 1]) / z + float(K[1, 2]))
-    h, w_img = depth.shape  # (pixel indices below 2^24: exact in float32)
-    inside = ok & (u >= 0) & (u < w_img) & (v >= 0) & (v < h)
-    dz = gather(depth.reshape(-1), (v.clamp_(0, h - 1).mul_(w_img) + u.clamp_(0, w_img - 1)).int())
-    viol = (inside & (dz > 0) & (z < dz - cfg.violation_margin)).sum(dim=1) / inside.sum(dim=1).clamp(min=1)
-    total = fit
-    if plane is not None:
-        height = (mc * plane[:3, None]).sum(dim=1) + plane[3]  # (H, k)
-        viol = viol + (ok & (height < -cfg.violation_margin)).sum(dim=1) / ok.sum(dim=1)
-        lowest = height.masked_fill(~ok, torch.inf).min(dim=1).values  # (H,)
-        if frame.supports is not None:  # the highest support not above the lowest point (the plane, 0, at least)
-            sup = frame.supports[obj]
-            lowest = lowest - sup.masked_fill(sup > lowest[:, None] + cfg.float_margin, 0.0).max(dim=1).values
-        total = total + cfg.float_weight * ((lowest - cfg.float_margin) / 0.01).clamp(0, 1)
-    return total + cfg.violation_weight * viol
+    (module doc), in compiled code (``_score.c``); ``fine``: the distances from the models' surfaces and all the
+    model points."""
+    k = frame.kernels
+    R, t = R.float().contiguous(), t.float().contiguous()
+    obs, keep = k.observed(obj)
+    out = torch.empty(len(keep))
+    config = kernels.CScoreConfig(cfg.truncation, cfg.violation_margin, cfg.violation_weight, cfg.float_margin,
+                                 cfg.float_weight)
+    points = k.models.shape[1] if fine else min(cfg.rank_points, k.models.shape[1])
+    if kernels.LIB.posegrasp_scores(obs, k.grids, k.fields if fine else None, k.scene, config, points, R.data_ptr(),
+                                    t.data_ptr(), out.data_ptr()) != 0:
+        raise PosegraspError("depth fit score: out of memory")
+    return out
 
 
 @dataclass(frozen=True)

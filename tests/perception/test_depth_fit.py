@@ -1,6 +1,7 @@
 """The depth fit (``perception.depth_fit``): ICP from rotation hypotheses recovers a block turned onto a
 near-symmetry."""
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -87,25 +88,81 @@ def test_nearest_grid_matches_within_half_a_cell_diagonal():
                      DepthFitConfig(score=ScoreConfig(truncation=0.02)))
 
 
-def test_grids_posed_and_exact_lookups():
-    """Two objects' grids as one lookup: camera-frame points under poses (R, t) find the cells their object-frame
-    points find (but for the odd point on a cell boundary), and ``exact`` gives each point's true nearest model
-    point, its row within its own model."""
+def test_grids_exact_lookups():
+    """Two objects' grids as one lookup: ``exact`` gives each point's true nearest model point, its row within its own
+    model."""
     from posegrasp.perception.depth_fit.grids import Grids
 
     rng = np.random.default_rng(1)
     models = [rng.uniform(-1, 1, (500, 3)) * [0.03, 0.015, 0.01], rng.uniform(-1, 1, (300, 3)) * 0.02]
     grids = Grids([NearestGrid(m) for m in models], 500)
     obj = torch.tensor([0, 1, 1, 0])
-    R = torch.from_numpy(np.stack([axis_angle_R(v / np.linalg.norm(v), a) for v, a in
-                                   zip(rng.normal(size=(4, 3)), rng.uniform(0, np.pi, 4))])).float()
-    t = torch.tensor([[0.0, 0.0, 0.4], [0.05, -0.02, 0.5], [0.0, 0.1, 0.3], [0.02, 0.0, 0.45]])
     local = torch.from_numpy(rng.uniform(-0.04, 0.04, (4, 200, 3))).float()  # object frame
-    p = local @ R.transpose(1, 2) + t[:, None]  # camera frame
-    assert (grids.posed(p.transpose(1, 2), R, t, obj) == grids(local, obj)).float().mean() > 0.99
     idx = grids.exact(local, obj)
     for h, o in enumerate(obj.tolist()):
         assert np.array_equal(idx[h].numpy(), cKDTree(models[o]).query(local[h].numpy())[1])
+
+
+def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted least-squares R, t of dst ~ R src + t (N, 3 each), by the SVD, in float64."""
+    w = w / w.sum()
+    cs, cd = w @ src, w @ dst
+    U, _, Vt = np.linalg.svd((src - cs).T @ (w[:, None] * (dst - cd)))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cd - R @ cs
+
+
+def _two_objects(rng: np.random.Generator):
+    """A ``FitContext`` of two models (500 and 300 points, object frame) seen as noisy points (200 and 120, camera
+    frame) at random poses, the second's points all on one plane of its frame (a face seen alone: C of rank 2);
+    with each observed point's model row and the true poses."""
+    from posegrasp.perception.depth_fit.context import FitContext
+
+    models = [rng.uniform(-1, 1, (500, 3)) * [0.03, 0.015, 0.01], rng.uniform(-1, 1, (300, 3)) * 0.02]
+    models[1][:, 2] = 0.02
+    rows = [rng.choice(500, 200, replace=False), rng.choice(300, 120, replace=False)]
+    poses = [make_T(axis_angle_R(v / np.linalg.norm(v), a), [0.02 * i, -0.01, 0.4 + 0.05 * i])
+             for i, (v, a) in enumerate(zip(rng.normal(size=(2, 3)), rng.uniform(0.5, 2.5, 2)))]
+    observed = [m[r] @ T[:3, :3].T + T[:3, 3] + rng.normal(scale=0.001, size=(len(r), 3))
+                for m, r, T in zip(models, rows, poses)]
+    frame = FitContext.of([ObjectModel.of_points(m) for m in models], observed, np.zeros((8, 8)), np.eye(3), None)
+    return frame, models, observed, rows, poses
+
+
+def test_icp_steps_are_the_weighted_least_squares_fits():
+    """``icp.steps`` with the observed points' model points given is one weighted Kabsch step (the SVD's, float64, to
+    float32's precision), of a full-rank and of a rank-2 cross-covariance alike, rows of one object repeated; with
+    the grids' matches, each step that of the model points the grid gives."""
+    from posegrasp.perception.depth_fit import icp
+
+    rng = np.random.default_rng(2)
+    frame, models, observed, rows, poses = _two_objects(rng)
+    obj = torch.tensor([0, 1, 1])
+    off = [make_T(axis_angle_R(np.array([1.0, 0.0, 0.0]), np.radians(4)), [0.005, 0.0, 0.0]) @ poses[o]
+           for o in obj.tolist()]
+    R0 = torch.tensor(np.stack([T[:3, :3] for T in off]), dtype=torch.float32)
+    t0 = torch.tensor(np.stack([T[:3, 3] for T in off]), dtype=torch.float32)
+    matches = torch.zeros(3, frame.points.shape[1], dtype=torch.long)
+    for h, o in enumerate(obj.tolist()):
+        matches[h, :len(rows[o])] = torch.from_numpy(rows[o])
+    no = torch.zeros(3, dtype=torch.bool)
+    R, t = icp.steps(frame, R0, t0, obj, no, torch.zeros(3), 1, matches)
+    for h, o in enumerate(obj.tolist()):
+        R_ref, t_ref = _kabsch(models[o][rows[o]], observed[o], np.ones(len(rows[o])))
+        np.testing.assert_allclose(R[h].numpy(), R_ref, atol=2e-6)
+        np.testing.assert_allclose(t[h].numpy(), t_ref, atol=2e-6)
+    for n in (1, 5):  # the grids' matches: n Kabsch steps, each of the grid's model points
+        R, t = icp.steps(frame, R0, t0, obj, no, torch.zeros(3), n)
+        R_ref, t_ref = R0.double().numpy(), t0.double().numpy()
+        for _ in range(n):
+            local = (frame.points[obj] - torch.from_numpy(t_ref).float()[:, None]) @ torch.from_numpy(R_ref).float()
+            grid_rows = (frame.grids(local, obj).long() - obj[:, None] * frame.models.shape[1]).numpy()
+            for h, o in enumerate(obj.tolist()):
+                n_o = len(rows[o])
+                R_ref[h], t_ref[h] = _kabsch(models[o][grid_rows[h, :n_o]], observed[o], np.ones(n_o))
+        np.testing.assert_allclose(R.numpy(), R_ref, atol=1e-5)
+        np.testing.assert_allclose(t.numpy(), t_ref, atol=1e-5)
 
 
 @pytest.mark.slow
@@ -321,6 +378,77 @@ def test_a_pose_floating_above_the_plane_costs_the_floating_term():
     np.testing.assert_allclose(costs, [0.0, 0.01 * 0.4, 0.01], atol=1e-6)
 
 
+def _reference_score(frame, cfg: ScoreConfig, R: np.ndarray, t: np.ndarray, o: int, fine: bool) -> float:
+    """The score (``perception.depth_fit.score``'s module doc) of one pose R (3, 3), t (3,) of object o, in float64
+    numpy, distances from the torch lookups of the fields and the grids."""
+    w = frame.weights[o].numpy().astype(np.float64)
+    local = (frame.points[o].numpy() - t) @ R  # (N, 3), object frame
+    x = torch.from_numpy(local).float()
+    if fine:
+        dist = frame.grids.fields(x.T[None], torch.tensor([o]))[0].numpy()
+    else:
+        dist = np.linalg.norm(local - frame.table[frame.grids(x[None], torch.tensor([o]))[0].long()].numpy(), axis=1)
+    fit = (np.minimum(dist, cfg.truncation) * w).sum() / w.sum()
+    k = frame.models.shape[1] if fine else min(cfg.rank_points, frame.models.shape[1])
+    m = frame.models[o, :k].numpy()[frame.model_ok[o, :k].numpy()]
+    c = m @ R.T + t  # camera frame
+    K, depth = frame.K, frame.depth.numpy()
+    z = np.maximum(c[:, 2], 1e-6)
+    u, v = np.rint(c[:, 0] * K[0, 0] / z + K[0, 2]), np.rint(c[:, 1] * K[1, 1] / z + K[1, 2])
+    seen = (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
+    dz = depth[v[seen].astype(int), u[seen].astype(int)]
+    viol = ((dz > 0) & (z[seen] < dz - cfg.violation_margin)).sum() / max(seen.sum(), 1)
+    n, d = frame.plane[:3].numpy(), float(frame.plane[3])
+    height = c @ n + d
+    lowest = height.min()
+    supports = frame.supports[o].numpy()
+    lowest -= max([0.0] + [s for s in supports if s <= lowest + cfg.float_margin])
+    floating = np.clip((lowest - cfg.float_margin) / 0.01, 0, 1)
+    viol += (height < -cfg.violation_margin).mean()
+    return fit + cfg.float_weight * floating + cfg.violation_weight * viol
+
+
+def test_the_compiled_score_is_the_module_docs_score(tiny_bop):
+    """``score`` (compiled) of 40 poses near the true ones of a real frame's objects, resting on each other and the
+    table, with the frame's depth: the float64 reference's within float32 rounding, in the ranking (grid) and the
+    fine (field) form; each term moves the score."""
+    from posegrasp.perception.depth_fit.context import FitContext
+    from posegrasp.perception.depth_fit.score import score
+
+    rec = next(iter(bop.iter_scene_images(tiny_bop, "train")))
+    depth, K = rec.load_depth(), rec.camera.K
+    models, observed, truth = [], [], []
+    for k, g in enumerate(rec.instances):
+        points = bop_models.sample_model_points(bop_models.load_model(tiny_bop, g.obj_id), 600 + 300 * k, seed=k)
+        models.append(ObjectModel.of_points(points))
+        vs, us = np.nonzero(rec.load_mask(g.gt_index) & (depth > 0))
+        z = depth[vs, us].astype(np.float64)
+        observed.append(np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], axis=1)[::2])
+        truth.append(g.T_cam_obj)
+    plane = np.array([0.0, 0.0, -1.0, float(depth[depth > 0].max()) + 0.002])
+    rng = np.random.default_rng(5)
+    obj = torch.from_numpy(rng.integers(0, len(models), 40))
+    poses = [truth[o] @ make_T(axis_angle_R(rng.normal(size=3), rng.uniform(0, 0.3)), rng.normal(scale=s, size=3))
+             for o, s in zip(obj.tolist(), [0.004] * 30 + [0.03] * 10)]  # the last 10 partly beyond their fields
+    R = torch.tensor(np.stack([T[:3, :3] for T in poses]), dtype=torch.float32)
+    t = torch.tensor(np.stack([T[:3, 3] for T in poses]), dtype=torch.float32)
+    frame = FitContext.of(models, observed, depth, K, plane)
+    supports = torch.zeros_like(frame.supports)  # every other pose's lowest point 2 mm under a support of its object
+    for h, o in list(enumerate(obj.tolist()))[::2]:
+        low = ((frame.models[o][frame.model_ok[o]] @ R[h].T + t[h]) @ frame.plane[:3] + frame.plane[3]).min()
+        supports[o, 1 + h // 2 % (supports.shape[1] - 1)] = low + 0.002
+    frame = dataclasses.replace(frame, supports=supports)
+    for fine in (False, True):
+        got = score(frame, ScoreConfig(), R, t, obj, fine=fine).numpy()
+        want = [_reference_score(frame, ScoreConfig(), R[h].double().numpy(), t[h].double().numpy(), o, fine)
+                for h, o in enumerate(obj.tolist())]
+        np.testing.assert_allclose(got, want, atol=5e-5)  # a model point on a pixel's edge: 1 / k of the weight
+        assert np.mean(np.abs(got - want) < 1e-6) > 0.9
+    for term in ("violation_weight", "float_weight", "truncation"):
+        cfg = dataclasses.replace(ScoreConfig(), **{term: 2 * getattr(ScoreConfig(), term)})
+        assert not torch.equal(score(frame, cfg, R, t, obj, fine=True), score(frame, ScoreConfig(), R, t, obj, True))
+
+
 def test_level_lays_the_nearest_axis_on_the_normal_by_the_least_turn():
     from posegrasp.perception.depth_fit.starts import level, resting
 
@@ -361,21 +489,26 @@ def test_the_lowest_point_over_the_hull_is_the_lowest_model_point():
 
 
 def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squares_pose():
-    """``Kabsch.fit`` with rows held: targets made by turning R0 m about the normal n by 0.4 rad and shifting give
-    back that turn and shift exactly (a free row the same), and ``turns_about`` is Rodrigues' formula."""
-    from posegrasp.perception.depth_fit.kabsch import Kabsch
+    """``icp.steps`` with rows held: targets made by turning R0 m about the plane's normal n by 0.4 rad and shifting
+    along the plane give back that turn and shift in one step (a free row the same), and each held row keeps its
+    lowest model point's height ``low``; ``turns_about`` is Rodrigues' formula."""
+    from posegrasp.perception.depth_fit import icp
+    from posegrasp.perception.depth_fit.context import FitContext
     from posegrasp.perception.torch_geometry import turns_about
 
     rng = np.random.default_rng(0)
     n = np.array([0.0, -0.6, -0.8])
-    src = rng.normal(scale=0.02, size=(2, 3, 50))
+    src = rng.normal(scale=0.02, size=(50, 3))
     R0 = np.stack([np.eye(3), axis_angle_R(np.array([1.0, 0.0, 0.0]), 0.3)])
     G, shift = axis_angle_R(n, 0.4), np.array([0.1, 0.2, 0.5])
-    dst = np.einsum("ij,hjk,hkn->hni", G, R0, src) + shift  # (2, N, 3)
+    dst = [src @ (G @ R).T + shift for R in R0]
+    plane = np.array([*n, 0.3], dtype=np.float32)  # the shift's height over it: n . shift + d
+    low = torch.full((2,), -float(n @ shift + plane[3]))
+    frame = FitContext.of([ObjectModel.of_points(src)] * 2, dst, np.zeros((8, 8)), np.eye(3), plane)
     f = lambda a: torch.from_numpy(a).float()  # noqa: E731
-    fit = Kabsch(f(dst), torch.ones(2, 50))
+    rows = torch.arange(50).expand(2, 50)
     for held in ([True, True], [False, True]):
-        R, t = fit.fit(f(src), torch.tensor(held), f(R0), f(n))
+        R, t = icp.steps(frame, f(R0), torch.zeros(2, 3), torch.arange(2), torch.tensor(held), low, 1, rows)
         np.testing.assert_allclose(R.numpy(), G @ R0, atol=1e-5)
         np.testing.assert_allclose(t.numpy(), np.tile(shift, (2, 1)), atol=1e-5)
     turns = turns_about(f(n), torch.tensor([0.4, -1.0]))
