@@ -1,7 +1,7 @@
 /* The depth fit's ICP steps, one row (a fit of one object) at a time: called through ctypes by
    ``perception.depth_fit.icp``. Each step matches each observed point p_i (weight
-   w_i, normalised to sum to 1) to a model point m_i, either the model point stored for the voxel-grid cell of
-   R^T (p_i - t) (``perception.depth_fit.grids``) or a given one, and refits (R, t):
+   w_i, normalised to sum to 1) to a model point m_i, the model point stored for the voxel-grid cell of
+   R^T (p_i - t) (``perception.depth_fit.grids``) or the nearest one, and refits (R, t):
 
    free rows: R = argmax tr(R C), C = sum_i m_i (w_i (p_i - c_p))^T, by Horn's unit quaternion, the eigenvector of
    the largest eigenvalue of the symmetric 4x4 matrix of C (Jacobi rotations, double precision), or R unchanged where
@@ -108,6 +108,32 @@ static void POSEGRASP_CLONES grid_matches(const struct grids *g, int64_t o, cons
     for (int64_t i = 0; i < m; i++) out[i] = g->index[out[i]];
 }
 
+/* The table row of the model point of object o nearest the object-frame point x (3), searched in the buckets the
+   cube x +- r meets, r the distance of x to the model point ``row`` (ties: the lower row). */
+static int32_t nearest(const struct buckets *b, const float *table, int64_t o, const float x[3], int32_t row) {
+    const float *q = table + 3 * (int64_t)row, *lo = b->lo + 3 * o;
+    float best = (x[0] - q[0]) * (x[0] - q[0]) + (x[1] - q[1]) * (x[1] - q[1]) + (x[2] - q[2]) * (x[2] - q[2]);
+    float r = sqrtf(best), size = b->size[o];
+    const int32_t *shape = b->shape + 3 * o, *first = b->first + b->start[o];
+    int32_t from[3], to[3];
+    for (int a = 0; a < 3; a++) {  /* the cubes the box meets, clamped to the grid (which holds every point) */
+        float u0 = floorf((x[a] - r - lo[a]) / size), u1 = floorf((x[a] + r - lo[a]) / size);
+        from[a] = u0 < 0 ? 0 : (u0 > shape[a] - 1 ? shape[a] - 1 : (int32_t)u0);
+        to[a] = u1 < 0 ? 0 : (u1 > shape[a] - 1 ? shape[a] - 1 : (int32_t)u1);
+    }
+    for (int32_t i = from[0]; i <= to[0]; i++)
+        for (int32_t j = from[1]; j <= to[1]; j++) {
+            int32_t k0 = (i * shape[1] + j) * shape[2];
+            for (int32_t e = first[k0 + from[2]]; e < first[k0 + to[2] + 1]; e++) {
+                int32_t s = b->rows[e];
+                const float *p = table + 3 * (int64_t)s;
+                float d = (x[0] - p[0]) * (x[0] - p[0]) + (x[1] - p[1]) * (x[1] - p[1]) + (x[2] - p[2]) * (x[2] - p[2]);
+                if (d < best || (d == best && s < row)) best = d, row = s;
+            }
+        }
+    return row;
+}
+
 /* C (3x3) and the weighted mean c_m (3) of the model points table[rows] against the weighted, centred observed
    points d (m, 4: w_i (p_i - c_p), w_i). */
 static void POSEGRASP_CLONES covariance(const float *table, const int32_t *rows, const float (*d)[4], int64_t m,
@@ -124,17 +150,17 @@ static void POSEGRASP_CLONES covariance(const float *table, const int32_t *rows,
     cm[0] = m0, cm[1] = m1, cm[2] = m2;
 }
 
-/* ``steps`` ICP steps of every row (R (H, 3, 3), t (H, 3) updated in place); ``matches`` (H, N) table rows of the
-   observed points, or NULL: the grids' (then ``g`` may not be NULL). ``held`` (H,), ``low`` (H,), ``plane`` (4):
-   the held rows (module comment). Returns 0; -1 where a row's object has no weight, -2 out of memory. */
-int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const int32_t *matches, int64_t steps,
-                        float *R, float *t, const uint8_t *held, const float *low, const float *plane) {
+/* ``steps`` ICP steps of every row (R (H, 3, 3), t (H, 3) updated in place), each observed point matched to the
+   model point the grids store for its cell, or with ``exact``, to its nearest one (``nearest``). ``held`` (H,),
+   ``low`` (H,), ``plane`` (4): the held rows (module comment). Returns 0; -1 where a row's object has no weight, -2
+   out of memory. */
+int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const struct buckets *b, int exact,
+                        int64_t steps, float *R, float *t, const uint8_t *held, const float *low, const float *plane) {
     int64_t N = obs->n;
     int status = 0;
     float *x = malloc(N * 3 * sizeof(float)), (*d)[4] = malloc(N * sizeof(*d));
     int32_t *rows = malloc(N * sizeof(int32_t));
-    int64_t *kept = malloc(N * sizeof(int64_t));
-    if (!x || !d || !rows || !kept) status = -2;
+    if (!x || !d || !rows) status = -2;
     float *y = x + N, *z = x + 2 * N;
     for (int64_t h = 0; h < obs->rows && status == 0; h++) {
         int64_t o = obs->obj[h], m = 0;
@@ -153,14 +179,15 @@ int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const
             double wi = w[i] / total;
             x[m] = p[3 * i], y[m] = p[3 * i + 1], z[m] = p[3 * i + 2];
             for (int a = 0; a < 3; a++) d[m][a] = (float)(wi * (p[3 * i + a] - cp[a] / total));
-            d[m][3] = (float)wi, kept[m++] = i;
+            d[m++][3] = (float)wi;
         }
         float *Rh = R + 9 * h, *th = t + 3 * h;
         for (int64_t step = 0; step < steps; step++) {
-            if (matches == NULL) {
-                grid_matches(g, o, Rh, th, x, y, z, m, rows);
-            } else {
-                for (int64_t i = 0; i < m; i++) rows[i] = matches[h * N + kept[i]];
+            grid_matches(g, o, Rh, th, x, y, z, m, rows);
+            for (int64_t i = 0; i < m && exact; i++) {
+                float d[3] = {x[i] - th[0], y[i] - th[1], z[i] - th[2]}, local[3];  /* R^T (p - t) */
+                for (int a = 0; a < 3; a++) local[a] = Rh[a] * d[0] + Rh[3 + a] * d[1] + Rh[6 + a] * d[2];
+                rows[i] = nearest(b, obs->table, o, local, rows[i]);
             }
             double C[9], cm[3], Rn[9], tn[3];
             covariance(obs->table, rows, (const float (*)[4])d, m, C, cm);
@@ -183,6 +210,6 @@ int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const
             for (int a = 0; a < 3; a++) th[a] = (float)tn[a];
         }
     }
-    free(x), free(d), free(rows), free(kept);
+    free(x), free(d), free(rows);
     return status;
 }

@@ -30,6 +30,14 @@ struct grids {
     const int32_t *start, *index;
 };
 
+/* The objects' buckets (``Buckets``) for exact matches: first cube ``lo`` (O, 3), side ``size`` (O,), cubes ``shape``
+   (O, 3), each object's first entry ``start`` (O,) in ``first``, where cube k's table rows begin in ``rows`` (and
+   cube k + 1's, after them). */
+struct buckets {
+    const float *lo, *size;
+    const int32_t *shape, *start, *first, *rows;
+};
+
 /* The objects' signed distance fields (``Fields``): first node ``lo`` (O, 3), side ``cell`` (O,), last node ``top``
    (O, 3), the distance ``margin`` (O,) beyond them, flat strides (O, 3), first entry ``start`` (O,) in ``values``. */
 struct fields {

@@ -44,8 +44,8 @@ class FitConfig:
 
     #: ICP steps per start, the exact steps included: all but those come before the turns, those last.
     iterations: int = field(default=12, metadata=within(0, 1000))
-    #: Last steps (at most ``iterations``) matching each point to its exact nearest model point (k-d tree) instead of
-    #: the voxel grid's.
+    #: Last steps (at most ``iterations``) matching each point to its exact nearest model point (``grids``' buckets)
+    #: instead of the voxel grid's.
     exact_steps: int = field(default=3, metadata=within(0, 1000))
     #: Best-scoring fits per object (each turned >= 10 deg from the others) that go on to the exact steps (0: all).
     polish: int = field(default=3, metadata=within(0, 100000))

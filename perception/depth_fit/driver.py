@@ -168,10 +168,6 @@ def _grid_steps(frame: FitContext, fits: _Fits, n: int) -> _Fits:
 
 
 def _exact_steps(frame: FitContext, fits: _Fits, n: int) -> _Fits:
-    """``n`` ICP steps, each observed point matched to its exact nearest model point (a k-d tree of the model)."""
-    p = frame.points[fits.obj]
-    for _ in range(n):
-        nn = frame.grids.exact((p - fits.t[:, None]) @ fits.R, fits.obj)  # (H, N)
-        R, t = icp.steps(frame, fits.R, fits.t, fits.obj, fits.held, fits.low, 1, nn)
-        fits = dataclasses.replace(fits, R=R, t=t)
-    return fits
+    """``n`` ICP steps, each observed point matched to its exact nearest model point (``icp``)."""
+    R, t = icp.steps(frame, fits.R, fits.t, fits.obj, fits.held, fits.low, n, exact=True)
+    return dataclasses.replace(fits, R=R, t=t)

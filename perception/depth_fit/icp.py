@@ -1,7 +1,7 @@
 """The depth fit's ICP steps, batched over fits, in compiled code (``_icp.c``, built with the package).
 
 Each step matches every observed point p_i of a fit (weight w_i) to a model point m_i, by the voxel grid's lookup
-(``grids``) or as given, and refits its rotation R and translation t (object to camera, m):
+(``grids``) or its exact nearest one, and refits its rotation R and translation t (object to camera, m):
 
 - free fits, weighted Kabsch: R = argmax tr(R C), C = sum_i m_i (w_i (p_i - c_p))^T (weights normalised to sum to
   1, c_p their weighted centroid), by Horn's unit quaternion, or R kept where every point is matched to one model
@@ -25,21 +25,16 @@ from posegrasp.perception.depth_fit.kernels import LIB
 
 
 def steps(frame: FitContext, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor, held: torch.Tensor,
-          low: torch.Tensor, n: int, matches: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+          low: torch.Tensor, n: int, exact: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """The fits R (H, 3, 3), t (H, 3) of objects obj (H,) after ``n`` ICP steps against ``frame``'s observed points,
-    matched by its grids, or to the model points ``matches`` (H, N) (rows of ``frame.models[obj]``; then n = 1);
-    rows ``held`` (H,) turned about the plane's normal and kept at ``low`` (H,) (module doc). New tensors."""
+    each matched by its grids, or with ``exact`` to its nearest model point; rows ``held`` (H,) turned about the
+    plane's normal and kept at ``low`` (H,) (module doc). New tensors."""
     k = frame.kernels
     R, t = R.float().contiguous().clone(), t.float().contiguous().clone()
     held, low = held.to(torch.uint8).contiguous(), low.float().contiguous()
-    if matches is None:
-        obs, keep = k.observed(obj)
-        rows = None
-    else:  # rows of the (O M, 3) stacked models
-        obs, keep = k.observed(obj, k.models.view(-1, 3))
-        rows = (matches + keep[:, None] * k.models.shape[1]).int().contiguous()
-    status = LIB.posegrasp_icp_steps(obs, k.grids, None if rows is None else rows.data_ptr(), n, R.data_ptr(),
-                                     t.data_ptr(), held.data_ptr(), low.data_ptr(), k.plane.data_ptr())
+    obs, keep = k.observed(obj)
+    status = LIB.posegrasp_icp_steps(obs, k.grids, k.buckets, int(exact), n, R.data_ptr(), t.data_ptr(),
+                                     held.data_ptr(), low.data_ptr(), k.plane.data_ptr())
     if status != 0:
         raise PosegraspError("depth fit ICP: " + ("an object has no observed point with weight" if status == -1
                                                    else "out of memory"))

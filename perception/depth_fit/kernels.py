@@ -32,6 +32,10 @@ class CGrids(ctypes.Structure):
     _fields_ = [(name, _P) for name in ("lo", "cell", "last", "strides", "start", "index")]
 
 
+class CBuckets(ctypes.Structure):
+    _fields_ = [(name, _P) for name in ("lo", "size", "shape", "start", "first", "rows")]
+
+
 class CFields(ctypes.Structure):
     _fields_ = [(name, _P) for name in ("values", "lo", "cell", "top", "margin", "strides", "start")]
 
@@ -56,8 +60,8 @@ def _library() -> ctypes.CDLL:
                              "posegrasp with pip (`make setup` or `pip install -e .`), which builds them")
     lib = ctypes.CDLL(str(found[0]))
     lib.posegrasp_icp_steps.restype = ctypes.c_int
-    lib.posegrasp_icp_steps.argtypes = [ctypes.POINTER(CObserved), ctypes.POINTER(CGrids), _P, ctypes.c_int64,
-                                        _P, _P, _P, _P, _P]
+    lib.posegrasp_icp_steps.argtypes = [ctypes.POINTER(CObserved), ctypes.POINTER(CGrids), ctypes.POINTER(CBuckets),
+                                        ctypes.c_int, ctypes.c_int64, _P, _P, _P, _P, _P]
     lib.posegrasp_scores.restype = ctypes.c_int
     lib.posegrasp_scores.argtypes = [ctypes.POINTER(CObserved), ctypes.POINTER(CGrids), ctypes.POINTER(CFields),
                                      ctypes.POINTER(CScene), ctypes.POINTER(CScoreConfig), ctypes.c_int64, _P, _P, _P]
@@ -72,8 +76,8 @@ def _ptr(x: torch.Tensor | None) -> int | None:
 
 
 class KernelFrame:
-    """A ``FitContext`` as the kernels' structures (``grids``, ``fields``, ``scene``), and ``observed(obj)``: its
-    observed points for fits of objects obj (H,); the tensors they point into are kept here."""
+    """A ``FitContext`` as the kernels' structures (``grids``, ``buckets``, ``fields``, ``scene``), and
+    ``observed(obj)``: its observed points for fits of objects obj (H,); the tensors they point into are kept here."""
 
     def __init__(self, frame: FitContext):
         g, f = frame.grids, frame.grids.fields
@@ -93,11 +97,14 @@ class KernelFrame:
         self.scene = CScene(self.models.shape[1], h, w, 0 if sup is None else sup.shape[1],
                            *map(_ptr, self.keep[16:19]), K[0, 0], K[1, 1], K[0, 2], K[1, 2], _ptr(plane), _ptr(sup))
         self.plane = plane if plane is not None else torch.zeros(4)
+        b = [x.contiguous() for x in (g.bucket_lo, g.bucket_size, g.bucket_shape, g.bucket_start, g.bucket_first,
+                                      g.bucket_rows)]
+        self.keep += b
+        self.buckets = CBuckets(*map(_ptr, b))
 
-    def observed(self, obj: torch.Tensor, table: torch.Tensor | None = None) -> tuple[CObserved, torch.Tensor]:
-        """The structure of the fits of objects obj (H,) (matched to the rows of ``table`` (R, 3), else of the grids'
-        model points), and the int64 obj it points into (keep it alive for the call)."""
+    def observed(self, obj: torch.Tensor) -> tuple[CObserved, torch.Tensor]:
+        """The structure of the fits of objects obj (H,), and the int64 obj it points into (keep it alive for the
+        call)."""
         obj = obj.long().contiguous()
-        table = self.table if table is None else table
         return CObserved(len(obj), self.points.shape[1], self.points.data_ptr(), self.weights.data_ptr(),
-                        obj.data_ptr(), table.data_ptr()), obj
+                         obj.data_ptr(), self.table.data_ptr()), obj

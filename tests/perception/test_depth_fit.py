@@ -88,21 +88,6 @@ def test_nearest_grid_matches_within_half_a_cell_diagonal():
                      DepthFitConfig(score=ScoreConfig(truncation=0.02)))
 
 
-def test_grids_exact_lookups():
-    """Two objects' grids as one lookup: ``exact`` gives each point's true nearest model point, its row within its own
-    model."""
-    from posegrasp.perception.depth_fit.grids import Grids
-
-    rng = np.random.default_rng(1)
-    models = [rng.uniform(-1, 1, (500, 3)) * [0.03, 0.015, 0.01], rng.uniform(-1, 1, (300, 3)) * 0.02]
-    grids = Grids([NearestGrid(m) for m in models], 500)
-    obj = torch.tensor([0, 1, 1, 0])
-    local = torch.from_numpy(rng.uniform(-0.04, 0.04, (4, 200, 3))).float()  # object frame
-    idx = grids.exact(local, obj)
-    for h, o in enumerate(obj.tolist()):
-        assert np.array_equal(idx[h].numpy(), cKDTree(models[o]).query(local[h].numpy())[1])
-
-
 def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The weighted least-squares R, t of dst ~ R src + t (N, 3 each), by the SVD, in float64."""
     w = w / w.sum()
@@ -131,9 +116,9 @@ def _two_objects(rng: np.random.Generator):
 
 
 def test_icp_steps_are_the_weighted_least_squares_fits():
-    """``icp.steps`` with the observed points' model points given is one weighted Kabsch step (the SVD's, float64, to
-    float32's precision), of a full-rank and of a rank-2 cross-covariance alike, rows of one object repeated; with
-    the grids' matches, each step that of the model points the grid gives."""
+    """``icp.steps``: each step is the weighted Kabsch fit (the SVD's, float64, to float32's precision) of the observed
+    points to their matched model points, the grid's or (``exact``) the nearest (a k-d tree's), for 1 and 5 steps, of
+    a full-rank and of a rank-2 cross-covariance alike, rows of one object repeated."""
     from posegrasp.perception.depth_fit import icp
 
     rng = np.random.default_rng(2)
@@ -143,26 +128,22 @@ def test_icp_steps_are_the_weighted_least_squares_fits():
            for o in obj.tolist()]
     R0 = torch.tensor(np.stack([T[:3, :3] for T in off]), dtype=torch.float32)
     t0 = torch.tensor(np.stack([T[:3, 3] for T in off]), dtype=torch.float32)
-    matches = torch.zeros(3, frame.points.shape[1], dtype=torch.long)
-    for h, o in enumerate(obj.tolist()):
-        matches[h, :len(rows[o])] = torch.from_numpy(rows[o])
     no = torch.zeros(3, dtype=torch.bool)
-    R, t = icp.steps(frame, R0, t0, obj, no, torch.zeros(3), 1, matches)
-    for h, o in enumerate(obj.tolist()):
-        R_ref, t_ref = _kabsch(models[o][rows[o]], observed[o], np.ones(len(rows[o])))
-        np.testing.assert_allclose(R[h].numpy(), R_ref, atol=2e-6)
-        np.testing.assert_allclose(t[h].numpy(), t_ref, atol=2e-6)
-    for n in (1, 5):  # the grids' matches: n Kabsch steps, each of the grid's model points
-        R, t = icp.steps(frame, R0, t0, obj, no, torch.zeros(3), n)
+    trees = [cKDTree(m) for m in models]
+    for exact, n in itertools.product((False, True), (1, 5)):
+        R, t = icp.steps(frame, R0, t0, obj, no, torch.zeros(3), n, exact=exact)
         R_ref, t_ref = R0.double().numpy(), t0.double().numpy()
         for _ in range(n):
-            local = (frame.points[obj] - torch.from_numpy(t_ref).float()[:, None]) @ torch.from_numpy(R_ref).float()
-            grid_rows = (frame.grids(local, obj).long() - obj[:, None] * frame.models.shape[1]).numpy()
             for h, o in enumerate(obj.tolist()):
-                n_o = len(rows[o])
-                R_ref[h], t_ref[h] = _kabsch(models[o][grid_rows[h, :n_o]], observed[o], np.ones(n_o))
-        np.testing.assert_allclose(R.numpy(), R_ref, atol=1e-5)
-        np.testing.assert_allclose(t.numpy(), t_ref, atol=1e-5)
+                local = (observed[o] - t_ref[h]) @ R_ref[h]  # object frame
+                if exact:
+                    match = trees[o].query(local)[1]
+                else:
+                    x = torch.from_numpy(local).float()[None]
+                    match = (frame.grids(x, obj[h:h + 1])[0].long() - o * frame.models.shape[1]).numpy()
+                R_ref[h], t_ref[h] = _kabsch(models[o][match], observed[o], np.ones(len(rows[o])))
+        np.testing.assert_allclose(R.numpy(), R_ref, atol=2e-5)
+        np.testing.assert_allclose(t.numpy(), t_ref, atol=2e-5)
 
 
 @pytest.mark.slow
@@ -489,30 +470,30 @@ def test_the_lowest_point_over_the_hull_is_the_lowest_model_point():
 
 
 def test_the_held_fit_turns_about_the_normal_and_shifts_to_the_exact_least_squares_pose():
-    """``icp.steps`` with rows held: targets made by turning R0 m about the plane's normal n by 0.4 rad and shifting
-    along the plane give back that turn and shift in one step (a free row the same), and each held row keeps its
-    lowest model point's height ``low``; ``turns_about`` is Rodrigues' formula."""
+    """``icp.steps`` with rows held: targets made by turning R0 m about the plane's normal n by 0.03 rad and shifting
+    along the plane (a lattice of model points 1 cm apart, so that each point's nearest is its own) give back that
+    turn and shift in one exact step (a free row the same), and each held row keeps its lowest model point's height
+    ``low``; ``turns_about`` is Rodrigues' formula."""
     from posegrasp.perception.depth_fit import icp
     from posegrasp.perception.depth_fit.context import FitContext
     from posegrasp.perception.torch_geometry import turns_about
 
-    rng = np.random.default_rng(0)
     n = np.array([0.0, -0.6, -0.8])
-    src = rng.normal(scale=0.02, size=(50, 3))
+    src = np.stack(np.meshgrid(*[np.arange(k) * 0.01 for k in (4, 4, 3)], indexing="ij"), -1).reshape(-1, 3)
     R0 = np.stack([np.eye(3), axis_angle_R(np.array([1.0, 0.0, 0.0]), 0.3)])
-    G, shift = axis_angle_R(n, 0.4), np.array([0.1, 0.2, 0.5])
+    G, shift = axis_angle_R(n, 0.03), np.array([0.1, 0.2, 0.5])
     dst = [src @ (G @ R).T + shift for R in R0]
     plane = np.array([*n, 0.3], dtype=np.float32)  # the shift's height over it: n . shift + d
     low = torch.full((2,), -float(n @ shift + plane[3]))
     frame = FitContext.of([ObjectModel.of_points(src)] * 2, dst, np.zeros((8, 8)), np.eye(3), plane)
     f = lambda a: torch.from_numpy(a).float()  # noqa: E731
-    rows = torch.arange(50).expand(2, 50)
+    t0 = f(np.tile(shift + 0.001 * np.cross(n, [1.0, 0.0, 0.0]), (2, 1)))  # 1 mm off along the plane
     for held in ([True, True], [False, True]):
-        R, t = icp.steps(frame, f(R0), torch.zeros(2, 3), torch.arange(2), torch.tensor(held), low, 1, rows)
+        R, t = icp.steps(frame, f(R0), t0, torch.arange(2), torch.tensor(held), low, 1, exact=True)
         np.testing.assert_allclose(R.numpy(), G @ R0, atol=1e-5)
         np.testing.assert_allclose(t.numpy(), np.tile(shift, (2, 1)), atol=1e-5)
     turns = turns_about(f(n), torch.tensor([0.4, -1.0]))
-    np.testing.assert_allclose(turns.numpy(), [G, axis_angle_R(n, -1.0)], atol=1e-6)
+    np.testing.assert_allclose(turns.numpy(), [axis_angle_R(n, 0.4), axis_angle_R(n, -1.0)], atol=1e-6)
 
 
 def test_the_pattern_search_walks_a_pose_down_its_score_along_the_plane():
