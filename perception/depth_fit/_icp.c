@@ -7,8 +7,9 @@
    the largest eigenvalue of the symmetric 4x4 matrix of C (Jacobi rotations, double precision), or R unchanged where
    every point is matched to one model point (C = 0: no rotation is pinned); t = c_p - R c_m;
    held rows (resting on the plane n . x + d = 0): R = G(a) R0, a = atan2(B, A), A = tr C' - n^T C' n,
-   B = n . (C'_yz - C'_zy, C'_zx - C'_xz, C'_xy - C'_yx), C' = R0 C; then t moved along n to keep the row's lowest
-   model point at height ``low`` below the plane's. Camera-frame metres, row-major float32 matrices. */
+   B = n . (C'_yz - C'_zy, C'_zx - C'_xz, C'_xy - C'_yx), C' = R0 C; then t moved along n to set the row back resting
+   on the plane: its lowest model point's height, ``low`` + n . t + d, made 0. Camera-frame metres, row-major float32
+   matrices. */
 
 #include <math.h>
 #include <stdlib.h>

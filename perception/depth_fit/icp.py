@@ -8,8 +8,8 @@ Each step matches every observed point p_i of a fit (weight w_i) to a model poin
   point (C = 0: no rotation is pinned, as for a start far from its points); t = c_p - R c_m;
 - held fits (resting on the plane, unit normal n): R = G(a) R0, G(a) the turn by a about n, R0 the fit's rotation;
   with C' = R0 C, sum_i w_i G(a) R0 m_i . (p_i - c_p) = cos(a) A + sin(a) B, A = tr C' - n^T C' n and
-  B = n . (C'_yz - C'_zy, C'_zx - C'_xz, C'_xy - C'_yx), so a = atan2(B, A); then t is moved along n to keep the
-  fit's lowest model point where it was relative to the plane (``low``).
+  B = n . (C'_yz - C'_zy, C'_zx - C'_xz, C'_xy - C'_yx), so a = atan2(B, A); then t is moved along n to set the fit
+  back resting on the plane n . x + d = 0: its lowest model point's height, ``low`` + n . t + d, made 0.
 
 The steps of a batch of fits run in one call that releases the GIL, so the batches of the driver's threads run side
 by side. Camera-frame metres.
@@ -28,7 +28,7 @@ def steps(frame: FitContext, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor
           low: torch.Tensor, n: int, exact: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """The fits R (H, 3, 3), t (H, 3) of objects obj (H,) after ``n`` ICP steps against ``frame``'s observed points,
     each matched by its grids, or with ``exact`` to its nearest model point; rows ``held`` (H,) turned about the
-    plane's normal and kept at ``low`` (H,) (module doc). New tensors."""
+    plane's normal and set back resting on it (``low`` (H,): module doc). New tensors."""
     k = frame.kernels
     R, t = R.float().contiguous().clone(), t.float().contiguous().clone()
     held, low = held.to(torch.uint8).contiguous(), low.float().contiguous()
