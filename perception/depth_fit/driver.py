@@ -87,8 +87,8 @@ def _fit(frame: FitContext, cfg: DepthFitConfig, rivals: Rivals | None, fits: _F
     """The fits from their starts on: grid steps, turns, exact steps and searches (``perception.depth_fit``), with
     their objects' rivals dropped along the way; each object's final candidates and their scores."""
     rank = partial(score, frame, cfg.score)
-    exact = min(cfg.fit.exact_steps, cfg.fit.iterations)
-    fits = _grid_steps(frame, fits, cfg.fit.iterations - exact)
+    exact_steps = min(cfg.fit.exact_steps, cfg.fit.iterations)
+    fits = _steps(frame, fits, cfg.fit.iterations - exact_steps)
     ranked = rank(fits.R, fits.t, fits.obj)
     if rivals is not None:  # types of a part that trail its best by far are fitted no further
         fits, ranked = _winners(fits, ranked, rivals, rivals.steps_margin)
@@ -99,7 +99,7 @@ def _fit(frame: FitContext, cfg: DepthFitConfig, rivals: Rivals | None, fits: _F
             fits, ranked = _winners(fits, ranked, rivals, rivals.turns_margin)
     if 0 < cfg.fit.polish < int(torch.bincount(fits.obj).max()):  # each object's best by the grid's score go on
         fits = fits.rows(best_rows(ranked, fits.obj, cfg.fit.polish, fits.R))
-    fits = _exact_steps(frame, fits, exact)
+    fits = _steps(frame, fits, exact_steps, exact=True)
     fine = partial(score, frame, cfg.score, fine=True)
     poses = yaw_search(Scored(fits.R, fits.t, fits.obj, fine(fits.R, fits.t, fits.obj)), frame.normal, cfg.search,
                        fine)
@@ -158,16 +158,11 @@ def _turns(frame: FitContext, fits: _Fits, cfg: TurnConfig, ranked: torch.Tensor
     fits = fits.rows(best_rows(ranked, fits.obj, cfg.seeds,
                                face=up_face(fits.R, normal, frame.ups[fits.obj])))
     R, obj, source = turned(fits.R, fits.obj, normal, cfg.step_deg, frame.symmetries)
-    return _grid_steps(frame, _Fits(R, fits.t[source], obj, fits.held[source], fits.low[source]), cfg.iterations)
+    return _steps(frame, _Fits(R, fits.t[source], obj, fits.held[source], fits.low[source]), cfg.iterations)
 
 
-def _grid_steps(frame: FitContext, fits: _Fits, n: int) -> _Fits:
-    """``n`` ICP steps, each observed point matched to the grid's nearest model point (``icp``)."""
-    R, t = icp.steps(frame, fits.R, fits.t, fits.obj, fits.held, fits.low, n)
-    return dataclasses.replace(fits, R=R, t=t)
-
-
-def _exact_steps(frame: FitContext, fits: _Fits, n: int) -> _Fits:
-    """``n`` ICP steps, each observed point matched to its exact nearest model point (``icp``)."""
-    R, t = icp.steps(frame, fits.R, fits.t, fits.obj, fits.held, fits.low, n, exact=True)
+def _steps(frame: FitContext, fits: _Fits, n: int, exact: bool = False) -> _Fits:
+    """``n`` ICP steps (``icp``), each observed point matched to the grid's nearest model point, or with ``exact`` to
+    its exact nearest one."""
+    R, t = icp.steps(frame, fits.R, fits.t, fits.obj, fits.held, fits.low, n, exact)
     return dataclasses.replace(fits, R=R, t=t)

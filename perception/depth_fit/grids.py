@@ -5,7 +5,7 @@ widened by ``margin``, the index of the model point nearest c. A point p in that
 diagonal h of c, so the stored point is at most 2 h farther from p than p's true nearest point; points beyond the
 grid take the nearest point of its closest cell. An ICP step then costs O(H N) lookups instead of the O(H N M)
 distances of an exhaustive search. The exact nearest point lies no farther from p than the stored one, at distance
-r: it is found among the model points in the buckets (a coarser grid of side ``bucket``, each listing its points)
+r: it is found among the model points in the ``Buckets`` (the cubes of a coarser grid, each listing its points)
 that the cube p +- r meets. ``Grids`` stacks several objects' grids into one batched lookup. Object frame, metres.
 """
 
