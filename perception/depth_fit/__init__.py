@@ -4,8 +4,8 @@ against the depth image.
 The pose net's translations are good but its rotations often sit on a near-symmetry of a block (a brick turned 90 deg
 or an arch upside down covers almost the same points), so this stage, like PoseCNN's and DenseFusion's "+ICP", fits
 each object's model to its observed points from H starts and keeps the fit with the lowest score. Its stages, in the
-order ``fit_poses`` (``driver``) runs them, all objects of a frame as one batch (with several torch threads, a
-batch of whole parts per thread):
+order ``fit_poses`` (``driver``) runs them, all objects of a frame as one batch (its rows shared out over torch's
+threads in the compiled kernels, ``kernels``):
 
 1. Starts (``starts``, ``StartConfig``): R_est Q for the 24 rotations Q of the cube group, less those that start the
    same fit under the object's symmetries. Given the supporting plane, each also starts moved along its normal n to

@@ -15,6 +15,7 @@
 #include <stdlib.h>
 
 #include "_kernels.h"
+#include "_parallel.h"
 
 /* The rotation R (3x3) maximising tr(R C) for C[a][b] = sum_i s_a d_b (Horn 1987). */
 static void horn_rotation(const double C[9], double R[9]) {
@@ -151,19 +152,30 @@ static void POSEGRASP_CLONES covariance(const float *table, const int32_t *rows,
     cm[0] = m0, cm[1] = m1, cm[2] = m2;
 }
 
-/* ``steps`` ICP steps of every row (R (H, 3, 3), t (H, 3) updated in place), each observed point matched to the
-   model point the grids store for its cell, or with ``exact``, to its nearest one (``nearest``). ``held`` (H,),
-   ``low`` (H,), ``plane`` (4): the held rows (module comment). Returns 0; -1 where a row's object has no weight, -2
-   out of memory. */
-int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const struct buckets *b, int exact,
-                        int64_t steps, float *R, float *t, const uint8_t *held, const float *low, const float *plane) {
+/* A batch of ICP steps (``posegrasp_icp_steps``' arguments). */
+struct icp_work {
+    const struct observed *obs;
+    const struct grids *g;
+    const struct buckets *b;
+    int exact;
+    int64_t steps;
+    float *R, *t;
+    const uint8_t *held;
+    const float *low, *plane;
+};
+
+/* The steps of rows [begin, end) of a batch: 0, -1 where a row's object has no weight, -2 out of memory. */
+static int icp_rows(void *arg, int64_t begin, int64_t end) {
+    const struct icp_work *wk = arg;
+    const struct observed *obs = wk->obs;
+    const float *plane = wk->plane;
     int64_t N = obs->n;
     int status = 0;
     float *x = malloc(N * 3 * sizeof(float)), (*d)[4] = malloc(N * sizeof(*d));
     int32_t *rows = malloc(N * sizeof(int32_t));
     if (!x || !d || !rows) status = -2;
     float *y = x + N, *z = x + 2 * N;
-    for (int64_t h = 0; h < obs->rows && status == 0; h++) {
+    for (int64_t h = begin; h < end && status == 0; h++) {
         int64_t o = obs->obj[h], m = 0;
         const float *p = obs->points + o * N * 3, *w = obs->weights + o * N;
         double total = 0, cp[3] = {0, 0, 0};
@@ -182,19 +194,19 @@ int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const
             for (int a = 0; a < 3; a++) d[m][a] = (float)(wi * (p[3 * i + a] - cp[a] / total));
             d[m++][3] = (float)wi;
         }
-        float *Rh = R + 9 * h, *th = t + 3 * h;
-        for (int64_t step = 0; step < steps; step++) {
-            grid_matches(g, o, Rh, th, x, y, z, m, rows);
-            for (int64_t i = 0; i < m && exact; i++) {
+        float *Rh = wk->R + 9 * h, *th = wk->t + 3 * h;
+        for (int64_t step = 0; step < wk->steps; step++) {
+            grid_matches(wk->g, o, Rh, th, x, y, z, m, rows);
+            for (int64_t i = 0; i < m && wk->exact; i++) {
                 float d[3] = {x[i] - th[0], y[i] - th[1], z[i] - th[2]}, local[3];  /* R^T (p - t) */
                 for (int a = 0; a < 3; a++) local[a] = Rh[a] * d[0] + Rh[3 + a] * d[1] + Rh[6 + a] * d[2];
-                rows[i] = nearest(b, obs->table, o, local, rows[i]);
+                rows[i] = nearest(wk->b, obs->table, o, local, rows[i]);
             }
             double C[9], cm[3], Rn[9], tn[3];
             covariance(obs->table, rows, (const float (*)[4])d, m, C, cm);
             int one = 1;  /* every point matched to one model point: no rotation is pinned, the row keeps its own */
             for (int64_t i = 1; i < m; i++) one &= rows[i] == rows[0];
-            if (held[h]) {
+            if (wk->held[h]) {
                 held_rotation(C, Rh, plane, Rn);
             } else if (!one) {
                 horn_rotation(C, Rn);
@@ -203,8 +215,8 @@ int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const
             }
             for (int a = 0; a < 3; a++)
                 tn[a] = cp[a] / total - (Rn[3 * a] * cm[0] + Rn[3 * a + 1] * cm[1] + Rn[3 * a + 2] * cm[2]);
-            if (held[h]) {
-                double e = low[h] + tn[0] * plane[0] + tn[1] * plane[1] + tn[2] * plane[2] + plane[3];
+            if (wk->held[h]) {
+                double e = wk->low[h] + tn[0] * plane[0] + tn[1] * plane[1] + tn[2] * plane[2] + plane[3];
                 for (int a = 0; a < 3; a++) tn[a] -= e * plane[a];
             }
             for (int k = 0; k < 9; k++) Rh[k] = (float)Rn[k];
@@ -213,4 +225,15 @@ int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const
     }
     free(x), free(d), free(rows);
     return status;
+}
+
+/* ``steps`` ICP steps of every row (R (H, 3, 3), t (H, 3) updated in place), each observed point matched to the
+   model point the grids store for its cell, or with ``exact``, to its nearest one (``nearest``). ``held`` (H,),
+   ``low`` (H,), ``plane`` (4): the held rows (module comment). The rows run on up to ``threads`` threads
+   (``posegrasp_parallel``). Returns 0; -1 where a row's object has no weight, -2 out of memory. */
+int posegrasp_icp_steps(const struct observed *obs, const struct grids *g, const struct buckets *b, int exact,
+                        int64_t steps, float *R, float *t, const uint8_t *held, const float *low, const float *plane,
+                        int64_t threads) {
+    struct icp_work work = {obs, g, b, exact, steps, R, t, held, low, plane};
+    return posegrasp_parallel(icp_rows, &work, obs->rows, threads);
 }

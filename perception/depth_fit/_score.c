@@ -5,6 +5,7 @@
 #include <stdlib.h>
 
 #include "_kernels.h"
+#include "_parallel.h"
 
 /* torch.lerp's a + w (b - a), from the nearer end. */
 static inline float lerp(float a, float b, float w) { return w < 0.5f ? a + w * (b - a) : b - (b - a) * (1.0f - w); }
@@ -107,23 +108,35 @@ static struct model_terms POSEGRASP_CLONES model_terms(const struct scene *sc, f
     return out;
 }
 
-/* The scores (H,) (m) of the fits R (H, 3, 3), t (H, 3) of objects obs->obj, on the first k model points; with
-   ``f`` (the fine scores) the distances from the fields, else to the grids' model points. Returns 0, or -1 out of
-   memory. */
-int posegrasp_scores(const struct observed *obs, const struct grids *g, const struct fields *f,
-                      const struct scene *sc, const struct score_config *cfg, int64_t k, const float *R,
-                      const float *t, float *out) {
+/* A batch of scores (``posegrasp_scores``' arguments). */
+struct score_work {
+    const struct observed *obs;
+    const struct grids *g;
+    const struct fields *f;
+    const struct scene *sc;
+    const struct score_config *cfg;
+    int64_t k;
+    const float *R, *t;
+    float *out;
+};
+
+/* The scores of rows [begin, end) of a batch: 0, or -1 out of memory. */
+static int score_rows(void *arg, int64_t begin, int64_t end) {
+    const struct score_work *wk = arg;
+    const struct score_config *cfg = wk->cfg;
+    const struct scene *sc = wk->sc;
     const float *pl = sc->plane;
+    int64_t k = wk->k;
     int32_t *pix = malloc(k * sizeof(int32_t));
     float *z = malloc(2 * k * sizeof(float));
     if (pix == NULL || z == NULL) {
         free(pix), free(z);
         return -1;
     }
-    for (int64_t h = 0; h < obs->rows; h++) {
-        int64_t o = obs->obj[h];
-        const float *Rh = R + 9 * h, *th = t + 3 * h;
-        double score = fit_term(obs, g, f, o, Rh, th, cfg->truncation);
+    for (int64_t h = begin; h < end; h++) {
+        int64_t o = wk->obs->obj[h];
+        const float *Rh = wk->R + 9 * h, *th = wk->t + 3 * h;
+        double score = fit_term(wk->obs, wk->g, wk->f, o, Rh, th, cfg->truncation);
         struct model_terms mt = model_terms(sc, cfg->violation_margin, sc->models + o * sc->m * 3, sc->ok + o * sc->m,
                                             k, Rh, th, pix, z, z + k);
         double violation = (double)mt.in_front / (mt.seen > 1 ? mt.seen : 1);
@@ -140,8 +153,18 @@ int posegrasp_scores(const struct observed *obs, const struct grids *g, const st
             float floating = (lowest - cfg->float_margin) / 0.01f;
             score += cfg->float_weight * (floating < 0 ? 0 : (floating > 1 ? 1 : floating));
         }
-        out[h] = (float)(score + cfg->violation_weight * violation);
+        wk->out[h] = (float)(score + cfg->violation_weight * violation);
     }
     free(pix), free(z);
     return 0;
+}
+
+/* The scores (H,) (m) of the fits R (H, 3, 3), t (H, 3) of objects obs->obj, on the first k model points; with
+   ``f`` (the fine scores) the distances from the fields, else to the grids' model points. The rows run on up to
+   ``threads`` threads (``posegrasp_parallel``). Returns 0, or -1 out of memory. */
+int posegrasp_scores(const struct observed *obs, const struct grids *g, const struct fields *f,
+                     const struct scene *sc, const struct score_config *cfg, int64_t k, const float *R,
+                     const float *t, float *out, int64_t threads) {
+    struct score_work work = {obs, g, f, sc, cfg, k, R, t, out};
+    return posegrasp_parallel(score_rows, &work, obs->rows, threads);
 }

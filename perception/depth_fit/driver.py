@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 
@@ -19,7 +18,6 @@ from posegrasp.perception.depth_fit.rivals import Rivals
 from posegrasp.perception.depth_fit.score import Scored, best_rows, score
 from posegrasp.perception.depth_fit.search import pattern_search, yaw_search
 from posegrasp.perception.depth_fit.starts import rest_starts, resting, turned, up_face
-from posegrasp.perception.runtime import torch_threads
 
 
 def fit_pose(T_cam_obj: np.ndarray, model: ObjectModel, observed: np.ndarray, depth: np.ndarray, K: np.ndarray,
@@ -34,9 +32,8 @@ def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: 
     """The best-scoring fit of each object of a frame (``perception.depth_fit``): from its estimate T_cam_obj (4, 4),
     its ``ObjectModel`` and its observed points (N_o, 3) (camera frame, m), against the depth image (H, W) (m) seen
     through intrinsics K (3, 3), given the supporting plane (4,: n . x + d = 0, camera frame; ``perception.plane``)
-    or None. Returns (T_cam_obj fitted, its score in m) per object. The objects' fits run as one batch (much of a
-    step's cost is fixed), or with T > 1 torch threads as up to T batches of whole parts, one per thread (a step's
-    products keep about one core busy); each result is the one the object gets alone, up to float rounding. Given
+    or None. Returns (T_cam_obj fitted, its score in m) per object. The objects' fits run as one batch, its rows
+    shared out over torch's threads (``kernels``); each result is the one the object gets alone. Given
     ``rivals`` (``perception.depth_fit.rivals``: objects that are one part posed as several types), a type that trails
     its part's best is dropped along the way and returns its estimate with score inf."""
     if not estimates:
@@ -48,39 +45,9 @@ def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: 
                           f"margin ({min(short)} m); build the fields with margin >= truncation")
     frame = FitContext.of(models, observed, depth, K, plane)
     fits = _starts(frame, estimates, [x.hypotheses for x in models], cfg.starts.level_rests)
-    parts = list(range(len(estimates))) if rivals is None else rivals.part
-    chunks = _chunks(parts, fits.obj, torch.get_num_threads())
-    run = partial(_fit, frame, cfg, rivals)
-    if len(chunks) == 1:
-        done = [run(fits)]
-    else:  # a step's small batched products keep about one core busy: a chunk per thread, one torch thread each
-        with torch_threads(1), ThreadPoolExecutor(len(chunks)) as pool:
-            done = list(pool.map(run, [fits.rows(torch.isin(fits.obj, c)) for c in chunks]))
-    best = {o: c.best(o) for c in done for o in c.obj.unique().tolist()}
+    done = _fit(frame, cfg, rivals, fits)
+    best = {o: done.best(o) for o in done.obj.unique().tolist()}
     return [best.get(o, (estimates[o], float("inf"))) for o in range(len(estimates))]
-
-
-#: Fewest starts per chunk (below, a thread's start-up and the steps' fixed costs outweigh what it saves).
-CHUNK_ROWS = 500
-
-
-def _chunks(parts: list[int], obj: torch.Tensor, n: int) -> list[torch.Tensor]:
-    """The objects (indices) as up to ``n`` chunks of whole parts (rivals stay together; ``parts`` (O,): each object's
-    part), each of about as many (and at least ``CHUNK_ROWS``) fits, rows ``obj`` (H,): the largest part first into
-    the chunk with fewest."""
-    rows = torch.bincount(obj, minlength=len(parts)).tolist()
-    n = min(n, max(1, len(obj) // CHUNK_ROWS))
-    members: dict[int, list[int]] = {}
-    for o, p in enumerate(parts):
-        members.setdefault(p, []).append(o)
-    groups = sorted(((sum(rows[o] for o in g), g) for g in members.values()), key=lambda x: -x[0])
-    chunks: list[list[int]] = [[] for _ in range(min(n, len(groups)))]
-    load = [0] * len(chunks)
-    for size, g in groups:
-        i = load.index(min(load))
-        chunks[i] += g
-        load[i] += size
-    return [torch.tensor(sorted(c)) for c in chunks]
 
 
 def _fit(frame: FitContext, cfg: DepthFitConfig, rivals: Rivals | None, fits: _Fits) -> Scored:

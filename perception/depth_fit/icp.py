@@ -11,8 +11,7 @@ Each step matches every observed point p_i of a fit (weight w_i) to a model poin
   B = n . (C'_yz - C'_zy, C'_zx - C'_xz, C'_xy - C'_yx), so a = atan2(B, A); then t is moved along n to set the fit
   back resting on the plane n . x + d = 0: its lowest model point's height, ``low`` + n . t + d, made 0.
 
-The steps of a batch of fits run in one call that releases the GIL, so the batches of the driver's threads run side
-by side. Camera-frame metres.
+The steps of a batch of fits run in one call, its rows on torch's number of threads. Camera-frame metres.
 """
 
 from __future__ import annotations
@@ -34,7 +33,7 @@ def steps(frame: FitContext, R: torch.Tensor, t: torch.Tensor, obj: torch.Tensor
     held, low = held.to(torch.uint8).contiguous(), low.float().contiguous()
     obs, keep = k.observed(obj)
     status = LIB.posegrasp_icp_steps(obs, k.grids, k.buckets, int(exact), n, R.data_ptr(), t.data_ptr(),
-                                     held.data_ptr(), low.data_ptr(), k.plane.data_ptr())
+                                     held.data_ptr(), low.data_ptr(), k.plane.data_ptr(), torch.get_num_threads())
     if status != 0:
         raise PosegraspError("depth fit ICP: " + ("an object has no observed point with weight" if status == -1
                                                    else "out of memory"))

@@ -1,8 +1,9 @@
 """The depth fit's compiled kernels (``_icp.c``, ``_score.c``, built with the package as ``_kernels``), and the
 ctypes structures that hand them a frame's ``FitContext`` (``_kernels.h`` declares them).
 
-A kernel runs a whole batch of fits in one call, with the GIL released, so that the driver's threads (a batch of
-whole parts each) run side by side. The structures point into tensors that ``KernelFrame`` keeps alive.
+A kernel runs a whole batch of fits in one call, with the GIL released, its rows shared out over
+``torch.get_num_threads()`` threads of torch's own OpenMP team (``_parallel.h``): each row's result is the same on any
+number. The structures point into tensors that ``KernelFrame`` keeps alive.
 """
 
 from __future__ import annotations
@@ -61,10 +62,11 @@ def _library() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(found[0]))
     lib.posegrasp_icp_steps.restype = ctypes.c_int
     lib.posegrasp_icp_steps.argtypes = [ctypes.POINTER(CObserved), ctypes.POINTER(CGrids), ctypes.POINTER(CBuckets),
-                                        ctypes.c_int, ctypes.c_int64, _P, _P, _P, _P, _P]
+                                        ctypes.c_int, ctypes.c_int64, _P, _P, _P, _P, _P, ctypes.c_int64]
     lib.posegrasp_scores.restype = ctypes.c_int
     lib.posegrasp_scores.argtypes = [ctypes.POINTER(CObserved), ctypes.POINTER(CGrids), ctypes.POINTER(CFields),
-                                     ctypes.POINTER(CScene), ctypes.POINTER(CScoreConfig), ctypes.c_int64, _P, _P, _P]
+                                     ctypes.POINTER(CScene), ctypes.POINTER(CScoreConfig), ctypes.c_int64, _P, _P, _P,
+                                     ctypes.c_int64]
     return lib
 
 

@@ -40,7 +40,7 @@ def score(frame: FitContext, cfg: ScoreConfig, R: torch.Tensor, t: torch.Tensor,
                                  cfg.float_weight)
     points = k.models.shape[1] if fine else min(cfg.rank_points, k.models.shape[1])
     if kernels.LIB.posegrasp_scores(obs, k.grids, k.fields if fine else None, k.scene, config, points, R.data_ptr(),
-                                    t.data_ptr(), out.data_ptr()) != 0:
+                                    t.data_ptr(), out.data_ptr(), torch.get_num_threads()) != 0:
         raise PosegraspError("depth fit score: out of memory")
     return out
 
