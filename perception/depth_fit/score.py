@@ -76,17 +76,24 @@ def best_rows(score: torch.Tensor, obj: torch.Tensor, n: int, R: torch.Tensor | 
     pose count once); given ``face`` (H,), each kept row with a face label of its own."""
     keep = []
     cos_apart = float(np.cos(np.radians(apart_deg)))
+    labels = None if face is None else face.tolist()
     for o in obj.unique():
         rows = torch.nonzero(obj == o)[:, 0]
-        rows = rows[score[rows].argsort()]
-        kept = [int(rows[0])]
-        for r in rows[1:].tolist():
-            if len(kept) == n:
-                break
-            if face is not None:
-                if int(face[r]) not in face[kept].tolist():
-                    kept.append(r)
-            elif R is None or float(((torch.einsum("kij,ij->k", R[kept], R[r]) - 1) / 2).max()) < cos_apart:
-                kept.append(r)  # (the cosines of the angles between R_r and the kept rotations)
+        rows = rows[score[rows].argsort()].tolist()
+        if labels is not None:  # each face label's first row, in score order
+            first = {}
+            for r in rows:
+                first.setdefault(labels[r], r)
+            kept = list(first.values())[:n]
+        elif R is None:
+            kept = rows[:n]
+        else:
+            kept, turns = [rows[0]], R[rows[:1]]
+            for r in rows[1:]:
+                if len(kept) == n:
+                    break
+                if float(((torch.einsum("kij,ij->k", turns, R[r]) - 1) / 2).max()) < cos_apart:
+                    kept.append(r)  # (the cosines of the angles between R_r and the kept rotations)
+                    turns = R[kept]
         keep.append(torch.tensor(kept))
     return torch.cat(keep)
