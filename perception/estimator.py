@@ -48,7 +48,7 @@ from posegrasp.perception.int8 import runs_int8
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from posegrasp.perception.refiner import refine
 from posegrasp.perception.runtime import for_inference, with_one_blas_thread
-from posegrasp.perception.segmenter import Segmenter
+from posegrasp.perception.segmenter import ClassProbabilities, Segmenter
 from posegrasp.perception.split import SplitConfig, drop_duplicates, same_place, unexplained_parts
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
 from posegrasp.perception.type_check import TypeCheckConfig, best_per_part, candidates, cost
@@ -195,7 +195,7 @@ class Estimator:
         """BOP ids of the objects the pose net knows."""
         return list(self.pose_cfg.obj_ids)
 
-    def segment(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def segment(self, rgb: np.ndarray) -> tuple[np.ndarray, ClassProbabilities]:
         """Class map and class probabilities of an RGB image (see ``Segmenter``)."""
         return self.segmenter(rgb)
 
@@ -358,7 +358,7 @@ class Estimator:
                     continue
                 masks.append((obj_id, m))
                 # foreground probability x the classifier's confidence, or the seg net's class probability
-                s = (1.0 - prob[..., 0][m]) * conf[m] if conf is not None else prob[..., obj_id][m]
+                s = (1.0 - prob.at(m, 0)) * conf[m] if conf is not None else prob.at(m, obj_id)
                 scores.append(float(s.mean()))
             dets, stages = self.estimate(rgb, depth, K, masks, scores, plane)
         t4 = time.perf_counter()
@@ -395,14 +395,14 @@ class Estimator:
         return out, labels
 
     def check_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[tuple[int, np.ndarray]],
-                    cands: list[list[tuple[int, float]]], prob: np.ndarray, plane: np.ndarray | None,
+                    cands: list[list[tuple[int, float]]], prob: ClassProbabilities, plane: np.ndarray | None,
                     labels: np.ndarray) -> tuple[list[Detection], dict[str, float], np.ndarray]:
         """``perception.type_check``: each part (obj_id, mask (H, W) bool) estimated and fitted as each of its
         candidate types (obj_id, classifier probability) in one batch, and kept as the best. Returns the detections,
         the seconds per stage (as ``estimate``) and the class map (H, W) with the parts' chosen types (a copy)."""
         masks, scores, owner, probs = [], [], [], []
         for i, ((_, m), typed) in enumerate(zip(parts, cands)):
-            fg = 1.0 - prob[..., 0][m]
+            fg = 1.0 - prob.at(m, 0)
             for obj_id, p in typed:
                 if obj_id in self.obj_ids and obj_id < prob.shape[-1]:
                     masks.append((obj_id, m))
@@ -420,7 +420,7 @@ class Estimator:
 
     @with_one_blas_thread
     def split_merged(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, dets: list[Detection],
-                     prob: np.ndarray, plane: np.ndarray | None, labels: np.ndarray
+                     prob: ClassProbabilities, plane: np.ndarray | None, labels: np.ndarray
                      ) -> tuple[list[Detection], np.ndarray]:
         """``perception.split``: each detection whose fitted model leaves a large part of its mask unexplained
         is fitted again to the rest, and each such part is typed (``_part_types``) and fitted as a detection of
@@ -447,7 +447,7 @@ class Estimator:
                 types = [next(all_types) for _ in ps]
                 groups.append((d, len(masks), ps, [o for o, _ in types]))  # the rest's mask at that index, then ps
                 masks += [(d.obj_id, rest)] + [(o, p) for p, (o, _) in zip(ps, types)]
-                scores += [d.score] + [float((1.0 - prob[..., 0][p]).mean()) * pc for p, (_, pc) in zip(ps, types)]
+                scores += [d.score] + [float((1.0 - prob.at(p, 0)).mean()) * pc for p, (_, pc) in zip(ps, types)]
             kept, fits, _, _ = self._estimate(rgb, depth, K, masks, scores, plane)
             fitted = dict(zip(kept, fits))  # index in masks -> its detection
             labels = labels.copy()
@@ -476,16 +476,16 @@ class Estimator:
                                                    self.objects[b.obj_id].surface, b.T_cam_obj, tol)
 
     def _part_types(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[np.ndarray],
-                    prob: np.ndarray, plane: np.ndarray | None) -> list[tuple[int, float]]:
+                    prob: ClassProbabilities, plane: np.ndarray | None) -> list[tuple[int, float]]:
         """(obj_id, probability) of each part (H, W) bool: the instance classifier's (0: not a block, so the part
         is not fitted and becomes background), else (no classifier, or no crop) the seg net's most probable
-        object class (``prob`` (H, W, C)) over the part. All parts go through the classifier as one batch."""
+        object class (``prob``, (H, W, C)) over the part. All parts go through the classifier as one batch."""
         by_cls = ([None] * len(parts) if self.classifier is None else
                   self._classify_masks(rgb, depth, K, parts, plane))
         out = []
         for p, c in zip(parts, by_cls):
             if c is None:
-                mean = prob[p][:, 1:].mean(axis=0)  # (C - 1,) object classes
+                mean = prob.at(p)[:, 1:].mean(axis=0)  # (C - 1,) object classes
                 c = (int(mean.argmax()) + 1, float(mean.max()))
             out.append(c)
         return out

@@ -14,6 +14,7 @@ from posegrasp.perception.data import label_map
 from posegrasp.perception.estimator import STAGES, Detection, EstimateResult, Estimator, EstimatorConfig
 from posegrasp.perception.inputs import normalize_cls_input, prepare_cls_input
 from posegrasp.perception.plane import fit_support_plane
+from posegrasp.perception.segmenter import ClassProbabilities
 from posegrasp.perception.split import SplitConfig
 from posegrasp.perception.train_cls import train_cls
 
@@ -133,7 +134,7 @@ def test_segments_the_classifier_calls_not_a_block_are_dropped(tiny_bop, tiny_ru
     parts = [labels == o for o in (1, 2, 3)]
     assert [o for o, _ in est.classifier(rgb, depth, K, parts, None)] == [0, 0, 0]
     # split off parts the classifier calls "not a block" become background
-    prob = np.zeros((*depth.shape, 4), np.float32)
+    prob = ClassProbabilities(np.zeros((4, *depth.shape), np.float32), depth.shape)
     assert [o for o, _ in est._part_types(rgb, depth, K, parts, prob, None)] == [0, 0, 0]
 
 
@@ -155,7 +156,8 @@ def test_classifier_with_the_height_channel_and_an_ensemble(tiny_bop, tiny_run, 
     new, conf = est.classify(rgb, depth, K, labels)
     assert np.array_equal(new == 0, labels == 0) and conf.max() > 0
     parts = [labels == o for o in (1, 2, 3)]
-    assert len(est._part_types(rgb, depth, K, parts, np.zeros((*depth.shape, 4)), None)) == 3
+    zero = ClassProbabilities(np.zeros((4, *depth.shape)), depth.shape)
+    assert len(est._part_types(rgb, depth, K, parts, zero, None)) == 3
     # with the 6-channel classifier as a second member, the class probabilities are the members' mean
     shutil.copytree(tiny_run / "cls", run / "cls_plain")
     ens, cfg = Estimator(run).classifier, est.classifier.cfg
@@ -212,7 +214,7 @@ def test_the_type_check_corrects_a_classifier_that_is_unsure_and_wrong(tiny_bop,
     parts = [(g.obj_id, rec.load_mask(g.gt_index)) for g in rec.instances]
     wrong = {1: 2, 2: 3, 3: 2}
     cands = [[(wrong[o], 0.6), (o, 0.4)] for o, _ in parts]
-    prob = np.zeros((*depth.shape, 4), dtype=np.float32)
+    prob = ClassProbabilities(np.zeros((4, *depth.shape), np.float32), depth.shape)
     labels = np.zeros(depth.shape, dtype=np.int64)
     chosen = {}
     for weight in (0.001, 1.0):
