@@ -51,7 +51,7 @@ class FitContext:
         m, m_ok = _padded([x.points for x in models], 1e3)  # padding far off, never a nearest point
         p, p_ok = _padded(observed)
         ups, labels = stacked_rests([x.rests for x in models])
-        grids = Grids([x.grid for x in models], m.shape[1])
+        grids = Grids.of([x.grid for x in models], m.shape[1])
         return cls(m, m_ok, p, p_ok.float(), torch.from_numpy(np.asarray(depth, dtype=np.float32)), K,
                    None if plane is None else torch.from_numpy(np.asarray(plane, dtype=np.float32)),
                    grids, m[grids.first].reshape(-1, 3).contiguous(), ups, labels,

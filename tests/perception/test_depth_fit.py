@@ -87,6 +87,24 @@ def test_nearest_grid_matches_within_half_a_cell_diagonal():
                      DepthFitConfig(score=ScoreConfig(truncation=0.02)))
 
 
+def test_stacked_grids_are_kept_per_list_of_grids():
+    """``Grids.of`` gives the same stack for the same grids in the same order, a new one for another list, and builds
+    a list's stack anew once ``KEPT`` other lists came after it; a kept stack looks up what a new one does."""
+    from posegrasp.perception.depth_fit import grids as grids_mod
+    from posegrasp.perception.depth_fit.grids import Grids
+
+    rng = np.random.default_rng(1)
+    gs = [NearestGrid(rng.uniform(-0.02, 0.02, (100, 3)), margin=0.01) for _ in range(grids_mod.KEPT + 2)]
+    a = Grids.of(gs[:2], 100)
+    assert Grids.of(gs[:2], 100) is a and Grids.of(gs[1::-1], 100) is not a and Grids.of(gs[:2], 120) is not a
+    for g in gs[2:]:
+        Grids.of([g], 100)
+    b = Grids.of(gs[:2], 100)
+    assert b is not a
+    q, obj = torch.from_numpy(rng.uniform(-0.03, 0.03, (2, 50, 3))).float(), torch.tensor([0, 1])
+    assert torch.equal(a(q, obj), b(q, obj)) and torch.equal(a(q, obj), Grids(gs[:2], 100)(q, obj))
+
+
 def _kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The weighted least-squares R, t of dst ~ R src + t (N, 3 each), by the SVD, in float64."""
     w = w / w.sum()
