@@ -21,12 +21,13 @@ def _round_side(side: int) -> int:
 
 def padded_box(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
     """The rows and columns of the box around the nonzero pixels of ``mask`` (H, W), widened by ``margin`` px and
-    clipped to the image; None for an empty mask."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    clipped to the image; None for an empty mask. The columns are looked for in the box's rows only."""
+    rows = np.flatnonzero(mask.any(axis=1))
     if rows.size == 0:
         return None
-    return (slice(max(0, int(rows[0]) - margin), int(rows[-1]) + margin + 1),
-            slice(max(0, int(cols[0]) - margin), int(cols[-1]) + margin + 1))
+    r0, r1 = int(rows[0]), int(rows[-1]) + 1
+    cols = np.flatnonzero(mask[r0:r1].any(axis=0))
+    return slice(max(0, r0 - margin), r1 + margin), slice(max(0, int(cols[0]) - margin), int(cols[-1]) + margin + 1)
 
 
 def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:

@@ -295,7 +295,8 @@ class Estimator:
         segs = [m for _, m in segment_components(labels, 1)]
         for m, c in zip(segs, self._classify_masks(rgb, depth, K, segs, plane)):
             if c is not None:
-                new[m], conf[m] = c
+                b = padded_box(m, 0)  # the segment's box: its pixels set there, not looked for in the whole map
+                new[b][m[b]], conf[b][m[b]] = c
         return new, conf
 
     def _classify_parts(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, parts: list[tuple[int, np.ndarray]],

@@ -97,13 +97,14 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
             h = X * plane[0] + Y * plane[1] + d_c * plane[2] + plane[3]
             height = np.where(ok, np.clip(h / height_range, 0.0, 1.0), 0.0)
         channels.append(height[None])
-    return np.concatenate(channels).astype(np.float32)
+    return np.concatenate(channels, dtype=np.float32)
 
 
 def normalize_cls_input(x: np.ndarray) -> np.ndarray:
     """``prepare_cls_input``'s (C, S, S) with the RGB channels ImageNet-normalised."""
     x = x.astype(np.float32, copy=True)
-    x[:3] = (x[:3] - RGB_MEAN[:, None, None]) / RGB_STD[:, None, None]
+    x[:3] -= RGB_MEAN[:, None, None]
+    x[:3] /= RGB_STD[:, None, None]
     return x
 
 

@@ -342,8 +342,7 @@ class PoseNet(nn.Module):
             yg = yg + W_g @ g
         y = torch.baddbmm(yg, Wv, fv)  # (B, O, N): the first conv's output, PAM's term aside
         if M is not None:
-            W_pv, b_pv = W_p @ self.pam.value.weight[:, :, 0], W_p @ self.pam.value.bias  # (O, C), (O,)
-            y = y + self.pam.gamma * torch.bmm(apply(W_pv, b_pv), M.transpose(1, 2))
+            y = y + self.pam.gamma * torch.bmm(apply(*self._pam_value(W_p)), M.transpose(1, 2))
         for layer in rest:
             y = layer(y)
         c = torch.sigmoid(select_object(y, obj, 1))[..., 0]  # (B, N)
@@ -363,6 +362,19 @@ class PoseNet(nn.Module):
         q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         t = select_object(self.head_t(xb), obj, 3)[:, 0]
         return q, t, c[ar, best], best, emb.detach()
+
+    def _pam_value(self, W_p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """W_p W_v (O, C) and W_p b_v (O,): the confidence head's first conv's PAM block (W_p) times PAM's value conv,
+        products of weights alone, made once per version of the weights (an optimiser step or a load bumps it); made
+        anew each call where autograd records."""
+        v = self.pam.value
+        if torch.is_grad_enabled():
+            return W_p @ v.weight[:, :, 0], W_p @ v.bias
+        key = tuple((x.data_ptr(), x._version) for x in (self.head_c[0].weight, v.weight, v.bias))
+        kept = self.__dict__.get("_pam_value_kept")
+        if kept is None or kept[0] != key:
+            kept = self.__dict__["_pam_value_kept"] = (key, (W_p @ v.weight[:, :, 0], W_p @ v.bias))
+        return kept[1]
 
 
 def build_pose_net(cfg: PoseNetConfig) -> PoseNet:
