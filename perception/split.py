@@ -88,9 +88,11 @@ class ModelSurface:
         local = (P - T_cam_obj[:3, 3]) @ T_cam_obj[:3, :3]  # object frame
         lo, states = self._grid(tol)
         ijk = np.floor((local - lo) / self.cell).astype(np.int64)
-        inside = np.all((ijk >= 0) & (ijk < states.shape), axis=1)
+        i, j, k = ijk.T
+        n0, n1, n2 = states.shape
+        inside = (ijk.min(axis=1) >= 0) & (i < n0) & (j < n1) & (k < n2)
         state = np.zeros(len(idx), dtype=np.int8)  # outside the grid: farther than tol
-        state[inside] = states[tuple(ijk[inside].T)]
+        state[inside] = states.ravel()[((i * n1 + j) * n2 + k)[inside]]
         search = np.flatnonzero(state < 0)
         state[search] = self.tree.query(local[search], distance_upper_bound=tol)[0] < tol
         out[box].flat[idx[state > 0]] = True
@@ -107,7 +109,7 @@ def unexplained_parts(mask: np.ndarray, explained: np.ndarray, depth: np.ndarray
     rest = (mask[box] & (depth[box] > 0) & ~explained[box]).astype(np.uint8)
     rest = cv2.morphologyEx(rest, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     n, comp, stats, _ = cv2.connectedComponentsWithStats(rest, connectivity=8)
-    least = max(cfg.min_pixels, cfg.min_share * int(mask.sum()))
+    least = max(cfg.min_pixels, cfg.min_share * int(mask[box].sum()))
     parts = []
     for i in range(1, n):
         if stats[i, cv2.CC_STAT_AREA] >= least:
