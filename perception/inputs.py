@@ -86,7 +86,7 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     d_c = cv2.warpAffine(depth.astype(np.float32, copy=False), A, (size, size), flags=cv2.INTER_NEAREST)
     ok = d_c > 0
     rel = np.where(ok, np.clip((d_c - z) / depth_range, -1.0, 1.0), 0.0)
-    channels = [rgb_c.transpose(2, 0, 1) / np.float32(255.0), mask_c[None], rel[None], ok[None]]
+    channels = [np.ascontiguousarray(rgb_c.transpose(2, 0, 1)) / np.float32(255.0), mask_c[None], rel[None], ok[None]]
     if height_range > 0:
         height = np.zeros((size, size), dtype=np.float32)
         if plane is not None:  # crop pixel (x, y) samples image pixel ((x, y) - A[:, 2]) / s
