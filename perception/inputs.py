@@ -76,7 +76,8 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     valid = mask[box] & (depth[box] > 0)
     if int(valid.sum()) < min_valid:
         return None
-    z = float(np.median(depth[box][valid]))
+    d = depth[box][valid]
+    z = float(_median(d))
     mom = cv2.moments(mask[box].view(np.uint8), binaryImage=True)  # the centroid, ~5x faster than np.nonzero's means
     cx, cy = box[1].start + mom["m10"] / mom["m00"], box[0].start + mom["m01"] / mom["m00"]
     s = size * z / (side * float(K[0, 0]))
@@ -100,6 +101,16 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     return np.concatenate(channels, dtype=np.float32)
 
 
+def _median(x: np.ndarray) -> np.floating:
+    """``np.median`` of a 1-D float array without NaN: its middle value, or the float mean of its two middle values
+    (those of ``np.partition``, the same numbers np.median reads; ~4x faster on a segment's few thousand)."""
+    k = len(x) // 2
+    if len(x) % 2:
+        return np.partition(x, k)[k]
+    lo, hi = np.partition(x, (k - 1, k))[k - 1:k + 1]
+    return (lo + hi) / x.dtype.type(2)
+
+
 def normalize_cls_input(x: np.ndarray) -> np.ndarray:
     """``prepare_cls_input``'s (C, S, S) with the RGB channels ImageNet-normalised."""
     x = x.astype(np.float32, copy=True)
@@ -115,11 +126,16 @@ def segment_components(labels: np.ndarray, min_pixels: int) -> list[tuple[int, n
     separated blocks become separate components, touching ones stay merged. A class's components are found in the box
     of each connected foreground region in turn (each lies in one), not in the whole image."""
     W = labels.shape[1]
-    _, regions = cv2.connectedComponents((labels > 0).view(np.uint8), connectivity=8)
+    fg = labels > 0
+    whole = padded_box(fg, 0)  # the foreground's box: the regions are those of the image, numbered alike
+    if whole is None:
+        return []
+    _, regions = cv2.connectedComponents(fg[whole].view(np.uint8), connectivity=8)
     found = []  # (class, raster index of the first pixel, mask)
-    for k, box in enumerate(ndimage.find_objects(regions), start=1):  # boxes: ~2x faster than OpenCV's stats
+    for k, inner in enumerate(ndimage.find_objects(regions), start=1):  # boxes: ~2x faster than OpenCV's stats
+        box = tuple(slice(i.start + o.start, i.stop + o.start) for i, o in zip(inner, whole))
         y, x = box[0].start, box[1].start
-        lab = np.where(regions[box] == k, labels[box], 0)  # another region may reach into the box
+        lab = np.where(regions[inner] == k, labels[box], 0)  # another region may reach into the box
         for c in np.flatnonzero(np.bincount(lab.ravel())):  # the region's classes (and 0, unless it fills its box)
             if c == 0:
                 continue

@@ -45,6 +45,23 @@ def test_segment_components_are_each_classes_instances_in_raster_order():
     assert [c for c, _ in found] == [c for c, _ in expected] == [2, 2, 3, 3, 5, 5]
     assert all((a == b).all() for (_, a), (_, b) in zip(found, expected))
     assert [c for c, _ in segment_components(labels, 17)] == [2, 5, 5]  # the island, the 16-px region, the pixel: out
+    big = np.zeros((60, 90), np.int64)  # the same away from the image's corner (found in the foreground's box)
+    big[7:47, 11:71] = labels
+    moved = segment_components(big, 1)
+    assert [c for c, _ in moved] == [c for c, _ in found]
+    assert all((m[7:47, 11:71] == f).all() and m.sum() == f.sum() for (_, m), (_, f) in zip(moved, found))
+    assert segment_components(np.zeros((4, 4), np.int64), 1) == []
+
+
+def test_the_crops_median_depth_is_numpys():
+    """The crops' median (``inputs._median``) is ``np.median``'s, odd and even counts, ties, in float32."""
+    from posegrasp.perception.inputs import _median
+
+    rng = np.random.default_rng(3)
+    for n in [1, 2, 3, 4, 7, 10, 999, 1000]:
+        x = rng.random(n).astype(np.float32)
+        x[rng.random(n) < 0.3] = x[0]
+        assert _median(x) == np.median(x) and _median(x).dtype == np.median(x).dtype
 
 
 def test_seams_cut_touching_parts_of_one_type_apart():
