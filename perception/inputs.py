@@ -76,8 +76,7 @@ def prepare_cls_input(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: n
     valid = mask[box] & (depth[box] > 0)
     if int(valid.sum()) < min_valid:
         return None
-    d = depth[box][valid]
-    z = float(_median(d))
+    z = float(_median(depth[box][valid]))
     mom = cv2.moments(mask[box].view(np.uint8), binaryImage=True)  # the centroid, ~5x faster than np.nonzero's means
     cx, cy = box[1].start + mom["m10"] / mom["m00"], box[0].start + mom["m01"] / mom["m00"]
     s = size * z / (side * float(K[0, 0]))

@@ -28,9 +28,7 @@ def _taps(n_out: int, n_in: int, clamp: bool) -> tuple[np.ndarray, np.ndarray, n
     i0 = np.floor(s).astype(np.int64)
     f = s - i0.astype(np.float32)
     if clamp:
-        out = (i0 < 0) | (i0 >= n_in - 1)
-        f[out] = 0.0
-        i0 = np.where(i0 < 0, 0, np.where(i0 >= n_in - 1, n_in - 1, i0))
+        f[(i0 < 0) | (i0 >= n_in - 1)] = 0.0
     return np.clip(i0, 0, n_in - 1), np.clip(i0 + 1, 0, n_in - 1), np.float32(1.0) - f, f
 
 
