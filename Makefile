@@ -19,7 +19,7 @@ sysdeps:
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri chromium >/dev/null; \
 	fi
 
-$(STAMP): pyproject.toml setup.py $(wildcard perception/depth_fit/_*.[ch]) constraints.txt | sysdeps
+$(STAMP): pyproject.toml setup.py $(wildcard perception/depth_fit/_*.[ch] datagen/_*.c) constraints.txt | sysdeps
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0

@@ -12,6 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from posegrasp.datagen import sensor
 from posegrasp.datagen.config import DepthNoiseConfig, RgbNoiseConfig
 
 
@@ -19,20 +20,7 @@ def projector_shadow(depth: np.ndarray, fx: float, baseline: float, tol_px: floa
     """(H, W) bool: pixels the projector (``baseline`` m along +x) cannot light because a nearer surface
     to their right blocks its ray. A pixel u projects to projector column u - fx b / z; it is shadowed when
     some pixel further right lands at a smaller projector column."""
-    disp = np.zeros_like(depth)
-    np.divide(np.float32(fx * baseline), depth, out=disp, where=depth > 0)
-    up = np.arange(depth.shape[1], dtype=np.float32)[None, :] - disp
-    right_min = np.minimum.accumulate(up[:, ::-1], axis=1)[:, ::-1]  # min over this pixel and those right of it
-    out = np.zeros(depth.shape, bool)
-    out[:, :-1] = up[:, :-1] > right_min[:, 1:] + np.float32(tol_px)
-    return out & (depth > 0)
-
-
-def depth_edges(depth: np.ndarray, threshold: float) -> np.ndarray:
-    """(H, W) bool: pixels whose 3x3 neighbourhood spans more than ``threshold`` m (invalid counts as far)."""
-    d = np.where(depth > 0, depth, np.float32(1e3)).astype(np.float32)
-    k = np.ones((3, 3), np.uint8)
-    return (cv2.dilate(d, k) - cv2.erode(d, k)) > threshold
+    return sensor.depth_drop(depth, np.float32(fx * baseline), np.float32(tol_px), np.inf)
 
 
 def gaussian(shape: tuple[int, ...], std: float, rng: np.random.Generator, dtype=np.float32) -> np.ndarray:
@@ -42,57 +30,36 @@ def gaussian(shape: tuple[int, ...], std: float, rng: np.random.Generator, dtype
     return cv2.randn(np.empty(shape, dtype), 0.0, float(std))
 
 
-def pixel_shifts(shape: tuple[int, int], sigma: float, rng: np.random.Generator) -> np.ndarray:
-    """(2, H, W) int8 offsets: N(0, sigma) px rounded to the nearest pixel, |offset| <= 2 (16-bit uniforms
-    compared with the normal CDF at +-0.5 and +-1.5 px)."""
+def shift_thresholds(sigma: float) -> list[int]:
+    """The 16-bit uniforms' thresholds of a pixel offset N(0, sigma) px rounded to the nearest pixel, |offset| <= 2:
+    the normal CDF at -1.5, -0.5, 0.5 and 1.5 px, x 2^16 (``sensor.shifted``)."""
     from math import erf, sqrt
 
     cdf = [0.5 * (1 + erf(x / (sigma * sqrt(2)))) for x in (-1.5, -0.5, 0.5, 1.5)] if sigma > 0 else [0, 0, 1, 1]
-    t = [int(round(c * 65536)) for c in cdf]
-    u = rng.integers(0, 1 << 16, (2, *shape), dtype=np.uint16)
-    k = (u >= t[2]).view(np.int8) + (u >= t[3]).view(np.int8)
-    k -= (u < t[1]).view(np.int8)
-    k -= (u < t[0]).view(np.int8)
-    return k
+    return [int(round(c * 65536)) for c in cdf]
 
 
 def noisy_depth(depth: np.ndarray, K: np.ndarray, cfg: DepthNoiseConfig, rng: np.random.Generator,
                 near: float, far: float) -> np.ndarray:
-    """Structured-light measurement of a clean depth map (H, W) float32 m; returns float32 m, 0 invalid."""
+    """Structured-light measurement of a clean depth map (H, W) float32 m; returns float32 m, 0 invalid. Per pixel
+    (``sensor``): z, the depth at the pixel shifted by N(0, ``pixel_shift``) px; sigma = sigma_base + sigma_quad
+    (z - z_ref)^2 + sigma_angle theta^2 / ((pi/2 - theta)^2 sqrt(z)), theta the incidence angle atan(|grad z| f / z)
+    (at most 85 deg); z + sigma N(0, 1) quantised in disparity steps; lost in the projector's shadow and at depth
+    edges (with probability ``edge_dropout``), at random (``random_dropout``), where z is invalid or outside
+    [near, far]."""
     H, W = depth.shape
-    fx = float(K[0, 0])
-    drop = projector_shadow(depth, fx, cfg.baseline) | depth_edges(depth, cfg.edge_threshold)
-    # lateral jitter: each pixel measures the depth at a randomly shifted pixel
-    shift = pixel_shifts((H, W), cfg.pixel_shift, rng)
-    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
-    z = cv2.remap(depth, gx + shift[0], gy + shift[1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-    valid = z > 0
-    # axial noise, growing with distance and with the incidence angle theta = atan(|grad z| f / z)
+    fx, f32 = float(K[0, 0]), np.float32
+    fb = f32(fx * cfg.baseline)
+    drop = sensor.depth_drop(depth, fb, f32(0.5), f32(cfg.edge_threshold))
+    z = sensor.shifted(depth, rng.integers(0, 1 << 16, (2, H, W), dtype=np.uint16), shift_thresholds(cfg.pixel_shift))
     grad = cv2.magnitude(cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=1))
-    theta = cv2.phase(np.where(valid, z, np.float32(1.0)), grad * np.float32(0.5 * fx))  # central differences
-    f32 = np.float32
-    theta = np.minimum(theta, f32(np.deg2rad(85.0)))
-    sigma = z - f32(cfg.z_ref)  # sigma_base + sigma_quad (z - z_ref)^2 + sigma_angle theta^2 / (pi/2 - theta)^2 / sqrt(z)
-    sigma *= sigma
-    sigma *= f32(cfg.sigma_quad)
-    sigma += f32(cfg.sigma_base)
-    grazing = f32(np.pi / 2) - theta
-    grazing *= grazing
-    grazing *= np.sqrt(np.maximum(z, f32(1e-3)))
-    theta *= theta
-    theta *= f32(cfg.sigma_angle)
-    sigma += theta / grazing
-    z = z + sigma * gaussian((H, W), 1.0, rng)
-    # disparity quantisation
-    fb = np.float32(fx * cfg.baseline)
-    disp = np.round(fb / np.maximum(z, 1e-3) / cfg.disparity_step) * np.float32(cfg.disparity_step)
-    z = fb / np.maximum(disp, np.float32(1e-6))
-    z *= disp > 0  # (z is finite and >= 0 here: a product with a mask zeroes pixels faster than a masked store)
-    # dropout: edges and projector shadow (with probability edge_dropout), plus random pixels
-    u = rng.random((H, W), dtype=np.float32)
-    lost = (drop & (u < cfg.edge_dropout)) | (u >= 1.0 - cfg.random_dropout) | ~valid
-    z *= ~(lost | (z < near) | (z > far))
-    return z
+    theta = cv2.phase(*sensor.phase_args(z, grad, f32(0.5 * fx)))  # central differences
+    normal = gaussian((H, W), 1.0, rng)
+    uniform = rng.random((H, W), dtype=np.float32)
+    constants = sensor.DepthNoise(np.deg2rad(85.0), cfg.z_ref, cfg.sigma_quad, cfg.sigma_base, np.pi / 2,
+                                  cfg.sigma_angle, fb, cfg.disparity_step, cfg.edge_dropout, 1.0 - cfg.random_dropout,
+                                  near, far)
+    return sensor.depth_noise(z, theta, normal, uniform, drop, constants)
 
 
 def noisy_rgb(rgb: np.ndarray, cfg: RgbNoiseConfig, rng: np.random.Generator) -> np.ndarray:

@@ -15,6 +15,7 @@ import numpy as np
 
 from posegrasp.geometry import invert, transform_points
 from posegrasp import gl
+from posegrasp.datagen import sensor
 from posegrasp.sim.camera import Frame, instances, intrinsics
 from posegrasp.sim.config import CameraConfig, RenderConfig
 from posegrasp.sim.workcell import Workcell
@@ -82,13 +83,12 @@ class LabelRenderer:
         gl.bind_offscreen(self.con if on else self.con_rgb)
 
     def _metric_depth(self, raw: np.ndarray) -> np.ndarray:
-        """Reversed-Z depth buffer -> metres along the optical axis (as ``mujoco.Renderer`` does)."""
+        """Reversed-Z depth buffer (bottom row first) -> metres along the optical axis (as ``mujoco.Renderer``
+        does), top row first."""
         zn, zf = self._znear, self._zfar
         c = np.float32(-0.5) * (-(zf + zn) / (zf - zn)) - np.float32(0.5)
         d = np.float32(-0.5) * (-(np.float32(2) * zf * zn) / (zf - zn))
-        z = (d / (raw.astype(np.float64) + c)).astype(np.float32)
-        z[(z < self.near) | (z > self.far)] = 0.0
-        return z
+        return sensor.metric_depth(raw, c, d, self.near, self.far)
 
     def rgb(self) -> np.ndarray:
         """Colour image (H, W, 3) uint8 of the current state."""
@@ -109,7 +109,7 @@ class LabelRenderer:
         mujoco.mjr_readPixels(seg, raw, self.rect, self.con)
         self._set_seg(False)
         inst = instances(self.scene, seg, self.wc.geom_instance)
-        return self._metric_depth(raw)[::-1].copy(), inst[::-1].copy()
+        return self._metric_depth(raw), inst[::-1].copy()
 
     def amodal(self, T_cam_obj: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int, int, int] | None],
                                                    list[tuple[int, tuple[int, int, int, int] | None]]]:

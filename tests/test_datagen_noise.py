@@ -69,3 +69,56 @@ def test_rgb_effects():
     assert a.shape == rgb.shape and a.dtype == np.uint8 and not np.array_equal(a, rgb)
     bright = dataclasses.replace(cfg, gain=(1.2, 1.2), gamma=(1.0, 1.0), blur_prob=0.0, noise_std=(0.0, 0.0))
     np.testing.assert_allclose(noisy_rgb(rgb, bright, np.random.default_rng(0)).mean(), rgb.mean() * 1.2, rtol=0.02)
+
+
+def _numpy_noisy_depth(depth: np.ndarray, cfg: DepthNoiseConfig, rng: np.random.Generator, near: float, far: float
+                       ) -> np.ndarray:
+    """The depth model as numpy's whole-image formulas, the reference of the compiled steps (``datagen.sensor``)."""
+    import cv2
+
+    from posegrasp.datagen.noise import gaussian, shift_thresholds
+
+    f32, fx = np.float32, float(K[0, 0])
+    disp = np.zeros_like(depth)
+    np.divide(f32(fx * cfg.baseline), depth, out=disp, where=depth > 0)
+    up = np.arange(depth.shape[1], dtype=f32)[None, :] - disp
+    right_min = np.minimum.accumulate(up[:, ::-1], axis=1)[:, ::-1]
+    drop = np.zeros(depth.shape, bool)
+    drop[:, :-1] = up[:, :-1] > right_min[:, 1:] + f32(0.5)
+    drop &= depth > 0
+    far_d = np.where(depth > 0, depth, f32(1e3))
+    drop |= (cv2.dilate(far_d, np.ones((3, 3), np.uint8)) - cv2.erode(far_d, np.ones((3, 3), np.uint8))) > \
+        cfg.edge_threshold
+    t = shift_thresholds(cfg.pixel_shift)
+    u = rng.integers(0, 1 << 16, (2, *depth.shape), dtype=np.uint16)
+    k = (u >= t[2]).view(np.int8) + (u >= t[3]).view(np.int8) - (u < t[1]).view(np.int8) - (u < t[0]).view(np.int8)
+    gx, gy = np.meshgrid(np.arange(depth.shape[1], dtype=f32), np.arange(depth.shape[0], dtype=f32))
+    z = cv2.remap(depth, gx + k[0], gy + k[1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    valid = z > 0
+    grad = cv2.magnitude(cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=1))
+    theta = np.minimum(cv2.phase(np.where(valid, z, f32(1)), grad * f32(0.5 * fx)), f32(np.deg2rad(85.0)))
+    sigma = (z - f32(cfg.z_ref)) ** 2 * f32(cfg.sigma_quad) + f32(cfg.sigma_base)
+    grazing = (f32(np.pi / 2) - theta) ** 2 * np.sqrt(np.maximum(z, f32(1e-3)))
+    sigma += theta ** 2 * f32(cfg.sigma_angle) / grazing
+    z = z + sigma * gaussian(depth.shape, 1.0, rng)
+    fb = f32(fx * cfg.baseline)
+    disp = np.round(fb / np.maximum(z, 1e-3) / cfg.disparity_step) * f32(cfg.disparity_step)
+    z = fb / np.maximum(disp, f32(1e-6)) * (disp > 0)
+    u = rng.random(depth.shape, dtype=f32)
+    lost = (drop & (u < cfg.edge_dropout)) | (u >= 1.0 - cfg.random_dropout) | ~valid
+    return z * ~(lost | (z < near) | (z > far))
+
+
+def test_compiled_steps_give_numpys_numbers():
+    g = np.random.default_rng(7)
+    wide = dataclasses.replace(DepthNoiseConfig(), pixel_shift=0.6, sigma_angle=0.002, random_dropout=0.05)
+    for seed, cfg, shape in ((0, DepthNoiseConfig(), (H, W)), (1, wide, (H, W)), (2, wide, (17, 29))):
+        d = np.full(shape, 0.7, np.float32) + np.linspace(0, 0.05, shape[1], dtype=np.float32)
+        for _ in range(6):  # nearer boxes, holes and a far patch
+            r, c = g.integers(0, shape[0]), g.integers(0, shape[1])
+            d[r:r + g.integers(3, 60), c:c + g.integers(3, 60)] -= np.float32(g.uniform(0.01, 0.4))
+        d[g.random(shape) < 0.02] = 0
+        d[:2, :5] = 2.5
+        want = _numpy_noisy_depth(d, cfg, np.random.default_rng(seed), 0.15, 2.0)
+        got = noisy_depth(d, K, cfg, np.random.default_rng(seed), 0.15, 2.0)
+        assert want.tobytes() == got.tobytes()

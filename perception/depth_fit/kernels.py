@@ -9,14 +9,13 @@ number. The structures point into tensors that ``KernelFrame`` keeps alive.
 from __future__ import annotations
 
 import ctypes
-import importlib.machinery
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from posegrasp.errors import PosegraspError
+from posegrasp.native import library
 
 if TYPE_CHECKING:
     from posegrasp.perception.depth_fit.context import FitContext
@@ -54,12 +53,7 @@ class CScoreConfig(ctypes.Structure):
 
 def _library() -> ctypes.CDLL:
     """The compiled kernels, beside this module."""
-    here = Path(__file__).parent
-    found = [here / f"_kernels{x}" for x in importlib.machinery.EXTENSION_SUFFIXES if (here / f"_kernels{x}").exists()]
-    if not found:
-        raise PosegraspError(f"the depth fit's compiled kernels (_kernels*.so) are missing from {here}: install "
-                             "posegrasp with pip (`make setup` or `pip install -e .`), which builds them")
-    lib = ctypes.CDLL(str(found[0]))
+    lib = library(Path(__file__).parent, "_kernels", "the depth fit's compiled kernels")
     lib.posegrasp_icp_steps.restype = ctypes.c_int
     lib.posegrasp_icp_steps.argtypes = [ctypes.POINTER(CObserved), ctypes.POINTER(CGrids), ctypes.POINTER(CBuckets),
                                         ctypes.c_int, ctypes.c_int64, _P, _P, _P, _P, _P, ctypes.c_int64]
