@@ -61,20 +61,31 @@ int posegrasp_depth_drop(const float *depth, int64_t H, int64_t W, float fb, flo
 }
 
 /* The pixel offset of a 16-bit uniform u: +1 from t2, +2 from t3, -1 below t1, -2 below t0. */
-static inline int64_t offset(uint16_t u, const int32_t t[4]) {
-    return (u >= t[2]) + (u >= t[3]) - (u < t[1]) - (u < t[0]);
+static inline int8_t offset(uint16_t u, const int32_t t[4]) {
+    return (int8_t)((u >= t[2]) + (u >= t[3]) - (u < t[1]) - (u < t[0]));
 }
 
 /* z (H, W): each pixel the depth of the pixel shifted by the offsets of the uniforms u (2, H, W) (x then y), clamped
-   to the image (OpenCV's nearest remap, replicated border). */
-void posegrasp_shifted(const float *depth, int64_t H, int64_t W, const uint16_t *u, const int32_t t[4], float *z) {
-    for (int64_t r = 0; r < H; r++)
+   to the image (OpenCV's nearest remap, replicated border). Returns -1 when out of memory. */
+int posegrasp_shifted(const float *depth, int64_t H, int64_t W, const uint16_t *u, const int32_t t[4], float *z) {
+    int8_t *kx = malloc(2 * (size_t)W), *ky = kx + W;
+    if (kx == NULL) return -1;
+    const int32_t s[4] = {t[0], t[1], t[2], t[3]};
+    for (int64_t r = 0; r < H; r++) {
+        const uint16_t *ux = u + r * W, *uy = u + H * W + r * W;
+        for (int64_t c = 0; c < W; c++) {  /* (the offsets first: a loop of them vectorises) */
+            kx[c] = offset(ux[c], s);
+            ky[c] = offset(uy[c], s);
+        }
         for (int64_t c = 0; c < W; c++) {
-            int64_t i = r * W + c, x = c + offset(u[i], t), y = r + offset(u[H * W + i], t);
+            int64_t x = c + kx[c], y = r + ky[c];
             x = x < 0 ? 0 : (x >= W ? W - 1 : x);
             y = y < 0 ? 0 : (y >= H ? H - 1 : y);
-            z[i] = depth[y * W + x];
+            z[r * W + c] = depth[y * W + x];
         }
+    }
+    free(kx);
+    return 0;
 }
 
 /* The phase's arguments: x = z where valid (> 0), else 1; y = grad * k. */

@@ -108,8 +108,7 @@ class LabelRenderer:
         raw = np.empty((self.height, self.width), np.float32)
         mujoco.mjr_readPixels(seg, raw, self.rect, self.con)
         self._set_seg(False)
-        inst = instances(self.scene, seg, self.wc.geom_instance)
-        return self._metric_depth(raw), inst[::-1].copy()
+        return self._metric_depth(raw), instances(self.scene, seg[::-1], self.wc.geom_instance)
 
     def amodal(self, T_cam_obj: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int, int, int] | None],
                                                    list[tuple[int, tuple[int, int, int, int] | None]]]:

@@ -25,7 +25,7 @@ def _library() -> ctypes.CDLL:
     lib = library(Path(__file__).parent, "_sensor", "the depth camera model's compiled steps")
     lib.posegrasp_depth_drop.restype = ctypes.c_int
     lib.posegrasp_depth_drop.argtypes = [_P, _I, _I, _F, _F, _F, _P]
-    lib.posegrasp_shifted.restype = None
+    lib.posegrasp_shifted.restype = ctypes.c_int
     lib.posegrasp_shifted.argtypes = [_P, _I, _I, _P, _P, _P]
     lib.posegrasp_phase_args.restype = None
     lib.posegrasp_phase_args.argtypes = [_P, _P, _I, _F, _P, _P]
@@ -59,7 +59,8 @@ def shifted(depth: np.ndarray, uniforms: np.ndarray, thresholds: list[int]) -> n
     (x, then y): +1 from thresholds[2], +2 from [3], -1 below [1], -2 below [0]; clamped to the image."""
     depth, u, t = _c(depth, np.float32), _c(uniforms, np.uint16), np.asarray(thresholds, np.int32)
     out = np.empty_like(depth)
-    LIB.posegrasp_shifted(depth.ctypes.data, *depth.shape, u.ctypes.data, t.ctypes.data, out.ctypes.data)
+    if LIB.posegrasp_shifted(depth.ctypes.data, *depth.shape, u.ctypes.data, t.ctypes.data, out.ctypes.data):
+        raise MemoryError("shifted: out of memory")
     return out
 
 

@@ -320,8 +320,8 @@ def unreachable_configs(excused: set[str] | frozenset[str] = frozenset()) -> lis
     for package in packages:
         pkg = importlib.import_module(package)
         for info in pkgutil.iter_modules(pkg.__path__, package + "."):
-            if info.ispkg or info.name == __name__:
-                continue
+            if info.ispkg or info.name == __name__ or info.name.rpartition(".")[2].startswith("_"):
+                continue  # (``_name``: a compiled part, loaded with ctypes, not a Python module)
             module = importlib.import_module(info.name)
             for obj in vars(module).values():
                 if inspect.isclass(obj) and dataclasses.is_dataclass(obj) and obj.__module__ == module.__name__ \

