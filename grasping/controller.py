@@ -20,6 +20,7 @@ from posegrasp.errors import SimulationError
 from posegrasp.grasping.config import ControlConfig
 from posegrasp.geometry import make_T, rotation_angle
 from posegrasp.sim.config import WorkcellConfig
+from posegrasp.sim.ik import velocity
 from posegrasp.sim.workcell import GRIPPER_SITE, Workcell, wrap_angle
 
 _SITE = f"jaco_arm/jaco_hand/{GRIPPER_SITE}"
@@ -152,8 +153,7 @@ class ArmController:
         self.configuration.update(self.q)
         self._unwind_posture()
         self.task.set_target(mink.SE3.from_matrix(T_target))
-        v = mink.solve_ik(self.configuration, [self.task, self.posture], self.cfg.dt, "daqp", damping=1e-3,
-                          limits=self.limits)
+        v = velocity(self.configuration, [self.task, self.posture], self.cfg.dt, 1e-3, self.limits)
         # Rounded: numpy's results can differ in the last bit with memory alignment, i.e. between processes;
         # the physics would amplify that, and episodes must not depend on which worker ran them.
         wc.command_arm(np.round(v[self.r_arm_v], 9) + wc.gravity_feedforward())

@@ -7,11 +7,29 @@ closed-loop controller in ``grasping`` drives the real arm through its actuators
 
 from __future__ import annotations
 
+from ctypes import c_int
+from typing import Sequence
+
+import daqp
 import mink
 import mujoco
 import numpy as np
 
 from posegrasp.geometry import rotation_angle
+
+
+def velocity(configuration: mink.Configuration, tasks: Sequence[mink.Task], dt: float, damping: float,
+             limits: Sequence[mink.Limit]) -> np.ndarray:
+    """``mink.solve_ik(configuration, tasks, dt, "daqp", damping=damping, limits=limits)``: the same QP
+    (``mink.build_ik``) handed to DAQP as qpsolvers hands it, the same velocity (tangent space, per s), in a fifth less
+    time (without qpsolvers' wrapper and mink's check of the joint limits, which only warns)."""
+    qp = mink.build_ik(configuration, tasks, dt, damping, limits)
+    m = 0 if qp.G is None else qp.G.shape[0]
+    G, h = (qp.G, qp.h) if m else (np.zeros((0, qp.q.size)), np.zeros(0))
+    x, _, exitflag, _ = daqp.solve(qp.P, qp.q, G, h, np.full(m, -1e30), np.zeros(m, dtype=c_int), primal_start=None)
+    if exitflag <= 0:
+        raise mink.NoSolutionFound("daqp")
+    return x / dt
 
 
 class ArmIK:
@@ -39,7 +57,7 @@ class ArmIK:
         posture.set_target(q)
         dt = 0.05
         for _ in range(iters):
-            v = mink.solve_ik(self.configuration, [task, posture], dt, "daqp", damping=1e-4, limits=self.limits)
+            v = velocity(self.configuration, [task, posture], dt, 1e-4, self.limits)
             self.configuration.integrate_inplace(v, dt)
             T = self.configuration.get_transform_frame_to_world(site, "site").as_matrix()
             dp = float(np.linalg.norm(T[:3, 3] - T_world_site[:3, 3]))

@@ -301,3 +301,27 @@ def test_the_robot_attached_as_a_spec_is_the_model_of_one_mjcf(hand: str) -> Non
     native = int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
     assert one.opt.disableflags == wc.model.opt.disableflags | native and one.opt.timestep == wc.model.opt.timestep
     assert not wc.model.opt.disableflags & native
+
+
+def test_ik_velocity_is_minks():
+    """``sim.ik.velocity`` (DAQP called directly) gives ``mink.solve_ik``'s velocity bit for bit, joint limits
+    active or not."""
+    import mink
+
+    from posegrasp.sim.ik import velocity
+
+    wc = make_scene(0, 3).workcell
+    ik, g = wc.ik, np.random.default_rng(0)
+    site = f"jaco_arm/jaco_hand/{HAND_CAMERA}"
+    for _ in range(40):
+        q = ik.model.qpos0.copy()
+        q[ik.arm_qadr] = wc.arm_q + g.normal(0, 0.6, 6)
+        ik.configuration.update(q)
+        T = ik.configuration.get_transform_frame_to_world(site, "site").as_matrix()
+        T[:3, 3] += g.normal(0, 0.1, 3)
+        task = mink.FrameTask(site, "site", position_cost=1.0, orientation_cost=0.5, lm_damping=1e-3)
+        task.set_target(mink.SE3.from_matrix(T))
+        posture = mink.PostureTask(ik.model, cost=1e-3)
+        posture.set_target(q)
+        want = mink.solve_ik(ik.configuration, [task, posture], 0.05, "daqp", damping=1e-4, limits=ik.limits)
+        assert velocity(ik.configuration, [task, posture], 0.05, 1e-4, ik.limits).tobytes() == want.tobytes()
