@@ -45,7 +45,8 @@ int posegrasp_depth_drop(const float *depth, int64_t H, int64_t W, float fb, flo
     }
     for (int64_t r = 0; r < H; r++) {  /* row k's extremes in slot k % 3, made once each */
         int64_t r0 = r > 0 ? r - 1 : r, r1 = r < H - 1 ? r + 1 : r;
-        for (int64_t k = r == 0 ? r0 : r1; k <= r1; k++) row_extremes(depth + k * W, W, up, lo + k % 3 * W, hi + k % 3 * W);
+        for (int64_t k = r == 0 ? r0 : r1; k <= r1; k++)
+            row_extremes(depth + k * W, W, up, lo + k % 3 * W, hi + k % 3 * W);
         const float *l0 = lo + r0 % 3 * W, *l1 = lo + r % 3 * W, *l2 = lo + r1 % 3 * W;
         const float *h0 = hi + r0 % 3 * W, *h1 = hi + r % 3 * W, *h2 = hi + r1 % 3 * W;
         uint8_t *out = drop + r * W;

@@ -120,13 +120,12 @@ class LabelRenderer:
         out, boxes, beyond = [], [], []
         for k, geoms in enumerate(self.block_geoms):
             mask = np.zeros((H, W), bool)
-            box = self._bbox(k, T_cam_obj[k])
+            box, whole = self._bbox(k, T_cam_obj[k], (1, 3))
             boxes.append(box)
             if box is not None:
                 x0, y0, x1, y1 = box
                 mask[y0:y1, x0:x1] = self._solo(geoms, box)
             out.append(mask)
-            whole = self._bbox(k, T_cam_obj[k], canvas=3)
             beyond.append(self._beyond(geoms, whole) if whole is not None and whole != box else (0, None))
         return out, boxes, beyond
 
@@ -172,22 +171,27 @@ class LabelRenderer:
         e = np.array(ext)
         return count, (int(e[:, 0].min()), int(e[:, 1].min()), int(e[:, 2].max()), int(e[:, 3].max()))
 
-    def _bbox(self, k: int, T_cam_obj: np.ndarray, canvas: int = 1) -> tuple[int, int, int, int] | None:
-        """Pixel box [x0, x1) x [y0, y1) covering block k's projected vertices (+1 px), clipped to the image
-        (``canvas`` 1) or to a canvas ``canvas`` times its size centred on it (3: bop_toolkit's)."""
+    def _bbox(self, k: int, T_cam_obj: np.ndarray, canvases: tuple[int, ...]
+              ) -> list[tuple[int, int, int, int] | None]:
+        """Per canvas, the pixel box [x0, x1) x [y0, y1) covering block k's projected vertices (+1 px), clipped to the
+        image (canvas 1) or to a canvas that many times its size centred on it (3: bop_toolkit's)."""
         W, H = self.width, self.height
-        lo_x, lo_y, hi_x, hi_y = -(canvas // 2) * W, -(canvas // 2) * H, (canvas // 2 + 1) * W, (canvas // 2 + 1) * H
         p = transform_points(T_cam_obj, self.wc.blocks[k].block.vertices)
         if np.all(p[:, 2] <= self._znear):  # behind the GL near plane: not drawn at all
-            return None
-        if np.any(p[:, 2] <= self._znear):  # cut by the near plane: its projection is unbounded
-            return lo_x, lo_y, hi_x, hi_y
-        uv = p[:, :2] / p[:, 2:] * self.K[[0, 1], [0, 1]] + self.K[:2, 2]
-        x0 = max(int(np.floor(uv[:, 0].min())) - 1, lo_x)
-        y0 = max(int(np.floor(uv[:, 1].min())) - 1, lo_y)
-        x1 = min(int(np.ceil(uv[:, 0].max())) + 2, hi_x)
-        y1 = min(int(np.ceil(uv[:, 1].max())) + 2, hi_y)
-        return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
+            return [None] * len(canvases)
+        cut = np.any(p[:, 2] <= self._znear)  # cut by the near plane: its projection is unbounded
+        if not cut:
+            uv = p[:, :2] / p[:, 2:] * self.K[[0, 1], [0, 1]] + self.K[:2, 2]
+            lo, hi = np.floor(uv.min(axis=0)).astype(int) - 1, np.ceil(uv.max(axis=0)).astype(int) + 2
+        out = []
+        for c in canvases:
+            lo_x, lo_y, hi_x, hi_y = -(c // 2) * W, -(c // 2) * H, (c // 2 + 1) * W, (c // 2 + 1) * H
+            if cut:
+                out.append((lo_x, lo_y, hi_x, hi_y))
+                continue
+            x0, y0, x1, y1 = max(int(lo[0]), lo_x), max(int(lo[1]), lo_y), min(int(hi[0]), hi_x), min(int(hi[1]), hi_y)
+            out.append((x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None)
+        return out
 
     def _crop_frustum(self, x0: int, y0: int, x1: int, y1: int) -> None:
         """Make the scene's frustum cover only pixel columns [x0, x1) and rows [y0, y1) of the full image.
