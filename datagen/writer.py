@@ -126,7 +126,10 @@ class SceneWriter:
             # visible = the scene render's pixels of block i within its silhouette: the two rasterisers (MuJoCo's
             # scene, pyrender's model alone) can disagree on a single edge pixel of a thin imported part
             amodal, box = frame.extra["amodal"][i], frame.extra["boxes"][i]
-            visib = (frame.mask == i + 1) & amodal
+            visib = np.zeros_like(amodal)
+            if box is not None:  # (the amodal mask lies in its box)
+                sl = np.s_[box[1]:box[3], box[0]:box[2]]
+                visib[sl] = (frame.mask[sl] == i + 1) & amodal[sl]
             info = bop.gt_info_from_masks(amodal, visib, depth, box, *frame.extra["beyond"][i])
             full_png = bop_images.encode_mask(amodal) if info.px_count_all else self._empty_mask(amodal.shape)
             same = info.px_count_visib == info.px_count_all and np.array_equal(visib, amodal)  # fully visible
