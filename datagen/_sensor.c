@@ -103,6 +103,10 @@ struct depth_noise {
         far;
 };
 
+/* numpy's minimum and maximum of x and a number c: NaN where x is NaN. */
+static inline float least(float x, float c) { return x > c ? c : x; }
+static inline float greatest(float x, float c) { return x < c ? c : x; }
+
 /* x rounded to the nearest integer, ties to even (rintf, without a library call: a loop of it vectorises). */
 static inline float round_even(float x) {
     float a = fabsf(x), r = a < 8388608.0f ? (a + 8388608.0f) - 8388608.0f : a;  /* 2^23: the first float step of 1 */
@@ -115,20 +119,20 @@ void posegrasp_depth_noise(const float *z, const float *theta, const float *norm
                            const uint8_t *drop, int64_t n, const struct depth_noise *p, float *out) {
     const struct depth_noise q = *p;
     for (int64_t i = 0; i < n; i++) {
-        float zi = z[i], th = theta[i] > q.theta_max ? q.theta_max : theta[i];
+        float zi = z[i], th = least(theta[i], q.theta_max);
         float sigma = zi - q.z_ref;
         sigma *= sigma;
         sigma *= q.sigma_quad;
         sigma += q.sigma_base;
         float grazing = q.half_pi - th;
         grazing *= grazing;
-        grazing *= sqrtf(zi > 1e-3f ? zi : 1e-3f);
+        grazing *= sqrtf(greatest(zi, 1e-3f));
         th *= th;
         th *= q.sigma_angle;
         sigma += th / grazing;
         float noisy = zi + sigma * normal[i];
-        float disp = round_even(q.fb / (noisy > 1e-3f ? noisy : 1e-3f) / q.step) * q.step;
-        float m = q.fb / (disp > 1e-6f ? disp : 1e-6f);
+        float disp = round_even(q.fb / greatest(noisy, 1e-3f) / q.step) * q.step;
+        float m = q.fb / greatest(disp, 1e-6f);
         m *= (float)(disp > 0);
         int lost = ((drop[i] != 0) & (u[i] < q.edge_dropout)) | (u[i] >= q.keep_below) | !(zi > 0);
         lost |= (m < q.near) | (m > q.far);

@@ -119,6 +119,7 @@ def test_compiled_steps_give_numpys_numbers():
             d[r:r + g.integers(3, 60), c:c + g.integers(3, 60)] -= np.float32(g.uniform(0.01, 0.4))
         d[g.random(shape) < 0.02] = 0
         d[:2, :5] = 2.5
+        d[-1, -3:] = np.nan  # numpy's NaN pixels stay NaN
         want = _numpy_noisy_depth(d, cfg, np.random.default_rng(seed), 0.15, 2.0)
         got = noisy_depth(d, K, cfg, np.random.default_rng(seed), 0.15, 2.0)
-        assert want.tobytes() == got.tobytes()
+        assert want.tobytes() == got.tobytes() and np.isnan(got).any()
