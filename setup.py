@@ -11,4 +11,5 @@ setup(ext_modules=[Extension("posegrasp.perception.depth_fit._kernels",
                              libraries=["m"]),
                    # numpy's float operations, each rounded on its own: no fused multiply-adds
                    Extension("posegrasp.datagen._sensor", ["datagen/_sensor.c"],
-                             extra_compile_args=["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"], libraries=["m"])])
+                             extra_compile_args=["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"],
+                             libraries=["m"])])

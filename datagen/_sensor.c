@@ -8,19 +8,15 @@
 #include <stdlib.h>
 
 /* The least and greatest of each pixel's row neighbours (c - 1, c, c + 1 within the row) of row x (W), invalid depth
-   (<= 0) counted as 1000 m; v (W): scratch. */
+   (<= 0) counted as 1000 m; v (W + 2): scratch, the row between copies of its end pixels. */
 static void row_extremes(const float *x, int64_t W, float *v, float *lo, float *hi) {
-    for (int64_t c = 0; c < W; c++) v[c] = x[c] > 0 ? x[c] : 1e3f;
-    for (int64_t c = 1; c < W - 1; c++) {
-        float a = v[c - 1] < v[c + 1] ? v[c - 1] : v[c + 1], b = v[c - 1] > v[c + 1] ? v[c - 1] : v[c + 1];
-        lo[c] = v[c] < a ? v[c] : a;
-        hi[c] = v[c] > b ? v[c] : b;
-    }
-    for (int64_t c = 0; c < W; c += W - 1 > 0 ? W - 1 : 1) {  /* the first and last pixels */
-        float a = v[c > 0 ? c - 1 : c], b = v[c < W - 1 ? c + 1 : c];
-        float l = a < b ? a : b, h = a > b ? a : b;
-        lo[c] = v[c] < l ? v[c] : l;
-        hi[c] = v[c] > h ? v[c] : h;
+    for (int64_t c = 0; c < W; c++) v[c + 1] = x[c] > 0 ? x[c] : 1e3f;
+    v[0] = v[1];
+    v[W + 1] = v[W];
+    for (int64_t c = 0; c < W; c++) {
+        float a = v[c] < v[c + 2] ? v[c] : v[c + 2], b = v[c] > v[c + 2] ? v[c] : v[c + 2];
+        lo[c] = v[c + 1] < a ? v[c + 1] : a;
+        hi[c] = v[c + 1] > b ? v[c + 1] : b;
     }
 }
 
@@ -29,9 +25,9 @@ static void row_extremes(const float *x, int64_t W, float *v, float *lo, float *
    spans more than threshold); else 0. Returns -1 when out of memory. */
 int posegrasp_depth_drop(const float *depth, int64_t H, int64_t W, float fb, float tol, float threshold,
                          uint8_t *drop) {
-    float *up = malloc(sizeof(float) * (size_t)(7 * W));  /* up (or scratch); each row's least, greatest: 3 rows */
+    float *up = malloc(sizeof(float) * (size_t)(7 * W + 2));  /* up (or scratch); each row's least, greatest: 3 rows */
     if (up == NULL) return -1;
-    float *lo = up + W, *hi = up + 4 * W;
+    float *lo = up + W + 2, *hi = lo + 3 * W;
     for (int64_t r = 0; r < H; r++) {
         const float *d = depth + r * W;
         uint8_t *out = drop + r * W;
