@@ -222,6 +222,19 @@ class DenseFusionFeat(PointFusion):
         f, g = self.parts(x, emb)
         return torch.cat([f, g.expand(-1, -1, x.shape[2])], dim=1)
 
+    def parts_last(self, x: torch.Tensor, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``parts`` channels last, each 1x1 conv one matrix product: (B, N, 3), (B, N, emb) -> the per-point channels
+        (B, N, 2 p1 + 2 p2) and the global feature (B, g2)."""
+        x1, e1 = torch.relu_(pointwise(x, self.conv1)), torch.relu_(pointwise(emb, self.e_conv1))
+        x2, e2 = torch.relu_(pointwise(x1, self.conv2)), torch.relu_(pointwise(e1, self.e_conv2))
+        g = torch.relu_(pointwise(torch.relu_(pointwise(torch.cat([x2, e2], dim=2), self.conv5)), self.conv6))
+        return torch.cat([x1, e1, x2, e2], dim=2), g.mean(dim=1)
+
+
+def pointwise(x: torch.Tensor, conv: nn.Conv1d) -> torch.Tensor:
+    """A 1x1 ``conv`` on features channels last: (..., cin) -> (..., cout)."""
+    return F.linear(x, conv.weight[:, :, 0], conv.bias)
+
 
 class PointHead(nn.Sequential):
     """1D-conv head cin -> widths... -> num_objects * out_dim (ReLU between, none at the end)."""
@@ -233,6 +246,12 @@ class PointHead(nn.Sequential):
             cin = w
         layers.append(nn.Conv1d(cin, out, 1))
         super().__init__(*layers)
+
+    def last(self, x: torch.Tensor, start: int = 0) -> torch.Tensor:
+        """The head's layers from ``start`` on, on features channels last: (..., cin) -> (..., out)."""
+        for layer in list(self)[start:]:
+            x = torch.relu_(x) if isinstance(layer, nn.ReLU) else pointwise(x, layer)
+        return x
 
 
 def select_object(x: torch.Tensor, obj: torch.Tensor, dim: int) -> torch.Tensor:
@@ -311,57 +330,59 @@ class PoseNet(nn.Module):
         so PAM's and CAM's C x N outputs are never formed. F = [F_v; g 1^T] stacks the per-point channels F_v
         (2 p1 + 2 p2) on the global feature g (g2), the same at every point, so every product with F is taken as
         P F = P_v F_v + (P_g g) 1^T, and CAM's energy F F^T = [[F_v F_v^T, s g^T], [g s^T, N g g^T]] with
-        s = F_v 1. The rotation and translation heads then run on the best point's features alone."""
-        emb = self.embed(img, choose)  # (B, E, N)
-        fv, gf = self.feat.parts(points.transpose(1, 2), emb)  # (B, Cv, N), (B, G2, 1)
-        cv, n = fv.shape[1], fv.shape[2]
+        s = F_v 1. The rotation and translation heads then run on the best point's features alone. Features are
+        kept channels last (points x channels), so each 1x1 conv is one matrix product."""
+        emb = self.embed(img, choose).transpose(1, 2)  # (B, N, E)
+        fv, gf = self.feat.parts_last(points, emb)  # (B, N, Cv), (B, G2)
+        B, n, cv = fv.shape
 
-        def apply(w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # (O, C), (O,) -> w [F_v; g 1^T] + b 1^T
-            return torch.baddbmm(w[:, cv:] @ gf + b[:, None], w[:, :cv].expand(len(fv), -1, -1), fv)  # (B, O, N)
+        def apply(w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # (O, C), (O,) -> [F_v; g 1^T]^T w^T + 1 b^T
+            return torch.baddbmm(F.linear(gf, w[:, cv:], b)[:, None], fv, w[:, :cv].t().expand(B, -1, -1))  # (B, N, O)
 
         M = A = g = None
         if self.pam is not None:  # M (B, N, N), rows sum to 1
-            q = apply(self.pam.query.weight[:, :, 0], self.pam.query.bias)  # (B, C', N)
-            k = apply(self.pam.key.weight[:, :, 0], self.pam.key.bias)  # (B, C', N)
-            M = torch.softmax(torch.bmm(q.transpose(1, 2), k), dim=-1)
-        if self.cam is not None:  # A (B, C, C)
-            s = fv.sum(dim=2, keepdim=True)  # (B, Cv, 1)
-            energy = torch.cat([torch.cat([torch.bmm(fv, fv.transpose(1, 2)), s @ gf.transpose(1, 2)], dim=2),
-                                torch.cat([gf @ s.transpose(1, 2), n * (gf @ gf.transpose(1, 2))], dim=2)], dim=1)
-            A = torch.softmax(energy.amax(dim=-1, keepdim=True) - energy, dim=-1)
-        if self.gfem is not None:  # (B, G, 1)
-            g = torch.relu(apply(self.gfem.conv.weight[:, :, 0], self.gfem.conv.bias)).mean(dim=2, keepdim=True)
-        first, *rest = self.head_c
+            q = apply(self.pam.query.weight[:, :, 0], self.pam.query.bias)  # (B, N, C')
+            k = apply(self.pam.key.weight[:, :, 0], self.pam.key.bias)  # (B, N, C')
+            M = torch.softmax(torch.bmm(q, k.transpose(1, 2)), dim=-1)
+        if self.cam is not None:  # A (B, C, C) = softmax(rowmax(energy) - energy) = softmax(-energy)
+            s, G = fv.sum(dim=1)[:, :, None], gf[:, None, :]  # (B, Cv, 1), (B, 1, G2)
+            energy = torch.cat([torch.cat([torch.bmm(fv.transpose(1, 2), fv), s * G], dim=2),
+                                torch.cat([G.transpose(1, 2) * s.transpose(1, 2), n * (G.transpose(1, 2) * G)], dim=2)],
+                               dim=1)
+            A = torch.softmax(energy.neg_(), dim=-1)
+        if self.gfem is not None:  # (B, G)
+            g = torch.relu_(apply(self.gfem.conv.weight[:, :, 0], self.gfem.conv.bias)).mean(dim=1)
+        first = self.head_c[0]
         W_f, W_p, W_c, W_g = first.weight[:, :, 0].split(self._part_widths, dim=1)  # (O, part width) each
         W = W_f + (W_p if M is not None else 0) + (W_c if A is not None else 0)  # (O, C)
-        Wv, yg = W[:, :cv].expand(len(fv), -1, -1), W[:, cv:] @ gf + first.bias[:, None]  # (B, O, Cv), (B, O, 1)
+        Wv, yg = W[:, :cv].expand(B, -1, -1), F.linear(gf, W[:, cv:], first.bias)  # (B, O, Cv), (B, O)
+        Ag = None
         if A is not None:  # + g_c W_c A F
-            Wv = Wv + self.cam.gamma * (W_c @ A[:, :, :cv])
-            yg = yg + self.cam.gamma * (W_c @ (A[:, :, cv:] @ gf))
+            Wc, Ag = W_c.expand(B, -1, -1), torch.bmm(A[:, :, cv:], gf[:, :, None])  # (B, O, C), (B, C, 1)
+            Wv = Wv + self.cam.gamma * torch.bmm(Wc, A[:, :, :cv])
+            yg = yg + self.cam.gamma * torch.bmm(Wc, Ag)[..., 0]
         if g is not None:
-            yg = yg + W_g @ g
-        y = torch.baddbmm(yg, Wv, fv)  # (B, O, N): the first conv's output, PAM's term aside
+            yg = yg + F.linear(g, W_g)
+        y = torch.baddbmm(yg[:, None], fv, Wv.transpose(1, 2))  # (B, N, O): the first conv's output, PAM's term aside
         if M is not None:
-            y = y + self.pam.gamma * torch.bmm(apply(*self._pam_value(W_p)), M.transpose(1, 2))
-        for layer in rest:
-            y = layer(y)
-        c = torch.sigmoid(select_object(y, obj, 1))[..., 0]  # (B, N)
+            y = y + self.pam.gamma * torch.bmm(M, apply(*self._pam_value(W_p)))
+        ar = torch.arange(B, device=fv.device)
+        c = torch.sigmoid(self.head_c.last(y, 1)[ar, :, obj])  # (B, N)
         best = c.argmax(dim=1)
-        ar = torch.arange(len(best), device=fv.device)
-        fb = torch.cat([fv[ar, :, best][..., None], gf], dim=1)  # (B, C, 1)
+        fb = torch.cat([fv[ar, best], gf], dim=1)  # (B, C)
         xb = [fb]
         if M is not None:  # PAM at the best point b: g_p (W_v (F m_b) + b_v) + f_b, m_b = row b of M
-            fm = torch.cat([torch.bmm(fv, M[ar, best][..., None]), gf], dim=1)  # F m_b (B, C, 1)
-            xb.append(self.pam.gamma * self.pam.value(fm) + fb)
-        if A is not None:
-            xb.append(self.cam.gamma * torch.bmm(A, fb) + fb)
+            fm = torch.cat([torch.bmm(M[ar, best][:, None], fv)[:, 0], gf], dim=1)  # F m_b (B, C)
+            xb.append(self.pam.gamma * pointwise(fm, self.pam.value) + fb)
+        if A is not None:  # A f_b = A_v f_v + A_g g
+            xb.append(self.cam.gamma * (torch.bmm(A[:, :, :cv], fb[:, :cv, None]) + Ag)[..., 0] + fb)
         if g is not None:
             xb.append(g)
-        xb = torch.cat(xb, dim=1)  # (B, C_in, 1)
-        q = select_object(self.head_r(xb), obj, 4)[:, 0]
+        xb = torch.cat(xb, dim=1)  # (B, C_in)
+        q = self.head_r.last(xb).view(B, -1, 4)[ar, obj]
         q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        t = select_object(self.head_t(xb), obj, 3)[:, 0]
-        return q, t, c[ar, best], best, emb.detach()
+        t = self.head_t.last(xb).view(B, -1, 3)[ar, obj]
+        return q, t, c[ar, best], best, emb.transpose(1, 2).detach()
 
     def _pam_value(self, W_p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """W_p W_v (O, C) and W_p b_v (O,): the confidence head's first conv's PAM block (W_p) times PAM's value conv,

@@ -55,7 +55,8 @@ def test_estimator_api(tiny_bop, tiny_run):
     seen = []
     for n, s in ((7, 24), (None, None)):
         e = Estimator(tiny_run, EstimatorConfig(pose_points=n, pose_crop=s))
-        e.pose.feat.conv1.register_forward_hook(lambda m, x, y: seen.append(x[0].shape[-1]))
+        parts = e.pose.feat.parts_last  # (B, N, 3) points in
+        e.pose.feat.parts_last = lambda x, emb, parts=parts: (seen.append(x.shape[1]), parts(x, emb))[1]
         e.pose.cnn.register_forward_hook(lambda m, x, y: seen.append(y.shape[-1]))
         e.estimate(rgb, depth, K, masks)
     assert seen == [24, 7, est.pose_cfg.crop_size, est.pose_cfg.num_points]
