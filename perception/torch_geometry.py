@@ -29,9 +29,8 @@ def make_transform(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
 def turns_about(n: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
     """Rotations (S, 3, 3) by ``angles`` (S,) (rad) about the unit axis n (3,), or about each of the axes n (S, 3):
     I + sin(a) N + (1 - cos(a)) N^2, N the cross-product matrix of the axis (Rodrigues)."""
-    u = n.expand(len(angles), 3)
-    N = torch.zeros(len(angles), 3, 3, dtype=n.dtype)  # N v = u x v
-    N[:, 0, 1], N[:, 0, 2], N[:, 1, 2] = -u[:, 2], u[:, 1], -u[:, 0]
-    N[:, 1, 0], N[:, 2, 0], N[:, 2, 1] = u[:, 2], -u[:, 1], u[:, 0]
+    x, y, z = n.expand(len(angles), 3).unbind(1)
+    o = torch.zeros_like(x)
+    N = torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=1).view(-1, 3, 3)  # N v = u x v
     return torch.eye(3, dtype=n.dtype) + torch.sin(angles)[:, None, None] * N + \
         (1 - torch.cos(angles))[:, None, None] * (N @ N)

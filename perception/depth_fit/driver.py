@@ -46,7 +46,7 @@ def fit_poses(estimates: list[np.ndarray], models: list[ObjectModel], observed: 
     frame = FitContext.of(models, observed, depth, K, plane)
     fits = _starts(frame, estimates, [x.hypotheses for x in models], cfg.starts.level_rests)
     done = _fit(frame, cfg, rivals, fits)
-    best = {o: done.best(o) for o in done.obj.unique().tolist()}
+    best = done.bests()
     return [best.get(o, (estimates[o], float("inf"))) for o in range(len(estimates))]
 
 

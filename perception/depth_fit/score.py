@@ -60,13 +60,21 @@ class Scored:
         return Scored(torch.cat([self.R, other.R]), torch.cat([self.t, other.t]), torch.cat([self.obj, other.obj]),
                       torch.cat([self.score, other.score]))
 
-    def best(self, o: int) -> tuple[np.ndarray, float]:
-        """Object o's best-scoring pose T_cam_obj (4, 4) (float64) and its score (m)."""
-        i = torch.nonzero(self.obj == o)[:, 0]
-        b = int(i[self.score[i].argmin()])
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = self.R[b].double().numpy(), self.t[b].double().numpy()
-        return T, float(self.score[b])
+    def argbest(self) -> torch.Tensor:
+        """The row of each object's lowest score (the first on ties), objects in increasing order."""
+        obj, score = self.obj.numpy(), self.score.numpy()
+        rows = [i[np.argmin(score[i])] for i in (np.flatnonzero(obj == o) for o in np.unique(obj))]
+        return torch.from_numpy(np.array(rows, dtype=np.int64))
+
+    def bests(self) -> dict[int, tuple[np.ndarray, float]]:
+        """Each object's best-scoring pose T_cam_obj (4, 4) (float64) and its score (m), by object."""
+        out = {}
+        R, t, obj, score = (x.numpy() for x in (self.R, self.t, self.obj, self.score))
+        for b in self.argbest().tolist():
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R[b], t[b]
+            out[int(obj[b])] = T, float(score[b])
+        return out
 
 
 def best_rows(score: torch.Tensor, obj: torch.Tensor, n: int, R: torch.Tensor | None = None, apart_deg: float = 10.0,
@@ -74,26 +82,27 @@ def best_rows(score: torch.Tensor, obj: torch.Tensor, n: int, R: torch.Tensor | 
     """Rows of the ``n`` lowest scores (H,) of each object ``obj`` (H,), object by object; given the rotations R
     (H, 3, 3), each kept row turned at least ``apart_deg`` from those kept before it (fits that converged to one
     pose count once); given ``face`` (H,), each kept row with a face label of its own."""
-    keep = []
     cos_apart = float(np.cos(np.radians(apart_deg)))
     labels = None if face is None else face.tolist()
-    for o in obj.unique():
-        rows = torch.nonzero(obj == o)[:, 0]
+    obj_ = obj.numpy()
+    turns = None if R is None else R.reshape(-1, 9).numpy()  # row k: R_k flat; R_k . R_r = trace(R_k^T R_r)
+    keep: list[int] = []
+    for o in np.unique(obj_):
+        rows = torch.from_numpy(np.flatnonzero(obj_ == o))
         rows = rows[score[rows].argsort()].tolist()
         if labels is not None:  # each face label's first row, in score order
             first = {}
             for r in rows:
                 first.setdefault(labels[r], r)
             kept = list(first.values())[:n]
-        elif R is None:
+        elif turns is None:
             kept = rows[:n]
         else:
-            kept, turns = [rows[0]], R[rows[:1]]
+            kept = [rows[0]]
             for r in rows[1:]:
                 if len(kept) == n:
                     break
-                if float(((torch.einsum("kij,ij->k", turns, R[r]) - 1) / 2).max()) < cos_apart:
+                if float(((turns[kept] @ turns[r] - 1) / 2).max()) < cos_apart:
                     kept.append(r)  # (the cosines of the angles between R_r and the kept rotations)
-                    turns = R[kept]
-        keep.append(torch.tensor(kept))
-    return torch.cat(keep)
+        keep += kept
+    return torch.tensor(keep, dtype=torch.long)

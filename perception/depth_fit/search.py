@@ -35,8 +35,8 @@ ScoreOf = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 def yaw_search(poses: Scored, normal: torch.Tensor, cfg: SearchConfig, score_of: ScoreOf) -> Scored:
     """``poses`` and, appended, each object's best turned about ``normal`` (3,, camera frame) (module doc)."""
     for span, by in ((cfg.yaw_deg, 3 * cfg.yaw_step_deg), (cfg.yaw_step_deg,) * 2) if cfg.yaw_deg > 0 else ():
-        R, t, obj, score = poses.R, poses.t, poses.obj, poses.score
-        best = torch.stack([torch.nonzero(obj == o)[:, 0][score[obj == o].argmin()] for o in obj.unique()])
+        R, t, obj = poses.R, poses.t, poses.obj
+        best = poses.argbest()
         angles = np.arange(by, span + 1e-9, by)
         G = turns_about(normal, torch.from_numpy(np.radians(np.concatenate([-angles, angles]))).float())  # (S, 3, 3)
         Rs = (G[None] @ R[best][:, None]).reshape(-1, 3, 3)

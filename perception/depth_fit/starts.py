@@ -98,19 +98,21 @@ def rest_starts(R: torch.Tensor, obj: torch.Tensor, normal: torch.Tensor, ups: t
     from (H',)."""
     a, e, k = _nearest_up(R, normal, ups[obj])
     out, src = [_turned_onto(R, a, e)], [torch.arange(len(R))]
-    for o in obj.unique().tolist():
-        rows = torch.nonzero(obj == o)[:, 0]
-        cos = a[rows] @ ups[o].to(a.dtype).T  # (rows, U)
-        for c in labels[o].unique().tolist():
-            in_c = labels[o] == c
-            if bool(in_c[k[rows]].any()):
-                continue
-            best = int(cos[:, in_c].max(dim=1).values.argmax())
-            u = int(torch.nonzero(in_c)[:, 0][cos[best, in_c].argmax()])
-            Rl = level(R[rows[best]][None], normal, ups[o, u][None, None])
+    obj_, k_, labels_ = obj.numpy(), k.numpy(), labels.numpy()
+    for o in np.unique(obj_).tolist():
+        rows = np.flatnonzero(obj_ == o)
+        missed = np.setdiff1d(labels_[o], labels_[o][k_[rows]])  # the rest classes none of them reaches
+        if len(missed) == 0:
+            continue
+        cos = (a[torch.from_numpy(rows)] @ ups[o].to(a.dtype).T).numpy()  # (rows, U)
+        for c in missed.tolist():
+            in_c = np.flatnonzero(labels_[o] == c)
+            j = int(cos[:, in_c].max(axis=1).argmax())  # the start nearest a rest of class c, and that rest
+            best, u = int(rows[j]), int(in_c[cos[j, in_c].argmax()])
+            Rl = level(R[best][None], normal, ups[o, u][None, None])
             psi = yaw_turns(Rl[0].double().numpy(), normal.double().numpy(), turn_deg, *symmetries[o])
             out.append(turns_about(normal.to(R.dtype), torch.from_numpy(psi).to(R.dtype)) @ Rl)
-            src.append(rows[best].repeat(len(psi)))
+            src.append(torch.full((len(psi),), best))
     return torch.cat(out), torch.cat(src)
 
 
