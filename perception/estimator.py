@@ -251,7 +251,7 @@ class Estimator:
             T = refine(self.refiner, T, points, emb, obj, self.refiner_iterations)
             t2 = time.perf_counter()
         T, conf = T[rows], conf[rows]  # (len(kept), 4, 4), (len(kept),)
-        poses, fit = [T[j].double().numpy() for j in range(len(kept))], None
+        poses, fit = list(T.double().numpy()), None  # (rows of one new array)
         if self.objects:
             poses, fit = self._depth_fit(poses, [masks[k] for k in kept], depth, K, rng, plane,
                                          None if rivals is None else rivals.take(kept))

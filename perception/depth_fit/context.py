@@ -110,10 +110,10 @@ def _padded(arrays: list[np.ndarray], fill: float = 0.0) -> tuple[torch.Tensor, 
     """Point sets (n_i, 3) as one float32 tensor (O, max n_i, 3), padded with ``fill``, and its validity mask
     (O, max n_i)."""
     n = max(len(a) for a in arrays)
-    out, valid = torch.full((len(arrays), n, 3), fill), torch.zeros(len(arrays), n, dtype=torch.bool)
+    out, valid = np.full((len(arrays), n, 3), fill, dtype=np.float32), np.zeros((len(arrays), n), dtype=bool)
     for i, a in enumerate(arrays):
-        out[i, :len(a)], valid[i, :len(a)] = torch.from_numpy(np.asarray(a, dtype=np.float32)), True
-    return out, valid
+        out[i, :len(a)], valid[i, :len(a)] = a, True
+    return torch.from_numpy(out), torch.from_numpy(valid)
 
 
 def _repeated(arrays: list[np.ndarray]) -> torch.Tensor:
