@@ -47,7 +47,7 @@ from posegrasp.perception.inputs import check_frame, prepare_pose_input, seam_co
 from posegrasp.perception.int8 import runs_int8
 from posegrasp.perception.plane import PlaneConfig, clear_plane, fit_support_plane
 from posegrasp.perception.refiner import refine
-from posegrasp.perception.runtime import for_inference, with_one_blas_thread
+from posegrasp.perception.runtime import for_inference, packed, with_one_blas_thread
 from posegrasp.perception.segmenter import ClassProbabilities, Segmenter
 from posegrasp.perception.split import SplitConfig, drop_duplicates, same_place, unexplained_parts
 from posegrasp.perception.torch_geometry import make_transform, quat_to_rotmat
@@ -139,7 +139,7 @@ class Estimator:
         self.segmenter = Segmenter.load(weights / "seg", cfg.int8)
         self.seg_cfg = self.segmenter.cfg
         self.pose, self.pose_cfg, _ = ckpt_mod.load_model(weights / "pose", "pose")
-        for_inference(self.pose)
+        packed(for_inference(self.pose))
         self.refiner, self.refiner_cfg = None, None
         refiner_dir = ckpt_mod.stage_dir(weights, "refiner")
         if refiner_dir.exists():

@@ -1,6 +1,7 @@
 """How the trained nets run on a CPU at inference: BatchNorms folded into convolutions, subnormal weights zeroed,
-channels-last weights (``for_inference``), numpy's BLAS on one thread (``one_blas_thread``,
-``with_one_blas_thread``), and torch on a given number of threads (``torch_threads``)."""
+channels-last weights (``for_inference``), convolutions with their weights laid out for oneDNN once (``packed``),
+numpy's BLAS on one thread (``one_blas_thread``, ``with_one_blas_thread``), and torch on a given number of threads
+(``torch_threads``)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from collections.abc import Callable, Iterator
 
 import torch
 from threadpoolctl import ThreadpoolController
+from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 _BLAS: ThreadpoolController | None = None
@@ -82,3 +84,40 @@ def fold_batch_norms(model: torch.nn.Module) -> None:
         for conv, bn in pairs:
             setattr(m, conv, fuse_conv_bn_eval(getattr(m, conv), getattr(m, bn)))
             setattr(m, bn, torch.nn.Identity())
+
+
+class PackedConv2d(nn.Module):
+    """A float ``Conv2d`` at inference with its weights reordered into oneDNN's layout once per input shape: torch's
+    own CPU convolution reorders them at every call, which on a pose net's small feature maps (6 x 6 to 48 x 48) costs
+    about as much as the products. The same oneDNN convolution, so the same outputs (channels-last)."""
+
+    def __init__(self, conv: nn.Conv2d):
+        super().__init__()
+        self.conv = conv
+        self._weights: dict[torch.Size, torch.Tensor] = {}  # by input shape
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        c = self.conv
+        x = x.contiguous(memory_format=torch.channels_last)
+        w = self._weights.get(x.shape)
+        if w is None:
+            if len(self._weights) >= 16:  # (batch sizes vary with the objects in view)
+                self._weights.clear()
+            w = self._weights[x.shape] = torch._C._nn.mkldnn_reorder_conv2d_weight(
+                c.weight.detach().to_mkldnn(), list(c.padding), list(c.stride), list(c.dilation), c.groups,
+                list(x.shape))
+        return torch.ops.mkldnn._convolution_pointwise(x, w, c.bias, c.padding, c.stride, c.dilation, c.groups,
+                                                       "none", [], "")
+
+
+def packed(model: nn.Module) -> nn.Module:
+    """``model`` itself (in inference form, ``for_inference``) with each of its float ``Conv2d`` a ``PackedConv2d``,
+    where torch runs convolutions with oneDNN on this CPU (else unchanged). For inference only."""
+    if not (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")):
+        return model
+    for name, child in model.named_children():
+        if type(child) is nn.Conv2d and child.padding_mode == "zeros" and child.weight.dtype == torch.float32:
+            setattr(model, name, PackedConv2d(child))
+        else:
+            packed(child)
+    return model

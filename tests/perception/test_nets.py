@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from posegrasp.perception.classifier import ClassifierConfig, build_classifier
-from posegrasp.perception.runtime import for_inference
+from posegrasp.perception.runtime import PackedConv2d, for_inference, packed
 from posegrasp.perception.pose_net import PoseNetConfig, build_pose_net
 from posegrasp.perception.refiner import RefinerConfig, build_refiner, refine
 from posegrasp.perception.seg_net import SegNetConfig, build_seg_net, seg_loss
@@ -136,3 +136,17 @@ def test_inference_form_keeps_the_outputs():
         assert not any(((p != 0) & (p.abs() < torch.finfo(p.dtype).tiny)).any() for p in net.parameters())
     assert not seg_f.encoder.bottleneck[0][0].weight[0].any()
     torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-4)
+
+
+def test_packed_convolutions_keep_the_outputs():
+    """``packed``: a pose net's float convolutions with their weights laid out for oneDNN once per input shape; the
+    same outputs, also when the batch size changes between calls."""
+    pcfg = PoseNetConfig(obj_ids=[1, 2], symmetric=[False, True], num_points=64, crop_size=32, backbone_width=8)
+    ref = for_inference(_trained_batch_norms(build_pose_net(pcfg)))
+    fast = packed(copy.deepcopy(ref))
+    assert any(isinstance(m, PackedConv2d) for m in fast.modules()) == torch.backends.mkldnn.is_available()
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for B in (2, 5, 2):
+            img = torch.randn(B, 3, 32, 32, generator=g)
+            torch.testing.assert_close(fast.cnn(img), ref.cnn(img), atol=1e-6, rtol=1e-5)
