@@ -332,9 +332,11 @@ class PoseNet(nn.Module):
         P F = P_v F_v + (P_g g) 1^T, and CAM's energy F F^T = [[F_v F_v^T, s g^T], [g s^T, N g g^T]] with
         s = F_v 1. The rotation and translation heads then run on the best point's features alone. Features are
         kept channels last (points x channels), so each 1x1 conv is one matrix product."""
-        emb = self.embed(img, choose).transpose(1, 2)  # (B, N, E)
+        f = self.cnn(img)  # (B, E, S, S), channels last in memory (``runtime.for_inference``)
+        B, E = f.shape[:2]
+        emb = f.permute(0, 2, 3, 1).reshape(B, -1, E).gather(1, choose[..., None].expand(-1, -1, E))  # (B, N, E)
         fv, gf = self.feat.parts_last(points, emb)  # (B, N, Cv), (B, G2)
-        B, n, cv = fv.shape
+        n, cv = fv.shape[1:]
 
         def apply(w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # (O, C), (O,) -> [F_v; g 1^T]^T w^T + 1 b^T
             return torch.baddbmm(F.linear(gf, w[:, cv:], b)[:, None], fv, w[:, :cv].t().expand(B, -1, -1))  # (B, N, O)
