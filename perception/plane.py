@@ -72,7 +72,9 @@ def fit_support_plane(depth: np.ndarray, K: np.ndarray, seed: int = 0, cfg: Plan
         return None
     n = n[ok] / norm[ok, None]
     d = -np.einsum("ij,ij->i", n, tri[ok, 0])
-    counts = (np.abs(P @ n.T + d) < cfg.inlier_tol).sum(axis=0)  # (I,)
+    dist = P @ n.T  # (N, I)
+    dist += d
+    counts = (np.abs(dist, out=dist) < cfg.inlier_tol).sum(axis=0)  # (I,)
     best = int(counts.argmax())
     if counts[best] / len(P) * len(valid) < cfg.min_share * depth.size:
         return None

@@ -90,7 +90,8 @@ class ModelSurface:
         ijk = np.floor((local - lo) / self.cell).astype(np.int64)
         i, j, k = ijk.T
         n0, n1, n2 = states.shape
-        inside = (ijk.min(axis=1) >= 0) & (i < n0) & (j < n1) & (k < n2)
+        u = ijk.view(np.uint64)  # a negative index wraps to above any grid size
+        inside = (u[:, 0] < n0) & (u[:, 1] < n1) & (u[:, 2] < n2)
         state = np.zeros(len(idx), dtype=np.int8)  # outside the grid: farther than tol
         state[inside] = states.ravel()[((i * n1 + j) * n2 + k)[inside]]
         search = np.flatnonzero(state < 0)
