@@ -358,7 +358,6 @@ class PoseNet(nn.Module):
         W_f, W_p, W_c, W_g = first.weight[:, :, 0].split(self._part_widths, dim=1)  # (O, part width) each
         W = W_f + (W_p if M is not None else 0) + (W_c if A is not None else 0)  # (O, C)
         Wv, yg = W[:, :cv].expand(B, -1, -1), F.linear(gf, W[:, cv:], first.bias)  # (B, O, Cv), (B, O)
-        Ag = None
         if A is not None:  # + g_c W_c A F
             Wc, Ag = W_c.expand(B, -1, -1), torch.bmm(A[:, :, cv:], gf[:, :, None])  # (B, O, C), (B, C, 1)
             Wv = Wv + self.cam.gamma * torch.bmm(Wc, A[:, :, :cv])
