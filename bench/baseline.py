@@ -46,6 +46,10 @@ SHARED = "POSEGRASP_BENCH_SHARED"
 #: Modules whose files must come from the side's own tree.
 PROBES = ("posegrasp", "posegrasp.sim.workcell", "posegrasp.datagen.generate", "posegrasp.perception.estimator",
           "posegrasp.grasping.trials")
+#: CPU features the nets' speed turns on (their int8 convolutions above all), by /proc/cpuinfo's names.
+FEATURES = {"avx2": "AVX2", "avx512f": "AVX-512", "avx512_vnni": "VNNI", "avx_vnni": "VNNI", "amx_int8": "AMX"}
+#: Environment variables that cap the instructions the libraries use, so one CPU stands in for an older one.
+ISA_CAPS = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS")
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
@@ -84,6 +88,16 @@ def own_argv(argv: Sequence[str]) -> list[str]:
         elif not a.startswith(("--baseline=", "--rounds=", "--baseline-script=")):
             out.append(a)
     return out
+
+
+def host() -> dict[str, object]:
+    """This machine as a comparison's figures depend on it: CPU model, cores, vector features and any ``ISA_CAPS``."""
+    info = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else ""
+    field = {k.strip(): v.strip() for k, _, v in (ln.partition(":") for ln in info.splitlines()[:40])}
+    flags = set(field.get("flags", "").split())
+    return {"cpu": field.get("model name", "unknown"), "cores": os.cpu_count(),
+            "features": list(dict.fromkeys(name for f, name in FEATURES.items() if f in flags)),
+            "caps": {k: os.environ[k] for k in ISA_CAPS if k in os.environ}}
 
 
 def git(*args: str) -> str:
@@ -189,11 +203,14 @@ class _Sides:
 def compare(script: str, argv: Sequence[str], ref: str, key: str, higher_is_better: bool, rounds: int = 1,
             which: str = "own", cpu_key: str | None = None) -> int:
     """Run ``script`` (with ``own_argv(argv)``) on the current code and on ``ref``'s, ``rounds`` pairs, and print the
-    figure at dotted ``key`` of each run's JSON line (and its CPU cost at ``cpu_key``, lower is better), with the load
-    average, then both medians and their ratios."""
+    machine (``host``), the figure at dotted ``key`` of each run's JSON line (and its CPU cost at ``cpu_key``, lower is
+    better), with the load average, then both medians and their ratios."""
     script, argv = Path(script).resolve(), own_argv(argv)
     keys = [key] + ([cpu_key] if cpu_key else [])
     sha = git("rev-parse", "--short", f"{ref}^{{commit}}")
+    machine = host()
+    print(f"host: {machine['cpu']}, {machine['cores']} cores, {' '.join(machine['features']) or 'no AVX2'}"
+          + "".join(f", {k}={v}" for k, v in machine["caps"].items()))
     with checkout(ref) as tree, tempfile.TemporaryDirectory(prefix="posegrasp_bench_inputs_") as shared:
         sides = _Sides(script, ref, tree, which, Path(shared))
         check_side("current", ROOT, sides.env["current"])
@@ -203,7 +220,8 @@ def compare(script: str, argv: Sequence[str], ref: str, key: str, higher_is_bett
                 sides.run(f"round {r + 1}", side, argv, keys)
         how = sides.how()
     print(f"{ref} ({sha}) ran {how}")
-    out = {"ref": ref, "ref_commit": sha, "rounds": rounds, "baseline_script": how, "load_1min": sides.loads}
+    out = {"ref": ref, "ref_commit": sha, "host": machine, "rounds": rounds, "baseline_script": how,
+           "load_1min": sides.loads}
     for k in keys:
         f = sides.figures[k]
         cur, base = statistics.median(f["current"]), statistics.median(f["baseline"])

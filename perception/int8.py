@@ -7,8 +7,8 @@ channel, W_q = round(W / s_k) with s_k = max |W_k| / 127.5; each conv's integer 
 requantized to u8 with its output's measured range; the run's output is dequantized. The convs at the input's full
 resolution (the image's own and the others before the first pooling) and everything outside the runs (upsampling,
 concatenations, the 1x1 heads) stay float: with only the image's conv in float, the shipped model lost 0.013 of
-BOP AR on its validation split, with both of its full-resolution convs in float 0.001. On a 2-core AVX-512 CPU the
-seg net's 240x320 forward pass then takes about 0.6 of its float time.
+BOP AR on its validation split, with both of its full-resolution convs in float 0.001. On 2 cores the seg net's
+240x320 forward pass then takes 0.43 of its float time on a CPU with AMX, 0.67 with AVX2 alone (oneDNN capped to it).
 
 The activation ranges are measured once on the net's own inputs (``observing``, then ``ranges``; ``posegrasp
 quantize`` does it for a run) and stored beside the weights in ``RANGES`` with the weights file's SHA-256, so

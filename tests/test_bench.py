@@ -81,3 +81,18 @@ def test_shared_inputs_are_made_once_per_comparison(tmp_path: Path, monkeypatch)
     again = baseline.shared_input("x.npz", make)
     assert len(made) == 2 and len(again) == 2
     assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(first, again))
+
+
+def test_host_names_the_cpu_its_features_and_the_caps_set(monkeypatch) -> None:
+    """A comparison's figures carry the machine's CPU, cores, vector features (from /proc/cpuinfo) and any variable
+    capping the libraries' instructions."""
+    baseline = _bench_module("baseline")
+    for k in baseline.ISA_CAPS:
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    h = baseline.host()
+    assert h["cores"] == os.cpu_count() and h["caps"] == {"ONEDNN_MAX_CPU_ISA": "AVX2"}
+    assert set(h["features"]) <= set(baseline.FEATURES.values()) and len(set(h["features"])) == len(h["features"])
+    flags = next((ln for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("flags")), "").split()
+    assert ("AVX2" in h["features"]) == ("avx2" in flags)
+    assert ("AMX" in h["features"]) == ("amx_int8" in flags)
