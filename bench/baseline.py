@@ -93,7 +93,7 @@ def own_argv(argv: Sequence[str]) -> list[str]:
 def host() -> dict[str, object]:
     """This machine as a comparison's figures depend on it: CPU model, cores, vector features and any ``ISA_CAPS``."""
     info = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else ""
-    field = {k.strip(): v.strip() for k, _, v in (ln.partition(":") for ln in info.splitlines()[:40])}
+    field = {k.strip(): v.strip() for k, _, v in (ln.partition(":") for ln in info.split("\n\n")[0].splitlines())}
     flags = set(field.get("flags", "").split())
     return {"cpu": field.get("model name", "unknown"), "cores": os.cpu_count(),
             "features": list(dict.fromkeys(name for f, name in FEATURES.items() if f in flags)),
