@@ -348,11 +348,11 @@ class PoseNet(nn.Module):
             M = torch.softmax(torch.bmm(q, k.transpose(1, 2)), dim=-1)
         if self.cam is not None:  # A (B, C, C) = softmax(rowmax(energy) - energy) = softmax(-energy)
             neg = fv.new_empty(B, cv + gf.shape[1], cv + gf.shape[1])  # -energy, written block by block
-            ns = fv.sum(dim=1).neg_()  # -s (B, Cv)
-            torch.bmm(fv.transpose(1, 2), fv.neg(), out=neg[:, :cv, :cv])
-            torch.mul(ns[:, :, None], gf[:, None, :], out=neg[:, :cv, cv:])
-            torch.mul(gf[:, :, None], ns[:, None, :], out=neg[:, cv:, :cv])
-            torch.mul(gf[:, :, None], gf[:, None, :], out=neg[:, cv:, cv:]).mul_(-n)
+            ns = -fv.sum(dim=1)  # -s (B, Cv)
+            neg[:, :cv, :cv] = torch.bmm(fv.transpose(1, 2), -fv)
+            neg[:, :cv, cv:] = ns[:, :, None] * gf[:, None, :]
+            neg[:, cv:, :cv] = gf[:, :, None] * ns[:, None, :]
+            neg[:, cv:, cv:] = gf[:, :, None] * gf[:, None, :] * -n
             A = torch.softmax(neg, dim=-1)  # its subnormals zeroed: they halve the speed of the products with A
             A = F.threshold(A, torch.finfo(A.dtype).tiny, 0.0, inplace=not torch.is_grad_enabled())
         if self.gfem is not None:  # (B, G)

@@ -63,6 +63,9 @@ def test_pose_net_and_refiner_shapes(attention):
                 torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
             if attention:
                 net.pam.value.weight.mul_(1.5)
+    q1, t1, c1, _, _ = net.predict(img, pts, choose, obj)  # where autograd records, too
+    (q1.sum() + t1.sum() + c1.sum()).backward()
+    assert all(p.grad is not None for p in net.head_c.parameters())
     rcfg = RefinerConfig(obj_ids=cfg.obj_ids, symmetric=cfg.symmetric)
     ref = build_refiner(rcfg)
     dq, dt = ref(pts, emb, obj)
